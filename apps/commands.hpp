@@ -1,0 +1,13 @@
+// Subcommands of the `crepuscular` command. Each adds itself to the app; its callback parses
+// nothing more and calls the libraries.
+#pragma once
+
+#include <CLI/CLI.hpp>
+
+namespace crepuscular::apps {
+
+void add_phantom_command(CLI::App& app);
+void add_plan_command(CLI::App& app);
+void add_demo_command(CLI::App& app);
+
+}  // namespace crepuscular::apps

@@ -1,0 +1,42 @@
+// The `crepuscular` command: plans safe straight needle paths to a tumor and guides the needle.
+#include <spdlog/spdlog.h>
+
+#include <CLI/CLI.hpp>
+#include <cstdio>
+#include <exception>
+
+#include "apps/commands.hpp"
+#include "kernels/error.hpp"
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "Crepuscular: how safe are the straight needle paths from every point around a tumor?\n"
+      "The tumor is treated as a light source and vulnerable structures cast shadows (the\n"
+      "'crepuscular rays' method). Start with `crepuscular demo`, or see each command's --help."};
+  app.set_version_flag("--version", std::string("crepuscular ") + CREPUSCULAR_VERSION);
+  app.require_subcommand(1);
+  bool verbose = false;
+  app.add_flag("-v,--verbose", verbose, "Print debug messages");
+  app.parse_complete_callback([&] {
+    spdlog::set_pattern("[%H:%M:%S] %^%l%$ %v");
+    spdlog::set_level(verbose ? spdlog::level::debug : spdlog::level::info);
+  });
+  crepuscular::apps::add_phantom_command(app);
+  crepuscular::apps::add_plan_command(app);
+  crepuscular::apps::add_demo_command(app);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return app.exit(e);
+  } catch (const crepuscular::Error& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return 1;
+  } catch (const std::bad_alloc&) {
+    std::fprintf(stderr, "error: out of memory\n");
+    return 1;
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return 1;
+  }
+  return 0;
+}

@@ -1,0 +1,414 @@
+// The path safety values of DESIGN.md §4 (paper §3.2, Algorithm 1), written once as host/device
+// functions: the CPU backend and the CUDA kernels call exactly these. Plain structs, raw buffers,
+// no Eigen or STL, so nvcc and the host compiler read the same code.
+#pragma once
+
+#include <math.h>
+#include <stdint.h>
+
+#include "kernels/hd.hpp"
+
+namespace crepuscular::kernels {
+
+// Bits of the value set: which path safety values a pass computes.
+enum PathSafetyValue : unsigned {
+  kSvv = 1u,   // surface visibility value, %: high is safe
+  kIsbv = 2u,  // integral surface blocking value: low is safe
+  kIvbv = 4u,  // integral volume blocking value: low is safe
+  kBvv = 8u,   // blocker volume value: low is safe
+};
+constexpr unsigned kAllValues = kSvv | kIsbv | kIvbv | kBvv;
+constexpr int kValueCount = 4;
+// Slot of a value in per-voxel result arrays (svv 0, isbv 1, ivbv 2, bvv 3).
+CREPUSCULAR_HD constexpr int value_slot(unsigned bit) {
+  return bit == kSvv ? 0 : bit == kIsbv ? 1 : bit == kIvbv ? 2 : 3;
+}
+
+template <typename Real>
+struct Vec3 {
+  Real x, y, z;
+};
+
+template <typename Real>
+CREPUSCULAR_HD Vec3<Real> operator-(Vec3<Real> a, Vec3<Real> b) {
+  return {a.x - b.x, a.y - b.y, a.z - b.z};
+}
+template <typename Real>
+CREPUSCULAR_HD Real dot(Vec3<Real> a, Vec3<Real> b) {
+  return a.x * b.x + a.y * b.y + a.z * b.z;
+}
+
+// Affine map x -> m[r][0..2] . x + m[r][3]; used for physical (LPS mm) -> continuous voxel index.
+template <typename Real>
+struct Affine {
+  Real m[3][4];
+
+  CREPUSCULAR_HD Vec3<Real> apply(Vec3<Real> p) const {
+    return {m[0][0] * p.x + m[0][1] * p.y + m[0][2] * p.z + m[0][3],
+            m[1][0] * p.x + m[1][1] * p.y + m[1][2] * p.z + m[1][3],
+            m[2][0] * p.x + m[2][1] * p.y + m[2][2] * p.z + m[2][3]};
+  }
+  CREPUSCULAR_HD Vec3<Real> apply_linear(Vec3<Real> d) const {
+    return {m[0][0] * d.x + m[0][1] * d.y + m[0][2] * d.z,
+            m[1][0] * d.x + m[1][1] * d.y + m[1][2] * d.z,
+            m[2][0] * d.x + m[2][1] * d.y + m[2][2] * d.z};
+  }
+};
+
+// Blocking volume b (risk per mm), x fastest. Sampled with trilinear interpolation between voxel
+// centres; voxels outside the grid count as 0 (CUDA's border addressing).
+template <typename Real>
+struct BlockingGrid {
+  const float* values;
+  int nx, ny, nz;
+  Affine<Real> physical_to_index;
+};
+
+// Tumor mask (0/1), x fastest, looked up at the nearest voxel. [lo, hi] is the index bounding box
+// of the tumor voxels.
+template <typename Real>
+struct TumorGrid {
+  const uint8_t* mask;
+  int nx, ny, nz;
+  Affine<Real> physical_to_index;
+  int lo[3], hi[3];
+};
+
+// One tumor surface voxel (a tumor voxel with a 6-neighbour outside the tumor).
+template <typename Real>
+struct SurfacePoint {
+  Vec3<Real> position;  // voxel centre, LPS mm
+  Vec3<Real> normal;    // outward unit normal (DESIGN.md §4)
+  int offset;           // linear offset of its voxel in the tumor mask
+};
+
+// Everything a pass needs, passed by value to kernels.
+template <typename Real>
+struct PathSafetyScene {
+  BlockingGrid<Real> blocking;
+  TumorGrid<Real> tumor;
+  const SurfacePoint<Real>* surface;
+  int surface_count;
+  Real gamma;  // sampling step bound, mm (h / 2)
+  Real eps;    // insignificant blocking for SVV (integral of b, dimensionless)
+  Real s2;     // s_T^2 = (tumor voxel volume)^(2/3), mm^2
+};
+
+// ---------------------------------------------------------------------------------------------
+// Sampling
+
+template <typename Real>
+CREPUSCULAR_HD float blocking_at_index(const BlockingGrid<Real>& g, int i, int j, int k) {
+  if (i < 0 || j < 0 || k < 0 || i >= g.nx || j >= g.ny || k >= g.nz) return 0.0f;
+  return g.values[(int64_t(k) * g.ny + j) * g.nx + i];
+}
+
+// Trilinear interpolation at a continuous index (voxel centres at integers), zero outside.
+template <typename Real>
+CREPUSCULAR_HD Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Real> q) {
+  const Real fx = floor(q.x), fy = floor(q.y), fz = floor(q.z);
+  const int i = int(fx), j = int(fy), k = int(fz);
+  const Real wx = q.x - fx, wy = q.y - fy, wz = q.z - fz;
+  if (i >= 0 && j >= 0 && k >= 0 && i + 1 < g.nx && j + 1 < g.ny && k + 1 < g.nz) {
+    const int64_t sx = 1, sy = g.nx, sz = int64_t(g.nx) * g.ny;
+    const float* v = g.values + (k * sz + j * sy + i);
+    const Real c00 = v[0] + wx * (Real(v[sx]) - v[0]);
+    const Real c10 = v[sy] + wx * (Real(v[sy + sx]) - v[sy]);
+    const Real c01 = v[sz] + wx * (Real(v[sz + sx]) - v[sz]);
+    const Real c11 = v[sz + sy] + wx * (Real(v[sz + sy + sx]) - v[sz + sy]);
+    const Real c0 = c00 + wy * (c10 - c00);
+    const Real c1 = c01 + wy * (c11 - c01);
+    return c0 + wz * (c1 - c0);
+  }
+  if (i < -1 || j < -1 || k < -1 || i >= g.nx || j >= g.ny || k >= g.nz) return Real(0);
+  const Real c00 = blocking_at_index(g, i, j, k) +
+                   wx * (Real(blocking_at_index(g, i + 1, j, k)) - blocking_at_index(g, i, j, k));
+  const Real c10 =
+      blocking_at_index(g, i, j + 1, k) +
+      wx * (Real(blocking_at_index(g, i + 1, j + 1, k)) - blocking_at_index(g, i, j + 1, k));
+  const Real c01 =
+      blocking_at_index(g, i, j, k + 1) +
+      wx * (Real(blocking_at_index(g, i + 1, j, k + 1)) - blocking_at_index(g, i, j, k + 1));
+  const Real c11 = blocking_at_index(g, i, j + 1, k + 1) +
+                   wx * (Real(blocking_at_index(g, i + 1, j + 1, k + 1)) -
+                         blocking_at_index(g, i, j + 1, k + 1));
+  const Real c0 = c00 + wy * (c10 - c00);
+  const Real c1 = c01 + wy * (c11 - c01);
+  return c0 + wz * (c1 - c0);
+}
+
+// Offset of the tumor voxel nearest to continuous tumor index r, or -1 when that voxel is outside
+// the grid or not tumor.
+template <typename Real>
+CREPUSCULAR_HD int tumor_offset_at(const TumorGrid<Real>& g, Vec3<Real> r) {
+  const int i = int(floor(r.x + Real(0.5)));
+  const int j = int(floor(r.y + Real(0.5)));
+  const int k = int(floor(r.z + Real(0.5)));
+  if (i < g.lo[0] || j < g.lo[1] || k < g.lo[2] || i > g.hi[0] || j > g.hi[1] || k > g.hi[2])
+    return -1;
+  const int offset = (k * g.ny + j) * g.nx + i;
+  return g.mask[offset] ? offset : -1;
+}
+
+// ---------------------------------------------------------------------------------------------
+// One ray p -> t: N = ceil(|t-p| / gamma), l = |t-p| / N, x_k = p + k (t-p) / N, k = 1..N.
+
+template <typename Real>
+struct RayGeometry {
+  Vec3<Real> q0, dq;  // blocking index of p, and its step per sample
+  Vec3<Real> r0, dr;  // tumor index of p, and its step per sample
+  int n;              // N samples; 0 when p coincides with t
+  Real step;          // l, mm
+  Real cos_alpha;     // |cos| of the angle between the ray and t's normal
+};
+
+template <typename Real>
+CREPUSCULAR_HD RayGeometry<Real> make_ray(const PathSafetyScene<Real>& s, Vec3<Real> p,
+                                          const SurfacePoint<Real>& t) {
+  RayGeometry<Real> ray;
+  const Vec3<Real> d = t.position - p;
+  const Real dist = sqrt(dot(d, d));
+  ray.n = int(ceil(dist / s.gamma));
+  ray.step = ray.n > 0 ? dist / Real(ray.n) : Real(0);
+  const Real inv_n = ray.n > 0 ? Real(1) / Real(ray.n) : Real(0);
+  const Vec3<Real> dn = {d.x * inv_n, d.y * inv_n, d.z * inv_n};
+  ray.q0 = s.blocking.physical_to_index.apply(p);
+  ray.dq = s.blocking.physical_to_index.apply_linear(dn);
+  ray.r0 = s.tumor.physical_to_index.apply(p);
+  ray.dr = s.tumor.physical_to_index.apply_linear(dn);
+  ray.cos_alpha = dist > Real(0) ? fabs(dot(d, t.normal)) / dist : Real(1);
+  return ray;
+}
+
+template <typename Real>
+CREPUSCULAR_HD Vec3<Real> along(Vec3<Real> origin, Vec3<Real> step, Real k) {
+  return {origin.x + k * step.x, origin.y + k * step.y, origin.z + k * step.z};
+}
+
+// Range of k (real valued) for which origin + k step lies inside the box [lo - 1, hi + 1]; the box
+// is one voxel wider than the tumor so that rounding never misses a tumor voxel.
+template <typename Real>
+CREPUSCULAR_HD void box_range(Vec3<Real> origin, Vec3<Real> step, const int lo[3], const int hi[3],
+                              Real& k_in, Real& k_out) {
+  const Real o[3] = {origin.x, origin.y, origin.z};
+  const Real d[3] = {step.x, step.y, step.z};
+  k_in = Real(-1e30);
+  k_out = Real(1e30);
+  for (int a = 0; a < 3; ++a) {
+    const Real a_lo = Real(lo[a]) - Real(1), a_hi = Real(hi[a]) + Real(1);
+    if (d[a] == Real(0)) {
+      if (o[a] < a_lo || o[a] > a_hi) {
+        k_in = Real(1);
+        k_out = Real(0);
+      }
+      continue;
+    }
+    Real k0 = (a_lo - o[a]) / d[a], k1 = (a_hi - o[a]) / d[a];
+    if (k0 > k1) {
+      const Real tmp = k0;
+      k0 = k1;
+      k1 = tmp;
+    }
+    k_in = k0 > k_in ? k0 : k_in;
+    k_out = k1 < k_out ? k1 : k_out;
+  }
+}
+
+// Tumor occupancy along one ray (DESIGN.md §4): is t front-facing from p, is it back-facing, and
+// how many samples k <= N lie in the tumor (the chord is that count times l).
+struct TumorCrossing {
+  bool front_facing;
+  bool back_facing;
+  int samples_in_tumor;
+};
+
+template <typename Real>
+CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<Real>& g, const RayGeometry<Real>& ray,
+                                         int own_offset, bool want_back) {
+  TumorCrossing c{true, true, 0};
+  if (ray.n == 0) {  // p is t's centre: nothing in front, no direction to look behind
+    c.back_facing = false;
+    c.samples_in_tumor = 1;
+    return c;
+  }
+  Real k_in, k_out;
+  box_range(ray.r0, ray.dr, g.lo, g.hi, k_in, k_out);
+  int k_first = k_in < Real(1) ? 1 : int(floor(k_in));
+  if (k_first < 1) k_first = 1;
+  const int k_last = k_out > Real(2e9) ? 2000000000 : int(ceil(k_out));
+  for (int k = k_first; k <= ray.n && k <= k_last; ++k) {
+    const int off = tumor_offset_at(g, along(ray.r0, ray.dr, Real(k)));
+    if (off >= 0) {
+      ++c.samples_in_tumor;
+      if (off != own_offset && k < ray.n) c.front_facing = false;
+    }
+  }
+  if (want_back) {
+    for (int k = ray.n + 1; k <= k_last; ++k) {
+      const int off = tumor_offset_at(g, along(ray.r0, ray.dr, Real(k)));
+      if (off >= 0 && off != own_offset) {
+        c.back_facing = false;
+        break;
+      }
+    }
+  }
+  return c;
+}
+
+// ---------------------------------------------------------------------------------------------
+// The four values as ACCUMULATEVALUE / COMBINEVALUES / FINALIZEVALUE of Algorithm 1.
+// accumulate: one blocking sample b_k of a ray; combine: one finished ray into the voxel's state;
+// finalize: the voxel's value.
+
+template <typename Real>
+struct RaySample {
+  Real b;     // b(x_k), risk per mm
+  Real step;  // l, mm
+  int k;      // 1..N
+  int n;      // N
+};
+
+template <typename Real>
+struct RayContext {
+  TumorCrossing crossing;
+  Real step;       // l, mm
+  Real cos_alpha;  // |cos alpha_t|
+  Real eps;
+  int n;           // N
+};
+
+// SVV = 100 |{t in F(p) : L(p,t) <= eps}| / |F(p)|, 0 when F(p) is empty.
+template <typename Real>
+struct SurfaceVisibility {
+  static constexpr unsigned kBit = kSvv;
+  static constexpr bool kFront = true, kBack = false;
+  struct Ray {
+    Real line_integral = 0;
+  };
+  struct Voxel {
+    int visible = 0, clear = 0;
+  };
+  static CREPUSCULAR_HD void accumulate(Ray& r, const RaySample<Real>& s) {
+    r.line_integral += s.b * s.step;
+  }
+  static CREPUSCULAR_HD void combine(Voxel& v, const Ray& r, const RayContext<Real>& c) {
+    if (!c.crossing.front_facing) return;
+    ++v.visible;
+    if (r.line_integral <= c.eps) ++v.clear;
+  }
+  static CREPUSCULAR_HD Real finalize(const Voxel& v, Real /*s2*/) {
+    return v.visible > 0 ? Real(100) * Real(v.clear) / Real(v.visible) : Real(0);
+  }
+};
+
+// ISBV = sum over t in F(p) of L(p,t) s_T^2.
+template <typename Real>
+struct IntegralSurfaceBlocking {
+  static constexpr unsigned kBit = kIsbv;
+  static constexpr bool kFront = true, kBack = false;
+  struct Ray {
+    Real line_integral = 0;
+  };
+  struct Voxel {
+    Real sum = 0;
+  };
+  static CREPUSCULAR_HD void accumulate(Ray& r, const RaySample<Real>& s) {
+    r.line_integral += s.b * s.step;
+  }
+  static CREPUSCULAR_HD void combine(Voxel& v, const Ray& r, const RayContext<Real>& c) {
+    if (c.crossing.front_facing) v.sum += r.line_integral;
+  }
+  static CREPUSCULAR_HD Real finalize(const Voxel& v, Real s2) { return v.sum * s2; }
+};
+
+// IVBV = sum over t in B(p) of L(p,t) c(p,t) s_T^2, c = l * (samples k <= N inside T).
+template <typename Real>
+struct IntegralVolumeBlocking {
+  static constexpr unsigned kBit = kIvbv;
+  static constexpr bool kFront = false, kBack = true;
+  struct Ray {
+    Real line_integral = 0;
+  };
+  struct Voxel {
+    Real sum = 0;
+  };
+  static CREPUSCULAR_HD void accumulate(Ray& r, const RaySample<Real>& s) {
+    r.line_integral += s.b * s.step;
+  }
+  static CREPUSCULAR_HD void combine(Voxel& v, const Ray& r, const RayContext<Real>& c) {
+    if (c.crossing.back_facing)
+      v.sum += r.line_integral * (c.step * Real(c.crossing.samples_in_tumor));
+  }
+  static CREPUSCULAR_HD Real finalize(const Voxel& v, Real s2) { return v.sum * s2; }
+};
+
+// BVV = sum over t in B(p) of sum_k b(x_k) s_T^2 |cos alpha_t| (k/N)^2 l   (paper eq. 13-14).
+template <typename Real>
+struct BlockerVolume {
+  static constexpr unsigned kBit = kBvv;
+  static constexpr bool kFront = false, kBack = true;
+  struct Ray {
+    Real weighted = 0;  // sum_k b_k k^2; scaled by l / N^2 in combine
+  };
+  struct Voxel {
+    Real sum = 0;
+  };
+  static CREPUSCULAR_HD void accumulate(Ray& r, const RaySample<Real>& s) {
+    r.weighted += s.b * Real(s.k) * Real(s.k);
+  }
+  static CREPUSCULAR_HD void combine(Voxel& v, const Ray& r, const RayContext<Real>& c) {
+    if (!c.crossing.back_facing || c.n == 0) return;
+    v.sum += c.cos_alpha * r.weighted * c.step / (Real(c.n) * Real(c.n));
+  }
+  static CREPUSCULAR_HD Real finalize(const Voxel& v, Real s2) { return v.sum * s2; }
+};
+
+// ---------------------------------------------------------------------------------------------
+// COMPUTEACCESSIBILITY for one output voxel centre p (LPS mm): casts a ray to every surface point,
+// combines, finalizes. Writes out[value_slot(bit)] for every bit in Values; other slots untouched.
+
+template <typename Real, unsigned Values>
+CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<Real> p, float* out) {
+  using Svv = SurfaceVisibility<Real>;
+  using Isbv = IntegralSurfaceBlocking<Real>;
+  using Ivbv = IntegralVolumeBlocking<Real>;
+  using Bvv = BlockerVolume<Real>;
+  constexpr bool kWantFront = (Values & (kSvv | kIsbv)) != 0;
+  constexpr bool kWantBack = (Values & (kIvbv | kBvv)) != 0;
+
+  typename Svv::Voxel svv;
+  typename Isbv::Voxel isbv;
+  typename Ivbv::Voxel ivbv;
+  typename Bvv::Voxel bvv;
+
+  for (int t = 0; t < s.surface_count; ++t) {
+    const SurfacePoint<Real>& target = s.surface[t];
+    const RayGeometry<Real> ray = make_ray(s, p, target);
+    const TumorCrossing crossing = cross_tumor(s.tumor, ray, target.offset, kWantBack);
+    if (!((kWantFront && crossing.front_facing) || (kWantBack && crossing.back_facing))) continue;
+
+    typename Svv::Ray svv_ray;
+    typename Isbv::Ray isbv_ray;
+    typename Ivbv::Ray ivbv_ray;
+    typename Bvv::Ray bvv_ray;
+    for (int k = 1; k <= ray.n; ++k) {
+      const RaySample<Real> sample{sample_blocking(s.blocking, along(ray.q0, ray.dq, Real(k))),
+                                   ray.step, k, ray.n};
+      if constexpr ((Values & kSvv) != 0) Svv::accumulate(svv_ray, sample);
+      if constexpr ((Values & kIsbv) != 0) Isbv::accumulate(isbv_ray, sample);
+      if constexpr ((Values & kIvbv) != 0) Ivbv::accumulate(ivbv_ray, sample);
+      if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
+    }
+    const RayContext<Real> context{crossing, ray.step, ray.cos_alpha, s.eps, ray.n};
+    if constexpr ((Values & kSvv) != 0) Svv::combine(svv, svv_ray, context);
+    if constexpr ((Values & kIsbv) != 0) Isbv::combine(isbv, isbv_ray, context);
+    if constexpr ((Values & kIvbv) != 0) Ivbv::combine(ivbv, ivbv_ray, context);
+    if constexpr ((Values & kBvv) != 0) Bvv::combine(bvv, bvv_ray, context);
+  }
+  if constexpr ((Values & kSvv) != 0) out[value_slot(kSvv)] = float(Svv::finalize(svv, s.s2));
+  if constexpr ((Values & kIsbv) != 0) out[value_slot(kIsbv)] = float(Isbv::finalize(isbv, s.s2));
+  if constexpr ((Values & kIvbv) != 0) out[value_slot(kIvbv)] = float(Ivbv::finalize(ivbv, s.s2));
+  if constexpr ((Values & kBvv) != 0) out[value_slot(kBvv)] = float(Bvv::finalize(bvv, s.s2));
+}
+
+}  // namespace crepuscular::kernels
