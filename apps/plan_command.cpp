@@ -1,6 +1,72 @@
-// `crepuscular plan` (placeholder).
+// `crepuscular plan`: blocking volume and path safety volumes from a segmentation and a tumor.
+#include <memory>
+#include <string>
+
 #include "apps/commands.hpp"
+#include "planning/plan.hpp"
 
 namespace crepuscular::apps {
-void add_plan_command(CLI::App& app) { app.add_subcommand("plan", "(not yet)"); }
+
+void add_plan_command(CLI::App& app) {
+  auto req = std::make_shared<planning::PlanRequest>();
+  auto values = std::make_shared<std::string>("all");
+  auto device = std::make_shared<std::string>("auto");
+  CLI::App* cmd = app.add_subcommand(
+      "plan",
+      "Compute the path safety volume around a tumor.\n"
+      "For every point in a ball around the tumor, all straight paths from that point to the\n"
+      "tumor surface are traced through the blocking volume (risk per mm), and summarised as:\n"
+      "  svv   surface visibility value: % of the visible tumor surface reachable with a line\n"
+      "        integral of blocking <= eps (high = safe)\n"
+      "  isbv  integral surface blocking value: sum of line integrals to the visible surface\n"
+      "  ivbv  integral volume blocking value: line integrals weighted by tumor chord length\n"
+      "  bvv   blocker volume value: blocking weighted by the volume each sample stands for\n"
+      "        (isbv, ivbv, bvv: low = safe)\n"
+      "Blocking comes from a label map and a vulnerability table (--labels with --vulnerability\n"
+      "or --preset), a ready blocking volume (--blocking), or CT thresholds (--ct alone).\n"
+      "Writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/path_safety_<value>.nii.gz (float32, LPS,\n"
+      "NaN outside the region of interest; open in 3D Slicer) and PLAN_DIR/plan.json.\n"
+      "Example:\n"
+      "  crepuscular phantom --out data && crepuscular plan --labels data/labels.nii.gz \\\n"
+      "      --tumor data/tumor.nii.gz --preset phantom --out plan");
+  cmd->add_option("--labels", req->labels, "Label map (NIfTI, NRRD, MetaImage or DICOM folder)")
+      ->check(CLI::ExistingPath);
+  cmd->add_option("--tumor", req->tumor, "Tumor mask (voxels > 0.5 are tumor)")
+      ->required()
+      ->check(CLI::ExistingPath);
+  cmd->add_option("--vulnerability", req->vulnerability,
+                  "Vulnerability table JSON: label -> level -> blocking per mm "
+                  "(default: vulnerability.json beside the label map)")
+      ->check(CLI::ExistingFile);
+  cmd->add_option("--preset", req->preset, "Built-in vulnerability table: phantom, totalsegmentator");
+  cmd->add_option("--ct", req->ct,
+                  "CT in HU; thresholded (bone, internal air) when no labels are given");
+  cmd->add_option("--blocking", req->blocking,
+                  "Ready blocking volume (risk per mm, >= 0), used as is; the tumor mask may lie "
+                  "on another grid")
+      ->check(CLI::ExistingPath);
+  cmd->add_option("--value", *values, "Values to compute: svv,isbv,ivbv,bvv or all")
+      ->capture_default_str();
+  cmd->add_option("--eps", req->path_safety.eps,
+                  "Insignificant blocking for svv: a path whose line integral is <= eps is clear")
+      ->capture_default_str();
+  cmd->add_option("--spacing", req->path_safety.spacing_mm,
+                  "Output spacing in mm (default: smallest input spacing)");
+  cmd->add_option("--radius", req->path_safety.radius_mm,
+                  "Region of interest radius in mm (default: reaches the farthest voxel with "
+                  "blocking > 0)");
+  cmd->add_option("--margin", req->margin.fwhm_mm,
+                  "Safety margin: FWHM in mm of the Gaussian added around each structure (0: none)")
+      ->capture_default_str();
+  cmd->add_option("--device", *device, "auto, cpu or cuda")->capture_default_str();
+  cmd->add_option("--threads", req->path_safety.threads, "CPU threads (default: all cores)");
+  cmd->add_option("--out", req->out_dir, "Output plan folder (replaced only when complete)")
+      ->required();
+  cmd->callback([req, values, device] {
+    req->path_safety.values = planning::parse_value_set(*values);
+    req->path_safety.device = planning::parse_device(*device);
+    planning::run_plan(*req);
+  });
+}
+
 }  // namespace crepuscular::apps

@@ -78,7 +78,7 @@ struct TumorGrid {
 template <typename Real>
 struct SurfacePoint {
   Vec3<Real> position;  // voxel centre, LPS mm
-  Vec3<Real> normal;    // outward unit normal (DESIGN.md §4)
+  Vec3<Real> normal;    // outward unit normal (DESIGN.md §4); zero when undefined
   int offset;           // linear offset of its voxel in the tumor mask
 };
 
@@ -176,7 +176,9 @@ CREPUSCULAR_HD RayGeometry<Real> make_ray(const PathSafetyScene<Real>& s, Vec3<R
   ray.dq = s.blocking.physical_to_index.apply_linear(dn);
   ray.r0 = s.tumor.physical_to_index.apply(p);
   ray.dr = s.tumor.physical_to_index.apply_linear(dn);
-  ray.cos_alpha = dist > Real(0) ? fabs(dot(d, t.normal)) / dist : Real(1);
+  // A zero normal (a blob too small to have a gradient) has no preferred direction: |cos| = 1.
+  const bool has_normal = dot(t.normal, t.normal) > Real(0);
+  ray.cos_alpha = (dist > Real(0) && has_normal) ? fabs(dot(d, t.normal)) / dist : Real(1);
   return ray;
 }
 
@@ -367,8 +369,17 @@ struct BlockerVolume {
 // COMPUTEACCESSIBILITY for one output voxel centre p (LPS mm): casts a ray to every surface point,
 // combines, finalizes. Writes out[value_slot(bit)] for every bit in Values; other slots untouched.
 
-template <typename Real, unsigned Values>
-CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<Real> p, float* out) {
+// The blocking sampler of the exact definition: trilinear in Real precision over the grid.
+template <typename Real>
+struct GridSampler {
+  BlockingGrid<Real> grid;
+  CREPUSCULAR_HD Real operator()(Vec3<Real> q) const { return sample_blocking(grid, q); }
+};
+
+// Sampler: callable Real(Vec3<Real> blocking_index); the CUDA backend may pass a texture sampler.
+template <typename Real, unsigned Values, typename Sampler>
+CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<Real> p, float* out,
+                                   const Sampler& blocking_at) {
   using Svv = SurfaceVisibility<Real>;
   using Isbv = IntegralSurfaceBlocking<Real>;
   using Ivbv = IntegralVolumeBlocking<Real>;
@@ -392,8 +403,8 @@ CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<Real> p,
     typename Ivbv::Ray ivbv_ray;
     typename Bvv::Ray bvv_ray;
     for (int k = 1; k <= ray.n; ++k) {
-      const RaySample<Real> sample{sample_blocking(s.blocking, along(ray.q0, ray.dq, Real(k))),
-                                   ray.step, k, ray.n};
+      const RaySample<Real> sample{Real(blocking_at(along(ray.q0, ray.dq, Real(k)))), ray.step,
+                                   k, ray.n};
       if constexpr ((Values & kSvv) != 0) Svv::accumulate(svv_ray, sample);
       if constexpr ((Values & kIsbv) != 0) Isbv::accumulate(isbv_ray, sample);
       if constexpr ((Values & kIvbv) != 0) Ivbv::accumulate(ivbv_ray, sample);
@@ -409,6 +420,11 @@ CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<Real> p,
   if constexpr ((Values & kIsbv) != 0) out[value_slot(kIsbv)] = float(Isbv::finalize(isbv, s.s2));
   if constexpr ((Values & kIvbv) != 0) out[value_slot(kIvbv)] = float(Ivbv::finalize(ivbv, s.s2));
   if constexpr ((Values & kBvv) != 0) out[value_slot(kBvv)] = float(Bvv::finalize(bvv, s.s2));
+}
+
+template <typename Real, unsigned Values>
+CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<Real> p, float* out) {
+  path_safety_at<Real, Values>(s, p, out, GridSampler<Real>{s.blocking});
 }
 
 }  // namespace crepuscular::kernels

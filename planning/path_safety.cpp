@@ -1,1 +1,522 @@
-// placeholder
+// Path safety volume: input checks, tumor surface, output grid, CPU backend and device dispatch.
+#include "planning/path_safety.hpp"
+
+#include <omp.h>
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <fstream>
+#include <limits>
+#include <sstream>
+
+#include "kernels/value_set.hpp"
+#include "planning/blocking.hpp"
+
+#if defined(CREPUSCULAR_HAVE_CUDA)
+#include "kernels/path_safety_cuda.hpp"
+#endif
+
+namespace crepuscular::planning {
+
+namespace {
+
+std::string format_bytes(double bytes) {
+  std::ostringstream s;
+  s.precision(3);
+  if (bytes >= 1e9) {
+    s << bytes / 1e9 << " GB";
+  } else {
+    s << bytes / 1e6 << " MB";
+  }
+  return s.str();
+}
+
+kernels::Affine<double> physical_to_index_affine(const ImageGeometry& g) {
+  const Eigen::Matrix3d inv = g.index_to_physical_matrix().inverse();
+  const Eigen::Vector3d t = -inv * g.origin;
+  kernels::Affine<double> a{};
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) a.m[r][c] = inv(r, c);
+    a.m[r][3] = t[r];
+  }
+  return a;
+}
+
+// Separable Gaussian (sigma = 1 voxel, truncated at 4 sigma) of a 0/1 mask over a padded box.
+std::vector<float> smooth_mask_box(const Volume<uint8_t>& tumor, const int lo[3], const int hi[3],
+                                   int pad, int box[3]) {
+  for (int a = 0; a < 3; ++a) box[a] = hi[a] - lo[a] + 1 + 2 * pad;
+  const int64_t n = int64_t(box[0]) * box[1] * box[2];
+  std::vector<float> a(size_t(n), 0.0f), b(size_t(n), 0.0f);
+  const auto at = [&](int x, int y, int z) { return (int64_t(z) * box[1] + y) * box[0] + x; };
+  const auto& dims = tumor.dims();
+  for (int z = 0; z < box[2]; ++z) {
+    for (int y = 0; y < box[1]; ++y) {
+      for (int x = 0; x < box[0]; ++x) {
+        const int64_t i = lo[0] - pad + x, j = lo[1] - pad + y, k = lo[2] - pad + z;
+        if (i >= 0 && j >= 0 && k >= 0 && i < dims[0] && j < dims[1] && k < dims[2]) {
+          a[size_t(at(x, y, z))] = tumor(i, j, k) ? 1.0f : 0.0f;
+        }
+      }
+    }
+  }
+  constexpr int kRadius = 4;
+  float w[2 * kRadius + 1];
+  float sum = 0.0f;
+  for (int t = -kRadius; t <= kRadius; ++t) sum += (w[t + kRadius] = std::exp(-0.5f * t * t));
+  for (float& v : w) v /= sum;
+  const int64_t stride[3] = {1, box[0], int64_t(box[0]) * box[1]};
+  for (int axis = 0; axis < 3; ++axis) {
+    for (int z = 0; z < box[2]; ++z) {
+      for (int y = 0; y < box[1]; ++y) {
+        for (int x = 0; x < box[0]; ++x) {
+          const int c[3] = {x, y, z};
+          float acc = 0.0f;
+          for (int t = -kRadius; t <= kRadius; ++t) {
+            const int q = c[axis] + t;
+            if (q < 0 || q >= box[axis]) continue;
+            acc += w[t + kRadius] * a[size_t(at(x, y, z) + t * stride[axis])];
+          }
+          b[size_t(at(x, y, z))] = acc;
+        }
+      }
+    }
+    std::swap(a, b);
+  }
+  return a;
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+
+unsigned parse_value_set(const std::string& text) {
+  unsigned values = 0;
+  std::stringstream ss(text);
+  std::string item;
+  while (std::getline(ss, item, ',')) {
+    item.erase(std::remove_if(item.begin(), item.end(), ::isspace), item.end());
+    std::transform(item.begin(), item.end(), item.begin(), ::tolower);
+    if (item == "svv") {
+      values |= kernels::kSvv;
+    } else if (item == "isbv") {
+      values |= kernels::kIsbv;
+    } else if (item == "ivbv") {
+      values |= kernels::kIvbv;
+    } else if (item == "bvv") {
+      values |= kernels::kBvv;
+    } else if (item == "all") {
+      values |= kernels::kAllValues;
+    } else if (!item.empty()) {
+      throw Error("--value: unknown path safety value '" + item +
+                  "' (expected svv, isbv, ivbv, bvv or all, comma-separated)");
+    }
+  }
+  if (values == 0) throw Error("--value: no path safety value given (expected e.g. svv,bvv)");
+  return values;
+}
+
+const char* value_name(unsigned bit) {
+  switch (bit) {
+    case kernels::kSvv:
+      return "svv";
+    case kernels::kIsbv:
+      return "isbv";
+    case kernels::kIvbv:
+      return "ivbv";
+    case kernels::kBvv:
+      return "bvv";
+    default:
+      return "?";
+  }
+}
+
+Device parse_device(const std::string& text) {
+  if (text == "auto") return Device::kAuto;
+  if (text == "cpu") return Device::kCpu;
+  if (text == "cuda") return Device::kCuda;
+  throw Error("--device: unknown device '" + text + "' (expected auto, cpu or cuda)");
+}
+
+const char* device_name(Device device) {
+  switch (device) {
+    case Device::kAuto:
+      return "auto";
+    case Device::kCpu:
+      return "cpu";
+    case Device::kCuda:
+      return "cuda";
+  }
+  return "?";
+}
+
+uint64_t available_memory_bytes() {
+  std::ifstream in("/proc/meminfo");
+  std::string key;
+  uint64_t value = 0;
+  std::string unit;
+  while (in >> key >> value >> unit) {
+    if (key == "MemAvailable:") return value * 1024;
+  }
+  return 0;
+}
+
+// ---------------------------------------------------------------------------------------------
+
+TumorSurface extract_tumor_surface(const Volume<uint8_t>& tumor, const std::string& source) {
+  tumor.geometry().validate(source);
+  const auto& g = tumor.geometry();
+  const auto& d = g.dims;
+  if (g.voxel_count() >= int64_t(std::numeric_limits<int>::max())) {
+    throw Error(source + ": tumor mask has " + std::to_string(g.voxel_count()) +
+                " voxels; at most 2^31 are supported (crop it around the tumor)");
+  }
+  TumorSurface s;
+  s.lo[0] = s.lo[1] = s.lo[2] = std::numeric_limits<int>::max();
+  s.hi[0] = s.hi[1] = s.hi[2] = -1;
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  for (int64_t k = 0; k < d[2]; ++k) {
+    for (int64_t j = 0; j < d[1]; ++j) {
+      for (int64_t i = 0; i < d[0]; ++i) {
+        if (!tumor(i, j, k)) continue;
+        ++s.tumor_voxels;
+        sum += Eigen::Vector3d(double(i), double(j), double(k));
+        const int64_t idx[3] = {i, j, k};
+        for (int a = 0; a < 3; ++a) {
+          s.lo[a] = std::min(s.lo[a], int(idx[a]));
+          s.hi[a] = std::max(s.hi[a], int(idx[a]));
+        }
+      }
+    }
+  }
+  if (s.tumor_voxels == 0) {
+    throw Error(source + ": tumor mask is empty (0 voxels > 0); expected a 0/1 mask of the tumor");
+  }
+  s.centroid = g.index_to_physical(Eigen::Vector3d(sum / double(s.tumor_voxels)));
+  s.s2_mm2 = std::pow(g.voxel_volume_mm3(), 2.0 / 3.0);
+
+  constexpr int kPad = 5;
+  int box[3];
+  const std::vector<float> smooth = smooth_mask_box(tumor, s.lo, s.hi, kPad, box);
+  const auto sm = [&](int64_t i, int64_t j, int64_t k) {
+    const int64_t x = i - (s.lo[0] - kPad), y = j - (s.lo[1] - kPad), z = k - (s.lo[2] - kPad);
+    return smooth[size_t((z * box[1] + y) * box[0] + x)];
+  };
+  // Gradient in index space -> physical space: grad_phys = D diag(1/s) grad_index.
+  const Eigen::Matrix3d to_physical = g.direction * g.spacing.cwiseInverse().asDiagonal();
+  const auto inside = [&](int64_t i, int64_t j, int64_t k) {
+    return g.contains(i, j, k) && tumor(i, j, k) != 0;
+  };
+  for (int64_t k = s.lo[2]; k <= s.hi[2]; ++k) {
+    for (int64_t j = s.lo[1]; j <= s.hi[1]; ++j) {
+      for (int64_t i = s.lo[0]; i <= s.hi[0]; ++i) {
+        if (!tumor(i, j, k)) continue;
+        const bool surface = !inside(i - 1, j, k) || !inside(i + 1, j, k) ||
+                             !inside(i, j - 1, k) || !inside(i, j + 1, k) ||
+                             !inside(i, j, k - 1) || !inside(i, j, k + 1);
+        if (!surface) continue;
+        const Eigen::Vector3d grad_index(0.5 * (sm(i + 1, j, k) - sm(i - 1, j, k)),
+                                         0.5 * (sm(i, j + 1, k) - sm(i, j - 1, k)),
+                                         0.5 * (sm(i, j, k + 1) - sm(i, j, k - 1)));
+        Eigen::Vector3d normal = -(to_physical * grad_index);
+        const double norm = normal.norm();
+        // A symmetric blob (one voxel) has no gradient at its centre: no preferred direction,
+        // encoded as a zero normal (|cos alpha| = 1 in the kernels).
+        normal = norm > 1e-9 ? Eigen::Vector3d(normal / norm) : Eigen::Vector3d::Zero();
+        const Eigen::Vector3d p = g.index_to_physical(i, j, k);
+        kernels::SurfacePoint<double> sp{};
+        sp.position = {p.x(), p.y(), p.z()};
+        sp.normal = {normal.x(), normal.y(), normal.z()};
+        sp.offset = int(g.offset(i, j, k));
+        s.points.push_back(sp);
+      }
+    }
+  }
+  return s;
+}
+
+OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
+                            const TumorSurface& surface, const PathSafetyOptions& options) {
+  const auto& bg = blocking.geometry();
+  OutputGrid out;
+  out.centre = surface.centroid;
+  double h = options.spacing_mm;
+  if (h == 0.0) h = std::min(bg.spacing.minCoeff(), tumor.geometry().spacing.minCoeff());
+  if (!(h > 0.0) || !std::isfinite(h)) {
+    throw Error("--spacing: output spacing must be > 0 mm (got " + std::to_string(h) + ")");
+  }
+  double r = options.radius_mm;
+  if (!(r >= 0.0) || !std::isfinite(r)) {
+    throw Error("--radius: radius must be >= 0 mm (got " + std::to_string(r) + ")");
+  }
+  if (r == 0.0) {
+    const auto& d = bg.dims;
+    double r2 = 0.0;
+    for (int64_t k = 0; k < d[2]; ++k) {
+      for (int64_t j = 0; j < d[1]; ++j) {
+        for (int64_t i = 0; i < d[0]; ++i) {
+          if (blocking(i, j, k) > 0.0f) {
+            r2 = std::max(r2, (bg.index_to_physical(i, j, k) - out.centre).squaredNorm());
+          }
+        }
+      }
+    }
+    r = std::sqrt(r2);
+    if (r == 0.0) {
+      throw Error(
+          "blocking volume has no voxel with b > 0, so the region of interest (the ball "
+          "reaching the farthest blocking voxel) is empty; give --radius MM");
+    }
+  }
+  out.radius_mm = r;
+  const int64_t half = int64_t(std::ceil(r / h - 1e-9));
+  const int64_t n = 2 * half + 1;
+  if (n > 4097) {
+    throw Error("region of interest too large: " + std::to_string(n) + " voxels per axis (radius " +
+                std::to_string(r) + " mm at spacing " + std::to_string(h) +
+                " mm); use a larger --spacing or a smaller --radius");
+  }
+  out.geometry.dims = {n, n, n};
+  out.geometry.spacing = Eigen::Vector3d::Constant(h);
+  out.geometry.direction = bg.direction;
+  out.geometry.origin = out.centre - bg.direction * Eigen::Vector3d::Constant(double(half) * h);
+  // Voxels inside the ball, by the integer test both backends use.
+  const double rh = r / h;
+  out.half = half;
+  out.max_sq = int64_t(std::floor(rh * rh + 1e-9));
+  int64_t count = 0;
+  for (int64_t k = 0; k < n; ++k) {
+    for (int64_t j = 0; j < n; ++j) {
+      const int64_t rest = out.max_sq - (j - half) * (j - half) - (k - half) * (k - half);
+      if (rest < 0) continue;
+      const int64_t w = std::min<int64_t>(int64_t(std::floor(std::sqrt(double(rest)))), half);
+      count += 2 * w + 1;
+    }
+  }
+  out.roi_voxels = count;
+  return out;
+}
+
+kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
+                                            const Volume<uint8_t>& tumor,
+                                            const TumorSurface& surface, double gamma_mm,
+                                            double eps) {
+  kernels::PathSafetyScene<double> s{};
+  const auto& bd = blocking.dims();
+  s.blocking.values = blocking.data();
+  s.blocking.nx = int(bd[0]);
+  s.blocking.ny = int(bd[1]);
+  s.blocking.nz = int(bd[2]);
+  s.blocking.physical_to_index = physical_to_index_affine(blocking.geometry());
+  const auto& td = tumor.dims();
+  s.tumor.mask = tumor.data();
+  s.tumor.nx = int(td[0]);
+  s.tumor.ny = int(td[1]);
+  s.tumor.nz = int(td[2]);
+  s.tumor.physical_to_index = physical_to_index_affine(tumor.geometry());
+  for (int a = 0; a < 3; ++a) {
+    s.tumor.lo[a] = surface.lo[a];
+    s.tumor.hi[a] = surface.hi[a];
+  }
+  s.surface = surface.points.data();
+  s.surface_count = int(surface.points.size());
+  s.gamma = gamma_mm;
+  s.eps = eps;
+  s.s2 = surface.s2_mm2;
+  return s;
+}
+
+// ---------------------------------------------------------------------------------------------
+
+namespace {
+
+void check_tumor_inside_blocking(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
+                                 const TumorSurface& surface, const std::string& blocking_source,
+                                 const std::string& tumor_source) {
+  const auto& bg = blocking.geometry();
+  const auto& tg = tumor.geometry();
+  int64_t outside = 0;
+  for (int64_t k = surface.lo[2]; k <= surface.hi[2]; ++k) {
+    for (int64_t j = surface.lo[1]; j <= surface.hi[1]; ++j) {
+      for (int64_t i = surface.lo[0]; i <= surface.hi[0]; ++i) {
+        if (!tumor(i, j, k)) continue;
+        const Eigen::Vector3d q = bg.physical_to_index(tg.index_to_physical(i, j, k));
+        for (int a = 0; a < 3; ++a) {
+          if (q[a] < -0.5 || q[a] > double(bg.dims[a]) - 0.5) {
+            ++outside;
+            break;
+          }
+        }
+      }
+    }
+  }
+  if (outside > 0) {
+    std::ostringstream m;
+    m << tumor_source << ": " << outside << " of " << surface.tumor_voxels
+      << " tumor voxels lie outside the blocking volume (" << blocking_source
+      << "); the tumor must lie inside the segmented region";
+    throw Error(m.str());
+  }
+}
+
+void run_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
+             unsigned values, int threads, PathSafetyResult& result,
+             const std::function<void(double)>& progress) {
+  const auto& g = grid.geometry;
+  const int64_t n = g.dims[0];
+  float* out[kernels::kValueCount] = {};
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
+  }
+  std::atomic<int64_t> done{0};
+  const int64_t total = std::max<int64_t>(grid.roi_voxels, 1);
+  double next_report = 0.02;
+  kernels::with_value_set(values, [&](auto tag) {
+    constexpr unsigned kValues = decltype(tag)::value;
+#pragma omp parallel for collapse(2) schedule(dynamic, 1) num_threads(threads)
+    for (int64_t k = 0; k < n; ++k) {
+      for (int64_t j = 0; j < n; ++j) {
+        int64_t row_done = 0;
+        for (int64_t i = 0; i < n; ++i) {
+          if (!grid.in_roi(i, j, k)) continue;
+          const Eigen::Vector3d p = g.index_to_physical(i, j, k);
+          float res[kernels::kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
+          kernels::path_safety_at<double, kValues>(scene, {p.x(), p.y(), p.z()}, res);
+          const int64_t off = g.offset(i, j, k);
+          for (int v = 0; v < kernels::kValueCount; ++v) {
+            if (out[v]) out[v][off] = res[v];
+          }
+          ++row_done;
+        }
+        const int64_t now = done.fetch_add(row_done) + row_done;
+        if (progress && omp_get_thread_num() == 0) {
+          const double f = double(now) / double(total);
+          if (f >= next_report) {
+            progress(std::min(f, 1.0));
+            next_report = f + 0.02;
+          }
+        }
+      }
+    }
+  });
+  if (progress) progress(1.0);
+}
+
+}  // namespace
+
+PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
+                                     const PathSafetyOptions& options,
+                                     const std::string& blocking_source,
+                                     const std::string& tumor_source) {
+  const auto t0 = std::chrono::steady_clock::now();
+  blocking.geometry().validate(blocking_source);
+  tumor.geometry().validate(tumor_source);
+  if (options.values == 0 || (options.values & ~kernels::kAllValues) != 0) {
+    throw Error("path safety: no valid value requested (expected svv, isbv, ivbv, bvv)");
+  }
+  if (!(options.eps >= 0.0) || !std::isfinite(options.eps)) {
+    throw Error("--eps: insignificant blocking must be a finite number >= 0 (got " +
+                std::to_string(options.eps) + ")");
+  }
+  if (options.spacing_mm < 0.0 || !std::isfinite(options.spacing_mm)) {
+    throw Error("--spacing: output spacing must be > 0 mm (got " +
+                std::to_string(options.spacing_mm) + ")");
+  }
+  validate_blocking(blocking, blocking_source);
+  const TumorSurface surface = extract_tumor_surface(tumor, tumor_source);
+  check_tumor_inside_blocking(blocking, tumor, surface, blocking_source, tumor_source);
+  const OutputGrid grid = make_output_grid(blocking, tumor, surface, options);
+
+  int value_count = 0;
+  for (int v = 0; v < kernels::kValueCount; ++v) value_count += (options.values >> v) & 1u;
+  const double need = double(grid.geometry.voxel_count()) * 4.0 * value_count;
+  const double limit = options.memory_limit_bytes > 0
+                           ? double(options.memory_limit_bytes)
+                           : 0.8 * double(available_memory_bytes());
+  if (limit > 0.0 && need > limit) {
+    const auto& d = grid.geometry.dims;
+    std::ostringstream m;
+    m << "region of interest too large for memory: output grid " << d[0] << "x" << d[1] << "x"
+      << d[2] << " voxels (radius " << grid.radius_mm << " mm, spacing "
+      << grid.geometry.spacing[0] << " mm) x " << value_count << " values needs "
+      << format_bytes(need) << ", " << format_bytes(limit)
+      << " may be used; give a larger --spacing, a smaller --radius or fewer --value";
+    throw Error(m.str());
+  }
+
+  PathSafetyResult result;
+  result.grid = grid;
+  result.values = options.values;
+  result.tumor_voxels = surface.tumor_voxels;
+  result.surface_points = int64_t(surface.points.size());
+  result.s2_mm2 = surface.s2_mm2;
+  result.gamma_mm = 0.5 * grid.geometry.spacing[0];
+  result.eps = options.eps;
+  result.rays = uint64_t(grid.roi_voxels) * uint64_t(surface.points.size());
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (options.values & (1u << v)) {
+      result.volumes[size_t(v)] =
+          Volume<float>(grid.geometry, std::numeric_limits<float>::quiet_NaN());
+    }
+  }
+
+  Device device = options.device;
+#if defined(CREPUSCULAR_HAVE_CUDA)
+  const int gpus = kernels::cuda_device_count();
+#else
+  const int gpus = 0;
+#endif
+  if (device == Device::kCuda && gpus == 0) {
+#if defined(CREPUSCULAR_HAVE_CUDA)
+    throw Error("--device cuda: no CUDA device found (use --device cpu or auto)");
+#else
+    throw Error("--device cuda: this build has no CUDA backend (rebuild with nvcc available)");
+#endif
+  }
+  if (device == Device::kAuto) device = gpus > 0 ? Device::kCuda : Device::kCpu;
+
+  spdlog::info("path safety: {} ROI voxels x {} surface points = {:.3g} rays (R = {:.1f} mm, "
+               "h = {:.2f} mm) on {}",
+               grid.roi_voxels, surface.points.size(), double(result.rays), grid.radius_mm,
+               grid.geometry.spacing[0], device == Device::kCuda ? "cuda" : "cpu");
+  const auto scene =
+      make_scene(blocking, tumor, surface, result.gamma_mm, options.eps);
+  if (device == Device::kCuda) {
+#if defined(CREPUSCULAR_HAVE_CUDA)
+    kernels::OutputGridDesc desc{};
+    const Eigen::Matrix3d axes = grid.geometry.index_to_physical_matrix();
+    for (int a = 0; a < 3; ++a) {
+      desc.origin[a] = grid.geometry.origin[a];
+      for (int b = 0; b < 3; ++b) desc.axes[a][b] = axes(b, a);
+    }
+    desc.n = int(grid.geometry.dims[0]);
+    desc.half = int(grid.half);
+    desc.max_sq = grid.max_sq;
+    float* out[kernels::kValueCount] = {};
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      if (options.values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
+    }
+    kernels::CudaRunOptions cuda;
+    cuda.storage = options.cuda_texture ? kernels::BlockingStorage::kTexture
+                                        : kernels::BlockingStorage::kGlobal;
+    cuda.max_devices = options.max_gpus;
+    cuda.progress = options.progress;
+    const kernels::CudaRunReport report =
+        kernels::run_path_safety_cuda(scene, desc, options.values, out, cuda);
+    result.device = report.devices + (options.cuda_texture ? " (texture)" : "");
+#endif
+  } else {
+    const int threads = options.threads > 0 ? options.threads : omp_get_max_threads();
+    result.threads = threads;
+    result.device = "cpu";
+    run_cpu(scene, grid, options.values, threads, result, options.progress);
+  }
+  result.seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return result;
+}
+
+}  // namespace crepuscular::planning

@@ -32,6 +32,10 @@ struct PathSafetyOptions {
   double radius_mm = 0.0;   // region of interest R; 0: distance to the farthest voxel with b > 0
   Device device = Device::kAuto;
   int threads = 0;  // CPU threads; 0: all cores
+  int max_gpus = 0;  // CUDA devices to use; 0: all visible
+  // CUDA only: sample the blocking volume through a 3D texture with hardware trilinear filtering
+  // (9-bit weights) instead of float filtering in global memory (the exact definition).
+  bool cuda_texture = false;
   // Memory the output may take, bytes; 0: 80 % of the memory available now.
   uint64_t memory_limit_bytes = 0;
   // Called from the computing thread with the fraction done (0..1), about every 2 % of the work.
@@ -57,7 +61,14 @@ struct OutputGrid {
   ImageGeometry geometry;
   Eigen::Vector3d centre = Eigen::Vector3d::Zero();
   double radius_mm = 0.0;
+  int64_t half = 0;        // index of the centre voxel along each axis
+  int64_t max_sq = 0;      // ROI: (i-half)^2 + (j-half)^2 + (k-half)^2 <= max_sq
   int64_t roi_voxels = 0;  // voxels inside the ball
+
+  bool in_roi(int64_t i, int64_t j, int64_t k) const {
+    const int64_t di = i - half, dj = j - half, dk = k - half;
+    return di * di + dj * dj + dk * dk <= max_sq;
+  }
 };
 OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                             const TumorSurface& surface, const PathSafetyOptions& options);

@@ -1,2 +1,67 @@
+// The host/device sampling helpers of the path safety math, against analytic values.
+#include "kernels/path_safety_math.hpp"
+
 #include <gtest/gtest.h>
-TEST(Placeholder, Empty) {}
+
+#include <cmath>
+#include <vector>
+
+namespace crepuscular::kernels {
+namespace {
+
+Affine<double> identity_affine() {
+  Affine<double> a{};
+  a.m[0][0] = a.m[1][1] = a.m[2][2] = 1.0;
+  return a;
+}
+
+TEST(Sampling, TrilinearReproducesLinearFunctionsInside) {
+  // Trilinear interpolation is exact for f = a + b x + c y + d z + e x y z-free linear fields.
+  const int n = 6;
+  std::vector<float> v(n * n * n);
+  const auto f = [](double x, double y, double z) { return 1.0 + 0.5 * x - 0.25 * y + 2.0 * z; };
+  for (int k = 0; k < n; ++k)
+    for (int j = 0; j < n; ++j)
+      for (int i = 0; i < n; ++i) v[size_t((k * n + j) * n + i)] = float(f(i, j, k));
+  BlockingGrid<double> g{v.data(), n, n, n, identity_affine()};
+  for (double x : {0.0, 0.3, 2.71, 4.99})
+    for (double y : {0.0, 1.5, 4.2})
+      for (double z : {0.1, 3.3, 4.999})
+        EXPECT_NEAR(sample_blocking(g, Vec3<double>{x, y, z}), f(x, y, z), 1e-5);
+}
+
+TEST(Sampling, OutsideTheGridBlendsToZero) {
+  // Zero padding: at index -0.5 the value is half of voxel 0; at -1 and beyond it is 0.
+  const int n = 4;
+  std::vector<float> v(n * n * n, 3.0f);
+  BlockingGrid<double> g{v.data(), n, n, n, identity_affine()};
+  EXPECT_NEAR(sample_blocking(g, Vec3<double>{-0.5, 1.0, 1.0}), 1.5, 1e-6);
+  EXPECT_NEAR(sample_blocking(g, Vec3<double>{1.0, 3.25, 1.0}), 2.25, 1e-6);
+  EXPECT_EQ(sample_blocking(g, Vec3<double>{-1.0, 1.0, 1.0}), 0.0);
+  EXPECT_EQ(sample_blocking(g, Vec3<double>{1.0, 1.0, 7.0}), 0.0);
+  EXPECT_EQ(sample_blocking(g, Vec3<double>{-100.0, 1.0, 1.0}), 0.0);
+}
+
+TEST(Sampling, TumorLookupRoundsToNearestVoxel) {
+  const int n = 5;
+  std::vector<uint8_t> m(n * n * n, 0);
+  m[size_t((2 * n + 2) * n + 3)] = 1;  // voxel (3, 2, 2)
+  TumorGrid<double> g{m.data(), n, n, n, identity_affine(), {3, 2, 2}, {3, 2, 2}};
+  EXPECT_EQ(tumor_offset_at(g, Vec3<double>{3.4, 2.0, 1.6}), (2 * n + 2) * n + 3);
+  EXPECT_EQ(tumor_offset_at(g, Vec3<double>{3.6, 2.0, 2.0}), -1);
+  EXPECT_EQ(tumor_offset_at(g, Vec3<double>{2.6, 2.4, 2.4}), (2 * n + 2) * n + 3);
+  EXPECT_EQ(tumor_offset_at(g, Vec3<double>{-3.0, 2.0, 2.0}), -1);
+}
+
+TEST(Sampling, BoxRangeCoversTheBoxWithOneVoxelMargin) {
+  const int lo[3] = {2, 2, 2}, hi[3] = {4, 4, 4};
+  double k_in, k_out;
+  box_range(Vec3<double>{3, 3, -10}, Vec3<double>{0, 0, 0.5}, lo, hi, k_in, k_out);
+  EXPECT_NEAR(k_in, (1.0 + 10.0) / 0.5, 1e-12);   // enters at z = lo - 1 = 1
+  EXPECT_NEAR(k_out, (5.0 + 10.0) / 0.5, 1e-12);  // leaves at z = hi + 1 = 5
+  box_range(Vec3<double>{10, 3, -10}, Vec3<double>{0, 0, 0.5}, lo, hi, k_in, k_out);
+  EXPECT_GT(k_in, k_out);  // misses the box
+}
+
+}  // namespace
+}  // namespace crepuscular::kernels

@@ -1,0 +1,297 @@
+// CUDA launchers of the path safety values: one thread per output voxel, 8x8x4 voxel blocks,
+// every visible GPU taking a slab of z-slices. The math is kernels/path_safety_math.hpp.
+#include "kernels/path_safety_cuda.hpp"
+
+#include <cuda_runtime.h>
+
+#include <algorithm>
+#include <cmath>
+#include <atomic>
+#include <chrono>
+#include <exception>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "kernels/error.hpp"
+#include "kernels/value_set.hpp"
+
+namespace crepuscular::kernels {
+
+namespace {
+
+void check(cudaError_t status, const char* what) {
+  if (status != cudaSuccess) {
+    throw Error(std::string("CUDA: ") + what + " failed: " + cudaGetErrorString(status));
+  }
+}
+
+template <typename T>
+struct DeviceBuffer {
+  T* ptr = nullptr;
+  DeviceBuffer() = default;
+  explicit DeviceBuffer(size_t count) { allocate(count); }
+  void allocate(size_t count) {
+    check(cudaMalloc(&ptr, std::max<size_t>(count, 1) * sizeof(T)), "cudaMalloc");
+  }
+  ~DeviceBuffer() {
+    if (ptr) cudaFree(ptr);
+  }
+  DeviceBuffer(const DeviceBuffer&) = delete;
+  DeviceBuffer& operator=(const DeviceBuffer&) = delete;
+};
+
+Affine<float> to_float(const Affine<double>& a) {
+  Affine<float> f{};
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 4; ++c) f.m[r][c] = float(a.m[r][c]);
+  return f;
+}
+
+// Hardware-filtered blocking lookups: unnormalised coordinates, voxel centres at +0.5, border 0.
+struct TextureSampler {
+  cudaTextureObject_t texture;
+  __device__ float operator()(Vec3<float> q) const {
+    return tex3D<float>(texture, q.x + 0.5f, q.y + 0.5f, q.z + 0.5f);
+  }
+};
+
+struct SlabGrid {
+  float origin[3];
+  float axes[3][3];
+  int n;
+  int z_begin, z_end;  // slices of this launch, global indices
+  int z_slab;          // first slice of this device's slab
+  int half;
+  long long max_sq;
+};
+
+template <unsigned Values, typename Sampler>
+__global__ void path_safety_kernel(PathSafetyScene<float> scene, SlabGrid grid, Sampler sampler,
+                                   float* __restrict__ out0, float* __restrict__ out1,
+                                   float* __restrict__ out2, float* __restrict__ out3) {
+  const int i = blockIdx.x * blockDim.x + threadIdx.x;
+  const int j = blockIdx.y * blockDim.y + threadIdx.y;
+  const int k = grid.z_begin + blockIdx.z * blockDim.z + threadIdx.z;
+  if (i >= grid.n || j >= grid.n || k >= grid.z_end) return;
+  const float fi = float(i), fj = float(j), fk = float(k);
+  const Vec3<float> p = {
+      grid.origin[0] + fi * grid.axes[0][0] + fj * grid.axes[1][0] + fk * grid.axes[2][0],
+      grid.origin[1] + fi * grid.axes[0][1] + fj * grid.axes[1][1] + fk * grid.axes[2][1],
+      grid.origin[2] + fi * grid.axes[0][2] + fj * grid.axes[1][2] + fk * grid.axes[2][2]};
+  const long long di = i - grid.half, dj = j - grid.half, dk = k - grid.half;
+  if (di * di + dj * dj + dk * dk > grid.max_sq) return;
+  float res[kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
+  path_safety_at<float, Values>(scene, p, res, sampler);
+  const size_t off = (size_t(k - grid.z_slab) * grid.n + j) * grid.n + i;
+  if constexpr ((Values & kSvv) != 0) out0[off] = res[0];
+  if constexpr ((Values & kIsbv) != 0) out1[off] = res[1];
+  if constexpr ((Values & kIvbv) != 0) out2[off] = res[2];
+  if constexpr ((Values & kBvv) != 0) out3[off] = res[3];
+}
+
+// Everything one device needs, uploaded once.
+struct DeviceScene {
+  DeviceBuffer<float> blocking;
+  DeviceBuffer<uint8_t> tumor;
+  DeviceBuffer<SurfacePoint<float>> surface;
+  cudaArray_t array = nullptr;
+  cudaTextureObject_t texture = 0;
+  PathSafetyScene<float> scene{};
+
+  DeviceScene(const PathSafetyScene<double>& host, BlockingStorage storage)
+      : tumor(size_t(host.tumor.nx) * host.tumor.ny * host.tumor.nz),
+        surface(size_t(std::max(host.surface_count, 1))) {
+    const size_t nb = size_t(host.blocking.nx) * host.blocking.ny * host.blocking.nz;
+    const size_t nt = size_t(host.tumor.nx) * host.tumor.ny * host.tumor.nz;
+    scene.blocking.nx = host.blocking.nx;
+    scene.blocking.ny = host.blocking.ny;
+    scene.blocking.nz = host.blocking.nz;
+    scene.blocking.physical_to_index = to_float(host.blocking.physical_to_index);
+    if (storage == BlockingStorage::kGlobal) {
+      blocking.allocate(nb);
+      check(cudaMemcpy(blocking.ptr, host.blocking.values, nb * sizeof(float),
+                       cudaMemcpyHostToDevice),
+            "upload blocking volume");
+      scene.blocking.values = blocking.ptr;
+    } else {
+      const cudaChannelFormatDesc desc = cudaCreateChannelDesc<float>();
+      const cudaExtent extent = make_cudaExtent(size_t(host.blocking.nx),
+                                                size_t(host.blocking.ny),
+                                                size_t(host.blocking.nz));
+      check(cudaMalloc3DArray(&array, &desc, extent), "cudaMalloc3DArray");
+      cudaMemcpy3DParms copy = {};
+      copy.srcPtr = make_cudaPitchedPtr(const_cast<float*>(host.blocking.values),
+                                        size_t(host.blocking.nx) * sizeof(float),
+                                        size_t(host.blocking.nx), size_t(host.blocking.ny));
+      copy.dstArray = array;
+      copy.extent = extent;
+      copy.kind = cudaMemcpyHostToDevice;
+      check(cudaMemcpy3D(&copy), "upload blocking texture");
+      cudaResourceDesc res = {};
+      res.resType = cudaResourceTypeArray;
+      res.res.array.array = array;
+      cudaTextureDesc tex = {};
+      tex.addressMode[0] = tex.addressMode[1] = tex.addressMode[2] = cudaAddressModeBorder;
+      tex.filterMode = cudaFilterModeLinear;
+      tex.readMode = cudaReadModeElementType;
+      tex.normalizedCoords = 0;
+      check(cudaCreateTextureObject(&texture, &res, &tex, nullptr), "cudaCreateTextureObject");
+      scene.blocking.values = nullptr;
+    }
+    check(cudaMemcpy(tumor.ptr, host.tumor.mask, nt, cudaMemcpyHostToDevice), "upload tumor");
+    scene.tumor.mask = tumor.ptr;
+    scene.tumor.nx = host.tumor.nx;
+    scene.tumor.ny = host.tumor.ny;
+    scene.tumor.nz = host.tumor.nz;
+    scene.tumor.physical_to_index = to_float(host.tumor.physical_to_index);
+    for (int a = 0; a < 3; ++a) {
+      scene.tumor.lo[a] = host.tumor.lo[a];
+      scene.tumor.hi[a] = host.tumor.hi[a];
+    }
+    std::vector<SurfacePoint<float>> points(size_t(host.surface_count));
+    for (int t = 0; t < host.surface_count; ++t) {
+      const auto& s = host.surface[t];
+      points[size_t(t)] = {{float(s.position.x), float(s.position.y), float(s.position.z)},
+                           {float(s.normal.x), float(s.normal.y), float(s.normal.z)},
+                           s.offset};
+    }
+    if (!points.empty()) {
+      check(cudaMemcpy(surface.ptr, points.data(), points.size() * sizeof(points[0]),
+                       cudaMemcpyHostToDevice),
+            "upload surface points");
+    }
+    scene.surface = surface.ptr;
+    scene.surface_count = host.surface_count;
+    scene.gamma = float(host.gamma);
+    scene.eps = float(host.eps);
+    scene.s2 = float(host.s2);
+  }
+  ~DeviceScene() {
+    if (texture) cudaDestroyTextureObject(texture);
+    if (array) cudaFreeArray(array);
+  }
+};
+
+}  // namespace
+
+int cuda_device_count() {
+  int count = 0;
+  if (cudaGetDeviceCount(&count) != cudaSuccess) {
+    cudaGetLastError();  // clear the sticky "no driver" error
+    return 0;
+  }
+  return count;
+}
+
+CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& host_scene,
+                                   const OutputGridDesc& grid, unsigned values,
+                                   float* const out[kValueCount], const CudaRunOptions& options) {
+  int devices = cuda_device_count();
+  if (devices == 0) throw Error("CUDA: no device found");
+  if (options.max_devices > 0) devices = std::min(devices, options.max_devices);
+  const int n = grid.n;
+  // Slabs: whole slices, balanced by the number of ball voxels rather than by slice count.
+  std::vector<double> weight(static_cast<size_t>(n));
+  double total = 0.0;
+  for (int k = 0; k < n; ++k) {
+    const double dk = double(k - grid.half);
+    weight[size_t(k)] = std::max(0.0, double(grid.max_sq) - dk * dk);
+    total += weight[size_t(k)];
+  }
+  std::vector<int> bounds(size_t(devices) + 1, n);
+  bounds[0] = 0;
+  double acc = 0.0;
+  int dev = 1;
+  for (int k = 0; k < n && dev < devices; ++k) {
+    acc += weight[size_t(k)];
+    if (acc >= total * dev / devices) bounds[size_t(dev++)] = k + 1;
+  }
+
+  std::atomic<int64_t> slices_done{0};
+  std::mutex progress_mutex;
+  std::vector<std::exception_ptr> errors(static_cast<size_t>(devices));
+  std::string names;
+  for (int d = 0; d < devices; ++d) {
+    cudaDeviceProp prop{};
+    if (cudaGetDeviceProperties(&prop, d) == cudaSuccess) names = prop.name;
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto work = [&](int d) {
+    try {
+      check(cudaSetDevice(d), "cudaSetDevice");
+      const int z0 = bounds[size_t(d)], z1 = bounds[size_t(d) + 1];
+      if (z1 <= z0) return;
+      DeviceScene ds(host_scene, options.storage);
+      const size_t slab = size_t(z1 - z0) * size_t(n) * size_t(n);
+      DeviceBuffer<float> buffers[kValueCount];
+      float* dev_out[kValueCount] = {nullptr, nullptr, nullptr, nullptr};
+      for (int v = 0; v < kValueCount; ++v) {
+        if (values & (1u << v)) {
+          buffers[v].allocate(slab);
+          dev_out[v] = buffers[v].ptr;
+          // All bits set is a NaN: voxels outside the ball stay "not computed".
+          check(cudaMemset(dev_out[v], 0xFF, slab * sizeof(float)), "cudaMemset");
+        }
+      }
+      SlabGrid g{};
+      for (int a = 0; a < 3; ++a) {
+        g.origin[a] = float(grid.origin[a]);
+        for (int b = 0; b < 3; ++b) g.axes[a][b] = float(grid.axes[a][b]);
+      }
+      g.n = n;
+      g.z_slab = z0;
+      g.half = grid.half;
+      g.max_sq = grid.max_sq;
+      const dim3 block(8, 8, 4);
+      constexpr int kSlicesPerLaunch = 8;
+      with_value_set(values, [&](auto tag) {
+        constexpr unsigned kValues = decltype(tag)::value;
+        for (int z = z0; z < z1; z += kSlicesPerLaunch) {
+          g.z_begin = z;
+          g.z_end = std::min(z + kSlicesPerLaunch, z1);
+          const dim3 blocks((n + 7) / 8, (n + 7) / 8, (g.z_end - g.z_begin + 3) / 4);
+          if (options.storage == BlockingStorage::kTexture) {
+            path_safety_kernel<kValues><<<blocks, block>>>(ds.scene, g, TextureSampler{ds.texture},
+                                                           dev_out[0], dev_out[1], dev_out[2],
+                                                           dev_out[3]);
+          } else {
+            path_safety_kernel<kValues><<<blocks, block>>>(
+                ds.scene, g, GridSampler<float>{ds.scene.blocking}, dev_out[0], dev_out[1],
+                dev_out[2], dev_out[3]);
+          }
+          check(cudaGetLastError(), "kernel launch");
+          check(cudaDeviceSynchronize(), "path safety kernel");
+          const int64_t done = slices_done += (g.z_end - g.z_begin);
+          if (options.progress) {
+            std::lock_guard<std::mutex> lock(progress_mutex);
+            options.progress(double(done) / double(n));
+          }
+        }
+      });
+      for (int v = 0; v < kValueCount; ++v) {
+        if (!dev_out[v]) continue;
+        check(cudaMemcpy(out[v] + size_t(z0) * size_t(n) * size_t(n), dev_out[v],
+                         slab * sizeof(float), cudaMemcpyDeviceToHost),
+              "download results");
+      }
+    } catch (...) {
+      errors[size_t(d)] = std::current_exception();
+    }
+  };
+  std::vector<std::thread> threads;
+  for (int d = 0; d < devices; ++d) threads.emplace_back(work, d);
+  for (auto& t : threads) t.join();
+  for (auto& e : errors) {
+    if (e) std::rethrow_exception(e);
+  }
+  CudaRunReport report;
+  report.device_count = devices;
+  report.devices = "cuda:" + names + " x" + std::to_string(devices);
+  report.kernel_seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return report;
+}
+
+}  // namespace crepuscular::kernels

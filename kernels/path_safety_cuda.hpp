@@ -1,0 +1,51 @@
+// CUDA backend of the path safety values: the same host/device math as the CPU backend
+// (kernels/path_safety_math.hpp), run on every visible GPU, the output grid split into slabs.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+
+#include "kernels/path_safety_math.hpp"
+
+namespace crepuscular::kernels {
+
+// Number of usable CUDA devices; 0 when there is no driver or no device.
+int cuda_device_count();
+
+// The output grid: voxel (i, j, k) lies at origin + i axes[0] + j axes[1] + k axes[2] (LPS mm);
+// n = 2 half + 1 voxels per axis; a voxel is in the region of interest when
+// (i-half)^2 + (j-half)^2 + (k-half)^2 <= max_sq (the same integer test as the CPU backend).
+struct OutputGridDesc {
+  double origin[3];
+  double axes[3][3];
+  int n;
+  int half;
+  int64_t max_sq;
+};
+
+// Where the blocking volume lives on the device: global memory with trilinear filtering in float
+// (the exact definition), or a 3D texture with hardware filtering (9-bit interpolation weights).
+enum class BlockingStorage { kGlobal, kTexture };
+
+struct CudaRunOptions {
+  BlockingStorage storage = BlockingStorage::kGlobal;
+  int max_devices = 0;  // 0: all visible devices
+  std::function<void(double)> progress;
+};
+
+struct CudaRunReport {
+  std::string devices;          // e.g. "cuda:NVIDIA H100 80GB HBM3 x1"
+  int device_count = 0;
+  double kernel_seconds = 0.0;  // wall time of the kernels, all devices together
+};
+
+// Computes the requested values (bits of PathSafetyValue) for every voxel of the ball. `scene`
+// holds host pointers (blocking, tumor mask, surface points); out[slot] are host arrays of n^3
+// floats for the requested values (set to NaN outside the ball). Throws crepuscular::Error on a CUDA
+// failure.
+CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& scene,
+                                   const OutputGridDesc& grid, unsigned values,
+                                   float* const out[kValueCount], const CudaRunOptions& options);
+
+}  // namespace crepuscular::kernels

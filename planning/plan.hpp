@@ -1,0 +1,42 @@
+// A plan: the blocking volume, the path safety volumes and plan.json, computed from a segmented CT
+// and a tumor mask and written as one folder that appears complete or not at all.
+#pragma once
+
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+#include "planning/blocking.hpp"
+#include "planning/path_safety.hpp"
+
+namespace crepuscular::planning {
+
+struct PlanRequest {
+  std::string labels;         // label map (with vulnerability table or preset)
+  std::string tumor;          // tumor mask (required)
+  std::string vulnerability;  // vulnerability table JSON
+  std::string preset;         // built-in vulnerability table
+  std::string ct;             // CT in HU: thresholded when no labels are given
+  std::string blocking;       // ready blocking volume (risk per mm): used as is
+  PathSafetyOptions path_safety;
+  MarginOptions margin;
+  CtThresholds ct_thresholds;
+  std::string out_dir;
+};
+
+// Runs preprocessing and path safety and writes PLAN_DIR/blocking.nii.gz,
+// PLAN_DIR/path_safety_<value>.nii.gz (float32, NaN outside the region of interest) and
+// PLAN_DIR/plan.json. Returns the content of plan.json. Throws Error on bad input; then nothing is
+// left at out_dir (an earlier plan there stays untouched).
+nlohmann::json run_plan(const PlanRequest& request);
+
+// Hex MD5 of a file's bytes (a folder: of its files' names and bytes, in name order).
+std::string file_checksum(const std::string& path);
+
+// Default class thresholds of one value over the region of interest: SVV is a percentage (safe
+// >= 90 %, dangerous < 50 %); the blocking values are relative to the plan, safe = the lowest 20 %
+// of the region of interest (the paper's "safest 20 % of the paths"), dangerous = above the 60th
+// percentile. Returns {"safe":..,"dangerous":..,"higher_is_safer":..,"rule":..}.
+nlohmann::json default_classes(unsigned value_bit, const Volume<float>& volume);
+
+}  // namespace crepuscular::planning
