@@ -52,7 +52,9 @@ Affine<float> to_float(const Affine<double>& a) {
 // Hardware-filtered blocking lookups: unnormalised coordinates, voxel centres at +0.5, border 0.
 struct TextureSampler {
   cudaTextureObject_t texture;
+  BlockingGrid<float> grid;  // for its bricks: empty-space skipping as in sample_blocking
   __device__ float operator()(Vec3<float> q) const {
+    if (empty_brick(grid, int(floorf(q.x)), int(floorf(q.y)), int(floorf(q.z)))) return 0.0f;
     return tex3D<float>(texture, q.x + 0.5f, q.y + 0.5f, q.z + 0.5f);
   }
 };
@@ -94,6 +96,7 @@ __global__ void path_safety_kernel(PathSafetyScene<float> scene, SlabGrid grid, 
 // Everything one device needs, uploaded once.
 struct DeviceScene {
   DeviceBuffer<float> blocking;
+  DeviceBuffer<uint8_t> bricks;
   DeviceBuffer<uint8_t> tumor;
   DeviceBuffer<SurfacePoint<float>> surface;
   cudaArray_t array = nullptr;
@@ -109,6 +112,17 @@ struct DeviceScene {
     scene.blocking.ny = host.blocking.ny;
     scene.blocking.nz = host.blocking.nz;
     scene.blocking.physical_to_index = to_float(host.blocking.physical_to_index);
+    scene.blocking.bricks = nullptr;
+    if (host.blocking.bricks) {
+      const size_t count = size_t(host.blocking.bx) * host.blocking.by * host.blocking.bz;
+      bricks.allocate(count);
+      check(cudaMemcpy(bricks.ptr, host.blocking.bricks, count, cudaMemcpyHostToDevice),
+            "upload bricks");
+      scene.blocking.bricks = bricks.ptr;
+      scene.blocking.bx = host.blocking.bx;
+      scene.blocking.by = host.blocking.by;
+      scene.blocking.bz = host.blocking.bz;
+    }
     if (storage == BlockingStorage::kGlobal) {
       blocking.allocate(nb);
       check(cudaMemcpy(blocking.ptr, host.blocking.values, nb * sizeof(float),
@@ -253,7 +267,7 @@ CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& host_scene,
           g.z_end = std::min(z + kSlicesPerLaunch, z1);
           const dim3 blocks((n + 7) / 8, (n + 7) / 8, (g.z_end - g.z_begin + 3) / 4);
           if (options.storage == BlockingStorage::kTexture) {
-            path_safety_kernel<kValues><<<blocks, block>>>(ds.scene, g, TextureSampler{ds.texture},
+            path_safety_kernel<kValues><<<blocks, block>>>(ds.scene, g, TextureSampler{ds.texture, ds.scene.blocking},
                                                            dev_out[0], dev_out[1], dev_out[2],
                                                            dev_out[3]);
           } else {

@@ -300,12 +300,45 @@ OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>
   return out;
 }
 
+std::vector<uint8_t> blocking_bricks(const Volume<float>& blocking) {
+  const auto& d = blocking.dims();
+  const int bx = kernels::bricks_along(int(d[0])), by = kernels::bricks_along(int(d[1])),
+            bz = kernels::bricks_along(int(d[2]));
+  std::vector<uint8_t> bricks(size_t(bx) * by * bz, 0);
+  // A voxel > 0 marks its own brick and, when it is the first of a brick along an axis, the
+  // brick before it (whose samples reach one voxel ahead).
+  for (int64_t k = 0; k < d[2]; ++k) {
+    for (int64_t j = 0; j < d[1]; ++j) {
+      for (int64_t i = 0; i < d[0]; ++i) {
+        if (blocking(i, j, k) == 0.0f) continue;
+        const int64_t b[3] = {i >> kernels::kBrickShift, j >> kernels::kBrickShift,
+                              k >> kernels::kBrickShift};
+        constexpr int64_t kMask = (1 << kernels::kBrickShift) - 1;
+        const bool first[3] = {(i & kMask) == 0, (j & kMask) == 0, (k & kMask) == 0};
+        for (int dz = first[2] ? -1 : 0; dz <= 0; ++dz)
+          for (int dy = first[1] ? -1 : 0; dy <= 0; ++dy)
+            for (int dx = first[0] ? -1 : 0; dx <= 0; ++dx) {
+              const int64_t x = b[0] + dx, y = b[1] + dy, z = b[2] + dz;
+              if (x >= 0 && y >= 0 && z >= 0) bricks[size_t((z * by + y) * bx + x)] = 1;
+            }
+      }
+    }
+  }
+  return bricks;
+}
+
 kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
                                             const Volume<uint8_t>& tumor,
                                             const TumorSurface& surface, double gamma_mm,
-                                            double eps) {
+                                            double eps, const std::vector<uint8_t>& bricks) {
   kernels::PathSafetyScene<double> s{};
   const auto& bd = blocking.dims();
+  if (!bricks.empty()) {
+    s.blocking.bricks = bricks.data();
+    s.blocking.bx = kernels::bricks_along(int(bd[0]));
+    s.blocking.by = kernels::bricks_along(int(bd[1]));
+    s.blocking.bz = kernels::bricks_along(int(bd[2]));
+  }
   s.blocking.values = blocking.data();
   s.blocking.nx = int(bd[0]);
   s.blocking.ny = int(bd[1]);
@@ -482,8 +515,8 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                "h = {:.2f} mm) on {}",
                grid.roi_voxels, surface.points.size(), double(result.rays), grid.radius_mm,
                grid.geometry.spacing[0], device == Device::kCuda ? "cuda" : "cpu");
-  const auto scene =
-      make_scene(blocking, tumor, surface, result.gamma_mm, options.eps);
+  const std::vector<uint8_t> bricks = blocking_bricks(blocking);
+  const auto scene = make_scene(blocking, tumor, surface, result.gamma_mm, options.eps, bricks);
   if (device == Device::kCuda) {
 #if defined(CREPUSCULAR_HAVE_CUDA)
     kernels::OutputGridDesc desc{};

@@ -1,2 +1,195 @@
+// The plan job end to end: files written, their geometry and content, and bad input that must
+// leave no output behind (through the library and through the `crepuscular` command).
+#include "planning/plan.hpp"
+
 #include <gtest/gtest.h>
-TEST(Placeholder, Empty) {}
+#include <sys/wait.h>
+
+#include <array>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+
+#include "kernels/error.hpp"
+#include "planning/volume_io.hpp"
+
+namespace fs = std::filesystem;
+
+namespace crepuscular::planning {
+namespace {
+
+class PlanTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() /
+           ("crepuscular_plan_test_" + std::to_string(::getpid()) + "_" +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+    // 24^3 voxels of 2 mm, a rotated direction: a 3-voxel tumor block, a "vessel" (label 2,
+    // impassable) on one side, "fat" (label 1, free) elsewhere.
+    ImageGeometry g;
+    g.dims = {24, 24, 24};
+    g.spacing = Eigen::Vector3d(2.0, 2.0, 2.0);
+    g.origin = Eigen::Vector3d(-20, 10, 5);
+    g.direction = Eigen::AngleAxisd(0.3, Eigen::Vector3d(0, 0, 1)).toRotationMatrix();
+    Volume<int32_t> labels(g, 1);
+    Volume<uint8_t> tumor(g, 0);
+    for (int k = 10; k <= 12; ++k)
+      for (int j = 10; j <= 12; ++j)
+        for (int i = 10; i <= 12; ++i) tumor(i, j, k) = 1;
+    for (int k = 0; k < 24; ++k)
+      for (int j = 9; j <= 13; ++j) labels(16, j, k) = 2;
+    labels_ = (dir_ / "labels.nii.gz").string();
+    tumor_ = (dir_ / "tumor.nii.gz").string();
+    write_volume(labels, labels_);
+    write_volume(tumor, tumor_);
+    table_ = (dir_ / "table.json").string();
+    std::ofstream(table_) << R"({"name": "test", "levels": [
+        {"level": 0, "name": "none", "blocking_per_mm": 0.0},
+        {"level": 1, "name": "low", "blocking_per_mm": 0.01},
+        {"level": 2, "name": "medium", "blocking_per_mm": 0.1},
+        {"level": 3, "name": "impassable", "blocking_per_mm": 10.0}],
+      "labels": [{"value": 1, "name": "fat", "level": 0},
+                 {"value": 2, "name": "vessel", "level": 3}]})";
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  PlanRequest request(const std::string& out) const {
+    PlanRequest r;
+    r.labels = labels_;
+    r.tumor = tumor_;
+    r.vulnerability = table_;
+    r.margin.fwhm_mm = 2.0;
+    r.path_safety.radius_mm = 16.0;
+    r.path_safety.device = Device::kCpu;
+    r.out_dir = (dir_ / out).string();
+    return r;
+  }
+
+  // Files and folders left in dir_ apart from the inputs.
+  std::vector<std::string> leftovers() const {
+    std::vector<std::string> names;
+    for (const auto& e : fs::directory_iterator(dir_)) {
+      const std::string n = e.path().filename().string();
+      if (n != "labels.nii.gz" && n != "tumor.nii.gz" && n != "table.json") names.push_back(n);
+    }
+    return names;
+  }
+
+  fs::path dir_;
+  std::string labels_, tumor_, table_;
+};
+
+TEST_F(PlanTest, WritesEveryValueOnTheOutputGridWithNanOutsideTheBall) {
+  const nlohmann::json plan = run_plan(request("plan"));
+  for (const char* f : {"blocking.nii.gz", "path_safety_svv.nii.gz", "path_safety_isbv.nii.gz",
+                        "path_safety_ivbv.nii.gz", "path_safety_bvv.nii.gz", "plan.json"}) {
+    EXPECT_TRUE(fs::exists(dir_ / "plan" / f)) << f;
+  }
+  const Volume<float> svv = read_volume<float>((dir_ / "plan/path_safety_svv.nii.gz").string());
+  const auto& g = svv.geometry();
+  // 2 ceil(R/h) + 1 = 2 * 8 + 1 voxels at h = 2 mm, axes of the label map.
+  EXPECT_EQ(g.dims, (Index3{17, 17, 17}));
+  EXPECT_NEAR(g.spacing.x(), 2.0, 1e-6);
+  const Volume<int32_t> labels = read_label_map(labels_);
+  EXPECT_LT((g.direction - labels.geometry().direction).cwiseAbs().maxCoeff(), 1e-5);
+  // The centre voxel lies on the tumor centroid, voxel (11, 11, 11) of the inputs.
+  const Eigen::Vector3d c = labels.geometry().index_to_physical(11, 11, 11);
+  EXPECT_LT((svv.index_to_physical(8, 8, 8) - c).norm(), 1e-3);
+  EXPECT_TRUE(std::isnan(svv(0, 0, 0)));
+  EXPECT_FALSE(std::isnan(svv(8, 8, 8)));
+  // Toward the vessel side (+i) paths cross impassable blocking: SVV is lower there than on the
+  // free side (-i) at the same distance.
+  EXPECT_LT(svv(15, 8, 8), svv(1, 8, 8));
+  EXPECT_EQ(svv(1, 8, 8), 100.0f);
+  EXPECT_EQ(plan["parameters"]["values"].size(), 4u);
+  EXPECT_EQ(plan["inputs"]["tumor"]["md5"].get<std::string>().size(), 32u);
+  EXPECT_EQ(plan["tumor"]["voxels"].get<int>(), 27);
+  EXPECT_GT(plan["timings"]["total_s"].get<double>(), 0.0);
+  EXPECT_TRUE(plan["classes"].contains("bvv"));
+  EXPECT_EQ(leftovers(), std::vector<std::string>{"plan"});
+}
+
+TEST_F(PlanTest, ChecksumIsMd5OfTheFile) {
+  std::ofstream(dir_ / "abc.txt") << "abc";
+  // MD5("abc"), RFC 1321 test suite.
+  EXPECT_EQ(file_checksum((dir_ / "abc.txt").string()), "900150983cd24fb0d6963f7d28e17f72");
+}
+
+TEST_F(PlanTest, FailedRunLeavesNoOutputAndKeepsTheEarlierPlan) {
+  run_plan(request("plan"));
+  const auto before = fs::last_write_time(dir_ / "plan" / "plan.json");
+  // Empty tumor mask: refused after the staging folder was made.
+  Volume<uint8_t> empty(read_mask(tumor_).geometry(), 0);
+  write_volume(empty, (dir_ / "empty.nii.gz").string());
+  PlanRequest r = request("plan");
+  r.tumor = (dir_ / "empty.nii.gz").string();
+  EXPECT_THROW(run_plan(r), Error);
+  EXPECT_EQ(fs::last_write_time(dir_ / "plan" / "plan.json"), before);
+  fs::remove(dir_ / "empty.nii.gz");
+  EXPECT_EQ(leftovers(), std::vector<std::string>{"plan"});
+  // A fresh output folder is not created at all.
+  r.out_dir = (dir_ / "other").string();
+  r.tumor = (dir_ / "missing.nii.gz").string();
+  EXPECT_THROW(run_plan(r), Error);
+  EXPECT_FALSE(fs::exists(dir_ / "other"));
+}
+
+TEST_F(PlanTest, UnknownLabelIsRefusedNamingTheLabel) {
+  Volume<int32_t> labels = read_label_map(labels_);
+  labels(3, 3, 3) = 7;
+  write_volume(labels, labels_);
+  try {
+    run_plan(request("plan"));
+    ADD_FAILURE() << "expected an error";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("7"), std::string::npos) << e.what();
+  }
+  EXPECT_TRUE(leftovers().empty());
+}
+
+// Runs the command line; returns the exit code and fills `err` with stderr.
+int run_cli(const std::string& args, std::string& err) {
+  const std::string cmd = std::string(CREPUSCULAR_BINARY) + " " + args + " 2>&1 >/dev/null";
+  FILE* pipe = ::popen(cmd.c_str(), "r");
+  std::array<char, 512> buf{};
+  err.clear();
+  while (std::fgets(buf.data(), int(buf.size()), pipe)) err += buf.data();
+  const int status = ::pclose(pipe);
+  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
+TEST_F(PlanTest, CommandLineReportsBadInputAndWritesNothing) {
+  std::string err;
+  const std::string out = (dir_ / "cli").string();
+  // Truncated tumor file.
+  const std::string bad = (dir_ / "bad.nii.gz").string();
+  std::ofstream(bad) << "not a volume";
+  EXPECT_EQ(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " + bad +
+                        " --out " + out,
+                    err),
+            1);
+  EXPECT_EQ(err.rfind("error: ", 0), 0u) << err;
+  EXPECT_NE(err.find("bad.nii.gz"), std::string::npos) << err;
+  EXPECT_FALSE(fs::exists(out));
+  // Negative spacing.
+  EXPECT_NE(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " +
+                        tumor_ + " --spacing -1 --out " + out,
+                    err),
+            0);
+  EXPECT_NE(err.find("spacing"), std::string::npos) << err;
+  EXPECT_FALSE(fs::exists(out));
+  // A working run through the command line.
+  EXPECT_EQ(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " +
+                        tumor_ + " --radius 10 --value svv,bvv --device cpu --out " + out,
+                    err),
+            0)
+      << err;
+  EXPECT_TRUE(fs::exists(dir_ / "cli" / "path_safety_bvv.nii.gz"));
+  EXPECT_FALSE(fs::exists(dir_ / "cli" / "path_safety_isbv.nii.gz"));
+}
+
+}  // namespace
+}  // namespace crepuscular::planning

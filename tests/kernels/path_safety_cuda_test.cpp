@@ -1,0 +1,114 @@
+// The CUDA backend against the CPU backend on random scenes (skips where no GPU is found).
+#include "kernels/path_safety_cuda.hpp"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <random>
+
+#include "planning/path_safety.hpp"
+
+namespace crepuscular::planning {
+namespace {
+
+struct Scene {
+  Volume<float> blocking;
+  Volume<uint8_t> tumor;
+};
+
+ImageGeometry grid(int n, double spacing) {
+  ImageGeometry g;
+  g.dims = {n, n, n};
+  g.spacing = Eigen::Vector3d::Constant(spacing);
+  g.origin = Eigen::Vector3d::Constant(-(n - 1) / 2.0 * spacing);
+  return g;
+}
+
+// Random blobs of blocking (0..3 per mm) and a tumor of the given shape near the centre.
+Scene random_scene(uint32_t seed, const std::string& shape) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  ImageGeometry bg = grid(48, 1.3);
+  Volume<float> blocking(bg, 0.0f);
+  for (int b = 0; b < 12; ++b) {
+    const Eigen::Vector3d c(60 * (u(rng) - 0.5), 60 * (u(rng) - 0.5), 60 * (u(rng) - 0.5));
+    if (c.norm() < 9.0) continue;
+    const double r = 1.5 + 5.0 * u(rng), a = 3.0 * u(rng);
+    for (int64_t k = 0; k < 48; ++k)
+      for (int64_t j = 0; j < 48; ++j)
+        for (int64_t i = 0; i < 48; ++i) {
+          const double d2 = (bg.index_to_physical(i, j, k) - c).squaredNorm();
+          blocking(i, j, k) += float(a * std::exp(-d2 / (2 * r * r)));
+        }
+  }
+  ImageGeometry tg = grid(24, 1.1);  // the tumor on its own grid
+  Volume<uint8_t> tumor(tg, 0);
+  for (int64_t k = 0; k < 24; ++k)
+    for (int64_t j = 0; j < 24; ++j)
+      for (int64_t i = 0; i < 24; ++i) {
+        const Eigen::Vector3d p = tg.index_to_physical(i, j, k);
+        bool in = false;
+        if (shape == "sphere") in = p.norm() < 5.0;
+        if (shape == "ellipsoid") in = std::pow(p.x() / 8, 2) + std::pow(p.y() / 3, 2) +
+                                           std::pow(p.z() / 4, 2) < 1.0;
+        if (shape == "l-shape") in = (std::abs(p.x()) < 6 && std::abs(p.y()) < 2 &&
+                                      std::abs(p.z()) < 2) ||
+                                     (std::abs(p.x() - 4) < 2 && std::abs(p.y()) < 2 &&
+                                      p.z() > -2 && p.z() < 7);
+        if (shape == "two-blobs") in = (p - Eigen::Vector3d(-5, 0, 0)).norm() < 3.0 ||
+                                       (p - Eigen::Vector3d(5, 1, 0)).norm() < 3.0;
+        tumor(i, j, k) = in ? 1 : 0;
+      }
+  return {blocking, tumor};
+}
+
+class CudaVersusCpu : public ::testing::TestWithParam<std::string> {};
+
+TEST_P(CudaVersusCpu, AllValuesAgree) {
+  if (kernels::cuda_device_count() == 0) GTEST_SKIP() << "no CUDA device";
+  const uint32_t seed = 1234u + uint32_t(GetParam().size());
+  SCOPED_TRACE("seed " + std::to_string(seed) + ", tumor " + GetParam());
+  const Scene s = random_scene(seed, GetParam());
+  PathSafetyOptions o;
+  o.radius_mm = 28.0;
+  o.eps = 0.4;
+  o.device = Device::kCpu;
+  const PathSafetyResult cpu = compute_path_safety(s.blocking, s.tumor, o);
+  o.device = Device::kCuda;
+  const PathSafetyResult gpu = compute_path_safety(s.blocking, s.tumor, o);
+  o.cuda_texture = true;
+  const PathSafetyResult tex = compute_path_safety(s.blocking, s.tumor, o);
+  for (int v = 0; v < 4; ++v) {
+    double diff2 = 0, ref2 = 0, tdiff2 = 0;
+    int64_t n = 0, equal = 0, mismatched_nan = 0;
+    const auto& a = cpu.volumes[size_t(v)].values();
+    const auto& b = gpu.volumes[size_t(v)].values();
+    const auto& t = tex.volumes[size_t(v)].values();
+    for (size_t i = 0; i < a.size(); ++i) {
+      if (std::isnan(a[i]) != std::isnan(b[i])) ++mismatched_nan;
+      if (std::isnan(a[i])) continue;
+      ++n;
+      diff2 += double(a[i] - b[i]) * (a[i] - b[i]);
+      tdiff2 += double(a[i] - t[i]) * (a[i] - t[i]);
+      ref2 += double(a[i]) * a[i];
+      equal += a[i] == b[i];
+    }
+    EXPECT_EQ(mismatched_nan, 0) << "value " << v << ": region of interest differs";
+    ASSERT_GT(ref2, 0.0) << "value " << v << " is all zero: the scene tests nothing";
+    const double rel = std::sqrt(diff2 / ref2), trel = std::sqrt(tdiff2 / ref2);
+    std::printf("[ %-9s ] %s: relative L2 cpu-vs-cuda %.2e, cpu-vs-texture %.2e, equal %.4f %%\n",
+                GetParam().c_str(), value_name(1u << v), rel, trel, 100.0 * equal / n);
+    EXPECT_LE(rel, 1e-3) << "value " << value_name(1u << v);
+    if (v == 0) {
+      EXPECT_GE(double(equal) / n, 0.999) << "SVV counts differ";
+    }
+    EXPECT_LE(trel, 5e-2) << "texture filtering far off for " << value_name(1u << v);
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(Shapes, CudaVersusCpu,
+                         ::testing::Values("sphere", "ellipsoid", "l-shape", "two-blobs"));
+
+}  // namespace
+}  // namespace crepuscular::planning
