@@ -11,6 +11,7 @@ void add_plan_command(CLI::App& app) {
   auto req = std::make_shared<planning::PlanRequest>();
   auto values = std::make_shared<std::string>("all");
   auto device = std::make_shared<std::string>("auto");
+  auto mode = std::make_shared<std::string>("exact");
   CLI::App* cmd = app.add_subcommand(
       "plan",
       "Compute the path safety volume around a tumor.\n"
@@ -59,12 +60,18 @@ void add_plan_command(CLI::App& app) {
                   "Safety margin: FWHM in mm of the Gaussian added around each structure (0: none)")
       ->capture_default_str();
   cmd->add_option("--device", *device, "auto, cpu or cuda")->capture_default_str();
+  cmd->add_option("--mode", *mode,
+                  "exact: every ray marched (the reference); fast: rays cast once from each "
+                  "tumor surface point and looked up by direction and distance. Fast mode "
+                  "recomputes 1000 random voxels exactly and reports the difference in plan.json")
+      ->capture_default_str();
   cmd->add_option("--threads", req->path_safety.threads, "CPU threads (default: all cores)");
   cmd->add_option("--out", req->out_dir, "Output plan folder (replaced only when complete)")
       ->required();
-  cmd->callback([req, values, device] {
+  cmd->callback([req, values, device, mode] {
     req->path_safety.values = planning::parse_value_set(*values);
     req->path_safety.device = planning::parse_device(*device);
+    req->path_safety.mode = planning::parse_mode(*mode);
     planning::run_plan(*req);
   });
 }

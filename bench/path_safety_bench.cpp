@@ -12,6 +12,7 @@
 #include "planning/blocking.hpp"
 #include "planning/path_safety.hpp"
 #include "planning/phantom.hpp"
+#include "planning/safety_classes.hpp"
 #include "planning/vulnerability.hpp"
 
 using namespace crepuscular;
@@ -80,6 +81,8 @@ int main(int argc, char** argv) {
   double spacing = 3.0;
   int grid = 513, threads = 0, probe = 2000, tumor_voxels = 508;
   bool texture = false, each_value = false;
+  std::string mode = "exact";
+  double angular = 5.0;
   app.add_option("--case", which, "phantom (demo plan) or headline (512^3, 508-voxel tumor)");
   app.add_option("--device", device, "cpu or cuda");
   app.add_option("--value", values_text, "values (svv,isbv,ivbv,bvv or all)");
@@ -90,6 +93,8 @@ int main(int argc, char** argv) {
   app.add_option("--threads", threads, "CPU threads (0: all)");
   app.add_option("--probe", probe, "ROI voxels probed to count samples");
   app.add_flag("--texture", texture, "CUDA: blocking in a 3D texture (hardware filtering)");
+  app.add_option("--mode", mode, "exact, fast, or both (fast compared with exact in full)");
+  app.add_option("--angular", angular, "fast mode: angular oversampling");
   CLI11_PARSE(app, argc, argv);
   spdlog::set_level(spdlog::level::warn);
 
@@ -135,15 +140,16 @@ int main(int argc, char** argv) {
   } else {
     runs.push_back(all);
   }
-  for (unsigned values : runs) {
-    o.values = values;
-    const PathSafetyResult r = compute_path_safety(blocking, tumor, o);
-    const double samples = estimate_samples(blocking, tumor, r, values, probe);
+  const auto report = [&](const PathSafetyResult& r, unsigned values, const char* mode_text,
+                          const PathSafetyResult* exact) {
+    const double samples =
+        mode_text == std::string("exact") ? estimate_samples(blocking, tumor, r, values, probe) : 0.0;
     std::string names;
     for (unsigned bit = 1; bit <= 8; bit <<= 1)
       if (values & bit) names += std::string(names.empty() ? "" : ",") + value_name(bit);
     nlohmann::json j = {{"case", which},
                         {"values", names},
+                        {"mode", mode_text},
                         {"device", r.device},
                         {"threads", r.threads},
                         {"grid", r.grid.geometry.dims[0]},
@@ -153,14 +159,46 @@ int main(int argc, char** argv) {
                         {"tumor_voxels", r.tumor_voxels},
                         {"surface_points", r.surface_points},
                         {"rays", r.rays},
-                        {"samples_estimated", samples},
                         {"seconds", r.seconds},
-                        {"samples_per_second", samples / r.seconds},
                         {"setup_seconds", setup_s},
-                        {"paper_seconds", 300.0},
-                        {"speedup_vs_paper", 300.0 / r.seconds}};
+                        {"speedup_vs_paper_300s", 300.0 / r.seconds}};
+    if (samples > 0) {
+      j["samples_estimated"] = samples;
+      j["samples_per_second"] = samples / r.seconds;
+    }
+    if (r.mode == Mode::kFast) {
+      j["direction_cells"] = r.direction_cells;
+      j["angular"] = angular;
+    }
+    if (exact) {
+      const ModeDifference d = compare_volumes(exact->volumes, r.volumes, values);
+      for (unsigned bit = 1; bit <= 8; bit <<= 1) {
+        if (!(values & bit)) continue;
+        const int v = kernels::value_slot(bit);
+        j["vs_exact"][value_name(bit)] = {{"relative_l2", d.relative_l2[size_t(v)]},
+                                          {"class_agreement", d.class_agreement[size_t(v)]}};
+      }
+      j["speedup_vs_exact"] = exact->seconds / r.seconds;
+    }
     std::printf("%s\n", j.dump().c_str());
     std::fflush(stdout);
+  };
+  o.fast_angular = angular;
+  o.fast_check_voxels = 0;
+  for (unsigned values : runs) {
+    o.values = values;
+    if (mode == "exact" || mode == "both") {
+      o.mode = Mode::kExact;
+      const PathSafetyResult exact = compute_path_safety(blocking, tumor, o);
+      report(exact, values, "exact", nullptr);
+      if (mode == "both") {
+        o.mode = Mode::kFast;
+        report(compute_path_safety(blocking, tumor, o), values, "fast", &exact);
+      }
+    } else {
+      o.mode = Mode::kFast;
+      report(compute_path_safety(blocking, tumor, o), values, "fast", nullptr);
+    }
   }
   return 0;
 }

@@ -9,12 +9,14 @@
 #include <atomic>
 #include <chrono>
 #include <exception>
+#include <limits>
 #include <mutex>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "kernels/error.hpp"
+#include "kernels/path_safety_fast.hpp"
 #include "kernels/value_set.hpp"
 
 namespace crepuscular::kernels {
@@ -188,6 +190,60 @@ struct DeviceScene {
   }
 };
 
+// Fast mode: the direction tables of a batch of surface points, one per slot.
+struct TableBatch {
+  DirectionTable<float> first;  // slot 0; slot s is offset by s * stride
+  size_t value_stride;          // floats between slots of c0/c1/c2
+  size_t cell_stride;           // cells between slots of flags/first_hit/chord/last_in
+};
+
+__device__ DirectionTable<float> slot_table(const TableBatch& b, int slot) {
+  DirectionTable<float> t = b.first;
+  t.c0 += slot * b.value_stride;
+  if (t.c1) {
+    t.c1 += slot * b.value_stride;
+    t.c2 += slot * b.value_stride;
+  }
+  t.flags += slot * b.cell_stride;
+  t.first_hit += slot * b.cell_stride;
+  t.chord += slot * b.cell_stride;
+  t.last_in += slot * b.cell_stride;
+  return t;
+}
+
+template <typename Sampler>
+__global__ void cast_directions_kernel(PathSafetyScene<float> scene, TableBatch batch,
+                                       int first_point, int count, Sampler sampler) {
+  const int64_t cell = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  const int slot = blockIdx.y;
+  const int m = batch.first.m;
+  if (cell >= int64_t(m) * m || slot >= count) return;
+  cast_direction(scene, scene.surface[first_point + slot], slot_table(batch, slot), int(cell % m),
+                 int(cell / m), sampler);
+}
+
+template <unsigned Values>
+__global__ void combine_tables_kernel(PathSafetyScene<float> scene, TableBatch batch,
+                                      int first_point, int count, const uint32_t* __restrict__ roi,
+                                      int64_t roi_count, SlabGrid grid,
+                                      VoxelState<float>* __restrict__ states) {
+  const int64_t v = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (v >= roi_count) return;
+  const uint32_t off = roi[v];
+  const int n = grid.n;
+  const float fi = float(off % n), fj = float((off / n) % n), fk = float(off / (uint32_t(n) * n));
+  const Vec3<float> p = {
+      grid.origin[0] + fi * grid.axes[0][0] + fj * grid.axes[1][0] + fk * grid.axes[2][0],
+      grid.origin[1] + fi * grid.axes[0][1] + fj * grid.axes[1][1] + fk * grid.axes[2][1],
+      grid.origin[2] + fi * grid.axes[0][2] + fj * grid.axes[1][2] + fk * grid.axes[2][2]};
+  VoxelState<float> state = states[v];
+  for (int slot = 0; slot < count; ++slot) {
+    combine_from_table<float, Values>(state, scene, scene.surface[first_point + slot],
+                                      slot_table(batch, slot), p);
+  }
+  states[v] = state;
+}
+
 }  // namespace
 
 int cuda_device_count() {
@@ -199,12 +255,155 @@ int cuda_device_count() {
   return count;
 }
 
+namespace {
+
+std::string device_name(int d) {
+  cudaDeviceProp prop{};
+  return cudaGetDeviceProperties(&prop, d) == cudaSuccess ? prop.name : "unknown";
+}
+
+CudaRunReport run_fast(const PathSafetyScene<double>& host_scene, const OutputGridDesc& grid,
+                       unsigned values, float* const out[kValueCount],
+                       const CudaRunOptions& options, int devices) {
+  const int n = grid.n;
+  // ROI voxels, compact (offsets < 2^32 since n <= 1625).
+  std::vector<uint32_t> roi;
+  for (int k = 0; k < n; ++k)
+    for (int j = 0; j < n; ++j)
+      for (int i = 0; i < n; ++i) {
+        const int64_t di = i - grid.half, dj = j - grid.half, dk = k - grid.half;
+        if (di * di + dj * dj + dk * dk <= grid.max_sq)
+          roi.push_back(uint32_t((int64_t(k) * n + j) * n + i));
+      }
+  const int64_t roi_count = int64_t(roi.size());
+  const int points = host_scene.surface_count;
+  const int m = options.fast_cells, radial = options.fast_radial;
+  const size_t cells = size_t(m) * size_t(m);
+  const bool moments = (values & kBvv) != 0;
+  const float h = float(std::sqrt(grid.axes[0][0] * grid.axes[0][0] +
+                                  grid.axes[0][1] * grid.axes[0][1] +
+                                  grid.axes[0][2] * grid.axes[0][2]));
+  std::vector<std::vector<VoxelState<float>>> partial(static_cast<size_t>(devices));
+  std::vector<std::exception_ptr> errors(static_cast<size_t>(devices));
+  std::atomic<int> points_done{0};
+  std::mutex progress_mutex;
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto work = [&](int d) {
+    try {
+      check(cudaSetDevice(d), "cudaSetDevice");
+      const int p0 = int(int64_t(points) * d / devices), p1 = int(int64_t(points) * (d + 1) / devices);
+      if (p1 <= p0) return;
+      DeviceScene ds(host_scene, options.storage);
+      DeviceBuffer<uint32_t> roi_dev{static_cast<size_t>(roi_count)};
+      check(cudaMemcpy(roi_dev.ptr, roi.data(), roi.size() * sizeof(uint32_t),
+                       cudaMemcpyHostToDevice),
+            "upload region of interest");
+      DeviceBuffer<VoxelState<float>> states{static_cast<size_t>(roi_count)};
+      check(cudaMemset(states.ptr, 0, size_t(roi_count) * sizeof(VoxelState<float>)),
+            "cudaMemset");
+      // As many tables at once as half the free memory holds (at most 16).
+      size_t free_bytes = 0, total_bytes = 0;
+      check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
+      const size_t per_slot = cells * size_t(radial) * sizeof(float) * (moments ? 3 : 1) +
+                              cells * (1 + 3 * sizeof(uint16_t));
+      const int slots = int(std::max<size_t>(1, std::min<size_t>(16, free_bytes / 2 / per_slot)));
+      DeviceBuffer<float> c0(cells * radial * slots), c1, c2;
+      if (moments) {
+        c1.allocate(cells * radial * slots);
+        c2.allocate(cells * radial * slots);
+      }
+      DeviceBuffer<uint8_t> flags(cells * slots);
+      DeviceBuffer<uint16_t> first_hit(cells * slots), chord(cells * slots),
+          last_in(cells * slots);
+      TableBatch batch{};
+      batch.first = {m,       radial,       h,           0.5f * h,     c0.ptr,   c1.ptr,
+                     c2.ptr,  flags.ptr,    first_hit.ptr, chord.ptr,  last_in.ptr};
+      batch.value_stride = cells * size_t(radial);
+      batch.cell_stride = cells;
+      SlabGrid g{};
+      for (int a = 0; a < 3; ++a) {
+        g.origin[a] = float(grid.origin[a]);
+        for (int b = 0; b < 3; ++b) g.axes[a][b] = float(grid.axes[a][b]);
+      }
+      g.n = n;
+      with_value_set(values, [&](auto tag) {
+        constexpr unsigned kValues = decltype(tag)::value;
+        for (int p = p0; p < p1; p += slots) {
+          const int count = std::min(slots, p1 - p);
+          const dim3 cast_blocks(unsigned((cells + 255) / 256), unsigned(count));
+          if (options.storage == BlockingStorage::kTexture) {
+            cast_directions_kernel<<<cast_blocks, 256>>>(
+                ds.scene, batch, p, count, TextureSampler{ds.texture, ds.scene.blocking});
+          } else {
+            cast_directions_kernel<<<cast_blocks, 256>>>(ds.scene, batch, p, count,
+                                                         GridSampler<float>{ds.scene.blocking});
+          }
+          check(cudaGetLastError(), "cast kernel launch");
+          combine_tables_kernel<kValues><<<unsigned((roi_count + 255) / 256), 256>>>(
+              ds.scene, batch, p, count, roi_dev.ptr, roi_count, g, states.ptr);
+          check(cudaGetLastError(), "combine kernel launch");
+          check(cudaDeviceSynchronize(), "fast path safety kernels");
+          const int done = points_done += count;
+          if (options.progress) {
+            std::lock_guard<std::mutex> lock(progress_mutex);
+            options.progress(double(done) / double(points));
+          }
+        }
+      });
+      partial[size_t(d)].resize(size_t(roi_count));
+      check(cudaMemcpy(partial[size_t(d)].data(), states.ptr,
+                       size_t(roi_count) * sizeof(VoxelState<float>), cudaMemcpyDeviceToHost),
+            "download states");
+    } catch (...) {
+      errors[size_t(d)] = std::current_exception();
+    }
+  };
+  std::vector<std::thread> threads;
+  for (int d = 0; d < devices; ++d) threads.emplace_back(work, d);
+  for (auto& t : threads) t.join();
+  for (auto& e : errors) {
+    if (e) std::rethrow_exception(e);
+  }
+  const double kernel_seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  // Sum the devices' partial states (counts and sums add), finalize, scatter.
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  for (int v = 0; v < kValueCount; ++v) {
+    if (out[v]) std::fill(out[v], out[v] + size_t(n) * n * n, nan);
+  }
+  for (int64_t r = 0; r < roi_count; ++r) {
+    VoxelState<float> sum{};
+    for (const auto& part : partial) {
+      if (part.empty()) continue;
+      const VoxelState<float>& s = part[size_t(r)];
+      sum.svv.visible += s.svv.visible;
+      sum.svv.clear += s.svv.clear;
+      sum.isbv.sum += s.isbv.sum;
+      sum.ivbv.sum += s.ivbv.sum;
+      sum.bvv.sum += s.bvv.sum;
+    }
+    float res[kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
+    finalize_values(sum, values, float(host_scene.s2), res);
+    for (int v = 0; v < kValueCount; ++v) {
+      if (out[v]) out[v][roi[size_t(r)]] = res[v];
+    }
+  }
+  CudaRunReport report;
+  report.device_count = devices;
+  report.devices = "cuda:" + device_name(0) + " x" + std::to_string(devices);
+  report.kernel_seconds = kernel_seconds;
+  return report;
+}
+
+}  // namespace
+
 CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& host_scene,
                                    const OutputGridDesc& grid, unsigned values,
                                    float* const out[kValueCount], const CudaRunOptions& options) {
   int devices = cuda_device_count();
   if (devices == 0) throw Error("CUDA: no device found");
   if (options.max_devices > 0) devices = std::min(devices, options.max_devices);
+  if (options.fast_cells > 0) return run_fast(host_scene, grid, values, out, options, devices);
   const int n = grid.n;
   // Slabs: whole slices, balanced by the number of ball voxels rather than by slice count.
   std::vector<double> weight(static_cast<size_t>(n));

@@ -32,6 +32,10 @@ struct CudaRunOptions {
   BlockingStorage storage = BlockingStorage::kGlobal;
   int max_devices = 0;  // 0: all visible devices
   std::function<void(double)> progress;
+  // Fast mode (kernels/path_safety_fast.hpp) when fast_cells > 0: the octahedral map side and
+  // radial samples of the direction tables.
+  int fast_cells = 0;
+  int fast_radial = 0;
 };
 
 struct CudaRunReport {
@@ -40,7 +44,9 @@ struct CudaRunReport {
   double kernel_seconds = 0.0;  // wall time of the kernels, all devices together
 };
 
-// Computes the requested values (bits of PathSafetyValue) for every voxel of the ball. `scene`
+// Computes the requested values (bits of PathSafetyValue) for every voxel of the ball, in exact
+// mode (the output grid split into slabs, one per device) or in fast mode (the surface points
+// split between devices, their per-voxel sums added on the host). `scene`
 // holds host pointers (blocking, tumor mask, surface points); out[slot] are host arrays of n^3
 // floats for the requested values (set to NaN outside the ball). Throws crepuscular::Error on a CUDA
 // failure.

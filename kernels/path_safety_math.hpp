@@ -294,7 +294,6 @@ struct RayContext {
   Real step;       // l, mm
   Real cos_alpha;  // |cos alpha_t|
   Real eps;
-  int n;           // N
 };
 
 // SVV = 100 |{t in F(p) : L(p,t) <= eps}| / |F(p)|, 0 when F(p) is empty.
@@ -368,20 +367,40 @@ struct BlockerVolume {
   static constexpr unsigned kBit = kBvv;
   static constexpr bool kFront = false, kBack = true;
   struct Ray {
-    Real weighted = 0;  // sum_k b_k k^2; scaled by l / N^2 in combine
+    Real weighted = 0;  // sum_k b_k (k/N)^2 l
   };
   struct Voxel {
     Real sum = 0;
   };
   static CREPUSCULAR_HD void accumulate(Ray& r, const RaySample<Real>& s) {
-    r.weighted += s.b * Real(s.k) * Real(s.k);
+    const Real f = Real(s.k) / Real(s.n);
+    r.weighted += s.b * f * f * s.step;
   }
   static CREPUSCULAR_HD void combine(Voxel& v, const Ray& r, const RayContext<Real>& c) {
-    if (!c.crossing.back_facing || c.n == 0) return;
-    v.sum += c.cos_alpha * r.weighted * c.step / (Real(c.n) * Real(c.n));
+    if (c.crossing.back_facing) v.sum += c.cos_alpha * r.weighted;
   }
   static CREPUSCULAR_HD Real finalize(const Voxel& v, Real s2) { return v.sum * s2; }
 };
+
+// The per-voxel state of all four values (COMBINEVALUES' accumulator), for passes that visit a
+// voxel once per surface point (fast mode) rather than all at once.
+template <typename Real>
+struct VoxelState {
+  typename SurfaceVisibility<Real>::Voxel svv;
+  typename IntegralSurfaceBlocking<Real>::Voxel isbv;
+  typename IntegralVolumeBlocking<Real>::Voxel ivbv;
+  typename BlockerVolume<Real>::Voxel bvv;
+};
+
+// FINALIZEVALUE of every requested value into out[value_slot(bit)].
+template <typename Real>
+CREPUSCULAR_HD void finalize_values(const VoxelState<Real>& v, unsigned values, Real s2,
+                                    float* out) {
+  if (values & kSvv) out[0] = float(SurfaceVisibility<Real>::finalize(v.svv, s2));
+  if (values & kIsbv) out[1] = float(IntegralSurfaceBlocking<Real>::finalize(v.isbv, s2));
+  if (values & kIvbv) out[2] = float(IntegralVolumeBlocking<Real>::finalize(v.ivbv, s2));
+  if (values & kBvv) out[3] = float(BlockerVolume<Real>::finalize(v.bvv, s2));
+}
 
 // ---------------------------------------------------------------------------------------------
 // COMPUTEACCESSIBILITY for one output voxel centre p (LPS mm): casts a ray to every surface point,
@@ -428,7 +447,7 @@ CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<Real> p,
       if constexpr ((Values & kIvbv) != 0) Ivbv::accumulate(ivbv_ray, sample);
       if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
     }
-    const RayContext<Real> context{crossing, ray.step, ray.cos_alpha, s.eps, ray.n};
+    const RayContext<Real> context{crossing, ray.step, ray.cos_alpha, s.eps};
     if constexpr ((Values & kSvv) != 0) Svv::combine(svv, svv_ray, context);
     if constexpr ((Values & kIsbv) != 0) Isbv::combine(isbv, isbv_ray, context);
     if constexpr ((Values & kIvbv) != 0) Ivbv::combine(ivbv, ivbv_ray, context);

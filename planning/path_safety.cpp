@@ -12,8 +12,11 @@
 #include <limits>
 #include <sstream>
 
+#include "kernels/path_safety_fast.hpp"
 #include "kernels/value_set.hpp"
 #include "planning/blocking.hpp"
+#include "planning/safety_classes.hpp"
+#include <random>
 
 #if defined(CREPUSCULAR_HAVE_CUDA)
 #include "kernels/path_safety_cuda.hpp"
@@ -140,6 +143,14 @@ Device parse_device(const std::string& text) {
   if (text == "cuda") return Device::kCuda;
   throw Error("--device: unknown device '" + text + "' (expected auto, cpu or cuda)");
 }
+
+Mode parse_mode(const std::string& text) {
+  if (text == "exact") return Mode::kExact;
+  if (text == "fast") return Mode::kFast;
+  throw Error("--mode: unknown mode '" + text + "' (expected exact or fast)");
+}
+
+const char* mode_name(Mode mode) { return mode == Mode::kFast ? "fast" : "exact"; }
 
 const char* device_name(Device device) {
   switch (device) {
@@ -438,6 +449,129 @@ void run_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& gr
   if (progress) progress(1.0);
 }
 
+// Largest distance from a surface point to a voxel of the region of interest, mm.
+double max_ray_length(const OutputGrid& grid, const kernels::PathSafetyScene<double>& scene) {
+  double far = 0.0;
+  for (int t = 0; t < scene.surface_count; ++t) {
+    const auto& q = scene.surface[t].position;
+    far = std::max(far, (Eigen::Vector3d(q.x, q.y, q.z) - grid.centre).norm());
+  }
+  return grid.radius_mm + far + grid.geometry.spacing[0];
+}
+
+void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
+                  unsigned values, int threads, double angular, PathSafetyResult& result,
+                  const std::function<void(double)>& progress) {
+  const auto& g = grid.geometry;
+  const double h = g.spacing[0];
+  int m = 0, radial = 0;
+  kernels::direction_table_size(max_ray_length(grid, scene), h, m, radial, angular);
+  result.direction_cells = m;
+  const size_t cells = size_t(m) * size_t(m);
+  const bool moments = (values & kernels::kBvv) != 0;
+  std::vector<float> c0(cells * size_t(radial)), c1, c2;
+  if (moments) {
+    c1.resize(c0.size());
+    c2.resize(c0.size());
+  }
+  std::vector<uint8_t> flags(cells);
+  std::vector<uint16_t> first_hit(cells), chord(cells), last_in(cells);
+  kernels::DirectionTable<double> table{};
+  table.m = m;
+  table.radial = radial;
+  table.dr = h;
+  table.gamma = 0.5 * h;
+  table.c0 = c0.data();
+  table.c1 = moments ? c1.data() : nullptr;
+  table.c2 = moments ? c2.data() : nullptr;
+  table.flags = flags.data();
+  table.first_hit = first_hit.data();
+  table.chord = chord.data();
+  table.last_in = last_in.data();
+  // The ROI voxels, compact.
+  std::vector<int64_t> roi;
+  roi.reserve(size_t(grid.roi_voxels));
+  for (int64_t k = 0; k < g.dims[2]; ++k)
+    for (int64_t j = 0; j < g.dims[1]; ++j)
+      for (int64_t i = 0; i < g.dims[0]; ++i)
+        if (grid.in_roi(i, j, k)) roi.push_back(g.offset(i, j, k));
+  std::vector<kernels::VoxelState<double>> states(roi.size());
+  const kernels::GridSampler<double> sampler{scene.blocking};
+  kernels::with_value_set(values, [&](auto tag) {
+    constexpr unsigned kValues = decltype(tag)::value;
+    for (int t = 0; t < scene.surface_count; ++t) {
+      const auto& target = scene.surface[t];
+#pragma omp parallel for schedule(dynamic, 16) num_threads(threads)
+      for (int64_t c = 0; c < int64_t(cells); ++c) {
+        kernels::cast_direction(scene, target, table, int(c % m), int(c / m), sampler);
+      }
+#pragma omp parallel for schedule(static) num_threads(threads)
+      for (int64_t v = 0; v < int64_t(roi.size()); ++v) {
+        const Index3 idx = g.index_of_offset(roi[size_t(v)]);
+        const Eigen::Vector3d p = g.index_to_physical(idx[0], idx[1], idx[2]);
+        kernels::combine_from_table<double, kValues>(states[size_t(v)], scene, target, table,
+                                                     {p.x(), p.y(), p.z()});
+      }
+      if (progress) progress(double(t + 1) / double(scene.surface_count));
+    }
+  });
+  float* out[kernels::kValueCount] = {};
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
+  }
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int64_t v = 0; v < int64_t(roi.size()); ++v) {
+    float res[kernels::kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
+    kernels::finalize_values(states[size_t(v)], values, scene.s2, res);
+    for (int s = 0; s < kernels::kValueCount; ++s) {
+      if (out[s]) out[s][roi[size_t(v)]] = res[s];
+    }
+  }
+}
+
+// Recomputes `count` random ROI voxels exactly and compares them with the fast result.
+void check_fast_against_exact(const kernels::PathSafetyScene<double>& scene,
+                              const OutputGrid& grid, unsigned values, int count, int threads,
+                              PathSafetyResult& result) {
+  std::mt19937_64 rng(20111);
+  const int64_t n = grid.geometry.dims[0];
+  std::uniform_int_distribution<int64_t> u(0, n - 1);
+  std::vector<int64_t> offsets;
+  while (int64_t(offsets.size()) < std::min<int64_t>(count, grid.roi_voxels)) {
+    const int64_t i = u(rng), j = u(rng), k = u(rng);
+    if (grid.in_roi(i, j, k)) offsets.push_back(grid.geometry.offset(i, j, k));
+  }
+  std::vector<std::array<float, kernels::kValueCount>> exact(offsets.size());
+  kernels::with_value_set(values, [&](auto tag) {
+    constexpr unsigned kValues = decltype(tag)::value;
+#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
+    for (int64_t s = 0; s < int64_t(offsets.size()); ++s) {
+      const Index3 idx = grid.geometry.index_of_offset(offsets[size_t(s)]);
+      const Eigen::Vector3d p = grid.geometry.index_to_physical(idx[0], idx[1], idx[2]);
+      exact[size_t(s)].fill(0.0f);
+      kernels::path_safety_at<double, kValues>(scene, {p.x(), p.y(), p.z()},
+                                               exact[size_t(s)].data());
+    }
+  });
+  result.check_voxels = int64_t(offsets.size());
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    const unsigned bit = 1u << v;
+    if (!(values & bit)) continue;
+    const SafetyClasses classes = default_classes(bit, result.volumes[size_t(v)]);
+    double diff2 = 0.0, ref2 = 0.0;
+    int64_t same = 0;
+    for (size_t s = 0; s < offsets.size(); ++s) {
+      const double a = exact[s][size_t(v)], b = result.volumes[size_t(v)][offsets[s]];
+      diff2 += (a - b) * (a - b);
+      ref2 += a * a;
+      same += classes.classify(a) == classes.classify(b);
+    }
+    result.check_relative_l2[size_t(v)] = ref2 > 0.0 ? std::sqrt(diff2 / ref2) : std::sqrt(diff2);
+    result.check_class_agreement[size_t(v)] =
+        offsets.empty() ? 1.0 : double(same) / double(offsets.size());
+  }
+}
+
 }  // namespace
 
 PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
@@ -483,6 +617,7 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   PathSafetyResult result;
   result.grid = grid;
   result.values = options.values;
+  result.mode = options.mode;
   result.tumor_voxels = surface.tumor_voxels;
   result.surface_points = int64_t(surface.points.size());
   result.s2_mm2 = surface.s2_mm2;
@@ -511,10 +646,11 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   }
   if (device == Device::kAuto) device = gpus > 0 ? Device::kCuda : Device::kCpu;
 
-  spdlog::info("path safety: {} ROI voxels x {} surface points = {:.3g} rays (R = {:.1f} mm, "
-               "h = {:.2f} mm) on {}",
-               grid.roi_voxels, surface.points.size(), double(result.rays), grid.radius_mm,
-               grid.geometry.spacing[0], device == Device::kCuda ? "cuda" : "cpu");
+  spdlog::info("path safety ({}): {} ROI voxels x {} surface points = {:.3g} rays (R = {:.1f} "
+               "mm, h = {:.2f} mm) on {}",
+               mode_name(options.mode), grid.roi_voxels, surface.points.size(),
+               double(result.rays), grid.radius_mm, grid.geometry.spacing[0],
+               device == Device::kCuda ? "cuda" : "cpu");
   const std::vector<uint8_t> bricks = blocking_bricks(blocking);
   const auto scene = make_scene(blocking, tumor, surface, result.gamma_mm, options.eps, bricks);
   if (device == Device::kCuda) {
@@ -537,6 +673,14 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                                         : kernels::BlockingStorage::kGlobal;
     cuda.max_devices = options.max_gpus;
     cuda.progress = options.progress;
+    if (options.mode == Mode::kFast) {
+      int m = 0, radial = 0;
+      kernels::direction_table_size(max_ray_length(grid, scene), grid.geometry.spacing[0], m,
+                                    radial, options.fast_angular);
+      cuda.fast_cells = m;
+      cuda.fast_radial = radial;
+      result.direction_cells = m;
+    }
     const kernels::CudaRunReport report =
         kernels::run_path_safety_cuda(scene, desc, options.values, out, cuda);
     result.device = report.devices + (options.cuda_texture ? " (texture)" : "");
@@ -545,10 +689,27 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
     const int threads = options.threads > 0 ? options.threads : omp_get_max_threads();
     result.threads = threads;
     result.device = "cpu";
-    run_cpu(scene, grid, options.values, threads, result, options.progress);
+    if (options.mode == Mode::kFast) {
+      run_cpu_fast(scene, grid, options.values, threads, options.fast_angular, result,
+                   options.progress);
+    } else {
+      run_cpu(scene, grid, options.values, threads, result, options.progress);
+    }
   }
   result.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  if (options.mode == Mode::kFast && options.fast_check_voxels > 0) {
+    check_fast_against_exact(scene, grid, options.values, options.fast_check_voxels,
+                             options.threads > 0 ? options.threads : omp_get_max_threads(),
+                             result);
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      if (options.values & (1u << v)) {
+        spdlog::info("fast mode vs exact at {} voxels: {} relative L2 {:.2e}, same class {:.2f} %",
+                     result.check_voxels, value_name(1u << v), result.check_relative_l2[size_t(v)],
+                     100.0 * result.check_class_agreement[size_t(v)]);
+      }
+    }
+  }
   return result;
 }
 

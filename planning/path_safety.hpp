@@ -15,6 +15,9 @@
 namespace crepuscular::planning {
 
 enum class Device { kAuto, kCpu, kCuda };
+// exact: every ray marched (DESIGN.md §4, the reference); fast: rays cast once per surface point
+// and looked up by direction and distance (kernels/path_safety_fast.hpp).
+enum class Mode { kExact, kFast };
 
 // Parses "svv,isbv,ivbv,bvv" (any subset, any order, or "all") into PathSafetyValue bits; throws
 // Error on an unknown name.
@@ -23,6 +26,8 @@ unsigned parse_value_set(const std::string& text);
 const char* value_name(unsigned bit);
 Device parse_device(const std::string& text);
 const char* device_name(Device device);
+Mode parse_mode(const std::string& text);
+const char* mode_name(Mode mode);
 
 struct PathSafetyOptions {
   unsigned values = kernels::kAllValues;
@@ -31,11 +36,17 @@ struct PathSafetyOptions {
   double spacing_mm = 0.0;  // output spacing h; 0: the smallest spacing of the inputs
   double radius_mm = 0.0;   // region of interest R; 0: distance to the farthest voxel with b > 0
   Device device = Device::kAuto;
+  Mode mode = Mode::kExact;
   int threads = 0;  // CPU threads; 0: all cores
   int max_gpus = 0;  // CUDA devices to use; 0: all visible
   // CUDA only: sample the blocking volume through a 3D texture with hardware trilinear filtering
   // (9-bit weights) instead of float filtering in global memory (the exact definition).
   bool cuda_texture = false;
+  // Fast mode: octahedral direction cells per (distance / spacing), i.e. the angular sampling of
+  // the rays cast from each surface point; larger is closer to exact and slower (cost ~ square).
+  double fast_angular = 5.0;
+  // Fast mode: ROI voxels recomputed exactly afterwards to report the difference (0: none).
+  int fast_check_voxels = 1000;
   // Memory the output may take, bytes; 0: 80 % of the memory available now.
   uint64_t memory_limit_bytes = 0;
   // Called from the computing thread with the fraction done (0..1), about every 2 % of the work.
@@ -76,6 +87,8 @@ OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>
 struct PathSafetyResult {
   OutputGrid grid;
   unsigned values = 0;
+  Mode mode = Mode::kExact;
+  int direction_cells = 0;  // fast mode: octahedral map side
   // One volume per value slot (svv, isbv, ivbv, bvv); only requested ones are filled. Voxels
   // outside the region of interest are NaN (not computed).
   std::array<Volume<float>, kernels::kValueCount> volumes;
@@ -88,6 +101,11 @@ struct PathSafetyResult {
   int threads = 0;
   double seconds = 0.0;
   uint64_t rays = 0;  // output voxels in the ROI x surface points
+  // Fast mode: its difference from exact mode at `check_voxels` random ROI voxels (classes by
+  // default_classes of the fast volume); empty in exact mode.
+  int64_t check_voxels = 0;
+  std::array<double, kernels::kValueCount> check_relative_l2{};
+  std::array<double, kernels::kValueCount> check_class_agreement{};
 };
 
 // Computes the requested values. Checks every input first (geometry, negative or NaN blocking,

@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "planning/output_files.hpp"
+#include "planning/safety_classes.hpp"
 #include "planning/volume_io.hpp"
 #include "planning/vulnerability.hpp"
 
@@ -98,31 +99,16 @@ std::string file_checksum(const std::string& path) {
   return std::string(hex, 32);
 }
 
-nlohmann::json default_classes(unsigned value_bit, const Volume<float>& volume) {
-  if (value_bit == kernels::kSvv) {
-    return {{"higher_is_safer", true},
-            {"safe", 90.0},
-            {"dangerous", 50.0},
-            {"rule", "safe: svv >= safe; dangerous: svv < dangerous; medium in between (%)"}};
-  }
-  std::vector<float> v;
-  v.reserve(volume.values().size());
-  for (float x : volume.values()) {
-    if (std::isfinite(x)) v.push_back(x);
-  }
-  const auto percentile = [&](double q) -> double {
-    if (v.empty()) return 0.0;
-    const size_t i = std::min(v.size() - 1, size_t(q * double(v.size() - 1) + 0.5));
-    std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(i), v.end());
-    return v[i];
-  };
-  const double safe = percentile(0.2), dangerous = percentile(0.6);
-  return {{"higher_is_safer", false},
-          {"safe", safe},
-          {"dangerous", dangerous},
-          {"rule",
-           "safe: value <= safe (20th percentile of the region of interest); dangerous: value > "
-           "dangerous (60th percentile); medium in between"}};
+nlohmann::json classes_json(unsigned value_bit, const Volume<float>& volume) {
+  const SafetyClasses c = default_classes(value_bit, volume);
+  return {{"higher_is_safer", c.higher_is_safer},
+          {"safe", c.safe},
+          {"dangerous", c.dangerous},
+          {"rule", c.higher_is_safer
+                       ? "safe: value >= safe; dangerous: value < dangerous; medium in between (%)"
+                       : "safe: value <= safe (20th percentile of the non-zero values of the region "
+                         "of interest); dangerous: value > dangerous (60th percentile of them); "
+                         "medium in between"}};
 }
 
 nlohmann::json run_plan(const PlanRequest& req) {
@@ -241,7 +227,7 @@ nlohmann::json run_plan(const PlanRequest& req) {
     const Volume<float>& vol = result.volumes[size_t(v)];
     write_volume(vol, out.file(file));
     outputs[name] = file;
-    classes[name] = default_classes(bit, vol);
+    classes[name] = classes_json(bit, vol);
     double lo = INFINITY, hi = -INFINITY, sum = 0.0;
     int64_t n = 0;
     for (float x : vol.values()) {
@@ -269,7 +255,7 @@ nlohmann::json run_plan(const PlanRequest& req) {
     if (result.values & (1u << v)) values.push_back(value_name(1u << v));
   }
   plan["parameters"] = {{"values", values},
-                        {"mode", "exact"},
+                        {"mode", mode_name(result.mode)},
                         {"eps", result.eps},
                         {"spacing_mm", result.grid.geometry.spacing[0]},
                         {"spacing_requested_mm", req.path_safety.spacing_mm},
@@ -279,6 +265,18 @@ nlohmann::json run_plan(const PlanRequest& req) {
                         {"device_requested", device_name(req.path_safety.device)},
                         {"device", result.device},
                         {"threads", result.threads}};
+  if (result.mode == Mode::kFast) {
+    nlohmann::json check = {{"voxels", result.check_voxels},
+                            {"direction_cells", result.direction_cells},
+                            {"angular_oversampling", req.path_safety.fast_angular}};
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      if (!(result.values & (1u << v))) continue;
+      check[value_name(1u << v)] = {
+          {"relative_l2", result.check_relative_l2[size_t(v)]},
+          {"class_agreement", result.check_class_agreement[size_t(v)]}};
+    }
+    plan["fast_mode_vs_exact"] = check;
+  }
   plan["grid"] = geometry_json(result.grid.geometry);
   plan["grid"]["centre_lps_mm"] = {result.grid.centre.x(), result.grid.centre.y(),
                                    result.grid.centre.z()};

@@ -33,10 +33,7 @@ nlohmann::json run_plan(const PlanRequest& request);
 // Hex MD5 of a file's bytes (a folder: of its files' names and bytes, in name order).
 std::string file_checksum(const std::string& path);
 
-// Default class thresholds of one value over the region of interest: SVV is a percentage (safe
-// >= 90 %, dangerous < 50 %); the blocking values are relative to the plan, safe = the lowest 20 %
-// of the region of interest (the paper's "safest 20 % of the paths"), dangerous = above the 60th
-// percentile. Returns {"safe":..,"dangerous":..,"higher_is_safer":..,"rule":..}.
-nlohmann::json default_classes(unsigned value_bit, const Volume<float>& volume);
+// The class thresholds of one value as written in plan.json.
+nlohmann::json classes_json(unsigned value_bit, const Volume<float>& volume);
 
 }  // namespace crepuscular::planning
