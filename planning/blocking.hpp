@@ -22,8 +22,11 @@ struct MarginOptions {
 Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const VulnerabilityTable& table,
                                    const MarginOptions& margin, const std::string& labels_source);
 
-// Thresholding when no labels exist: bone (HU >= bone_hu) and air inside the body (HU <= air_hu,
-// not connected to the volume's border) are impassable; returns the blocking volume with margin.
+// Thresholding when no labels exist: bone (HU >= bone_hu) and air inside the body are
+// impassable; returns the blocking volume with margin. Air is outside the body when it touches one
+// of the four side faces of the volume; the two faces across the table axis (the index axis
+// closest to S) usually cut through the patient, so lungs, trachea and bowel gas that reach them
+// still count as inside.
 struct CtThresholds {
   double bone_hu = 250.0;
   double air_hu = -400.0;

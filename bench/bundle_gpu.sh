@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# Builds the GPU tests and benchmarks here (nvcc, sm_90) and bundles them with the shared libraries
+# they need into .device/, which the GPU machine receives as a carried path (it has no package
+# registry). Then run, on the GPU machine: bash bench/run_gpu.sh
+set -euo pipefail
+cd "$(dirname "$0")/.."
+cmake -S . -B build-device -G Ninja -DCMAKE_BUILD_TYPE=Release -DCREPUSCULAR_CUDA=ON \
+  -DCMAKE_CUDA_ARCHITECTURES=90 >/dev/null
+targets=(path_safety_cuda_test path_safety_test path_safety_fast_test bench_path_safety
+         bench_sampling_rate crepuscular)
+cmake --build build-device -j "$(nproc)" --target "${targets[@]}"
+rm -rf .device && mkdir -p .device/bin .device/lib
+for t in "${targets[@]}"; do
+  find build-device -type f -name "$t" -perm -u+x -exec cp {} .device/bin/ \;
+done
+# Shared libraries that are not part of every Linux system or the CUDA driver.
+for b in .device/bin/*; do
+  ldd "$b" | awk '/=> \// {print $3}'
+done | sort -u | grep -vE '/(libc|libm|libdl|libpthread|librt|ld-linux[^/]*|libcuda)\.so' |
+  while read -r lib; do cp -L "$lib" .device/lib/; done
+du -sh .device
