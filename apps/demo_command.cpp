@@ -15,6 +15,8 @@ void add_demo_command(CLI::App& app) {
   auto out = std::make_shared<std::string>("demo");
   auto spacing = std::make_shared<double>(3.0);
   auto device = std::make_shared<std::string>("auto");
+  auto mode = std::make_shared<std::string>("exact");
+  auto radius = std::make_shared<double>(150.0);
   CLI::App* cmd = app.add_subcommand(
       "demo",
       "Run Crepuscular end to end on the built-in phantom: generate the phantom abdomen\n"
@@ -23,7 +25,14 @@ void add_demo_command(CLI::App& app) {
   cmd->add_option("--out", *out, "Output folder")->capture_default_str();
   cmd->add_option("--spacing", *spacing, "Phantom voxel size in mm")->capture_default_str();
   cmd->add_option("--device", *device, "auto, cpu or cuda")->capture_default_str();
-  cmd->callback([out, spacing, device] {
+  cmd->add_option("--mode", *mode, "exact or fast (see `crepuscular plan --help`)")
+      ->capture_default_str();
+  cmd->add_option("--radius", *radius,
+                  "Region of interest around the tumor, mm: the reach of a long needle. (The "
+                  "plan's own default, the farthest voxel with any blocking, spans the whole "
+                  "body here because muscle carries a low risk.)")
+      ->capture_default_str();
+  cmd->callback([out, spacing, device, mode, radius] {
     const std::string phantom_dir = *out + "/phantom";
     planning::PhantomOptions po;
     po.spacing_mm = *spacing;
@@ -35,6 +44,8 @@ void add_demo_command(CLI::App& app) {
     req.tumor = phantom_dir + "/tumor.nii.gz";
     req.vulnerability = phantom_dir + "/vulnerability.json";
     req.path_safety.device = planning::parse_device(*device);
+    req.path_safety.mode = planning::parse_mode(*mode);
+    req.path_safety.radius_mm = *radius;
     req.out_dir = *out + "/plan";
     spdlog::info("demo: planning path safety in {}", req.out_dir);
     planning::run_plan(req);

@@ -18,7 +18,7 @@ struct PhantomOptions {
 
 struct Phantom {
   Volume<int16_t> ct;       // Hounsfield units
-  Volume<uint8_t> labels;   // label map, values as in phantom_label_names()
+  Volume<uint8_t> labels;   // label map, values as listed in planning/presets/phantom.json
   Volume<uint8_t> tumor;    // 0/1
   nlohmann::json vulnerability;  // the phantom's vulnerability table (same as preset "phantom")
 };
