@@ -186,7 +186,8 @@ CREPUSCULAR_HD RayGeometry<Real> make_ray(const PathSafetyScene<Real>& s, Vec3<R
   RayGeometry<Real> ray;
   const Vec3<Real> d = t.position - p;
   const Real dist = sqrt(dot(d, d));
-  ray.n = int(ceil(dist / s.gamma));
+  // Points closer than a millionth of a step coincide (rounding of the grids' transforms).
+  ray.n = dist > Real(1e-6) * s.gamma ? int(ceil(dist / s.gamma)) : 0;
   ray.step = ray.n > 0 ? dist / Real(ray.n) : Real(0);
   const Real inv_n = ray.n > 0 ? Real(1) / Real(ray.n) : Real(0);
   const Vec3<Real> dn = {d.x * inv_n, d.y * inv_n, d.z * inv_n};
@@ -264,8 +265,14 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<Real>& g, const RayGeom
     }
   }
   if (want_back) {
-    for (int k = ray.n + 1; k <= k_last; ++k) {
-      const int off = tumor_offset_at(g, along(ray.r0, ray.dr, Real(k)));
+    // Beyond t with the same step; only when p lies within a small fraction of a voxel of t is
+    // that step so tiny (< 1/100 voxel) that samples 1/100 voxel apart stand in for it, which
+    // see the same voxels at a bounded cost.
+    Real stride = Real(1);
+    const Real step_voxels = sqrt(dot(ray.dr, ray.dr));
+    if (step_voxels < Real(0.01)) stride = Real(0.01) / step_voxels;
+    for (Real k = Real(ray.n) + stride; k <= k_out; k += stride) {
+      const int off = tumor_offset_at(g, along(ray.r0, ray.dr, k));
       if (off >= 0 && off != own_offset) {
         c.back_facing = false;
         break;

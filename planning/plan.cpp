@@ -217,7 +217,14 @@ nlohmann::json run_plan(const PlanRequest& req) {
   // --- Outputs ---------------------------------------------------------------------------------
   t = Clock::now();
   write_volume(blocking, out.file("blocking.nii.gz"));
-  nlohmann::json outputs = {{"blocking", "blocking.nii.gz"}};
+  // The region of interest as a mask: ITK-based readers (3D Slicer among them) turn NaN into 0
+  // when they load NIfTI, so "not computed" must also be visible without NaN.
+  Volume<uint8_t> roi(result.grid.geometry, 0);
+  for (int64_t k = 0; k < roi.dims()[2]; ++k)
+    for (int64_t j = 0; j < roi.dims()[1]; ++j)
+      for (int64_t i = 0; i < roi.dims()[0]; ++i) roi(i, j, k) = result.grid.in_roi(i, j, k);
+  write_volume(roi, out.file("roi.nii.gz"));
+  nlohmann::json outputs = {{"blocking", "blocking.nii.gz"}, {"roi", "roi.nii.gz"}};
   nlohmann::json classes, statistics;
   for (int v = 0; v < kernels::kValueCount; ++v) {
     const unsigned bit = 1u << v;
