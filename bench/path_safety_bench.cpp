@@ -78,7 +78,7 @@ Volume<uint8_t> ball_tumor(const Eigen::Vector3d& centre, double spacing_mm, int
 int main(int argc, char** argv) {
   CLI::App app{"Path safety benchmark (see bench/RESULTS.md)"};
   std::string which = "phantom", device = "cpu", values_text = "all";
-  double spacing = 3.0;
+  double spacing = 3.0, radius = 150.0;
   int grid = 513, threads = 0, probe = 2000, tumor_voxels = 508;
   bool texture = false, each_value = false;
   std::string mode = "exact";
@@ -88,6 +88,7 @@ int main(int argc, char** argv) {
   app.add_option("--value", values_text, "values (svv,isbv,ivbv,bvv or all)");
   app.add_flag("--each-value", each_value, "time each value in a run of its own");
   app.add_option("--spacing", spacing, "phantom spacing in mm (phantom case)");
+  app.add_option("--radius", radius, "region of interest in mm (phantom case; 0: the plan default)");
   app.add_option("--grid", grid, "output voxels per axis (headline case)");
   app.add_option("--tumor-voxels", tumor_voxels, "tumor size in voxels (headline case)");
   app.add_option("--threads", threads, "CPU threads (0: all)");
@@ -114,6 +115,7 @@ int main(int argc, char** argv) {
     blocking = blocking_from_labels(labels, VulnerabilityTable::from_json(ph.vulnerability, "phantom"),
                                     MarginOptions{}, "phantom");
     tumor = ph.tumor;
+    o.radius_mm = radius;
   } else if (which == "headline") {
     po.spacing_mm = 0.7;  // vessels and bone at 0.7 mm
     Phantom ph = make_phantom(po);

@@ -42,7 +42,11 @@ Scene random_scene(uint32_t seed, const std::string& shape) {
           blocking(i, j, k) += float(a * std::exp(-d2 / (2 * r * r)));
         }
   }
-  ImageGeometry tg = grid(24, 1.1);  // the tumor on its own grid
+  // The tumor on its own grid, shifted by a fraction of a voxel: with the output grid centred on
+  // the tumor centroid, aligned grids put many samples exactly half-way between two tumor voxels,
+  // where float and double round differently (nearest-voxel ties).
+  ImageGeometry tg = grid(24, 1.1);
+  tg.origin += Eigen::Vector3d(0.3719, 0.2113, 0.1361);
   Volume<uint8_t> tumor(tg, 0);
   for (int64_t k = 0; k < 24; ++k)
     for (int64_t j = 0; j < 24; ++j)
