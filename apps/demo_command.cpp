@@ -16,7 +16,7 @@ void add_demo_command(CLI::App& app) {
   auto spacing = std::make_shared<double>(3.0);
   auto device = std::make_shared<std::string>("auto");
   auto mode = std::make_shared<std::string>("exact");
-  auto radius = std::make_shared<double>(150.0);
+  auto radius = std::make_shared<double>(120.0);
   CLI::App* cmd = app.add_subcommand(
       "demo",
       "Run Crepuscular end to end on the built-in phantom: generate the phantom abdomen\n"
@@ -47,7 +47,7 @@ void add_demo_command(CLI::App& app) {
     req.path_safety.mode = planning::parse_mode(*mode);
     req.path_safety.radius_mm = *radius;
     req.out_dir = *out + "/plan";
-    spdlog::info("demo: planning path safety in {}", req.out_dir);
+    spdlog::info("demo: planning path safety in {} (radius {} mm)", req.out_dir, *radius);
     planning::run_plan(req);
     spdlog::info("demo: done. Outputs: {}/phantom (ct, labels, tumor), {}/plan (path safety)",
                  *out, *out);
