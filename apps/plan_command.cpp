@@ -39,7 +39,8 @@ void add_plan_command(CLI::App& app) {
                   "Vulnerability table JSON: label -> level -> blocking per mm "
                   "(default: vulnerability.json beside the label map)")
       ->check(CLI::ExistingFile);
-  cmd->add_option("--preset", req->preset, "Built-in vulnerability table: phantom, totalsegmentator");
+  cmd->add_option("--preset", req->preset,
+                  "Built-in vulnerability table: phantom, totalsegmentator");
   cmd->add_option("--ct", req->ct,
                   "CT in HU; thresholded (bone, internal air) when no labels are given");
   cmd->add_option("--blocking", req->blocking,
@@ -48,8 +49,10 @@ void add_plan_command(CLI::App& app) {
       ->check(CLI::ExistingPath);
   cmd->add_option("--value", *values, "Values to compute: svv,isbv,ivbv,bvv or all")
       ->capture_default_str();
-  cmd->add_option("--eps", req->path_safety.eps,
-                  "Insignificant blocking for svv: a path whose line integral is <= eps is clear")
+  cmd->add_option(
+         "--eps", req->path_safety.eps,
+         "Insignificant blocking for svv: a path whose line integral of blocking is <= eps is "
+         "clear (0.5: 25 mm of muscle at 0.02/mm, or 0.5 mm of a vessel at 1/mm)")
       ->capture_default_str();
   cmd->add_option("--spacing", req->path_safety.spacing_mm,
                   "Output spacing in mm (default: smallest input spacing)");
