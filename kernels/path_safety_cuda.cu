@@ -194,7 +194,7 @@ struct DeviceScene {
 struct TableBatch {
   DirectionTable<float> first;  // slot 0; slot s is offset by s * stride
   size_t value_stride;          // floats between slots of c0/c1/c2
-  size_t cell_stride;           // cells between slots of flags/first_hit/chord/last_in
+  size_t cell_stride;           // cells between slots of crossing
 };
 
 __device__ DirectionTable<float> slot_table(const TableBatch& b, int slot) {
@@ -204,10 +204,7 @@ __device__ DirectionTable<float> slot_table(const TableBatch& b, int slot) {
     t.c1 += slot * b.value_stride;
     t.c2 += slot * b.value_stride;
   }
-  t.flags += slot * b.cell_stride;
-  t.first_hit += slot * b.cell_stride;
-  t.chord += slot * b.cell_stride;
-  t.last_in += slot * b.cell_stride;
+  t.crossing += slot * b.cell_stride;
   return t;
 }
 
@@ -309,19 +306,17 @@ CudaRunReport run_fast(const PathSafetyScene<double>& host_scene, const OutputGr
       size_t free_bytes = 0, total_bytes = 0;
       check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
       const size_t per_slot = cells * size_t(radial) * sizeof(float) * (moments ? 3 : 1) +
-                              cells * (1 + 3 * sizeof(uint16_t));
+                              cells * sizeof(DirectionCrossing);
       const int slots = int(std::max<size_t>(1, std::min<size_t>(16, free_bytes / 2 / per_slot)));
       DeviceBuffer<float> c0(cells * radial * slots), c1, c2;
       if (moments) {
         c1.allocate(cells * radial * slots);
         c2.allocate(cells * radial * slots);
       }
-      DeviceBuffer<uint8_t> flags(cells * slots);
-      DeviceBuffer<uint16_t> first_hit(cells * slots), chord(cells * slots),
-          last_in(cells * slots);
+      DeviceBuffer<DirectionCrossing> crossing(cells * slots);
       TableBatch batch{};
-      batch.first = {m,       radial,       h,           0.5f * h,     c0.ptr,   c1.ptr,
-                     c2.ptr,  flags.ptr,    first_hit.ptr, chord.ptr,  last_in.ptr};
+      batch.first = {m,      radial, int64_t(cells), h, 0.5f * h, c0.ptr, c1.ptr,
+                     c2.ptr, crossing.ptr};
       batch.value_stride = cells * size_t(radial);
       batch.cell_stride = cells;
       SlabGrid g{};

@@ -41,22 +41,31 @@ CREPUSCULAR_HD Vec3<Real> octahedral_decode(Real u, Real v) {
 constexpr uint8_t kFrontFacing = 1u;  // nothing of the tumor between t and a point in this direction
 constexpr uint8_t kBackFacing = 2u;   // nothing of the tumor behind t, seen from this direction
 
+// How the ray of one direction cell crosses the tumor (8 bytes: one memory sector per lookup).
+struct DirectionCrossing {
+  uint16_t first_hit;  // index k of the first sample k gamma toward the point that lies in
+                       // another tumor voxel (65535: none)
+  uint16_t chord;      // samples in the tumor toward the point, t's own included
+  uint16_t last_in;    // index of the last of them
+  uint8_t flags;       // kBackFacing
+  uint8_t unused;
+};
+
 // The rays of one surface point t. Cell (a, b) holds the direction at the centre of octahedral
-// cell (a, b) of an m x m map; radial sample j lies at distance j * dr from t.
+// cell (a, b) of an m x m map; radial sample j lies at distance j * dr from t. The running
+// integrals are stored radius-major ([j * cells + cell]) so that neighbouring voxels, which look
+// up neighbouring cells at about the same distance, read neighbouring memory.
 template <typename Real>
 struct DirectionTable {
   int m;
   int radial;
-  Real dr;     // mm between stored radial samples (the output spacing)
-  Real gamma;  // mm between blocking samples along a ray (half the output spacing)
-  float* c0;   // [cell * radial + j]: integral of b from t to distance j dr
-  float* c1;   // integral of b s, s = distance from t (BVV only; may be null)
-  float* c2;   // integral of b s^2 (BVV only; may be null)
-  uint8_t* flags;       // [cell]: kBackFacing
-  uint16_t* first_hit;  // [cell]: index k of the first sample k gamma toward the point that lies
-                        // in another tumor voxel (65535: none)
-  uint16_t* chord;      // [cell]: samples in the tumor toward the point, t's own included
-  uint16_t* last_in;    // [cell]: index of the last of them
+  int64_t cells;  // m * m
+  Real dr;        // mm between stored radial samples (the output spacing)
+  Real gamma;     // mm between blocking samples along a ray (half the output spacing)
+  float* c0;      // integral of b from t to distance j dr
+  float* c1;      // integral of b s, s = distance from t (BVV only; may be null)
+  float* c2;      // integral of b s^2 (BVV only; may be null)
+  DirectionCrossing* crossing;  // [cell]
 };
 
 // Casts the ray of cell (a, b) from surface point t: samples of b every gamma, stored every dr; tumor occupancy in both directions with the nearest-voxel lookup of exact mode.
@@ -94,10 +103,7 @@ CREPUSCULAR_HD void cast_direction(const PathSafetyScene<Real>& s, const Surface
       }
     }
   }
-  table.flags[cell] = flags;
-  table.first_hit[cell] = uint16_t(first_hit);
-  table.chord[cell] = uint16_t(chord);
-  table.last_in[cell] = uint16_t(last_in);
+  table.crossing[cell] = {uint16_t(first_hit), uint16_t(chord), uint16_t(last_in), flags, 0};
 
   // Running integrals along the ray with the samples of exact mode seen from t: b at t, then
   // every gamma outward (exact mode sums x_1..x_N, which from t's side are s = 0, l, .., D - l).
@@ -105,9 +111,10 @@ CREPUSCULAR_HD void cast_direction(const PathSafetyScene<Real>& s, const Surface
   const Vec3<Real> dq = s.blocking.physical_to_index.apply_linear(du);
   const int per_store = int(table.dr / table.gamma + Real(0.5));
   Real c0 = 0, c1 = 0, c2 = 0;
-  float* out0 = table.c0 + cell * table.radial;
-  float* out1 = table.c1 ? table.c1 + cell * table.radial : nullptr;
-  float* out2 = table.c2 ? table.c2 + cell * table.radial : nullptr;
+  const int64_t stride = table.cells;
+  float* out0 = table.c0 + cell;
+  float* out1 = table.c1 ? table.c1 + cell : nullptr;
+  float* out2 = table.c2 ? table.c2 + cell : nullptr;
   out0[0] = 0.0f;
   if (out1) out1[0] = out2[0] = 0.0f;
   int k = 0;
@@ -119,10 +126,10 @@ CREPUSCULAR_HD void cast_direction(const PathSafetyScene<Real>& s, const Surface
       c1 += bval * dist;
       c2 += bval * dist * dist;
     }
-    out0[j] = float(c0);
+    out0[j * stride] = float(c0);
     if (out1) {
-      out1[j] = float(c1);
-      out2[j] = float(c2);
+      out1[j * stride] = float(c1);
+      out2[j * stride] = float(c2);
     }
   }
 }
@@ -152,9 +159,11 @@ template <typename Real>
 CREPUSCULAR_HD Real lookup_radial(const float* c, const DirectionTable<Real>& t, const int cells[4],
                                   const Real w[4], int j, Real fj) {
   Real v = 0;
+  const float* lo = c + int64_t(j) * t.cells;
+  const float* hi = lo + t.cells;
   for (int n = 0; n < 4; ++n) {
-    const float* row = c + int64_t(cells[n]) * t.radial;
-    v += w[n] * (Real(row[j]) + fj * (Real(row[j + 1]) - Real(row[j])));
+    const Real a = lo[cells[n]];
+    v += w[n] * (a + fj * (Real(hi[cells[n]]) - a));
   }
   return v;
 }
@@ -187,11 +196,12 @@ CREPUSCULAR_HD void combine_from_table(VoxelState<Real>& state, const PathSafety
     // between p and t (s in [l, D - l] from t) for front-facing, and s in [0, D - l] for the chord.
     const int nearest = cells[(wx >= Real(0.5) ? 1 : 0) + (wy >= Real(0.5) ? 2 : 0)];
     const Real reach = (dist - Real(0.5) * table.gamma) / table.gamma;  // last index before p
-    crossing.front_facing = Real(table.first_hit[nearest]) > reach;
-    crossing.back_facing = (table.flags[nearest] & kBackFacing) != 0;
-    const int chord = table.chord[nearest];
+    const DirectionCrossing cell = table.crossing[nearest];
+    crossing.front_facing = Real(cell.first_hit) > reach;
+    crossing.back_facing = (cell.flags & kBackFacing) != 0;
+    const int chord = cell.chord;
     crossing.samples_in_tumor =
-        Real(table.last_in[nearest]) <= reach ? chord : (reach < Real(0) ? 1 : int(reach) + 1);
+        Real(cell.last_in) <= reach ? chord : (reach < Real(0) ? 1 : int(reach) + 1);
     if (crossing.samples_in_tumor > chord) crossing.samples_in_tumor = chord;
     const bool front = (Values & (kSvv | kIsbv)) != 0 && crossing.front_facing;
     const bool back = (Values & (kIvbv | kBvv)) != 0 && crossing.back_facing;

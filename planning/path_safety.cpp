@@ -474,20 +474,17 @@ void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGri
     c1.resize(c0.size());
     c2.resize(c0.size());
   }
-  std::vector<uint8_t> flags(cells);
-  std::vector<uint16_t> first_hit(cells), chord(cells), last_in(cells);
+  std::vector<kernels::DirectionCrossing> crossing(cells);
   kernels::DirectionTable<double> table{};
   table.m = m;
   table.radial = radial;
+  table.cells = int64_t(cells);
   table.dr = h;
   table.gamma = 0.5 * h;
   table.c0 = c0.data();
   table.c1 = moments ? c1.data() : nullptr;
   table.c2 = moments ? c2.data() : nullptr;
-  table.flags = flags.data();
-  table.first_hit = first_hit.data();
-  table.chord = chord.data();
-  table.last_in = last_in.data();
+  table.crossing = crossing.data();
   // The ROI voxels, compact.
   std::vector<int64_t> roi;
   roi.reserve(size_t(grid.roi_voxels));
