@@ -56,7 +56,7 @@ int main() {
   cudaCreateTextureObject(&tex, &res, &td, nullptr);
   float* out;
   cudaMalloc(&out, 128 * 128 * 128 * sizeof(float));
-  BlockingGrid<float> g{vol, kN, kN, kN, {}};
+  BlockingGrid<float> g{vol, kN, kN, kN, {}, nullptr, 0, 0, 0};
   const dim3 block(8, 8, 4), blocks(16, 16, 32);
   const double samples = 128.0 * 128 * 128 * kSteps;
   cudaEvent_t a, b;

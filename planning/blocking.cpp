@@ -1,6 +1,7 @@
 // Preprocessing (§3.1, DESIGN.md §5): the blocking volume b (risk per mm) from a label map and a
 // vulnerability table, or from CT thresholds, with the Gaussian safety margin done by ITK.
 #include "planning/blocking.hpp"
+#include "planning/itk_image.hpp"
 
 #include <spdlog/spdlog.h>
 
@@ -47,22 +48,7 @@ void check_margin(const MarginOptions& margin) {
 template <typename Image>
 typename Image::Pointer make_image(const ImageGeometry& g) {
   auto image = Image::New();
-  typename Image::SizeType size;
-  typename Image::SpacingType spacing;
-  typename Image::PointType origin;
-  typename Image::DirectionType direction;
-  for (unsigned a = 0; a < 3; ++a) {
-    size[a] = itk::SizeValueType(g.dims[a]);
-    spacing[a] = g.spacing[a];
-    origin[a] = g.origin[a];
-    for (unsigned b = 0; b < 3; ++b) direction(a, b) = g.direction(a, b);
-  }
-  typename Image::RegionType region;
-  region.SetSize(size);
-  image->SetRegions(region);
-  image->SetSpacing(spacing);
-  image->SetOrigin(origin);
-  image->SetDirection(direction);
+  set_image_geometry(*image, g);
   image->Allocate();
   return image;
 }

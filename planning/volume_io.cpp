@@ -1,6 +1,7 @@
 // Volume IO through ITK: NIfTI, NRRD, MetaImage files and DICOM series folders to Volume<T> and
 // back. ITK is LPS like Volume, so the geometry is copied as is; every ITK error becomes an Error.
 #include "planning/volume_io.hpp"
+#include "planning/itk_image.hpp"
 
 #include <spdlog/spdlog.h>
 
@@ -562,20 +563,7 @@ void write_volume(const Volume<T>& volume, const std::string& path) {
 
   using Image = itk::Image<T, 3>;
   auto image = Image::New();
-  typename Image::SizeType size;
-  typename Image::SpacingType spacing;
-  typename Image::PointType origin;
-  typename Image::DirectionType direction;
-  for (unsigned a = 0; a < 3; ++a) {
-    size[a] = itk::SizeValueType(g.dims[a]);
-    spacing[a] = g.spacing[a];
-    origin[a] = g.origin[a];
-    for (unsigned r = 0; r < 3; ++r) direction[r][a] = g.direction(r, a);
-  }
-  image->SetRegions(typename Image::RegionType(size));
-  image->SetSpacing(spacing);
-  image->SetOrigin(origin);
-  image->SetDirection(direction);
+  set_image_geometry(*image, g);
   // The writer only reads the buffer; the container does not own it.
   image->GetPixelContainer()->SetImportPointer(const_cast<T*>(volume.data()),
                                                itk::SizeValueType(g.voxel_count()), false);

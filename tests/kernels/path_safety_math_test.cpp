@@ -24,7 +24,7 @@ TEST(Sampling, TrilinearReproducesLinearFunctionsInside) {
   for (int k = 0; k < n; ++k)
     for (int j = 0; j < n; ++j)
       for (int i = 0; i < n; ++i) v[size_t((k * n + j) * n + i)] = float(f(i, j, k));
-  BlockingGrid<double> g{v.data(), n, n, n, identity_affine()};
+  BlockingGrid<double> g{v.data(), n, n, n, identity_affine(), nullptr, 0, 0, 0};
   for (double x : {0.0, 0.3, 2.71, 4.99})
     for (double y : {0.0, 1.5, 4.2})
       for (double z : {0.1, 3.3, 4.999})
@@ -35,7 +35,7 @@ TEST(Sampling, OutsideTheGridBlendsToZero) {
   // Zero padding: at index -0.5 the value is half of voxel 0; at -1 and beyond it is 0.
   const int n = 4;
   std::vector<float> v(n * n * n, 3.0f);
-  BlockingGrid<double> g{v.data(), n, n, n, identity_affine()};
+  BlockingGrid<double> g{v.data(), n, n, n, identity_affine(), nullptr, 0, 0, 0};
   EXPECT_NEAR(sample_blocking(g, Vec3<double>{-0.5, 1.0, 1.0}), 1.5, 1e-6);
   EXPECT_NEAR(sample_blocking(g, Vec3<double>{1.0, 3.25, 1.0}), 2.25, 1e-6);
   EXPECT_EQ(sample_blocking(g, Vec3<double>{-1.0, 1.0, 1.0}), 0.0);
