@@ -482,7 +482,7 @@ TEST_F(VolumeIoTest, NibabelFindsTheMarkedVoxelAtTheSamePointInRas) {
 
   const Eigen::Vector3d lps = g.index_to_physical(5, 1, 3);
   const Eigen::Vector3d expected_ras(-lps.x(), -lps.y(), lps.z());
-  // float32 header values (see Format) keep the point within 1e-4 mm; 1e-3 mm is the bound we promise.
+  // float32 header values (see Format) keep the point within 1e-4 mm; we promise 1e-3 mm.
   EXPECT_LT((ras - expected_ras).cwiseAbs().maxCoeff(), 1e-3)
       << "nibabel RAS " << ras.transpose() << ", ours (LPS->RAS) " << expected_ras.transpose();
 }
