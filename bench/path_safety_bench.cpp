@@ -79,7 +79,7 @@ int main(int argc, char** argv) {
   CLI::App app{"Path safety benchmark (see bench/RESULTS.md)"};
   std::string which = "phantom", device = "cpu", values_text = "all";
   double spacing = 3.0, radius = 150.0;
-  int grid = 513, threads = 0, probe = 2000, tumor_voxels = 508;
+  int grid = 513, threads = 0, probe = 2000, tumor_voxels = 508, gpus = 0;
   bool texture = false, each_value = false;
   std::string mode = "exact";
   double angular = 5.0;
@@ -92,6 +92,7 @@ int main(int argc, char** argv) {
   app.add_option("--grid", grid, "output voxels per axis (headline case)");
   app.add_option("--tumor-voxels", tumor_voxels, "tumor size in voxels (headline case)");
   app.add_option("--threads", threads, "CPU threads (0: all)");
+  app.add_option("--gpus", gpus, "CUDA devices (0: all visible)");
   app.add_option("--probe", probe, "ROI voxels probed to count samples");
   app.add_flag("--texture", texture, "CUDA: blocking in a 3D texture (hardware filtering)");
   app.add_option("--mode", mode, "exact, fast, or both (fast compared with exact in full)");
@@ -107,6 +108,7 @@ int main(int argc, char** argv) {
   o.device = parse_device(device);
   o.threads = threads;
   o.cuda_texture = texture;
+  o.max_gpus = gpus;
   if (which == "phantom") {
     po.spacing_mm = spacing;
     Phantom ph = make_phantom(po);
