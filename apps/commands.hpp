@@ -8,6 +8,12 @@ namespace crepuscular::apps {
 
 void add_phantom_command(CLI::App& app);
 void add_plan_command(CLI::App& app);
+void add_area_command(CLI::App& app);
+void add_slices_command(CLI::App& app);
+void add_evaluate_command(CLI::App& app);
+void add_synth_command(CLI::App& app);
+void add_record_command(CLI::App& app);
+void add_track_command(CLI::App& app);
 void add_demo_command(CLI::App& app);
 
 }  // namespace crepuscular::apps

@@ -23,6 +23,12 @@ int main(int argc, char** argv) {
   });
   crepuscular::apps::add_phantom_command(app);
   crepuscular::apps::add_plan_command(app);
+  crepuscular::apps::add_area_command(app);
+  crepuscular::apps::add_slices_command(app);
+  crepuscular::apps::add_evaluate_command(app);
+  crepuscular::apps::add_synth_command(app);
+  crepuscular::apps::add_record_command(app);
+  crepuscular::apps::add_track_command(app);
   crepuscular::apps::add_demo_command(app);
   try {
     app.parse(argc, argv);

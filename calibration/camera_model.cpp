@@ -1,0 +1,1 @@
+#include "calibration/camera_model.hpp"

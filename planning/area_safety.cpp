@@ -1,0 +1,1 @@
+#include "planning/area_safety.hpp"

@@ -1,0 +1,1 @@
+#include "recordings/recording.hpp"
