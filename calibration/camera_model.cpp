@@ -1,1 +1,241 @@
+// Pinhole + Brown-Conrady camera model, OpenCV's definitions; OpenCV FileStorage YAML files.
 #include "calibration/camera_model.hpp"
+
+#include <unistd.h>
+
+#include <Eigen/LU>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <sstream>
+
+#include "kernels/error.hpp"
+
+namespace crepuscular::calibration {
+
+namespace {
+
+// Jacobian of distort() at xy (2x2), for Newton's method in unproject().
+Eigen::Matrix2d distortion_jacobian(const std::array<double, 5>& d, const Eigen::Vector2d& xy) {
+  const double x = xy.x(), y = xy.y();
+  const double k1 = d[0], k2 = d[1], p1 = d[2], p2 = d[3], k3 = d[4];
+  const double r2 = x * x + y * y;
+  const double radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+  const double dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);  // d radial / d r2
+  Eigen::Matrix2d j;
+  j(0, 0) = radial + 2.0 * x * x * dradial + 2.0 * p1 * y + 6.0 * p2 * x;
+  j(0, 1) = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y;
+  j(1, 0) = 2.0 * x * y * dradial + 2.0 * p1 * x + 2.0 * p2 * y;
+  j(1, 1) = radial + 2.0 * y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x;
+  return j;
+}
+
+std::string shape_of(const cv::Mat& m) {
+  std::ostringstream s;
+  s << m.rows << "x" << m.cols;
+  if (m.channels() != 1) s << "x" << m.channels();
+  return s.str();
+}
+
+}  // namespace
+
+Eigen::Vector2d CameraModel::distort(const Eigen::Vector2d& xy) const {
+  const double intrinsics[4] = {1.0, 1.0, 0.0, 0.0};
+  const double p[3] = {xy.x(), xy.y(), 1.0};
+  Eigen::Vector2d out;
+  project_generic(intrinsics, distortion.data(), p, out.data());
+  return out;
+}
+
+Eigen::Vector2d CameraModel::normalized_to_pixel(const Eigen::Vector2d& xy) const {
+  const Eigen::Vector2d d = distort(xy);
+  return {fx * d.x() + cx, fy * d.y() + cy};
+}
+
+Eigen::Vector2d CameraModel::project(const Eigen::Vector3d& p_cam) const {
+  const double intrinsics[4] = {fx, fy, cx, cy};
+  Eigen::Vector2d pixel;
+  project_generic(intrinsics, distortion.data(), p_cam.data(), pixel.data());
+  return pixel;
+}
+
+Eigen::Vector2d CameraModel::unproject(const Eigen::Vector2d& pixel) const {
+  const Eigen::Vector2d target((pixel.x() - cx) / fx, (pixel.y() - cy) / fy);
+  const double k1 = distortion[0], k2 = distortion[1], p1 = distortion[2], p2 = distortion[3],
+               k3 = distortion[4];
+  if (k1 == 0 && k2 == 0 && p1 == 0 && p2 == 0 && k3 == 0) return target;
+
+  // OpenCV's fixed-point iteration (cv::undistortPoints) as a start ...
+  Eigen::Vector2d xy = target;
+  for (int i = 0; i < 10; ++i) {
+    const double r2 = xy.squaredNorm();
+    const double icdist = 1.0 / (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)));
+    if (!(icdist > 0) || !std::isfinite(icdist)) break;
+    const double dx = 2.0 * p1 * xy.x() * xy.y() + p2 * (r2 + 2.0 * xy.x() * xy.x());
+    const double dy = p1 * (r2 + 2.0 * xy.y() * xy.y()) + 2.0 * p2 * xy.x() * xy.y();
+    const Eigen::Vector2d next((target.x() - dx) * icdist, (target.y() - dy) * icdist);
+    if (!next.allFinite()) break;
+    xy = next;
+  }
+  // ... then Newton's method on distort(xy) = target, which converges quadratically.
+  double residual = (distort(xy) - target).norm();
+  for (int i = 0; i < 30 && residual > 1e-15; ++i) {
+    const Eigen::Matrix2d j = distortion_jacobian(distortion, xy);
+    const Eigen::Vector2d step = j.partialPivLu().solve(distort(xy) - target);
+    const Eigen::Vector2d candidate = xy - step;
+    const double r = (distort(candidate) - target).norm();
+    if (!(r < residual)) break;
+    xy = candidate;
+    residual = r;
+  }
+  return xy;
+}
+
+cv::Mat CameraModel::camera_matrix() const {
+  cv::Mat k = (cv::Mat_<double>(3, 3) << fx, 0, cx, 0, fy, cy, 0, 0, 1);
+  return k;
+}
+
+cv::Mat CameraModel::distortion_coefficients() const {
+  cv::Mat d(1, 5, CV_64F);
+  for (int i = 0; i < 5; ++i) d.at<double>(0, i) = distortion[size_t(i)];
+  return d;
+}
+
+CameraModel CameraModel::from_opencv(const cv::Mat& camera_matrix, const cv::Mat& distortion,
+                                     int width, int height, const std::string& what) {
+  if (camera_matrix.rows != 3 || camera_matrix.cols != 3 || camera_matrix.channels() != 1) {
+    throw Error(what + ": camera_matrix is " + shape_of(camera_matrix) + ", expected 3x3");
+  }
+  cv::Mat k;
+  camera_matrix.convertTo(k, CV_64F);
+  if (std::abs(k.at<double>(0, 1)) > 1e-9 || k.at<double>(1, 0) != 0 || k.at<double>(2, 0) != 0 ||
+      k.at<double>(2, 1) != 0 || std::abs(k.at<double>(2, 2) - 1.0) > 1e-12) {
+    throw Error(what + ": camera_matrix must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)");
+  }
+  CameraModel m;
+  m.width = width;
+  m.height = height;
+  m.fx = k.at<double>(0, 0);
+  m.fy = k.at<double>(1, 1);
+  m.cx = k.at<double>(0, 2);
+  m.cy = k.at<double>(1, 2);
+  if (!distortion.empty()) {
+    if (distortion.channels() != 1 || (distortion.rows != 1 && distortion.cols != 1)) {
+      throw Error(what + ": distortion_coefficients is " + shape_of(distortion) +
+                  ", expected a 1xN vector (k1 k2 p1 p2 k3)");
+    }
+    cv::Mat d;
+    distortion.reshape(1, 1).convertTo(d, CV_64F);
+    const int n = d.cols;
+    if (n < 4) {
+      throw Error(what + ": distortion_coefficients has " + std::to_string(n) +
+                  " entries, expected 4 or 5 (k1 k2 p1 p2 k3)");
+    }
+    for (int i = 0; i < std::min(n, 5); ++i) m.distortion[size_t(i)] = d.at<double>(0, i);
+    for (int i = 5; i < n; ++i) {
+      if (d.at<double>(0, i) != 0.0) {
+        throw Error(what + ": distortion_coefficients entry " + std::to_string(i) + " is " +
+                    std::to_string(d.at<double>(0, i)) +
+                    "; only k1 k2 p1 p2 k3 are supported (the rational, thin-prism and tilted "
+                    "models are not), expected 0");
+      }
+    }
+  }
+  m.validate(what);
+  return m;
+}
+
+void CameraModel::validate(const std::string& what) const {
+  if (width <= 0 || height <= 0) {
+    throw Error(what + ": image size " + std::to_string(width) + "x" + std::to_string(height) +
+                ", expected image_width and image_height > 0");
+  }
+  if (!(fx > 0) || !(fy > 0) || !std::isfinite(fx) || !std::isfinite(fy)) {
+    throw Error(what + ": focal lengths fx=" + std::to_string(fx) + " fy=" + std::to_string(fy) +
+                " in camera_matrix, expected finite values > 0");
+  }
+  if (!std::isfinite(cx) || !std::isfinite(cy)) {
+    throw Error(what + ": principal point in camera_matrix is not finite");
+  }
+  for (double d : distortion) {
+    if (!std::isfinite(d)) throw Error(what + ": distortion_coefficients are not finite");
+  }
+}
+
+CameraModel CameraModel::read_yaml(const std::string& path) {
+  if (!std::filesystem::exists(path)) {
+    throw Error(path + ": camera file not found (expected OpenCV FileStorage YAML with "
+                       "camera_matrix, distortion_coefficients, image_width, image_height)");
+  }
+  cv::FileStorage fs;
+  try {
+    if (!fs.open(path, cv::FileStorage::READ)) {
+      throw Error(path + ": cannot be read as OpenCV FileStorage YAML");
+    }
+  } catch (const cv::Exception& e) {
+    throw Error(path + ": not a valid OpenCV FileStorage YAML file (" + e.err + ")");
+  }
+  const auto read_mat = [&](const char* field) {
+    const cv::FileNode node = fs[field];
+    if (node.empty() || node.isNone()) {
+      throw Error(path + ": field " + field + " is missing (expected an OpenCV matrix)");
+    }
+    cv::Mat m;
+    try {
+      node >> m;
+    } catch (const cv::Exception& e) {
+      throw Error(path + ": field " + field + " is not an OpenCV matrix (" + e.err + ")");
+    }
+    if (m.empty()) throw Error(path + ": field " + field + " is not an OpenCV matrix (opencv-matrix)");
+    return m;
+  };
+  const auto read_int = [&](const char* field) {
+    const cv::FileNode node = fs[field];
+    if (node.empty() || node.isNone()) {
+      throw Error(path + ": field " + field + " is missing (expected a positive integer)");
+    }
+    if (!node.isInt()) {
+      throw Error(path + ": field " + field + " is not an integer (expected a positive integer)");
+    }
+    const int v = int(node);
+    if (v <= 0) {
+      throw Error(path + ": field " + field + " is " + std::to_string(v) + ", expected > 0");
+    }
+    return v;
+  };
+  const cv::Mat k = read_mat("camera_matrix");
+  const cv::Mat d = read_mat("distortion_coefficients");
+  const int width = read_int("image_width");
+  const int height = read_int("image_height");
+  return from_opencv(k, d, width, height, path);
+}
+
+void CameraModel::write_yaml(const std::string& path) const {
+  validate(path);
+  namespace fs = std::filesystem;
+  const fs::path target(path);
+  const fs::path temporary = target.parent_path() / (".tmp-" + std::to_string(::getpid()) + "-" +
+                                                     target.filename().string() + ".yaml");
+  try {
+    cv::FileStorage out(temporary.string(), cv::FileStorage::WRITE | cv::FileStorage::FORMAT_YAML);
+    if (!out.isOpened()) throw Error(path + ": cannot write camera file");
+    out << "image_width" << width;
+    out << "image_height" << height;
+    out << "camera_matrix" << camera_matrix();
+    out << "distortion_coefficients" << distortion_coefficients();
+    out.release();
+  } catch (const cv::Exception& e) {
+    std::error_code ignored;
+    fs::remove(temporary, ignored);
+    throw Error(path + ": cannot write camera file (" + e.err + ")");
+  }
+  std::error_code ec;
+  fs::rename(temporary, target, ec);
+  if (ec) {
+    fs::remove(temporary, ec);
+    throw Error(path + ": cannot write camera file (rename failed)");
+  }
+}
+
+}  // namespace crepuscular::calibration

@@ -1,0 +1,226 @@
+// Tests of CameraModel (calibration/camera_model.hpp): projection and unprojection against OpenCV's
+// cv::projectPoints and cv::undistortPoints on random points for several distortion sets, YAML
+// round trip readable by cv::FileStorage, and errors on bad files.
+#include "calibration/camera_model.hpp"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+#include <random>
+#include <string>
+#include <vector>
+
+#include <opencv2/calib3d.hpp>
+
+#include "kernels/error.hpp"
+
+namespace crepuscular::calibration {
+namespace {
+
+namespace fs = std::filesystem;
+
+CameraModel make_camera(const std::array<double, 5>& distortion) {
+  CameraModel m;
+  m.width = 1280;
+  m.height = 720;
+  m.fx = 1012.5;
+  m.fy = 1008.25;
+  m.cx = 641.3;
+  m.cy = 357.9;
+  m.distortion = distortion;
+  return m;
+}
+
+// Distortion sets of real lenses: none, barrel, pincushion, decentred (tangential), strong k3.
+const std::vector<std::array<double, 5>> kDistortions = {
+    {0, 0, 0, 0, 0},
+    {-0.28, 0.09, 0, 0, -0.012},
+    {0.12, -0.05, 0, 0, 0.01},
+    {-0.11, 0.04, 0.0012, -0.0009, 0.0},
+    {0.05, -0.21, -0.0021, 0.0015, 0.34},
+};
+
+template <typename F>
+void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
+  try {
+    f();
+    ADD_FAILURE() << "expected crepuscular::Error";
+  } catch (const Error& e) {
+    for (const std::string& part : parts) {
+      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
+          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
+    }
+  }
+}
+
+fs::path temp_dir(const std::string& name) {
+  const fs::path dir = fs::temp_directory_path() / ("crepuscular_camera_model_test_" + name);
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  return dir;
+}
+
+TEST(CameraModel, ProjectAgreesWithOpenCvProjectPoints) {
+  std::mt19937 rng(20261123);
+  for (size_t set = 0; set < kDistortions.size(); ++set) {
+    const CameraModel m = make_camera(kDistortions[set]);
+    // Points in front of the camera whose images fall inside (and a little beyond) the frame.
+    std::uniform_real_distribution<double> nx(-0.7, 0.7), ny(-0.4, 0.4), z(150.0, 900.0);
+    std::vector<cv::Point3d> points;
+    for (int i = 0; i < 500; ++i) {
+      const double zz = z(rng);
+      points.emplace_back(nx(rng) * zz, ny(rng) * zz, zz);
+    }
+    std::vector<cv::Point2d> expected;
+    cv::projectPoints(points, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), m.camera_matrix(),
+                      m.distortion_coefficients(), expected);
+    for (size_t i = 0; i < points.size(); ++i) {
+      const Eigen::Vector2d p = m.project({points[i].x, points[i].y, points[i].z});
+      ASSERT_NEAR(p.x(), expected[i].x, 1e-6) << "set " << set << " point " << i;
+      ASSERT_NEAR(p.y(), expected[i].y, 1e-6) << "set " << set << " point " << i;
+    }
+  }
+}
+
+TEST(CameraModel, UnprojectAgreesWithOpenCvUndistortPoints) {
+  std::mt19937 rng(7);
+  for (size_t set = 0; set < kDistortions.size(); ++set) {
+    const CameraModel m = make_camera(kDistortions[set]);
+    std::uniform_real_distribution<double> u(0.0, m.width - 1.0), v(0.0, m.height - 1.0);
+    std::vector<cv::Point2d> pixels;
+    for (int i = 0; i < 500; ++i) pixels.emplace_back(u(rng), v(rng));
+    // OpenCV iterates a fixed point 5 times by default; ask it to converge fully.
+    std::vector<cv::Point2d> expected;
+    cv::undistortPoints(pixels, expected, m.camera_matrix(), m.distortion_coefficients(),
+                        cv::noArray(), cv::noArray(),
+                        cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 500,
+                                         1e-14));
+    for (size_t i = 0; i < pixels.size(); ++i) {
+      const Eigen::Vector2d xy = m.unproject({pixels[i].x, pixels[i].y});
+      // Normalised units times the focal length = pixels.
+      ASSERT_NEAR(xy.x() * m.fx, expected[i].x * m.fx, 1e-6) << "set " << set << " px " << i;
+      ASSERT_NEAR(xy.y() * m.fy, expected[i].y * m.fy, 1e-6) << "set " << set << " px " << i;
+      // And it is the inverse of the projection.
+      const Eigen::Vector2d back = m.project({xy.x() * 500.0, xy.y() * 500.0, 500.0});
+      ASSERT_NEAR(back.x(), pixels[i].x, 1e-8) << "set " << set << " px " << i;
+      ASSERT_NEAR(back.y(), pixels[i].y, 1e-8) << "set " << set << " px " << i;
+    }
+  }
+}
+
+TEST(CameraModel, ProjectOfPrincipalRayIsPrincipalPoint) {
+  const CameraModel m = make_camera(kDistortions[1]);
+  const Eigen::Vector2d p = m.project({0, 0, 400});
+  EXPECT_DOUBLE_EQ(p.x(), m.cx);
+  EXPECT_DOUBLE_EQ(p.y(), m.cy);
+  // Barrel distortion (k1 < 0) pulls a point towards the centre: x_d = x (1 + k1 r^2 + ...).
+  const double x = 0.3;
+  const double r2 = x * x;
+  const auto& d = m.distortion;
+  const double expected = m.cx + m.fx * x * (1 + d[0] * r2 + d[1] * r2 * r2 + d[4] * r2 * r2 * r2);
+  EXPECT_NEAR(m.project({x * 100, 0, 100}).x(), expected, 1e-9);
+}
+
+TEST(CameraModel, YamlRoundTripIsReadableByOpenCv) {
+  const fs::path dir = temp_dir("roundtrip");
+  const CameraModel m = make_camera(kDistortions[4]);
+  const std::string path = (dir / "camera.yaml").string();
+  m.write_yaml(path);
+  const CameraModel r = CameraModel::read_yaml(path);
+  EXPECT_EQ(r.width, m.width);
+  EXPECT_EQ(r.height, m.height);
+  EXPECT_DOUBLE_EQ(r.fx, m.fx);
+  EXPECT_DOUBLE_EQ(r.fy, m.fy);
+  EXPECT_DOUBLE_EQ(r.cx, m.cx);
+  EXPECT_DOUBLE_EQ(r.cy, m.cy);
+  for (size_t i = 0; i < 5; ++i) EXPECT_DOUBLE_EQ(r.distortion[i], m.distortion[i]) << i;
+
+  // OpenCV reads the same fields the way ROS and OpenCV tools do.
+  cv::FileStorage fsr(path, cv::FileStorage::READ);
+  ASSERT_TRUE(fsr.isOpened());
+  cv::Mat k, d;
+  fsr["camera_matrix"] >> k;
+  fsr["distortion_coefficients"] >> d;
+  EXPECT_EQ(int(fsr["image_width"]), 1280);
+  EXPECT_EQ(int(fsr["image_height"]), 720);
+  ASSERT_EQ(k.rows, 3);
+  ASSERT_EQ(k.cols, 3);
+  EXPECT_DOUBLE_EQ(k.at<double>(0, 0), m.fx);
+  EXPECT_DOUBLE_EQ(k.at<double>(1, 2), m.cy);
+  ASSERT_EQ(d.total(), 5u);
+  EXPECT_DOUBLE_EQ(d.at<double>(0, 4), m.distortion[4]);
+  // No temporary file is left beside it.
+  int files = 0;
+  for ([[maybe_unused]] const auto& e : fs::directory_iterator(dir)) ++files;
+  EXPECT_EQ(files, 1);
+}
+
+TEST(CameraModel, ReadsFileWrittenByOpenCvWithFourCoefficients) {
+  const fs::path dir = temp_dir("opencv4");
+  const std::string path = (dir / "cam.yml").string();
+  {
+    cv::FileStorage out(path, cv::FileStorage::WRITE);
+    out << "image_width" << 640 << "image_height" << 480;
+    out << "camera_matrix" << (cv::Mat_<double>(3, 3) << 500, 0, 320, 0, 501, 240, 0, 0, 1);
+    out << "distortion_coefficients" << (cv::Mat_<double>(4, 1) << -0.1, 0.01, 0.001, 0.002);
+  }
+  const CameraModel m = CameraModel::read_yaml(path);
+  EXPECT_EQ(m.width, 640);
+  EXPECT_DOUBLE_EQ(m.fy, 501);
+  EXPECT_DOUBLE_EQ(m.distortion[3], 0.002);
+  EXPECT_DOUBLE_EQ(m.distortion[4], 0.0);
+}
+
+TEST(CameraModel, BadFilesNameTheFileAndTheField) {
+  const fs::path dir = temp_dir("bad");
+  const auto write = [&](const std::string& name, const std::string& text) {
+    const std::string path = (dir / name).string();
+    std::ofstream(path) << text;
+    return path;
+  };
+  expect_error_containing([&] { CameraModel::read_yaml((dir / "absent.yaml").string()); },
+                          {"absent.yaml", "not found"});
+  const std::string garbage = write("garbage.yaml", "%YAML:1.0\ncamera_matrix: [1, 2\n  : :\n");
+  expect_error_containing([&] { CameraModel::read_yaml(garbage); }, {"garbage.yaml"});
+  const std::string missing = write(
+      "missing.yaml",
+      "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n"
+      "   rows: 3\n   cols: 3\n   dt: d\n   data: [ 500., 0., 320., 0., 500., 240., 0., 0., 1. ]\n");
+  expect_error_containing([&] { CameraModel::read_yaml(missing); },
+                          {"missing.yaml", "distortion_coefficients", "missing"});
+  const std::string wrong_shape = write(
+      "shape.yaml",
+      "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n"
+      "   rows: 2\n   cols: 3\n   dt: d\n   data: [ 500., 0., 320., 0., 500., 240. ]\n"
+      "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
+      "   data: [ 0., 0., 0., 0., 0. ]\n");
+  expect_error_containing([&] { CameraModel::read_yaml(wrong_shape); },
+                          {"shape.yaml", "camera_matrix", "2x3", "3x3"});
+  const std::string no_width = write(
+      "width.yaml",
+      "%YAML:1.0\n---\nimage_width: -4\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n"
+      "   rows: 3\n   cols: 3\n   dt: d\n   data: [ 500., 0., 320., 0., 500., 240., 0., 0., 1. ]\n"
+      "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
+      "   data: [ 0., 0., 0., 0., 0. ]\n");
+  expect_error_containing([&] { CameraModel::read_yaml(no_width); },
+                          {"width.yaml", "image_width", "-4"});
+  const std::string rational = write(
+      "rational.yaml",
+      "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n"
+      "   rows: 3\n   cols: 3\n   dt: d\n   data: [ 500., 0., 320., 0., 500., 240., 0., 0., 1. ]\n"
+      "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 8\n   dt: d\n"
+      "   data: [ 0., 0., 0., 0., 0., 0.3, 0., 0. ]\n");
+  expect_error_containing([&] { CameraModel::read_yaml(rational); },
+                          {"rational.yaml", "distortion_coefficients", "entry 5"});
+  const std::string zero_focal = write(
+      "focal.yaml",
+      "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n"
+      "   rows: 3\n   cols: 3\n   dt: d\n   data: [ 0., 0., 320., 0., 500., 240., 0., 0., 1. ]\n"
+      "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
+      "   data: [ 0., 0., 0., 0., 0. ]\n");
+  expect_error_containing([&] { CameraModel::read_yaml(zero_focal); }, {"focal.yaml", "fx"});
+}
+
+}  // namespace
+}  // namespace crepuscular::calibration
