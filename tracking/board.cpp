@@ -1,1 +1,336 @@
+// Marker boards: grids, boards.json reading and writing, and the printed pattern of a tag taken
+// from libapriltag's family definitions.
 #include "tracking/board.hpp"
+
+#include <apriltag.h>
+#include <tag16h5.h>
+#include <tag25h9.h>
+#include <tag36h10.h>
+#include <tag36h11.h>
+#include <tagCircle21h7.h>
+#include <tagCircle49h12.h>
+#include <tagCustom48h12.h>
+#include <tagStandard41h12.h>
+#include <tagStandard52h13.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <set>
+#include <sstream>
+
+#include "kernels/error.hpp"
+
+namespace crepuscular::tracking {
+
+namespace {
+
+using nlohmann::json;
+
+struct FamilyEntry {
+  const char* name;
+  apriltag_family_t* (*create)();
+  void (*destroy)(apriltag_family_t*);
+};
+
+constexpr FamilyEntry kFamilies[] = {
+    {"tag36h11", tag36h11_create, tag36h11_destroy},
+    {"tag36h10", tag36h10_create, tag36h10_destroy},
+    {"tag25h9", tag25h9_create, tag25h9_destroy},
+    {"tag16h5", tag16h5_create, tag16h5_destroy},
+    {"tagCircle21h7", tagCircle21h7_create, tagCircle21h7_destroy},
+    {"tagCircle49h12", tagCircle49h12_create, tagCircle49h12_destroy},
+    {"tagStandard41h12", tagStandard41h12_create, tagStandard41h12_destroy},
+    {"tagStandard52h13", tagStandard52h13_create, tagStandard52h13_destroy},
+    {"tagCustom48h12", tagCustom48h12_create, tagCustom48h12_destroy},
+};
+
+// A libapriltag family, destroyed with its own function.
+using FamilyPtr = std::unique_ptr<apriltag_family_t, void (*)(apriltag_family_t*)>;
+
+FamilyPtr open_family(const std::string& name) {
+  for (const FamilyEntry& f : kFamilies) {
+    if (name == f.name) return FamilyPtr(f.create(), f.destroy);
+  }
+  std::string names;
+  for (const FamilyEntry& f : kFamilies) names += std::string(" ") + f.name;
+  throw Error("tag family '" + name + "' is unknown; expected one of" + names);
+}
+
+std::string where(const std::string& path, const std::string& field) {
+  return path + ": " + field;
+}
+
+double number_at(const json& j, const std::string& path, const std::string& field) {
+  if (!j.is_number()) {
+    throw Error(where(path, field) + " is " + j.dump() + ", expected a number");
+  }
+  const double v = j.get<double>();
+  if (!std::isfinite(v)) throw Error(where(path, field) + " is not finite");
+  return v;
+}
+
+int int_at(const json& j, const std::string& path, const std::string& field) {
+  if (!j.is_number_integer()) {
+    throw Error(where(path, field) + " is " + j.dump() + ", expected an integer");
+  }
+  return j.get<int>();
+}
+
+Eigen::Vector3d point_at(const json& j, const std::string& path, const std::string& field) {
+  if (!j.is_array() || (j.size() != 3 && j.size() != 2)) {
+    throw Error(where(path, field) + " is " + j.dump() + ", expected [x, y, z] in mm");
+  }
+  Eigen::Vector3d p = Eigen::Vector3d::Zero();
+  for (size_t i = 0; i < j.size(); ++i) {
+    p[Eigen::Index(i)] = number_at(j[i], path, field + "[" + std::to_string(i) + "]");
+  }
+  return p;
+}
+
+json point_json(const Eigen::Vector3d& p) { return json::array({p.x(), p.y(), p.z()}); }
+
+Board parse_board(const json& j, const std::string& path, const std::string& field) {
+  if (!j.is_object()) throw Error(where(path, field) + " is not an object");
+  Board b;
+  if (!j.contains("name") || !j["name"].is_string() || j["name"].get<std::string>().empty()) {
+    throw Error(where(path, field + ".name") + " is missing, expected a board name such as "
+                "\"patient\" or \"needle\"");
+  }
+  b.name = j["name"].get<std::string>();
+  if (j.contains("family")) {
+    if (!j["family"].is_string()) throw Error(where(path, field + ".family") + " is not a string");
+    b.family = j["family"].get<std::string>();
+  }
+  const int codes = [&] {
+    try {
+      return tag_family_code_count(b.family);
+    } catch (const Error& e) {
+      throw Error(where(path, field + ".family") + ": " + e.what());
+    }
+  }();
+  if (j.contains("tags")) {
+    const json& tags = j["tags"];
+    if (!tags.is_array()) throw Error(where(path, field + ".tags") + " is not an array");
+    for (size_t t = 0; t < tags.size(); ++t) {
+      const std::string tf = field + ".tags[" + std::to_string(t) + "]";
+      const json& tj = tags[t];
+      if (!tj.is_object() || !tj.contains("id") || !tj.contains("corners")) {
+        throw Error(where(path, tf) + " needs \"id\" and \"corners\" (4 points [x, y, z] in mm)");
+      }
+      BoardTag tag;
+      tag.id = int_at(tj["id"], path, tf + ".id");
+      const json& cj = tj["corners"];
+      if (!cj.is_array() || cj.size() != 4) {
+        throw Error(where(path, tf + ".corners") + " has " +
+                    (cj.is_array() ? std::to_string(cj.size()) : std::string("no")) +
+                    " points, expected 4 (apriltag_detection_t::p order)");
+      }
+      for (size_t c = 0; c < 4; ++c) {
+        tag.corners[c] = point_at(cj[c], path, tf + ".corners[" + std::to_string(c) + "]");
+      }
+      if (tag.side_mm() <= 0.0) throw Error(where(path, tf + ".corners") + " coincide");
+      b.tags.push_back(tag);
+    }
+  }
+  if (j.contains("grid")) {
+    const json& g = j["grid"];
+    const std::string gf = field + ".grid";
+    if (!g.is_object()) throw Error(where(path, gf) + " is not an object");
+    for (const char* key : {"rows", "cols", "tag_size_mm", "gap_mm"}) {
+      if (!g.contains(key)) {
+        throw Error(where(path, gf + "." + key) +
+                    " is missing (grid needs rows, cols, tag_size_mm, gap_mm; first_id optional)");
+      }
+    }
+    const int rows = int_at(g["rows"], path, gf + ".rows");
+    const int cols = int_at(g["cols"], path, gf + ".cols");
+    const double size = number_at(g["tag_size_mm"], path, gf + ".tag_size_mm");
+    const double gap = number_at(g["gap_mm"], path, gf + ".gap_mm");
+    const int first = g.contains("first_id") ? int_at(g["first_id"], path, gf + ".first_id") : 0;
+    if (rows < 1 || cols < 1) {
+      throw Error(where(path, gf) + ": rows and cols must be >= 1 (found " + std::to_string(rows) +
+                  " x " + std::to_string(cols) + ")");
+    }
+    if (!(size > 0) || gap < 0) {
+      throw Error(where(path, gf) + ": tag_size_mm must be > 0 and gap_mm >= 0");
+    }
+    Board grid = make_grid_board(b.name, rows, cols, size, gap, first);
+    if (g.contains("origin_mm")) {
+      const Eigen::Vector3d origin = point_at(g["origin_mm"], path, gf + ".origin_mm");
+      for (BoardTag& t : grid.tags) {
+        for (Eigen::Vector3d& c : t.corners) c += origin;
+      }
+    }
+    b.tags.insert(b.tags.end(), grid.tags.begin(), grid.tags.end());
+  }
+  if (b.tags.empty()) {
+    throw Error(where(path, field) + " (board '" + b.name +
+                "') has no tags; expected \"tags\" or \"grid\"");
+  }
+  for (const BoardTag& t : b.tags) {
+    if (t.id < 0 || t.id >= codes) {
+      throw Error(where(path, field) + ": tag id " + std::to_string(t.id) + " of board '" +
+                  b.name + "' is outside family " + b.family + " (0 to " +
+                  std::to_string(codes - 1) + ")");
+    }
+  }
+  if (j.contains("fiducials")) {
+    const json& fj = j["fiducials"];
+    if (!fj.is_array()) throw Error(where(path, field + ".fiducials") + " is not an array");
+    for (size_t i = 0; i < fj.size(); ++i) {
+      b.fiducials.push_back(
+          point_at(fj[i], path, field + ".fiducials[" + std::to_string(i) + "]"));
+    }
+  }
+  return b;
+}
+
+}  // namespace
+
+const BoardTag* Board::find(int id) const {
+  for (const BoardTag& t : tags) {
+    if (t.id == id) return &t;
+  }
+  return nullptr;
+}
+
+std::array<Eigen::Vector3d, 4> square_tag_corners(const Eigen::Vector2d& center, double size_mm) {
+  const double h = 0.5 * size_mm;
+  return {Eigen::Vector3d(center.x() - h, center.y() + h, 0.0),
+          Eigen::Vector3d(center.x() + h, center.y() + h, 0.0),
+          Eigen::Vector3d(center.x() + h, center.y() - h, 0.0),
+          Eigen::Vector3d(center.x() - h, center.y() - h, 0.0)};
+}
+
+Board make_grid_board(const std::string& name, int rows, int cols, double tag_size_mm,
+                      double gap_mm, int first_id) {
+  Board b;
+  b.name = name;
+  const double pitch = tag_size_mm + gap_mm;
+  for (int r = 0; r < rows; ++r) {
+    for (int c = 0; c < cols; ++c) {
+      BoardTag t;
+      t.id = first_id + r * cols + c;
+      const Eigen::Vector2d center((c - 0.5 * (cols - 1)) * pitch, (r - 0.5 * (rows - 1)) * pitch);
+      t.corners = square_tag_corners(center, tag_size_mm);
+      b.tags.push_back(t);
+    }
+  }
+  return b;
+}
+
+std::vector<Board> read_boards(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) throw Error(path + ": cannot open boards file");
+  json j;
+  try {
+    in >> j;
+  } catch (const json::exception& e) {
+    throw Error(path + ": not valid JSON (" + e.what() + ")");
+  }
+  if (!j.is_object() || !j.contains("boards") || !j["boards"].is_array()) {
+    throw Error(path + ": field boards is missing, expected {\"boards\": [ ... ]}");
+  }
+  std::vector<Board> boards;
+  std::map<std::string, std::map<int, std::string>> owner;  // family -> id -> board
+  std::set<std::string> names;
+  for (size_t i = 0; i < j["boards"].size(); ++i) {
+    Board b = parse_board(j["boards"][i], path, "boards[" + std::to_string(i) + "]");
+    if (!names.insert(b.name).second) {
+      throw Error(path + ": board name '" + b.name + "' appears twice, expected unique names");
+    }
+    for (const BoardTag& t : b.tags) {
+      auto& ids = owner[b.family];
+      const auto it = ids.find(t.id);
+      if (it != ids.end()) {
+        throw Error(path + ": tag id " + std::to_string(t.id) + " (" + b.family +
+                    ") is used by board '" + it->second + "' and board '" + b.name +
+                    "'; expected each id on one tag only");
+      }
+      ids[t.id] = b.name;
+    }
+    boards.push_back(std::move(b));
+  }
+  if (boards.empty()) throw Error(path + ": field boards is empty, expected at least one board");
+  return boards;
+}
+
+void write_boards(const std::string& path, const std::vector<Board>& boards) {
+  json out;
+  out["boards"] = json::array();
+  for (const Board& b : boards) {
+    json bj;
+    bj["name"] = b.name;
+    bj["family"] = b.family;
+    bj["tags"] = json::array();
+    for (const BoardTag& t : b.tags) {
+      json corners = json::array();
+      for (const Eigen::Vector3d& c : t.corners) corners.push_back(point_json(c));
+      bj["tags"].push_back({{"id", t.id}, {"corners", corners}});
+    }
+    if (!b.fiducials.empty()) {
+      bj["fiducials"] = json::array();
+      for (const Eigen::Vector3d& f : b.fiducials) bj["fiducials"].push_back(point_json(f));
+    }
+    out["boards"].push_back(bj);
+  }
+  namespace fs = std::filesystem;
+  const fs::path target(path);
+  const fs::path temporary =
+      target.parent_path() / (".tmp-" + std::to_string(::getpid()) + "-" + target.filename().string());
+  {
+    std::ofstream f(temporary);
+    f << out.dump(2) << "\n";
+    if (!f) throw Error(path + ": cannot write boards file");
+  }
+  std::error_code ec;
+  fs::rename(temporary, target, ec);
+  if (ec) {
+    fs::remove(temporary, ec);
+    throw Error(path + ": cannot write boards file (rename failed)");
+  }
+}
+
+int tag_family_code_count(const std::string& family) {
+  return int(open_family(family)->ncodes);
+}
+
+TagPattern tag_pattern(const std::string& family, int id) {
+  const FamilyPtr fam = open_family(family);
+  if (id < 0 || uint32_t(id) >= fam->ncodes) {
+    throw Error("tag id " + std::to_string(id) + " is outside family " + family + " (0 to " +
+                std::to_string(fam->ncodes - 1) + ")");
+  }
+  TagPattern p;
+  p.width_at_border = fam->width_at_border;
+  p.total_width = fam->total_width;
+  const int n = fam->total_width;
+  p.cells = cv::Mat(n, n, CV_8U, cv::Scalar(0));
+  // The white ring: just outside the black border, or (reversed border) just inside it.
+  const int white_width = fam->width_at_border + (fam->reversed_border ? 0 : 2);
+  const int white_start = (n - white_width) / 2;
+  for (int i = 0; i < white_width; ++i) {
+    p.cells.at<uint8_t>(white_start, white_start + i) = 255;
+    p.cells.at<uint8_t>(white_start + white_width - 1, white_start + i) = 255;
+    p.cells.at<uint8_t>(white_start + i, white_start) = 255;
+    p.cells.at<uint8_t>(white_start + i, white_start + white_width - 1) = 255;
+  }
+  // Data bits: bit i is code bit (nbits - 1 - i), at cell (bit_x, bit_y) from the border start;
+  // positions may lie outside the border (negative as signed numbers) for the newer families.
+  const uint64_t code = fam->codes[id];
+  const int start = p.border_start();
+  for (uint32_t i = 0; i < fam->nbits; ++i) {
+    const int x = int32_t(fam->bit_x[i]) + start;
+    const int y = int32_t(fam->bit_y[i]) + start;
+    const bool white = (code >> (fam->nbits - 1 - i)) & 1u;
+    if (x >= 0 && y >= 0 && x < n && y < n) p.cells.at<uint8_t>(y, x) = white ? 255 : 0;
+  }
+  return p;
+}
+
+}  // namespace crepuscular::tracking

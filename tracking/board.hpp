@@ -1,4 +1,12 @@
 // Marker boards: rigid sets of AprilTags with known corner positions (board frame, mm).
+//
+// A tag's corners are the corners of the square that libapriltag detects: the outer edge of the
+// black border for tag36h11 (8 of its 10 cells; the white ring of one cell lies outside). Its
+// "size" is the side of that square. Board frame of a printed board seen upright: x to the right,
+// y down, z into the board (away from a camera that looks at the printed face), as libapriltag's
+// own tag pose. Corner order = apriltag_detection_t::p: bottom-left, bottom-right, top-right,
+// top-left of the tag as printed, i.e. (-s/2, +s/2), (+s/2, +s/2), (+s/2, -s/2), (-s/2, -s/2) around
+// the tag centre (checked by rendering and detecting in tests/tracking/board_test.cpp).
 #pragma once
 
 #include <Eigen/Core>
@@ -6,12 +14,19 @@
 #include <string>
 #include <vector>
 
+#include <opencv2/core.hpp>
+
 namespace crepuscular::tracking {
 
 struct BoardTag {
   int id = 0;
   // Corners in the board frame (mm), in libapriltag's order of apriltag_detection_t::p.
   std::array<Eigen::Vector3d, 4> corners;
+
+  Eigen::Vector3d center() const {
+    return 0.25 * (corners[0] + corners[1] + corners[2] + corners[3]);
+  }
+  double side_mm() const { return (corners[1] - corners[0]).norm(); }
 };
 
 struct Board {
@@ -19,15 +34,45 @@ struct Board {
   std::string family = "tag36h11";
   std::vector<BoardTag> tags;
   std::vector<Eigen::Vector3d> fiducials;  // CT-visible fiducials (patient board), board frame mm
+
+  // The tag with this id, or nullptr.
+  const BoardTag* find(int id) const;
 };
 
 // A planar grid of rows x cols tags of side tag_size_mm with gap_mm between them, ids from first_id,
 // in the z = 0 plane of the board frame.
+// Origin at the centre of the grid; ids run row by row from the top-left tag (smallest x, y).
 Board make_grid_board(const std::string& name, int rows, int cols, double tag_size_mm,
                       double gap_mm, int first_id);
 
+// The four corners of an upright square tag of side size_mm centred at `center` (z = 0 plane).
+std::array<Eigen::Vector3d, 4> square_tag_corners(const Eigen::Vector2d& center, double size_mm);
+
 // boards.json: {"boards": [ {...}, ... ]}. Errors name the file and the field.
+// A board: {"name": "patient", "family": "tag36h11" (default),
+//           "tags": [{"id": 0, "corners": [[x,y,z] x 4]}, ...],
+//           "grid": {"rows": 2, "cols": 3, "tag_size_mm": 40, "gap_mm": 10, "first_id": 0,
+//                    "origin_mm": [0, 0, 0] (optional offset of the grid centre)},
+//           "fiducials": [[x,y,z], ...]}
+// "grid" is expanded into tags on reading (after any explicit "tags"); at least one tag; ids
+// unique within a family across all boards and within the family's code count.
 std::vector<Board> read_boards(const std::string& path);
+// Writes every tag explicitly (grids expanded); through a temporary file and a rename.
 void write_boards(const std::string& path, const std::vector<Board>& boards);
+
+// A tag's printed pattern from libapriltag's family definition (codes, bit_x/bit_y,
+// width_at_border, total_width, reversed_border): total_width x total_width cells, CV_8U, 0 black,
+// 255 white, row 0 at the top. The detected square spans cells [border_start, border_start +
+// width_at_border) in both directions.
+struct TagPattern {
+  cv::Mat cells;
+  int width_at_border = 0;
+  int total_width = 0;
+  int border_start() const { return (total_width - width_at_border) / 2; }
+};
+// Throws Error for an unknown family or an id outside the family.
+TagPattern tag_pattern(const std::string& family, int id);
+// Number of codes in a family (e.g. 587 for tag36h11); throws Error for an unknown family.
+int tag_family_code_count(const std::string& family);
 
 }  // namespace crepuscular::tracking
