@@ -1,1 +1,414 @@
+// Recording folders: frame-by-frame writer that survives being killed, and a reader that replays
+// whatever complete frames a folder holds.
 #include "recordings/recording.hpp"
+
+#include <spdlog/spdlog.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cinttypes>
+#include <cmath>
+#include <ctime>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+
+#include <opencv2/imgcodecs.hpp>
+
+#include "kernels/error.hpp"
+
+namespace crepuscular::recordings {
+
+namespace fs = std::filesystem;
+
+const char* const kPoseCsvHeader = "frame,timestamp_ns,board,state,tx,ty,tz,qw,qx,qy,qz,rms_px";
+
+namespace {
+
+constexpr const char* kFramesHeader = "frame,timestamp_ns,file";
+
+std::vector<std::string> split(const std::string& line, char sep) {
+  std::vector<std::string> out;
+  std::string cur;
+  for (char c : line) {
+    if (c == sep) {
+      out.push_back(cur);
+      cur.clear();
+    } else {
+      cur += c;
+    }
+  }
+  out.push_back(cur);
+  return out;
+}
+
+bool parse_int64(const std::string& s, int64_t* v) {
+  if (s.empty()) return false;
+  char* end = nullptr;
+  errno = 0;
+  const long long x = std::strtoll(s.c_str(), &end, 10);
+  if (errno != 0 || end != s.c_str() + s.size()) return false;
+  *v = int64_t(x);
+  return true;
+}
+
+bool parse_double(const std::string& s, double* v) {
+  if (s.empty()) return false;
+  char* end = nullptr;
+  const double x = std::strtod(s.c_str(), &end);
+  if (end != s.c_str() + s.size() || !std::isfinite(x)) return false;
+  *v = x;
+  return true;
+}
+
+// Lines of a text file. `incomplete` is set when the last line lacks its newline (a writer was
+// interrupted in the middle of it); that line is not returned.
+std::vector<std::string> read_lines(const std::string& path, bool* incomplete) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw Error(path + ": cannot open");
+  std::stringstream buffer;
+  buffer << in.rdbuf();
+  const std::string text = buffer.str();
+  std::vector<std::string> lines;
+  size_t start = 0;
+  *incomplete = false;
+  while (start < text.size()) {
+    const size_t nl = text.find('\n', start);
+    if (nl == std::string::npos) {
+      *incomplete = true;
+      break;
+    }
+    std::string line = text.substr(start, nl - start);
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    lines.push_back(line);
+    start = nl + 1;
+  }
+  return lines;
+}
+
+void write_file_atomically(const fs::path& path, const void* data, size_t size) {
+  const fs::path tmp = path.parent_path() / (".tmp-" + path.filename().string());
+  std::FILE* f = std::fopen(tmp.c_str(), "wb");
+  if (!f) throw Error(path.string() + ": cannot write");
+  const bool ok = std::fwrite(data, 1, size, f) == size;
+  if (std::fclose(f) != 0 || !ok) {
+    std::error_code ignored;
+    fs::remove(tmp, ignored);
+    throw Error(path.string() + ": cannot write (disk full?)");
+  }
+  std::error_code ec;
+  fs::rename(tmp, path, ec);
+  if (ec) throw Error(path.string() + ": cannot rename into place (" + ec.message() + ")");
+}
+
+bool is_jpeg(const std::vector<uint8_t>& b) {
+  return b.size() >= 3 && b[0] == 0xFF && b[1] == 0xD8 && b[2] == 0xFF;
+}
+
+}  // namespace
+
+std::string utc_now_iso8601() {
+  const std::time_t now = std::time(nullptr);
+  std::tm tm{};
+  gmtime_r(&now, &tm);
+  char buf[32];
+  std::strftime(buf, sizeof buf, "%Y-%m-%dT%H:%M:%SZ", &tm);
+  return buf;
+}
+
+std::string format_pose_row(const PoseRow& r) {
+  char buf[512];
+  std::snprintf(buf, sizeof buf,
+                "%" PRId64 ",%" PRId64 ",%s,%s,%.6f,%.6f,%.6f,%.12f,%.12f,%.12f,%.12f,%.4f", r.frame,
+                r.timestamp_ns, r.board.c_str(), r.state.c_str(), r.t[0], r.t[1], r.t[2], r.q[0],
+                r.q[1], r.q[2], r.q[3], r.rms_px);
+  return buf;
+}
+
+PoseCsv read_pose_csv(const std::string& path) {
+  bool incomplete = false;
+  const std::vector<std::string> lines = read_lines(path, &incomplete);
+  PoseCsv out;
+  if (lines.empty() || lines[0] != kPoseCsvHeader) {
+    throw Error(path + ": header is '" + (lines.empty() ? std::string() : lines[0]) +
+                "', expected '" + kPoseCsvHeader + "'");
+  }
+  for (size_t i = 1; i < lines.size(); ++i) {
+    if (lines[i].empty()) continue;
+    const std::vector<std::string> f = split(lines[i], ',');
+    PoseRow r;
+    bool ok = f.size() == 12 && parse_int64(f[0], &r.frame) && parse_int64(f[1], &r.timestamp_ns);
+    if (ok) {
+      r.board = f[2];
+      r.state = f[3];
+      for (int k = 0; k < 3 && ok; ++k) ok = parse_double(f[size_t(4 + k)], &r.t[k]);
+      for (int k = 0; k < 4 && ok; ++k) ok = parse_double(f[size_t(7 + k)], &r.q[k]);
+      ok = ok && parse_double(f[11], &r.rms_px);
+    }
+    if (!ok) {
+      out.problems.push_back(path + ": line " + std::to_string(i + 1) +
+                             " is malformed, skipped (expected 12 fields: " + kPoseCsvHeader + ")");
+      continue;
+    }
+    out.rows.push_back(r);
+  }
+  if (incomplete) {
+    out.problems.push_back(path + ": last line is incomplete (interrupted writer), skipped");
+  }
+  return out;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writer
+
+RecordingWriter::RecordingWriter(const std::string& dir, const SessionInfo& session,
+                                 const std::string& image_format, int jpeg_quality,
+                                 bool with_ground_truth)
+    : dir_(dir),
+      session_(session),
+      format_(image_format),
+      quality_(jpeg_quality),
+      with_truth_(with_ground_truth) {
+  if (format_ != "jpg" && format_ != "png") {
+    throw Error(dir + ": image format '" + format_ + "' is not supported, expected jpg or png");
+  }
+  if (quality_ < 1 || quality_ > 100) {
+    throw Error(dir + ": JPEG quality " + std::to_string(quality_) + ", expected 1 to 100");
+  }
+  std::error_code ec;
+  if (fs::exists(dir_) && !fs::is_empty(dir_, ec)) {
+    throw Error(dir_ + ": recording folder exists and is not empty; choose another --out");
+  }
+  fs::create_directories(fs::path(dir_) / "frames", ec);
+  if (ec) throw Error(dir_ + ": cannot create recording folder (" + ec.message() + ")");
+  created_ = utc_now_iso8601();
+  if (!session_.boards.is_null()) {
+    const std::string text = session_.boards.dump(2) + "\n";
+    write_file_atomically(fs::path(dir_) / "boards.json", text.data(), text.size());
+  }
+  write_session(false);
+  const std::string frames_path = (fs::path(dir_) / "frames.csv").string();
+  frames_csv_ = std::fopen(frames_path.c_str(), "wb");
+  if (!frames_csv_) throw Error(frames_path + ": cannot write");
+  std::fprintf(frames_csv_, "%s\n", kFramesHeader);
+  std::fflush(frames_csv_);
+  if (with_ground_truth) {
+    const std::string truth_path = (fs::path(dir_) / "ground_truth.csv").string();
+    truth_csv_ = std::fopen(truth_path.c_str(), "wb");
+    if (!truth_csv_) throw Error(truth_path + ": cannot write");
+    std::fprintf(truth_csv_, "%s\n", kPoseCsvHeader);
+    std::fflush(truth_csv_);
+  }
+}
+
+RecordingWriter::~RecordingWriter() {
+  if (frames_csv_) std::fclose(frames_csv_);
+  if (truth_csv_) std::fclose(truth_csv_);
+}
+
+void RecordingWriter::write_session(bool complete) {
+  nlohmann::json s = session_.extra.is_object() ? session_.extra : nlohmann::json::object();
+  s["format"] = "crepuscular-recording";
+  s["version"] = 1;
+  s["created"] = created_;
+  s["source"] = session_.source;
+  s["plan"] = session_.plan;
+  s["boards"] = session_.boards.is_null() ? nlohmann::json::array()
+                                          : session_.boards.value("boards", nlohmann::json::array());
+  s["frames"] = {{"file", "frames.csv"}, {"image_format", format_}};
+  s["ground_truth"] = with_truth_ ? "ground_truth.csv" : "";
+  s["frame_count"] = count_;
+  s["complete"] = complete;
+  const std::string text = s.dump(2) + "\n";
+  write_file_atomically(fs::path(dir_) / "session.json", text.data(), text.size());
+}
+
+void RecordingWriter::add_frame(int64_t frame, int64_t timestamp_ns, const cv::Mat& image,
+                                const std::vector<PoseRow>& truth) {
+  if (image.empty()) throw Error(dir_ + ": frame " + std::to_string(frame) + " has no image");
+  std::vector<uint8_t> bytes;
+  std::vector<int> params;
+  if (format_ == "jpg") params = {cv::IMWRITE_JPEG_QUALITY, quality_};
+  if (!cv::imencode("." + format_, image, bytes, params)) {
+    throw Error(dir_ + ": cannot encode frame " + std::to_string(frame) + " as " + format_);
+  }
+  add_encoded(frame, timestamp_ns, bytes, format_, truth);
+}
+
+void RecordingWriter::add_encoded(int64_t frame, int64_t timestamp_ns,
+                                  const std::vector<uint8_t>& bytes, const std::string& ext,
+                                  const std::vector<PoseRow>& truth) {
+  if (finished_) throw Error(dir_ + ": recording already finished");
+  if (frame <= last_frame_) {
+    throw Error(dir_ + ": frame number " + std::to_string(frame) + " after " +
+                std::to_string(last_frame_) + ", expected increasing frame numbers");
+  }
+  if (ext != "jpg" && ext != "png") {
+    throw Error(dir_ + ": frame extension '" + ext + "', expected jpg or png");
+  }
+  char name[64];
+  std::snprintf(name, sizeof name, "frames/%06" PRId64 ".%s", frame, ext.c_str());
+  write_file_atomically(fs::path(dir_) / name, bytes.data(), bytes.size());
+  append_row(frame, timestamp_ns, name, truth);
+  last_frame_ = frame;
+  ++count_;
+}
+
+void RecordingWriter::append_row(int64_t frame, int64_t timestamp_ns, const std::string& file,
+                                 const std::vector<PoseRow>& truth) {
+  if (truth_csv_) {
+    for (PoseRow r : truth) {
+      r.frame = frame;
+      r.timestamp_ns = timestamp_ns;
+      std::fprintf(truth_csv_, "%s\n", format_pose_row(r).c_str());
+    }
+    if (std::fflush(truth_csv_) != 0) throw Error(dir_ + "/ground_truth.csv: cannot write");
+  }
+  std::fprintf(frames_csv_, "%" PRId64 ",%" PRId64 ",%s\n", frame, timestamp_ns, file.c_str());
+  if (std::fflush(frames_csv_) != 0) throw Error(dir_ + "/frames.csv: cannot write");
+}
+
+void RecordingWriter::finish() {
+  if (finished_) return;
+  if (frames_csv_) std::fclose(frames_csv_);
+  if (truth_csv_) std::fclose(truth_csv_);
+  frames_csv_ = nullptr;
+  truth_csv_ = nullptr;
+  finished_ = true;
+  write_session(true);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reader
+
+RecordingReader::RecordingReader(const std::string& dir) : dir_(dir) {
+  if (!fs::is_directory(dir_)) throw Error(dir_ + ": recording folder not found");
+  const std::string frames_path = (fs::path(dir_) / "frames.csv").string();
+  if (!fs::exists(frames_path)) {
+    throw Error(frames_path + ": missing; a recording folder has frames.csv (" + kFramesHeader +
+                ")");
+  }
+  bool incomplete = false;
+  const std::vector<std::string> lines = read_lines(frames_path, &incomplete);
+  if (lines.empty() || lines[0] != kFramesHeader) {
+    throw Error(frames_path + ": header is '" + (lines.empty() ? std::string() : lines[0]) +
+                "', expected '" + kFramesHeader + "'");
+  }
+  for (size_t i = 1; i < lines.size(); ++i) {
+    if (lines[i].empty()) continue;
+    const std::vector<std::string> f = split(lines[i], ',');
+    Entry e;
+    if (f.size() != 3 || !parse_int64(f[0], &e.frame) || !parse_int64(f[1], &e.timestamp_ns) ||
+        f[2].empty()) {
+      problems_.push_back(frames_path + ": line " + std::to_string(i + 1) +
+                          " is malformed, skipped (expected " + kFramesHeader + ")");
+      continue;
+    }
+    if (!entries_.empty() && e.frame <= entries_.back().frame) {
+      problems_.push_back(frames_path + ": line " + std::to_string(i + 1) + " frame " + f[0] +
+                          " does not follow frame " + std::to_string(entries_.back().frame) +
+                          ", skipped");
+      continue;
+    }
+    e.file = f[2];
+    entries_.push_back(e);
+  }
+  if (incomplete) {
+    problems_.push_back(frames_path +
+                        ": last line is incomplete (the recording was interrupted), skipped");
+  }
+
+  const fs::path session_path = fs::path(dir_) / "session.json";
+  if (fs::exists(session_path)) {
+    try {
+      std::ifstream in(session_path);
+      in >> session_;
+    } catch (const std::exception& e) {
+      session_ = nlohmann::json();
+      problems_.push_back(session_path.string() + ": not valid JSON, ignored");
+    }
+  } else {
+    problems_.push_back(session_path.string() + ": missing");
+  }
+
+  const std::string truth_path = (fs::path(dir_) / "ground_truth.csv").string();
+  if (fs::exists(truth_path)) {
+    PoseCsv truth = read_pose_csv(truth_path);
+    problems_.insert(problems_.end(), truth.problems.begin(), truth.problems.end());
+    truth_ = std::move(truth.rows);
+    std::stable_sort(truth_.begin(), truth_.end(),
+                     [](const PoseRow& a, const PoseRow& b) { return a.frame < b.frame; });
+    has_truth_ = true;
+  }
+}
+
+std::string RecordingReader::camera_path() const {
+  const fs::path p = fs::path(dir_) / "camera.yaml";
+  return fs::exists(p) ? p.string() : std::string();
+}
+
+std::string RecordingReader::boards_path() const {
+  const fs::path p = fs::path(dir_) / "boards.json";
+  return fs::exists(p) ? p.string() : std::string();
+}
+
+std::vector<PoseRow> RecordingReader::ground_truth(int64_t frame) const {
+  const auto lo = std::lower_bound(truth_.begin(), truth_.end(), frame,
+                                   [](const PoseRow& r, int64_t f) { return r.frame < f; });
+  std::vector<PoseRow> out;
+  for (auto it = lo; it != truth_.end() && it->frame == frame; ++it) out.push_back(*it);
+  return out;
+}
+
+RecordingReader::Loaded RecordingReader::load(size_t i) const {
+  Loaded out;
+  if (i >= entries_.size()) {
+    out.problem = dir_ + ": frame entry " + std::to_string(i) + " does not exist";
+    return out;
+  }
+  const Entry& e = entries_[i];
+  const fs::path path = fs::path(dir_) / e.file;
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    out.problem = path.string() + ": frame file missing";
+    return out;
+  }
+  out.bytes.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  out.image = decode_image(out.bytes, &out.problem);
+  if (out.image.empty()) out.problem = path.string() + ": " + out.problem;
+  return out;
+}
+
+cv::Mat decode_image(const std::vector<uint8_t>& bytes, std::string* problem) {
+  if (bytes.empty()) {
+    *problem = "empty image data";
+    return {};
+  }
+  if (is_jpeg(bytes)) {
+    // libjpeg decodes a truncated JPEG with only a warning, filling the rest with grey; a complete
+    // JPEG ends with the EOI marker (FF D9), possibly followed by zero padding from the camera.
+    size_t end = bytes.size();
+    while (end > 2 && bytes[end - 1] == 0x00) --end;
+    const bool eoi = bytes[end - 2] == 0xFF && bytes[end - 1] == 0xD9;
+    if (!eoi) {
+      *problem = "corrupt JPEG (" + std::to_string(bytes.size()) + " bytes, no end-of-image marker)";
+      return {};
+    }
+  }
+  cv::Mat image;
+  try {
+    image = cv::imdecode(bytes, cv::IMREAD_COLOR);
+  } catch (const cv::Exception& e) {
+    *problem = std::string("cannot decode image (") + e.err + ")";
+    return {};
+  }
+  if (image.empty()) {
+    *problem = std::string("corrupt ") + (is_jpeg(bytes) ? "JPEG" : "image") + " (" +
+               std::to_string(bytes.size()) + " bytes could not be decoded)";
+    return {};
+  }
+  problem->clear();
+  return image;
+}
+
+}  // namespace crepuscular::recordings
