@@ -62,8 +62,8 @@ struct TextureSampler {
 };
 
 struct SlabGrid {
-  float origin[3];
-  float axes[3][3];
+  double origin[3];
+  double axes[3][3];
   int n;
   int z_begin, z_end;  // slices of this launch, global indices
   int z_slab;          // first slice of this device's slab
@@ -79,11 +79,7 @@ __global__ void path_safety_kernel(PathSafetyScene<float> scene, SlabGrid grid, 
   const int j = blockIdx.y * blockDim.y + threadIdx.y;
   const int k = grid.z_begin + blockIdx.z * blockDim.z + threadIdx.z;
   if (i >= grid.n || j >= grid.n || k >= grid.z_end) return;
-  const float fi = float(i), fj = float(j), fk = float(k);
-  const Vec3<float> p = {
-      grid.origin[0] + fi * grid.axes[0][0] + fj * grid.axes[1][0] + fk * grid.axes[2][0],
-      grid.origin[1] + fi * grid.axes[0][1] + fj * grid.axes[1][1] + fk * grid.axes[2][1],
-      grid.origin[2] + fi * grid.axes[0][2] + fj * grid.axes[1][2] + fk * grid.axes[2][2]};
+  const Vec3<double> p = grid_point(grid.origin, grid.axes, i, j, k);
   const long long di = i - grid.half, dj = j - grid.half, dk = k - grid.half;
   if (di * di + dj * dj + dk * dk > grid.max_sq) return;
   float res[kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
@@ -100,7 +96,7 @@ struct DeviceScene {
   DeviceBuffer<float> blocking;
   DeviceBuffer<uint8_t> bricks;
   DeviceBuffer<uint8_t> tumor;
-  DeviceBuffer<SurfacePoint<float>> surface;
+  DeviceBuffer<SurfacePoint<double>> surface;
   cudaArray_t array = nullptr;
   cudaTextureObject_t texture = 0;
   PathSafetyScene<float> scene{};
@@ -161,20 +157,14 @@ struct DeviceScene {
     scene.tumor.nx = host.tumor.nx;
     scene.tumor.ny = host.tumor.ny;
     scene.tumor.nz = host.tumor.nz;
-    scene.tumor.physical_to_index = to_float(host.tumor.physical_to_index);
+    scene.tumor.physical_to_index = host.tumor.physical_to_index;
     for (int a = 0; a < 3; ++a) {
       scene.tumor.lo[a] = host.tumor.lo[a];
       scene.tumor.hi[a] = host.tumor.hi[a];
     }
-    std::vector<SurfacePoint<float>> points(size_t(host.surface_count));
-    for (int t = 0; t < host.surface_count; ++t) {
-      const auto& s = host.surface[t];
-      points[size_t(t)] = {{float(s.position.x), float(s.position.y), float(s.position.z)},
-                           {float(s.normal.x), float(s.normal.y), float(s.normal.z)},
-                           s.offset};
-    }
-    if (!points.empty()) {
-      check(cudaMemcpy(surface.ptr, points.data(), points.size() * sizeof(points[0]),
+    if (host.surface_count > 0) {
+      check(cudaMemcpy(surface.ptr, host.surface,
+                       size_t(host.surface_count) * sizeof(SurfacePoint<double>),
                        cudaMemcpyHostToDevice),
             "upload surface points");
     }
@@ -228,11 +218,9 @@ __global__ void combine_tables_kernel(PathSafetyScene<float> scene, TableBatch b
   if (v >= roi_count) return;
   const uint32_t off = roi[v];
   const int n = grid.n;
-  const float fi = float(off % n), fj = float((off / n) % n), fk = float(off / (uint32_t(n) * n));
-  const Vec3<float> p = {
-      grid.origin[0] + fi * grid.axes[0][0] + fj * grid.axes[1][0] + fk * grid.axes[2][0],
-      grid.origin[1] + fi * grid.axes[0][1] + fj * grid.axes[1][1] + fk * grid.axes[2][1],
-      grid.origin[2] + fi * grid.axes[0][2] + fj * grid.axes[1][2] + fk * grid.axes[2][2]};
+  const Vec3<float> p = vec_cast<float>(grid_point(grid.origin, grid.axes, int(off % n),
+                                                    int((off / n) % n),
+                                                    int(off / (uint32_t(n) * n))));
   VoxelState<float> state = states[v];
   for (int slot = 0; slot < count; ++slot) {
     combine_from_table<float, Values>(state, scene, scene.surface[first_point + slot],
@@ -321,8 +309,8 @@ CudaRunReport run_fast(const PathSafetyScene<double>& host_scene, const OutputGr
       batch.cell_stride = cells;
       SlabGrid g{};
       for (int a = 0; a < 3; ++a) {
-        g.origin[a] = float(grid.origin[a]);
-        for (int b = 0; b < 3; ++b) g.axes[a][b] = float(grid.axes[a][b]);
+        g.origin[a] = grid.origin[a];
+        for (int b = 0; b < 3; ++b) g.axes[a][b] = grid.axes[a][b];
       }
       g.n = n;
       with_value_set(values, [&](auto tag) {
@@ -449,8 +437,8 @@ CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& host_scene,
       }
       SlabGrid g{};
       for (int a = 0; a < 3; ++a) {
-        g.origin[a] = float(grid.origin[a]);
-        for (int b = 0; b < 3; ++b) g.axes[a][b] = float(grid.axes[a][b]);
+        g.origin[a] = grid.origin[a];
+        for (int b = 0; b < 3; ++b) g.axes[a][b] = grid.axes[a][b];
       }
       g.n = n;
       g.z_slab = z0;

@@ -70,7 +70,7 @@ struct DirectionTable {
 
 // Casts the ray of cell (a, b) from surface point t: samples of b every gamma, stored every dr; tumor occupancy in both directions with the nearest-voxel lookup of exact mode.
 template <typename Real, typename Sampler>
-CREPUSCULAR_HD void cast_direction(const PathSafetyScene<Real>& s, const SurfacePoint<Real>& t,
+CREPUSCULAR_HD void cast_direction(const PathSafetyScene<Real>& s, const SurfacePoint<double>& t,
                                    const DirectionTable<Real>& table, int a, int b,
                                    const Sampler& blocking_at) {
   const Real inv_m = Real(2) / Real(table.m);
@@ -80,18 +80,18 @@ CREPUSCULAR_HD void cast_direction(const PathSafetyScene<Real>& s, const Surface
 
   // Tumor occupancy: forward (toward the point) for front-facing and chord, backward for
   // back-facing, one sample every gamma until the ray leaves the tumor's box.
-  const Vec3<Real> r0 = s.tumor.physical_to_index.apply(t.position);
   const Vec3<Real> du = {u.x * table.gamma, u.y * table.gamma, u.z * table.gamma};
-  const Vec3<Real> dr = s.tumor.physical_to_index.apply_linear(du);
+  const Vec3<double> r0 = apply_rn(s.tumor.physical_to_index, t.position);
+  const Vec3<double> dr = apply_linear_rn(s.tumor.physical_to_index, vec_cast<double>(du));
   uint8_t flags = kBackFacing;
   int chord = 1, first_hit = 65535, last_in = 0;
   for (int dir = 1; dir >= -1; dir -= 2) {
-    const Vec3<Real> step = {dr.x * dir, dr.y * dir, dr.z * dir};
-    Real k_in, k_out;
+    const Vec3<double> step = {dr.x * dir, dr.y * dir, dr.z * dir};
+    double k_in, k_out;
     box_range(r0, step, s.tumor.lo, s.tumor.hi, k_in, k_out);
-    const int k_last = k_out > Real(60000) ? 60000 : int(ceil(k_out));
+    const int k_last = k_out > 60000.0 ? 60000 : int(ceil(k_out));
     for (int k = 1; k <= k_last; ++k) {
-      const int off = tumor_offset_at(s.tumor, along(r0, step, Real(k)));
+      const int off = tumor_offset_at(s.tumor, along_rn(r0, step, double(k)));
       if (off < 0) continue;
       if (dir > 0) {
         ++chord;
@@ -107,7 +107,7 @@ CREPUSCULAR_HD void cast_direction(const PathSafetyScene<Real>& s, const Surface
 
   // Running integrals along the ray with the samples of exact mode seen from t: b at t, then
   // every gamma outward (exact mode sums x_1..x_N, which from t's side are s = 0, l, .., D - l).
-  const Vec3<Real> q0 = s.blocking.physical_to_index.apply(t.position);
+  const Vec3<Real> q0 = s.blocking.physical_to_index.apply(vec_cast<Real>(t.position));
   const Vec3<Real> dq = s.blocking.physical_to_index.apply_linear(du);
   const int per_store = int(table.dr / table.gamma + Real(0.5));
   Real c0 = 0, c1 = 0, c2 = 0;
@@ -171,9 +171,9 @@ CREPUSCULAR_HD Real lookup_radial(const float* c, const DirectionTable<Real>& t,
 // COMBINEVALUES of the ray from output voxel p to surface point t, looked up in t's table.
 template <typename Real, unsigned Values>
 CREPUSCULAR_HD void combine_from_table(VoxelState<Real>& state, const PathSafetyScene<Real>& s,
-                                       const SurfacePoint<Real>& t,
+                                       const SurfacePoint<double>& t,
                                        const DirectionTable<Real>& table, Vec3<Real> p) {
-  const Vec3<Real> d = p - t.position;
+  const Vec3<Real> d = p - vec_cast<Real>(t.position);
   const Real dist = sqrt(dot(d, d));
   TumorCrossing crossing{true, false, 1};
   Real line = 0, weighted = 0, cos_alpha = 1;
@@ -219,8 +219,9 @@ CREPUSCULAR_HD void combine_from_table(VoxelState<Real>& state, const PathSafety
       weighted = line - Real(2) * c1 / dist + c2 / (dist * dist);
       if (weighted < Real(0)) weighted = Real(0);
     }
-    const bool has_normal = dot(t.normal, t.normal) > Real(0);
-    cos_alpha = has_normal ? fabs(dot(u, t.normal)) : Real(1);
+    const Vec3<Real> normal = vec_cast<Real>(t.normal);
+    const bool has_normal = dot(normal, normal) > Real(0);
+    cos_alpha = has_normal ? fabs(dot(u, normal)) : Real(1);
   }
   const RayContext<Real> context{crossing, table.gamma, cos_alpha, s.eps};
   if constexpr ((Values & kSvv) != 0) {

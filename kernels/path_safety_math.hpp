@@ -38,6 +38,51 @@ CREPUSCULAR_HD Real dot(Vec3<Real> a, Vec3<Real> b) {
   return a.x * b.x + a.y * b.y + a.z * b.z;
 }
 
+// Double arithmetic that rounds identically on host and device: nvcc would otherwise fuse a * b + c
+// into one fused multiply-add (one rounding instead of two). The ray geometry (sample positions,
+// sample count, tumor occupancy) is computed with these in double on every backend, so that a
+// sample lying exactly half-way between two tumor voxels (common where grids are aligned) is
+// resolved the same way by the CPU and the GPU.
+CREPUSCULAR_HD double mul_rn(double a, double b) {
+#ifdef __CUDA_ARCH__
+  return __dmul_rn(a, b);
+#else
+  return a * b;
+#endif
+}
+CREPUSCULAR_HD double add_rn(double a, double b) {
+#ifdef __CUDA_ARCH__
+  return __dadd_rn(a, b);
+#else
+  return a + b;
+#endif
+}
+CREPUSCULAR_HD double dot_rn(Vec3<double> a, Vec3<double> b) {
+  return add_rn(add_rn(mul_rn(a.x, b.x), mul_rn(a.y, b.y)), mul_rn(a.z, b.z));
+}
+// origin + k step, one rounding per operation.
+CREPUSCULAR_HD Vec3<double> along_rn(Vec3<double> origin, Vec3<double> step, double k) {
+  return {add_rn(origin.x, mul_rn(k, step.x)), add_rn(origin.y, mul_rn(k, step.y)),
+          add_rn(origin.z, mul_rn(k, step.z))};
+}
+// Centre of voxel (i, j, k) of a grid: origin + i axes[0] + j axes[1] + k axes[2] (LPS mm). The
+// one definition of an output voxel's position for every backend.
+CREPUSCULAR_HD Vec3<double> grid_point(const double origin[3], const double axes[3][3],
+                                              int i, int j, int k) {
+  double r[3];
+  for (int a = 0; a < 3; ++a) {
+    r[a] = add_rn(add_rn(add_rn(origin[a], mul_rn(double(i), axes[0][a])),
+                         mul_rn(double(j), axes[1][a])),
+                  mul_rn(double(k), axes[2][a]));
+  }
+  return {r[0], r[1], r[2]};
+}
+
+template <typename To, typename From>
+CREPUSCULAR_HD Vec3<To> vec_cast(Vec3<From> v) {
+  return {To(v.x), To(v.y), To(v.z)};
+}
+
 // Affine map x -> m[r][0..2] . x + m[r][3]; used for physical (LPS mm) -> continuous voxel index.
 template <typename Real>
 struct Affine {
@@ -54,6 +99,20 @@ struct Affine {
             m[2][0] * d.x + m[2][1] * d.y + m[2][2] * d.z};
   }
 };
+
+// The same maps in double with host/device-identical rounding (see mul_rn).
+CREPUSCULAR_HD Vec3<double> apply_linear_rn(const Affine<double>& a, Vec3<double> d) {
+  double r[3];
+  for (int row = 0; row < 3; ++row) {
+    r[row] = add_rn(add_rn(mul_rn(a.m[row][0], d.x), mul_rn(a.m[row][1], d.y)),
+                    mul_rn(a.m[row][2], d.z));
+  }
+  return {r[0], r[1], r[2]};
+}
+CREPUSCULAR_HD Vec3<double> apply_rn(const Affine<double>& a, Vec3<double> p) {
+  const Vec3<double> l = apply_linear_rn(a, p);
+  return {add_rn(l.x, a.m[0][3]), add_rn(l.y, a.m[1][3]), add_rn(l.z, a.m[2][3])};
+}
 
 // Blocking volume b (risk per mm), x fastest. Sampled with trilinear interpolation between voxel
 // centres; voxels outside the grid count as 0 (CUDA's border addressing).
@@ -99,12 +158,13 @@ struct SurfacePoint {
   int offset;           // linear offset of its voxel in the tumor mask
 };
 
-// Everything a pass needs, passed by value to kernels.
+// Everything a pass needs, passed by value to kernels. Real is the precision of blocking samples
+// and sums; the tumor, its surface points and the ray geometry are always double.
 template <typename Real>
 struct PathSafetyScene {
   BlockingGrid<Real> blocking;
-  TumorGrid<Real> tumor;
-  const SurfacePoint<Real>* surface;
+  TumorGrid<double> tumor;
+  const SurfacePoint<double>* surface;
   int surface_count;
   Real gamma;  // sampling step bound, mm (h / 2)
   Real eps;    // insignificant blocking for SVV (integral of b, dimensionless)
@@ -157,11 +217,10 @@ CREPUSCULAR_HD Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Real> q) {
 
 // Offset of the tumor voxel nearest to continuous tumor index r, or -1 when that voxel is outside
 // the grid or not tumor.
-template <typename Real>
-CREPUSCULAR_HD int tumor_offset_at(const TumorGrid<Real>& g, Vec3<Real> r) {
-  const int i = int(floor(r.x + Real(0.5)));
-  const int j = int(floor(r.y + Real(0.5)));
-  const int k = int(floor(r.z + Real(0.5)));
+CREPUSCULAR_HD int tumor_offset_at(const TumorGrid<double>& g, Vec3<double> r) {
+  const int i = int(floor(add_rn(r.x, 0.5)));
+  const int j = int(floor(add_rn(r.y, 0.5)));
+  const int k = int(floor(add_rn(r.z, 0.5)));
   if (i < g.lo[0] || j < g.lo[1] || k < g.lo[2] || i > g.hi[0] || j > g.hi[1] || k > g.hi[2])
     return -1;
   const int offset = (k * g.ny + j) * g.nx + i;
@@ -173,31 +232,35 @@ CREPUSCULAR_HD int tumor_offset_at(const TumorGrid<Real>& g, Vec3<Real> r) {
 
 template <typename Real>
 struct RayGeometry {
-  Vec3<Real> q0, dq;  // blocking index of p, and its step per sample
-  Vec3<Real> r0, dr;  // tumor index of p, and its step per sample
-  int n;              // N samples; 0 when p coincides with t
-  Real step;          // l, mm
-  Real cos_alpha;     // |cos| of the angle between the ray and t's normal
+  Vec3<Real> q0, dq;      // blocking index of p, and its step per sample
+  Vec3<double> r0, dr;    // tumor index of p, and its step per sample
+  int n;                  // N samples; 0 when p coincides with t
+  Real step;              // l, mm
+  Real cos_alpha;         // |cos| of the angle between the ray and t's normal
 };
 
+// The ray from p to t. Its geometry is computed in double with identical rounding on every
+// backend (sample count, tumor occupancy); only the blocking index is taken to Real.
 template <typename Real>
-CREPUSCULAR_HD RayGeometry<Real> make_ray(const PathSafetyScene<Real>& s, Vec3<Real> p,
-                                          const SurfacePoint<Real>& t) {
+CREPUSCULAR_HD RayGeometry<Real> make_ray(const PathSafetyScene<Real>& s, Vec3<double> p,
+                                          const SurfacePoint<double>& t) {
   RayGeometry<Real> ray;
-  const Vec3<Real> d = t.position - p;
-  const Real dist = sqrt(dot(d, d));
+  const Vec3<double> d = t.position - p;
+  const double dist = sqrt(dot_rn(d, d));
+  const double gamma = double(s.gamma);
   // Points closer than a millionth of a step coincide (rounding of the grids' transforms).
-  ray.n = dist > Real(1e-6) * s.gamma ? int(ceil(dist / s.gamma)) : 0;
-  ray.step = ray.n > 0 ? dist / Real(ray.n) : Real(0);
-  const Real inv_n = ray.n > 0 ? Real(1) / Real(ray.n) : Real(0);
-  const Vec3<Real> dn = {d.x * inv_n, d.y * inv_n, d.z * inv_n};
-  ray.q0 = s.blocking.physical_to_index.apply(p);
-  ray.dq = s.blocking.physical_to_index.apply_linear(dn);
-  ray.r0 = s.tumor.physical_to_index.apply(p);
-  ray.dr = s.tumor.physical_to_index.apply_linear(dn);
+  ray.n = dist > 1e-6 * gamma ? int(ceil(dist / gamma)) : 0;
+  const double step = ray.n > 0 ? dist / double(ray.n) : 0.0;
+  const double inv_n = ray.n > 0 ? 1.0 / double(ray.n) : 0.0;
+  const Vec3<double> dn = {mul_rn(d.x, inv_n), mul_rn(d.y, inv_n), mul_rn(d.z, inv_n)};
+  ray.step = Real(step);
+  ray.q0 = s.blocking.physical_to_index.apply(vec_cast<Real>(p));
+  ray.dq = s.blocking.physical_to_index.apply_linear(vec_cast<Real>(dn));
+  ray.r0 = apply_rn(s.tumor.physical_to_index, p);
+  ray.dr = apply_linear_rn(s.tumor.physical_to_index, dn);
   // A zero normal (a blob too small to have a gradient) has no preferred direction: |cos| = 1.
-  const bool has_normal = dot(t.normal, t.normal) > Real(0);
-  ray.cos_alpha = (dist > Real(0) && has_normal) ? fabs(dot(d, t.normal)) / dist : Real(1);
+  const bool has_normal = dot(t.normal, t.normal) > 0.0;
+  ray.cos_alpha = Real((dist > 0.0 && has_normal) ? fabs(dot(d, t.normal)) / dist : 1.0);
   return ray;
 }
 
@@ -244,7 +307,7 @@ struct TumorCrossing {
 };
 
 template <typename Real>
-CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<Real>& g, const RayGeometry<Real>& ray,
+CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGeometry<Real>& ray,
                                          int own_offset, bool want_back) {
   TumorCrossing c{true, true, 0};
   if (ray.n == 0) {  // p is t's centre: nothing in front, no direction to look behind
@@ -252,13 +315,13 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<Real>& g, const RayGeom
     c.samples_in_tumor = 1;
     return c;
   }
-  Real k_in, k_out;
+  double k_in, k_out;
   box_range(ray.r0, ray.dr, g.lo, g.hi, k_in, k_out);
-  int k_first = k_in < Real(1) ? 1 : int(floor(k_in));
+  int k_first = k_in < 1.0 ? 1 : int(floor(k_in));
   if (k_first < 1) k_first = 1;
-  const int k_last = k_out > Real(2e9) ? 2000000000 : int(ceil(k_out));
+  const int k_last = k_out > 2e9 ? 2000000000 : int(ceil(k_out));
   for (int k = k_first; k <= ray.n && k <= k_last; ++k) {
-    const int off = tumor_offset_at(g, along(ray.r0, ray.dr, Real(k)));
+    const int off = tumor_offset_at(g, along_rn(ray.r0, ray.dr, double(k)));
     if (off >= 0) {
       ++c.samples_in_tumor;
       if (off != own_offset && k < ray.n) c.front_facing = false;
@@ -268,11 +331,11 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<Real>& g, const RayGeom
     // Beyond t with the same step; only when p lies within a small fraction of a voxel of t is
     // that step so tiny (< 1/100 voxel) that samples 1/100 voxel apart stand in for it, which
     // see the same voxels at a bounded cost.
-    Real stride = Real(1);
-    const Real step_voxels = sqrt(dot(ray.dr, ray.dr));
-    if (step_voxels < Real(0.01)) stride = Real(0.01) / step_voxels;
-    for (Real k = Real(ray.n) + stride; k <= k_out; k += stride) {
-      const int off = tumor_offset_at(g, along(ray.r0, ray.dr, k));
+    double stride = 1.0;
+    const double step_voxels = sqrt(dot_rn(ray.dr, ray.dr));
+    if (step_voxels < 0.01) stride = 0.01 / step_voxels;
+    for (double k = double(ray.n) + stride; k <= k_out; k = add_rn(k, stride)) {
+      const int off = tumor_offset_at(g, along_rn(ray.r0, ray.dr, k));
       if (off >= 0 && off != own_offset) {
         c.back_facing = false;
         break;
@@ -422,7 +485,7 @@ struct GridSampler {
 
 // Sampler: callable Real(Vec3<Real> blocking_index); the CUDA backend may pass a texture sampler.
 template <typename Real, unsigned Values, typename Sampler>
-CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<Real> p, float* out,
+CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<double> p, float* out,
                                    const Sampler& blocking_at) {
   using Svv = SurfaceVisibility<Real>;
   using Isbv = IntegralSurfaceBlocking<Real>;
@@ -437,7 +500,7 @@ CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<Real> p,
   typename Bvv::Voxel bvv;
 
   for (int t = 0; t < s.surface_count; ++t) {
-    const SurfacePoint<Real>& target = s.surface[t];
+    const SurfacePoint<double>& target = s.surface[t];
     const RayGeometry<Real> ray = make_ray(s, p, target);
     const TumorCrossing crossing = cross_tumor(s.tumor, ray, target.offset, kWantBack);
     if (!((kWantFront && crossing.front_facing) || (kWantBack && crossing.back_facing))) continue;
@@ -467,7 +530,7 @@ CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<Real> p,
 }
 
 template <typename Real, unsigned Values>
-CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<Real> p, float* out) {
+CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<double> p, float* out) {
   path_safety_at<Real, Values>(s, p, out, GridSampler<Real>{s.blocking});
 }
 

@@ -406,10 +406,28 @@ void check_tumor_inside_blocking(const Volume<float>& blocking, const Volume<uin
   }
 }
 
+// Output voxel centres through kernels::grid_point, the definition the CUDA kernels use, so that
+// both backends cast their rays from the same double-precision points.
+struct VoxelCentres {
+  double origin[3];
+  double axes[3][3];
+  explicit VoxelCentres(const ImageGeometry& g) {
+    const Eigen::Matrix3d m = g.index_to_physical_matrix();
+    for (int a = 0; a < 3; ++a) {
+      origin[a] = g.origin[a];
+      for (int b = 0; b < 3; ++b) axes[a][b] = m(b, a);
+    }
+  }
+  kernels::Vec3<double> operator()(int64_t i, int64_t j, int64_t k) const {
+    return kernels::grid_point(origin, axes, int(i), int(j), int(k));
+  }
+};
+
 void run_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
              unsigned values, int threads, PathSafetyResult& result,
              const std::function<void(double)>& progress) {
   const auto& g = grid.geometry;
+  const VoxelCentres centre(g);
   const int64_t n = g.dims[0];
   float* out[kernels::kValueCount] = {};
   for (int v = 0; v < kernels::kValueCount; ++v) {
@@ -426,9 +444,8 @@ void run_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& gr
         int64_t row_done = 0;
         for (int64_t i = 0; i < n; ++i) {
           if (!grid.in_roi(i, j, k)) continue;
-          const Eigen::Vector3d p = g.index_to_physical(i, j, k);
           float res[kernels::kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
-          kernels::path_safety_at<double, kValues>(scene, {p.x(), p.y(), p.z()}, res);
+          kernels::path_safety_at<double, kValues>(scene, centre(i, j, k), res);
           const int64_t off = g.offset(i, j, k);
           for (int v = 0; v < kernels::kValueCount; ++v) {
             if (out[v]) out[v][off] = res[v];
@@ -463,6 +480,7 @@ void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGri
                   unsigned values, int threads, double angular, PathSafetyResult& result,
                   const std::function<void(double)>& progress) {
   const auto& g = grid.geometry;
+  const VoxelCentres centre(g);
   const double h = g.spacing[0];
   int m = 0, radial = 0;
   kernels::direction_table_size(max_ray_length(grid, scene), h, m, radial, angular);
@@ -505,9 +523,8 @@ void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGri
 #pragma omp parallel for schedule(static) num_threads(threads)
       for (int64_t v = 0; v < int64_t(roi.size()); ++v) {
         const Index3 idx = g.index_of_offset(roi[size_t(v)]);
-        const Eigen::Vector3d p = g.index_to_physical(idx[0], idx[1], idx[2]);
         kernels::combine_from_table<double, kValues>(states[size_t(v)], scene, target, table,
-                                                     {p.x(), p.y(), p.z()});
+                                                     centre(idx[0], idx[1], idx[2]));
       }
       if (progress) progress(double(t + 1) / double(scene.surface_count));
     }
@@ -530,6 +547,7 @@ void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGri
 void check_fast_against_exact(const kernels::PathSafetyScene<double>& scene,
                               const OutputGrid& grid, unsigned values, int count, int threads,
                               PathSafetyResult& result) {
+  const VoxelCentres centre(grid.geometry);
   std::mt19937_64 rng(20111);
   const int64_t n = grid.geometry.dims[0];
   std::uniform_int_distribution<int64_t> u(0, n - 1);
@@ -544,9 +562,8 @@ void check_fast_against_exact(const kernels::PathSafetyScene<double>& scene,
 #pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
     for (int64_t s = 0; s < int64_t(offsets.size()); ++s) {
       const Index3 idx = grid.geometry.index_of_offset(offsets[size_t(s)]);
-      const Eigen::Vector3d p = grid.geometry.index_to_physical(idx[0], idx[1], idx[2]);
       exact[size_t(s)].fill(0.0f);
-      kernels::path_safety_at<double, kValues>(scene, {p.x(), p.y(), p.z()},
+      kernels::path_safety_at<double, kValues>(scene, centre(idx[0], idx[1], idx[2]),
                                                exact[size_t(s)].data());
     }
   });
