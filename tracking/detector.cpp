@@ -1,1 +1,196 @@
-// Being built.
+// AprilTag detection through libapriltag, full frame or inside regions of interest.
+#include "tracking/detector.hpp"
+
+#include <apriltag.h>
+#include <tag16h5.h>
+#include <tag25h9.h>
+#include <tag36h10.h>
+#include <tag36h11.h>
+#include <tagCircle21h7.h>
+#include <tagCircle49h12.h>
+#include <tagCustom48h12.h>
+#include <tagStandard41h12.h>
+#include <tagStandard52h13.h>
+
+#include <algorithm>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+
+#include "kernels/error.hpp"
+
+namespace crepuscular::tracking {
+
+namespace {
+
+// Where libapriltag puts the centre of the top-left pixel (x and y).
+constexpr double kApriltagPixelCentre = 0.5;
+
+struct FamilyEntry {
+  const char* name;
+  apriltag_family_t* (*create)();
+  void (*destroy)(apriltag_family_t*);
+};
+
+constexpr FamilyEntry kFamilies[] = {
+    {"tag36h11", tag36h11_create, tag36h11_destroy},
+    {"tag36h10", tag36h10_create, tag36h10_destroy},
+    {"tag25h9", tag25h9_create, tag25h9_destroy},
+    {"tag16h5", tag16h5_create, tag16h5_destroy},
+    {"tagCircle21h7", tagCircle21h7_create, tagCircle21h7_destroy},
+    {"tagCircle49h12", tagCircle49h12_create, tagCircle49h12_destroy},
+    {"tagStandard41h12", tagStandard41h12_create, tagStandard41h12_destroy},
+    {"tagStandard52h13", tagStandard52h13_create, tagStandard52h13_destroy},
+    {"tagCustom48h12", tagCustom48h12_create, tagCustom48h12_destroy},
+};
+
+const FamilyEntry* find_family(const std::string& name) {
+  for (const FamilyEntry& f : kFamilies) {
+    if (name == f.name) return &f;
+  }
+  return nullptr;
+}
+
+}  // namespace
+
+std::vector<std::string> tag_family_names() {
+  std::vector<std::string> names;
+  for (const FamilyEntry& f : kFamilies) names.emplace_back(f.name);
+  return names;
+}
+
+struct TagDetector::Impl {
+  const FamilyEntry* entry = nullptr;
+  apriltag_family_t* family = nullptr;
+  apriltag_detector_t* detector = nullptr;
+  ~Impl() {
+    if (detector) apriltag_detector_destroy(detector);
+    if (family) entry->destroy(family);
+  }
+};
+
+TagDetector::TagDetector(const DetectorOptions& options)
+    : options_(options), impl_(std::make_unique<Impl>()) {
+  impl_->entry = find_family(options.family);
+  if (!impl_->entry) {
+    std::ostringstream names;
+    for (const std::string& n : tag_family_names()) names << " " << n;
+    throw Error("tag detector: family '" + options.family + "' is unknown; expected one of" +
+                names.str());
+  }
+  if (!(options.decimate >= 1.0 && options.decimate <= 8.0)) {
+    throw Error("tag detector: decimate " + std::to_string(options.decimate) +
+                " is out of range; expected 1 to 8");
+  }
+  if (options.threads < 1 || options.threads > 64) {
+    throw Error("tag detector: threads " + std::to_string(options.threads) +
+                " is out of range; expected 1 to 64");
+  }
+  if (options.max_hamming < 0 || options.max_hamming > 2) {
+    throw Error("tag detector: max_hamming " + std::to_string(options.max_hamming) +
+                " is out of range; expected 0 to 2");
+  }
+  impl_->family = impl_->entry->create();
+  impl_->detector = apriltag_detector_create();
+  apriltag_detector_add_family_bits(impl_->detector, impl_->family, options.max_hamming);
+  impl_->detector->quad_decimate = static_cast<float>(options.decimate);
+  impl_->detector->quad_sigma = static_cast<float>(options.blur_sigma);
+  impl_->detector->nthreads = options.threads;
+  impl_->detector->decode_sharpening = options.sharpening;
+  impl_->detector->refine_edges = options.refine_edges;
+}
+
+TagDetector::~TagDetector() = default;
+
+std::vector<Detection> TagDetector::detect_grey(const cv::Mat& grey, const cv::Point& offset) {
+  std::vector<Detection> out;
+  // libapriltag needs room for its quad search; tiny crops hold no decodable tag.
+  if (grey.cols < 8 || grey.rows < 8) return out;
+  image_u8_t im{grey.cols, grey.rows, static_cast<int32_t>(grey.step[0]),
+                const_cast<uint8_t*>(grey.ptr<uint8_t>(0))};
+  zarray_t* found = apriltag_detector_detect(impl_->detector, &im);
+  const int n = zarray_size(found);
+  out.reserve(n);
+  for (int i = 0; i < n; ++i) {
+    apriltag_detection_t* det = nullptr;
+    zarray_get(found, i, &det);
+    Detection d;
+    d.id = det->id;
+    d.hamming = det->hamming;
+    d.decision_margin = det->decision_margin;
+    // libapriltag 3.3 places pixel centres at half-integer coordinates (the top-left pixel spans
+    // 0..1); OpenCV and CameraModel place them at integers. The shift was measured against
+    // cv::projectPoints and cv::aruco in tests/tracking/detector_test.cpp.
+    const double ox = offset.x - kApriltagPixelCentre, oy = offset.y - kApriltagPixelCentre;
+    for (int k = 0; k < 4; ++k) d.corners[k] = Eigen::Vector2d(det->p[k][0] + ox, det->p[k][1] + oy);
+    d.center = Eigen::Vector2d(det->c[0] + ox, det->c[1] + oy);
+    out.push_back(d);
+  }
+  apriltag_detections_destroy(found);
+  return out;
+}
+
+std::vector<Detection> TagDetector::detect(const cv::Mat& image) {
+  if (image.empty()) return {};
+  if (image.type() == CV_8UC1) return detect_grey(image, {0, 0});
+  cv::Mat grey;
+  if (image.type() == CV_8UC3) {
+    cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
+  } else if (image.type() == CV_8UC4) {
+    cv::cvtColor(image, grey, cv::COLOR_BGRA2GRAY);
+  } else {
+    throw Error("tag detector: image type " + std::to_string(image.type()) +
+                " is not supported; expected 8-bit grey, BGR or BGRA");
+  }
+  return detect_grey(grey, {0, 0});
+}
+
+std::vector<cv::Rect> TagDetector::merge_regions(std::vector<cv::Rect> regions) {
+  regions.erase(std::remove_if(regions.begin(), regions.end(),
+                               [](const cv::Rect& r) { return r.area() <= 0; }),
+                regions.end());
+  bool merged = true;
+  while (merged) {
+    merged = false;
+    for (size_t i = 0; i < regions.size() && !merged; ++i) {
+      for (size_t j = i + 1; j < regions.size(); ++j) {
+        if ((regions[i] & regions[j]).area() > 0) {
+          regions[i] |= regions[j];
+          regions.erase(regions.begin() + static_cast<std::ptrdiff_t>(j));
+          merged = true;
+          break;
+        }
+      }
+    }
+  }
+  return regions;
+}
+
+std::vector<Detection> TagDetector::detect(const cv::Mat& image, std::vector<cv::Rect> regions) {
+  if (image.empty()) return {};
+  const cv::Rect whole(0, 0, image.cols, image.rows);
+  for (cv::Rect& r : regions) r &= whole;
+  regions = merge_regions(std::move(regions));
+  std::vector<Detection> out;
+  for (const cv::Rect& r : regions) {
+    cv::Mat crop = image(r);
+    std::vector<Detection> found;
+    if (crop.type() == CV_8UC1) {
+      found = detect_grey(crop, r.tl());
+    } else {
+      cv::Mat grey;
+      if (crop.type() == CV_8UC3) {
+        cv::cvtColor(crop, grey, cv::COLOR_BGR2GRAY);
+      } else if (crop.type() == CV_8UC4) {
+        cv::cvtColor(crop, grey, cv::COLOR_BGRA2GRAY);
+      } else {
+        throw Error("tag detector: image type " + std::to_string(image.type()) +
+                    " is not supported; expected 8-bit grey, BGR or BGRA");
+      }
+      found = detect_grey(grey, r.tl());
+    }
+    out.insert(out.end(), found.begin(), found.end());
+  }
+  return out;
+}
+
+}  // namespace crepuscular::tracking

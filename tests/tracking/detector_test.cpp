@@ -1,0 +1,195 @@
+// Tests of tracking/detector: corners against exact projections, against OpenCV's own AprilTag
+// dictionary detector, and region-of-interest search against full-frame search.
+#include "tracking/detector.hpp"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <map>
+#include <opencv2/aruco.hpp>
+
+#include "kernels/error.hpp"
+#include "tests/tracking/tag_scene.hpp"
+
+namespace crepuscular::tracking {
+namespace {
+
+using testing::hd_camera;
+using testing::look_at_board;
+using testing::project_corners;
+using testing::SceneRenderer;
+
+double corner_error(const std::array<Eigen::Vector2d, 4>& a, const std::array<Eigen::Vector2d, 4>& b) {
+  double e = 0;
+  for (int k = 0; k < 4; ++k) e = std::max(e, (a[k] - b[k]).norm());
+  return e;
+}
+
+struct Scene {
+  calibration::CameraModel cam = hd_camera();
+  Board board = make_grid_board("patient", 2, 3, 40.0, 10.0, 0);
+  Eigen::Isometry3d T = look_at_board(30, -20, 500, 20, -15, 10);
+};
+
+TEST(TagDetector, UnknownFamilyAndBadOptionsAreErrors) {
+  DetectorOptions o;
+  o.family = "tag99h1";
+  EXPECT_THROW(TagDetector{o}, Error);
+  o = {};
+  o.decimate = 0.5;
+  EXPECT_THROW(TagDetector{o}, Error);
+  o = {};
+  o.threads = 0;
+  EXPECT_THROW(TagDetector{o}, Error);
+  o = {};
+  o.family = "tag25h9";
+  EXPECT_NO_THROW(TagDetector{o});
+}
+
+TEST(TagDetector, EmptyImageHasNoDetections) {
+  TagDetector det;
+  EXPECT_TRUE(det.detect(cv::Mat()).empty());
+  EXPECT_TRUE(det.detect(cv::Mat(), {cv::Rect(0, 0, 10, 10)}).empty());
+  EXPECT_TRUE(det.detect(cv::Mat(720, 1280, CV_8UC3, cv::Scalar(128, 128, 128))).empty());
+}
+
+// The renderer maps each tag's bitmap onto the board; its corners are exact projections
+// (cv::projectPoints, with distortion). Detected corners must land on them, in BoardTag order.
+TEST(TagDetector, CornersMatchExactProjections) {
+  Scene s;
+  SceneRenderer renderer(s.cam);
+  const cv::Mat image = renderer.render({{&s.board, s.T}});
+  const auto truth = project_corners(s.cam, s.board, s.T);
+  TagDetector det;
+  const std::vector<Detection> found = det.detect(image);
+  ASSERT_EQ(found.size(), 6u);
+  std::vector<double> errors;
+  for (const Detection& d : found) {
+    ASSERT_TRUE(truth.count(d.id)) << "unexpected id " << d.id;
+    EXPECT_EQ(d.hamming, 0);
+    EXPECT_GT(d.decision_margin, 50.0);
+    for (int k = 0; k < 4; ++k) errors.push_back((d.corners[k] - truth.at(d.id)[k]).norm());
+  }
+  std::sort(errors.begin(), errors.end());
+  const double median = errors[errors.size() / 2];
+  std::printf("corner error vs projection: median %.3f px, max %.3f px\n", median, errors.back());
+  EXPECT_LT(median, 0.15);
+  EXPECT_LT(errors.back(), 0.4);
+}
+
+TEST(TagDetector, GreyAndColourImagesGiveTheSameCorners) {
+  Scene s;
+  SceneRenderer renderer(s.cam);
+  const cv::Mat image = renderer.render({{&s.board, s.T}});
+  cv::Mat grey;
+  cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
+  TagDetector det;
+  auto a = det.detect(image), b = det.detect(grey);
+  ASSERT_EQ(a.size(), b.size());
+  std::map<int, Detection> by_id;
+  for (const Detection& d : b) by_id[d.id] = d;
+  for (const Detection& d : a) EXPECT_LT(corner_error(d.corners, by_id.at(d.id).corners), 1e-9);
+}
+
+// OpenCV's aruco module carries the same tag36h11 codes (DICT_APRILTAG_36h11), but its marker is
+// libapriltag's bitmap turned by 180 degrees, and it reports corners clockwise in the image from
+// its marker's top-left. libapriltag's p runs counter-clockwise from the bitmap's bottom-left (p0
+// bottom-left, p1 bottom-right, p2 top-right, p3 top-left). So OpenCV's top-left is p1 and
+// cv[0] = p1, cv[1] = p0, cv[2] = p3, cv[3] = p2, i.e. cv[i] = p[(5 - i) % 4].
+TEST(TagDetector, AgreesWithOpenCvArucoAprilTagDictionary) {
+  Scene s;
+  SceneRenderer renderer(s.cam);
+  testing::RenderOptions ro;
+  ro.noise_sigma = 2.0;
+  for (int view = 0; view < 3; ++view) {
+    const Eigen::Isometry3d T =
+        look_at_board(-40.0 + 40 * view, 10.0 * view, 420.0 + 90 * view, 25 - 20 * view,
+                      10 + 5 * view, -30 + 35 * view);
+    ro.seed = 10 + view;
+    const cv::Mat image = renderer.render({{&s.board, T}}, ro);
+    TagDetector det;
+    const std::vector<Detection> ours = det.detect(image);
+
+    cv::Mat grey;
+    cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
+    std::vector<std::vector<cv::Point2f>> cv_corners;
+    std::vector<int> cv_ids;
+    cv::Ptr<cv::aruco::DetectorParameters> params = cv::aruco::DetectorParameters::create();
+    params->cornerRefinementMethod = cv::aruco::CORNER_REFINE_SUBPIX;
+    params->cornerRefinementWinSize = 3;
+    cv::aruco::detectMarkers(grey,
+                             cv::aruco::getPredefinedDictionary(cv::aruco::DICT_APRILTAG_36h11),
+                             cv_corners, cv_ids, params);
+
+    std::vector<int> our_ids;
+    for (const Detection& d : ours) our_ids.push_back(d.id);
+    std::vector<int> their_ids = cv_ids;
+    std::sort(our_ids.begin(), our_ids.end());
+    std::sort(their_ids.begin(), their_ids.end());
+    EXPECT_EQ(our_ids, their_ids) << "view " << view;
+    EXPECT_EQ(our_ids.size(), 6u);
+
+    double worst = 0;
+    for (size_t m = 0; m < cv_ids.size(); ++m) {
+      auto it = std::find_if(ours.begin(), ours.end(),
+                             [&](const Detection& d) { return d.id == cv_ids[m]; });
+      if (it == ours.end()) continue;
+      for (int i = 0; i < 4; ++i) {
+        const Eigen::Vector2d theirs(cv_corners[m][i].x, cv_corners[m][i].y);
+        worst = std::max(worst, (theirs - it->corners[(5 - i) % 4]).norm());
+      }
+    }
+    std::printf("view %d: largest corner difference libapriltag vs cv::aruco %.3f px\n", view,
+                worst);
+    EXPECT_LT(worst, 0.5) << "view " << view;
+  }
+}
+
+TEST(TagDetector, MergeRegionsJoinsOverlapsOnly) {
+  auto merged = TagDetector::merge_regions(
+      {cv::Rect(0, 0, 10, 10), cv::Rect(5, 5, 10, 10), cv::Rect(100, 100, 5, 5),
+       cv::Rect(14, 14, 3, 3), cv::Rect(50, 50, 0, 4)});
+  ASSERT_EQ(merged.size(), 2u);
+  std::sort(merged.begin(), merged.end(), [](auto& a, auto& b) { return a.x < b.x; });
+  EXPECT_EQ(merged[0], cv::Rect(0, 0, 17, 17));
+  EXPECT_EQ(merged[1], cv::Rect(100, 100, 5, 5));
+}
+
+// Search in crops around the tags finds every tag the full frame finds, at the same corners (up to
+// the decimation grid, which starts elsewhere in a crop); a
+// crop that holds no tag finds nothing.
+TEST(TagDetector, RegionSearchMatchesFullFrameSearch) {
+  Scene s;
+  SceneRenderer renderer(s.cam);
+  testing::RenderOptions ro;
+  ro.noise_sigma = 1.5;
+  const cv::Mat image = renderer.render({{&s.board, s.T}}, ro);
+  const auto truth = project_corners(s.cam, s.board, s.T);
+  TagDetector det;
+  const auto full = det.detect(image);
+  std::vector<cv::Rect> rois;
+  for (const auto& kv : truth) {
+    std::vector<cv::Point2f> pts;
+    for (const auto& c : kv.second) pts.emplace_back(float(c.x()), float(c.y()));
+    cv::Rect r = cv::boundingRect(pts);
+    rois.push_back(cv::Rect(r.x - 15, r.y - 15, r.width + 30, r.height + 30));
+  }
+  const auto cropped = det.detect(image, rois);
+  ASSERT_EQ(cropped.size(), full.size());
+  std::map<int, Detection> by_id;
+  for (const Detection& d : full) by_id[d.id] = d;
+  for (const Detection& d : cropped) {
+    ASSERT_TRUE(by_id.count(d.id));
+    EXPECT_LT(corner_error(d.corners, by_id[d.id].corners), 0.25) << "id " << d.id;
+    EXPECT_LT(corner_error(d.corners, truth.at(d.id)), 0.4) << "id " << d.id;
+  }
+  // Only the first tag's crop: only that tag.
+  const auto one = det.detect(image, {rois.front()});
+  ASSERT_EQ(one.size(), 1u);
+  EXPECT_EQ(one[0].id, truth.begin()->first);
+  // A crop of background and one reaching outside the image: nothing, no crash.
+  EXPECT_TRUE(det.detect(image, {cv::Rect(0, 0, 60, 60), cv::Rect(1250, 690, 100, 100)}).empty());
+}
+
+}  // namespace
+}  // namespace crepuscular::tracking

@@ -1,0 +1,68 @@
+// AprilTag detection: the one wrapper around libapriltag (nobody else includes its C header).
+// Pixels follow OpenCV's convention, as calibration::CameraModel does: (0,0) is the centre of the
+// top-left pixel.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+namespace crepuscular::tracking {
+
+struct DetectorOptions {
+  std::string family = "tag36h11";  // tag36h11, tag25h9, tag16h5, tagStandard41h12, ...
+  double decimate = 2.0;            // quad detection on an image decimated by this factor
+  int threads = 2;                  // worker threads of libapriltag
+  double blur_sigma = 0.0;          // Gaussian blur before quad detection (px); 0 = none
+  double sharpening = 0.25;         // decode sharpening of libapriltag
+  bool refine_edges = true;         // snap quad edges to strong gradients at full resolution
+  int max_hamming = 2;              // bits corrected at most (0..2); detections above are dropped
+};
+
+// One detected tag. corners are in libapriltag's order (apriltag_detection_t::p: counter-clockwise
+// in the image as seen by the camera, starting bottom-left of the upright tag), the order in which
+// tracking::BoardTag stores its corners.
+struct Detection {
+  int id = 0;
+  std::array<Eigen::Vector2d, 4> corners;  // pixels
+  Eigen::Vector2d center = Eigen::Vector2d::Zero();
+  double decision_margin = 0;  // average distance of the data bits from the threshold (grey levels)
+  int hamming = 0;             // bits corrected
+};
+
+class TagDetector {
+ public:
+  // Throws Error for an unknown family or options out of range.
+  explicit TagDetector(const DetectorOptions& options = {});
+  ~TagDetector();
+  TagDetector(const TagDetector&) = delete;
+  TagDetector& operator=(const TagDetector&) = delete;
+
+  const DetectorOptions& options() const { return options_; }
+
+  // All tags of the family in the image (8-bit grey or BGR). An empty image gives no detections.
+  std::vector<Detection> detect(const cv::Mat& image);
+
+  // Tags searched only inside the given rectangles (clipped to the image; overlapping rectangles
+  // are merged first, so a tag is reported once). Corners are in full-image pixels.
+  std::vector<Detection> detect(const cv::Mat& image, std::vector<cv::Rect> regions);
+
+  // Merges rectangles that overlap until none do; the result covers the union of the inputs.
+  static std::vector<cv::Rect> merge_regions(std::vector<cv::Rect> regions);
+
+ private:
+  std::vector<Detection> detect_grey(const cv::Mat& grey, const cv::Point& offset);
+
+  struct Impl;
+  DetectorOptions options_;
+  std::unique_ptr<Impl> impl_;
+};
+
+// The family names TagDetector accepts.
+std::vector<std::string> tag_family_names();
+
+}  // namespace crepuscular::tracking
