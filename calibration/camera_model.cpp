@@ -3,7 +3,7 @@
 
 #include <unistd.h>
 
-#include <Eigen/LU>
+#include <Eigen/LU>  // 2x2 inverse
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -77,18 +77,23 @@ Eigen::Vector2d CameraModel::unproject(const Eigen::Vector2d& pixel) const {
     if (!next.allFinite()) break;
     xy = next;
   }
-  // ... then Newton's method on distort(xy) = target, which converges quadratically.
-  double residual = (distort(xy) - target).norm();
-  for (int i = 0; i < 30 && residual > 1e-15; ++i) {
-    const Eigen::Matrix2d j = distortion_jacobian(distortion, xy);
-    const Eigen::Vector2d step = j.partialPivLu().solve(distort(xy) - target);
-    const Eigen::Vector2d candidate = xy - step;
-    const double r = (distort(candidate) - target).norm();
-    if (!(r < residual)) break;
-    xy = candidate;
-    residual = r;
+  return unproject(pixel, xy);
+}
+
+Eigen::Vector2d CameraModel::unproject(const Eigen::Vector2d& pixel,
+                                       const Eigen::Vector2d& guess) const {
+  const Eigen::Vector2d target((pixel.x() - cx) / fx, (pixel.y() - cy) / fy);
+  Eigen::Vector2d xy = guess;
+  // Newton's method on distort(xy) = target, which converges quadratically; stops when a step
+  // no longer changes the point (1e-15 in normalised units, ~1e-12 px).
+  for (int i = 0; i < 30; ++i) {
+    const Eigen::Vector2d r = distort(xy) - target;
+    const Eigen::Vector2d step = distortion_jacobian(distortion, xy).inverse() * r;
+    if (!step.allFinite()) break;
+    xy -= step;
+    if (step.squaredNorm() < 1e-30) break;
   }
-  return xy;
+  return xy.allFinite() ? xy : guess;
 }
 
 cv::Mat CameraModel::camera_matrix() const {

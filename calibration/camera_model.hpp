@@ -22,6 +22,9 @@ struct CameraModel {
   // Pixel -> normalised, undistorted image point (x/z, y/z): the exact inverse of project() (to
   // 1e-12 in normalised units) wherever the distortion is invertible.
   Eigen::Vector2d unproject(const Eigen::Vector2d& pixel) const;
+  // The same, by Newton's method from `guess` (a normalised point near the answer, e.g.
+  // interpolated from neighbouring pixels): faster when many nearby pixels are unprojected.
+  Eigen::Vector2d unproject(const Eigen::Vector2d& pixel, const Eigen::Vector2d& guess) const;
 
   // Undistorted normalised point (x/z, y/z) -> distorted normalised point (OpenCV's model).
   Eigen::Vector2d distort(const Eigen::Vector2d& xy) const;

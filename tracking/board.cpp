@@ -227,9 +227,15 @@ Board make_grid_board(const std::string& name, int rows, int cols, double tag_si
 std::vector<Board> read_boards(const std::string& path) {
   std::ifstream in(path);
   if (!in) throw Error(path + ": cannot open boards file");
+  std::stringstream text;
+  text << in.rdbuf();
+  return read_boards_text(text.str(), path);
+}
+
+std::vector<Board> read_boards_text(const std::string& json_text, const std::string& path) {
   json j;
   try {
-    in >> j;
+    j = json::parse(json_text);
   } catch (const json::exception& e) {
     throw Error(path + ": not valid JSON (" + e.what() + ")");
   }
@@ -260,7 +266,7 @@ std::vector<Board> read_boards(const std::string& path) {
   return boards;
 }
 
-void write_boards(const std::string& path, const std::vector<Board>& boards) {
+std::string boards_json_text(const std::vector<Board>& boards) {
   json out;
   out["boards"] = json::array();
   for (const Board& b : boards) {
@@ -279,13 +285,18 @@ void write_boards(const std::string& path, const std::vector<Board>& boards) {
     }
     out["boards"].push_back(bj);
   }
+  return out.dump(2) + "\n";
+}
+
+void write_boards(const std::string& path, const std::vector<Board>& boards) {
+  const std::string text = boards_json_text(boards);
   namespace fs = std::filesystem;
   const fs::path target(path);
   const fs::path temporary =
       target.parent_path() / (".tmp-" + std::to_string(::getpid()) + "-" + target.filename().string());
   {
     std::ofstream f(temporary);
-    f << out.dump(2) << "\n";
+    f << text;
     if (!f) throw Error(path + ": cannot write boards file");
   }
   std::error_code ec;

@@ -7,6 +7,9 @@
 // own tag pose. Corner order = apriltag_detection_t::p: bottom-left, bottom-right, top-right,
 // top-left of the tag as printed, i.e. (-s/2, +s/2), (+s/2, +s/2), (+s/2, -s/2), (-s/2, -s/2) around
 // the tag centre (checked by rendering and detecting in tests/tracking/board_test.cpp).
+// Note: libapriltag's detection coordinates put pixel centres at (i + 0.5, j + 0.5); OpenCV and
+// calibration::CameraModel put them at (i, j). Measured on rendered tags: libapriltag's corners lie
+// +0.50 px in x and y from the projected truth (tests/tracking/synthetic_test.cpp).
 #pragma once
 
 #include <Eigen/Core>
@@ -57,6 +60,10 @@ std::array<Eigen::Vector3d, 4> square_tag_corners(const Eigen::Vector2d& center,
 // "grid" is expanded into tags on reading (after any explicit "tags"); at least one tag; ids
 // unique within a family across all boards and within the family's code count.
 std::vector<Board> read_boards(const std::string& path);
+// The same from JSON text; `what` names the text's origin in errors.
+std::vector<Board> read_boards_text(const std::string& json_text, const std::string& what);
+// boards.json text of these boards (as write_boards writes it).
+std::string boards_json_text(const std::vector<Board>& boards);
 // Writes every tag explicitly (grids expanded); through a temporary file and a rename.
 void write_boards(const std::string& path, const std::vector<Board>& boards);
 

@@ -10,6 +10,8 @@
 #include <Eigen/Geometry>
 #include <opencv2/core.hpp>
 
+#include "calibration/camera_model.hpp"
+
 namespace crepuscular::tracking {
 
 // Ground-truth pose of one board in one synthetic frame (T_cam_board, mm).
@@ -24,6 +26,10 @@ struct Frame {
   cv::Mat image;              // BGR 8-bit; empty when the frame could not be decoded
   std::string problem;        // why image is empty (corrupt JPEG, ...), else empty
   std::vector<TruePose> truth;  // synthetic sources only
+  std::vector<uint8_t> encoded;  // the compressed bytes as received (MJPEG camera, recording,
+                                 // corrupt synthetic frame), else empty; `record` stores them as-is
+  std::string encoded_format;    // "jpg" or "png" when encoded is set
+  std::string note;              // an event worth logging (e.g. "camera reconnected after 2.1 s")
 };
 
 class FrameSource {
@@ -32,10 +38,31 @@ class FrameSource {
   // The next frame, or nullopt at the end of the stream.
   virtual std::optional<Frame> next() = 0;
   virtual std::string describe() const = 0;
+  // The camera model that goes with the frames when the source knows it (synthetic scenes, a
+  // recording with camera.yaml), else nullopt.
+  virtual std::optional<calibration::CameraModel> camera() const { return std::nullopt; }
 };
 
 // "v4l2:/dev/video0?width=1280&height=720&fps=60", "recording:DIR[?realtime=1&loop=1]",
-// "synthetic:SCENE.json". Errors name the source and the problem.
+// "synthetic:SCENE.json" or "synthetic:builtin" (the built-in guidance scene). Errors name the
+// source and the problem.
 std::unique_ptr<FrameSource> open_frame_source(const std::string& uri);
+
+// A source URI split into scheme, path and options: "v4l2:/dev/video0?width=640&fps=30" ->
+// {"v4l2", "/dev/video0", {{"width", "640"}, {"fps", "30"}}}. Throws Error for a URI without a
+// scheme or a malformed option.
+struct SourceUri {
+  std::string scheme;
+  std::string path;
+  std::vector<std::pair<std::string, std::string>> options;
+};
+SourceUri parse_source_uri(const std::string& uri);
+
+// Replays a recording folder (recordings/recording.hpp). realtime: sleep so that frames come at
+// their recorded intervals; loop: start again at the end (frame numbers and timestamps keep
+// increasing). Frames that are missing or corrupt come with `problem` set; ground truth, when the
+// recording has it, comes with every frame.
+std::unique_ptr<FrameSource> open_recording_source(const std::string& dir, bool realtime = false,
+                                                   bool loop = false);
 
 }  // namespace crepuscular::tracking

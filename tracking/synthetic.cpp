@@ -1,1 +1,713 @@
-// Being built.
+// Synthetic frames: ray tracing of planar tag and plate surfaces through the exact inverse of the
+// camera's distortion, adaptive supersampling at edges, then lighting, occlusion, blur and noise;
+// scene files; the built-in guidance scene.
+#include "tracking/synthetic.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <random>
+#include <sstream>
+
+#include <opencv2/core/utility.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "kernels/error.hpp"
+#include "recordings/recording.hpp"
+
+namespace crepuscular::tracking {
+
+namespace {
+
+using nlohmann::json;
+constexpr double kPi = 3.14159265358979323846;
+constexpr double kDeg = kPi / 180.0;
+
+// A planar parallelogram in the camera frame: points O + u U + v V, (u, v) in [0, 1)^2, seen from
+// the side its normal N = U x V points away from (the printed face).
+struct Surface {
+  Eigen::Vector3d O, N, a, b;  // a, b: dual basis, u = a . (P - O), v = b . (P - O)
+  double n_dot_o = 0;
+  double depth_bias = 0;        // tags win over the plate they lie on
+  const TagPattern* pattern = nullptr;  // nullptr: plain plate
+  int x0 = 0, y0 = 0, x1 = -1, y1 = -1;  // pixel bounding box, inclusive
+};
+
+Eigen::Isometry3d make_pose(const Eigen::Quaterniond& q, const Eigen::Vector3d& t) {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = q.normalized().toRotationMatrix();
+  T.translation() = t;
+  return T;
+}
+
+Eigen::Quaterniond rotvec_deg(const Eigen::Vector3d& r) {
+  const double angle = r.norm() * kDeg;
+  if (angle < 1e-15) return Eigen::Quaterniond::Identity();
+  return Eigen::Quaterniond(Eigen::AngleAxisd(angle, r.normalized()));
+}
+
+}  // namespace
+
+SyntheticScene::SyntheticScene() {
+  camera.width = 1280;
+  camera.height = 720;
+  camera.fx = camera.fy = 1000.0;
+  camera.cx = 639.5;
+  camera.cy = 359.5;
+}
+
+void SyntheticScene::validate(const std::string& what) const {
+  camera.validate(what + ": camera");
+  if (background != "plain" && background != "gradient" && background != "noise") {
+    throw Error(what + ": background '" + background + "', expected plain, gradient or noise");
+  }
+  if (!(fps > 0) || fps > 10000) throw Error(what + ": fps must be > 0");
+  if (frame_count < 1) throw Error(what + ": frames must be >= 1");
+  if (noise_sigma < 0 || blur_sigma < 0) {
+    throw Error(what + ": noise_sigma and blur_sigma must be >= 0");
+  }
+  if (supersampling < 1 || supersampling > 32) {
+    throw Error(what + ": supersampling " + std::to_string(supersampling) + ", expected 1 to 32");
+  }
+  if (boards.empty()) throw Error(what + ": no boards");
+  for (const SceneBoard& b : boards) {
+    if (b.keyframes.empty()) {
+      throw Error(what + ": board '" + b.board.name + "' has no poses (keyframes)");
+    }
+    for (size_t k = 1; k < b.keyframes.size(); ++k) {
+      if (!(b.keyframes[k].time_s > b.keyframes[k - 1].time_s)) {
+        throw Error(what + ": poses of board '" + b.board.name +
+                    "' must have increasing times \"t\"");
+      }
+    }
+    for (const BoardTag& t : b.board.tags) tag_pattern(b.board.family, t.id);
+  }
+}
+
+Eigen::Isometry3d pose_at(const SceneBoard& board, double time_s) {
+  const auto& k = board.keyframes;
+  if (k.empty()) return Eigen::Isometry3d::Identity();
+  if (time_s <= k.front().time_s) return k.front().T_cam_board;
+  if (time_s >= k.back().time_s) return k.back().T_cam_board;
+  size_t i = 1;
+  while (k[i].time_s < time_s) ++i;
+  const double s = (time_s - k[i - 1].time_s) / (k[i].time_s - k[i - 1].time_s);
+  const Eigen::Quaterniond q0(k[i - 1].T_cam_board.linear());
+  const Eigen::Quaterniond q1(k[i].T_cam_board.linear());
+  const Eigen::Vector3d t =
+      (1.0 - s) * k[i - 1].T_cam_board.translation() + s * k[i].T_cam_board.translation();
+  return make_pose(q0.slerp(s, q1), t);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Renderer
+
+struct SyntheticRenderer::Impl {
+  int w = 0, h = 0;
+  // Undistorted normalised image coordinates of the pixel corners: node (i, j) is pixel
+  // coordinate (i - 0.5, j - 0.5); (w + 1) x (h + 1) nodes.
+  std::vector<Eigen::Vector2d> nodes;
+  cv::Mat background;  // CV_32F, grey levels
+  std::map<std::pair<std::string, int>, TagPattern> patterns;
+
+  const Eigen::Vector2d& node(int i, int j) const { return nodes[size_t(j) * size_t(w + 1) + i]; }
+};
+
+SyntheticRenderer::SyntheticRenderer(SyntheticScene scene)
+    : scene_(std::move(scene)), impl_(std::make_unique<Impl>()) {
+  scene_.validate("synthetic scene");
+  Impl& m = *impl_;
+  const calibration::CameraModel& cam = scene_.camera;
+  m.w = cam.width;
+  m.h = cam.height;
+  m.nodes.resize(size_t(m.w + 1) * size_t(m.h + 1));
+  // Exact unprojection on a coarse lattice, then every node by Newton's method from the bilinear
+  // interpolation of its lattice cell (converges in one or two steps to the exact inverse).
+  constexpr int kStep = 8;
+  const int cw = m.w / kStep + 2, ch = m.h / kStep + 2;
+  std::vector<Eigen::Vector2d> coarse(size_t(cw) * size_t(ch));
+  cv::parallel_for_(cv::Range(0, ch), [&](const cv::Range& rows) {
+    for (int j = rows.start; j < rows.end; ++j) {
+      for (int i = 0; i < cw; ++i) {
+        coarse[size_t(j) * cw + i] = cam.unproject({i * kStep - 0.5, j * kStep - 0.5});
+      }
+    }
+  });
+  cv::parallel_for_(cv::Range(0, m.h + 1), [&](const cv::Range& rows) {
+    for (int j = rows.start; j < rows.end; ++j) {
+      const int cj = j / kStep;
+      const double b = double(j - cj * kStep) / kStep;
+      for (int i = 0; i <= m.w; ++i) {
+        const int ci = i / kStep;
+        const double a = double(i - ci * kStep) / kStep;
+        const Eigen::Vector2d guess = (1 - a) * (1 - b) * coarse[size_t(cj) * cw + ci] +
+                                      a * (1 - b) * coarse[size_t(cj) * cw + ci + 1] +
+                                      (1 - a) * b * coarse[size_t(cj + 1) * cw + ci] +
+                                      a * b * coarse[size_t(cj + 1) * cw + ci + 1];
+        m.nodes[size_t(j) * size_t(m.w + 1) + i] = cam.unproject({i - 0.5, j - 0.5}, guess);
+      }
+    }
+  });
+  // Background.
+  m.background = cv::Mat(m.h, m.w, CV_32F, cv::Scalar(scene_.background_grey));
+  if (scene_.background == "gradient") {
+    for (int y = 0; y < m.h; ++y) {
+      float* row = m.background.ptr<float>(y);
+      for (int x = 0; x < m.w; ++x) {
+        const double s = 0.5 * (double(x) / std::max(1, m.w - 1) + double(y) / std::max(1, m.h - 1));
+        row[x] = float(scene_.background_grey + scene_.background_contrast * (s - 0.5));
+      }
+    }
+  } else if (scene_.background == "noise") {
+    cv::RNG rng(scene_.seed * 7919 + 17);
+    cv::Mat texture(m.h, m.w, CV_32F, cv::Scalar(0));
+    for (int scale : {64, 16, 4}) {
+      cv::Mat small(std::max(2, m.h / scale), std::max(2, m.w / scale), CV_32F);
+      rng.fill(small, cv::RNG::UNIFORM, -1.0, 1.0);
+      cv::Mat up;
+      cv::resize(small, up, cv::Size(m.w, m.h), 0, 0, cv::INTER_CUBIC);
+      texture += up * (scale / 64.0 + 0.15);
+    }
+    double lo = 0, hi = 0;
+    cv::minMaxLoc(texture, &lo, &hi);
+    const double span = std::max(hi - lo, 1e-9);
+    m.background = (texture - lo) * (scene_.background_contrast / span) +
+                   (scene_.background_grey - 0.5 * scene_.background_contrast);
+  }
+  for (const SceneBoard& b : scene_.boards) {
+    for (const BoardTag& t : b.board.tags) {
+      m.patterns.emplace(std::make_pair(b.board.family, t.id), tag_pattern(b.board.family, t.id));
+    }
+  }
+}
+
+SyntheticRenderer::~SyntheticRenderer() = default;
+
+int64_t SyntheticRenderer::timestamp_ns_of(int64_t frame) const {
+  return int64_t(std::llround(double(frame) * 1e9 / scene_.fps));
+}
+
+cv::Mat SyntheticRenderer::render(int64_t frame, std::vector<TruePose>* truth) const {
+  const Impl& m = *impl_;
+  const calibration::CameraModel& cam = scene_.camera;
+  const double t = time_of(frame);
+  const double black = scene_.black, white = scene_.white;
+
+  // Surfaces in the camera frame, with their pixel bounding boxes.
+  std::vector<Surface> surfaces;
+  const auto add_surface = [&](const Eigen::Isometry3d& T, const Eigen::Vector3d& o_b,
+                               const Eigen::Vector3d& u_b, const Eigen::Vector3d& v_b,
+                               const TagPattern* pattern, double bias) {
+    Surface s;
+    s.O = T * o_b;
+    const Eigen::Vector3d U = T.linear() * u_b, V = T.linear() * v_b;
+    s.N = U.cross(V);
+    if (s.N.norm() < 1e-12) return;
+    const Eigen::Vector3d vn = V.cross(s.N), nu = s.N.cross(U);
+    s.a = vn / U.dot(vn);
+    s.b = nu / V.dot(nu);
+    s.n_dot_o = s.N.dot(s.O);
+    s.pattern = pattern;
+    s.depth_bias = bias;
+    // Bounding box from points along the boundary (edges curve under distortion).
+    double x0 = 1e300, y0 = 1e300, x1 = -1e300, y1 = -1e300;
+    bool behind = false;
+    constexpr int kSteps = 24;
+    for (int e = 0; e < 4 && !behind; ++e) {
+      for (int k = 0; k < kSteps; ++k) {
+        const double f = double(k) / kSteps;
+        const double uu = e == 0 ? f : e == 1 ? 1.0 : e == 2 ? 1.0 - f : 0.0;
+        const double vv = e == 0 ? 0.0 : e == 1 ? f : e == 2 ? 1.0 : 1.0 - f;
+        const Eigen::Vector3d p = s.O + uu * U + vv * V;
+        if (p.z() < 1.0) {
+          behind = true;
+          break;
+        }
+        const Eigen::Vector2d px = cam.project(p);
+        x0 = std::min(x0, px.x());
+        y0 = std::min(y0, px.y());
+        x1 = std::max(x1, px.x());
+        y1 = std::max(y1, px.y());
+      }
+    }
+    if (behind) {
+      s.x0 = 0;
+      s.y0 = 0;
+      s.x1 = m.w - 1;
+      s.y1 = m.h - 1;
+    } else {
+      s.x0 = std::max(0, int(std::floor(x0)) - 2);
+      s.y0 = std::max(0, int(std::floor(y0)) - 2);
+      s.x1 = std::min(m.w - 1, int(std::ceil(x1)) + 2);
+      s.y1 = std::min(m.h - 1, int(std::ceil(y1)) + 2);
+    }
+    if (s.x0 > s.x1 || s.y0 > s.y1) return;
+    surfaces.push_back(s);
+  };
+
+  if (truth) truth->clear();
+  for (const SceneBoard& sb : scene_.boards) {
+    const Eigen::Isometry3d T = pose_at(sb, t);
+    if (truth) truth->push_back({sb.board.name, T});
+    // The plate: the rectangle around the tags' outer (white ring) corners plus the margin.
+    bool planar = true;
+    double bx0 = 1e300, by0 = 1e300, bx1 = -1e300, by1 = -1e300;
+    for (const BoardTag& tag : sb.board.tags) {
+      const TagPattern& p = m.patterns.at({sb.board.family, tag.id});
+      const double grow = double(p.border_start()) / p.width_at_border;
+      for (const Eigen::Vector3d& c : tag.corners) {
+        planar = planar && std::abs(c.z()) < 1e-9;
+        const Eigen::Vector3d outer = c + grow * (c - tag.center());
+        bx0 = std::min(bx0, outer.x());
+        by0 = std::min(by0, outer.y());
+        bx1 = std::max(bx1, outer.x());
+        by1 = std::max(by1, outer.y());
+      }
+    }
+    if (sb.plate && planar) {
+      const double g = sb.plate_margin_mm;
+      add_surface(T, {bx0 - g, by0 - g, 0}, {bx1 - bx0 + 2 * g, 0, 0}, {0, by1 - by0 + 2 * g, 0},
+                  nullptr, 0.0);
+    }
+    for (const BoardTag& tag : sb.board.tags) {
+      const TagPattern& p = m.patterns.at({sb.board.family, tag.id});
+      // Cell vectors: along the tag's top edge (top-left -> top-right) and down its left edge.
+      const Eigen::Vector3d ex = (tag.corners[2] - tag.corners[3]) / p.width_at_border;
+      const Eigen::Vector3d ey = (tag.corners[0] - tag.corners[3]) / p.width_at_border;
+      const Eigen::Vector3d origin = tag.corners[3] - p.border_start() * (ex + ey);
+      add_surface(T, origin, ex * p.total_width, ey * p.total_width, &p, 1e-3);
+    }
+  }
+
+  // Edge pixels are sampled on a Fibonacci lattice (rank-1 lattice of N points with generator the
+  // preceding Fibonacci number): N distinct positions along each axis, well spread in 2D.
+  int fib_a = 1, fib_b = 1;
+  while (fib_b < scene_.supersampling * scene_.supersampling) {
+    const int next = fib_a + fib_b;
+    fib_a = fib_b;
+    fib_b = next;
+  }
+  const int n_samples = scene_.supersampling <= 1 ? 1 : fib_b;
+  std::vector<std::pair<double, double>> lattice;
+  for (int k = 0; k < n_samples; ++k) {
+    const double a = (k + 0.5) / n_samples;
+    const double b = std::fmod((double(k) * fib_a + 0.5) / n_samples, 1.0);
+    lattice.emplace_back(a, n_samples == 1 ? 0.5 : b);
+  }
+  // Rows and columns that any surface may cover: the only pixels that need tracing.
+  cv::Mat img = m.background.clone();
+  cv::parallel_for_(cv::Range(0, m.h), [&](const cv::Range& rows) {
+    std::vector<const Surface*> cands, in_row;
+    for (int y = rows.start; y < rows.end; ++y) {
+      float* out = img.ptr<float>(y);
+      in_row.clear();
+      int row_x0 = m.w, row_x1 = -1;
+      for (const Surface& s : surfaces) {
+        if (y < s.y0 || y > s.y1) continue;
+        in_row.push_back(&s);
+        row_x0 = std::min(row_x0, s.x0);
+        row_x1 = std::max(row_x1, s.x1);
+      }
+      for (int x = row_x0; x <= row_x1; ++x) {
+        cands.clear();
+        for (const Surface* s : in_row) {
+          if (x >= s->x0 && x <= s->x1) cands.push_back(s);
+        }
+        if (cands.empty()) continue;
+        const Eigen::Vector2d& g00 = m.node(x, y);
+        const Eigen::Vector2d& g10 = m.node(x + 1, y);
+        const Eigen::Vector2d& g01 = m.node(x, y + 1);
+        const Eigen::Vector2d& g11 = m.node(x + 1, y + 1);
+        // Value seen along the ray through (a, b) of this pixel (a, b in [0, 1] from its top-left
+        // corner); NaN = background.
+        const auto shade = [&](double a, double b) {
+          const Eigen::Vector2d xy =
+              (1 - a) * (1 - b) * g00 + a * (1 - b) * g10 + (1 - a) * b * g01 + a * b * g11;
+          const Eigen::Vector3d d(xy.x(), xy.y(), 1.0);
+          double best = std::numeric_limits<double>::infinity();
+          double value = std::numeric_limits<double>::quiet_NaN();
+          for (const Surface* s : cands) {
+            const double nd = s->N.dot(d);
+            if (!(nd > 0)) continue;  // seen from behind, or edge-on
+            const double lambda = s->n_dot_o / nd;
+            if (!(lambda > 0)) continue;
+            const double z = lambda - s->depth_bias;
+            if (z >= best) continue;
+            const Eigen::Vector3d q = lambda * d - s->O;
+            const double u = s->a.dot(q), v = s->b.dot(q);
+            if (u < 0 || u >= 1 || v < 0 || v >= 1) continue;
+            best = z;
+            if (s->pattern) {
+              const int n = s->pattern->total_width;
+              const int col = std::min(n - 1, int(u * n));
+              const int row = std::min(n - 1, int(v * n));
+              value = s->pattern->cells.at<uint8_t>(row, col) ? white : black;
+            } else {
+              value = white;
+            }
+          }
+          return value;
+        };
+        // Probe a 3 x 3 pattern; a pixel that sees one value everywhere needs no more samples.
+        constexpr double kProbe[3] = {1.0 / 64, 0.5, 63.0 / 64};
+        double first = shade(kProbe[0], kProbe[0]);
+        bool uniform = true;
+        for (int pj = 0; pj < 3 && uniform; ++pj) {
+          for (int pi = 0; pi < 3 && uniform; ++pi) {
+            const double v = shade(kProbe[pi], kProbe[pj]);
+            uniform = (std::isnan(v) && std::isnan(first)) || v == first;
+          }
+        }
+        const double bg = out[x];
+        if (uniform) {
+          if (!std::isnan(first)) out[x] = float(first);
+          continue;
+        }
+        double sum = 0;
+        for (const auto& [a, b] : lattice) {
+          const double v = shade(a, b);
+          sum += std::isnan(v) ? bg : v;
+        }
+        out[x] = float(sum / double(lattice.size()));
+      }
+    }
+  });
+
+  for (const OcclusionBox& o : scene_.occlusions) {
+    if (frame < o.first_frame || frame > o.last_frame) continue;
+    const cv::Rect r = cv::Rect(cv::Point(int(std::floor(o.rect_px.x)), int(std::floor(o.rect_px.y))),
+                                cv::Point(int(std::ceil(o.rect_px.x + o.rect_px.width)),
+                                          int(std::ceil(o.rect_px.y + o.rect_px.height)))) &
+                       cv::Rect(0, 0, m.w, m.h);
+    if (r.area() > 0) img(r).setTo(cv::Scalar(o.grey));
+  }
+  if (scene_.gain != 1.0 || scene_.offset != 0.0) {
+    img.convertTo(img, CV_32F, scene_.gain, scene_.offset);
+  }
+  if (scene_.blur_sigma > 0) {
+    cv::GaussianBlur(img, img, cv::Size(0, 0), scene_.blur_sigma, scene_.blur_sigma,
+                     cv::BORDER_REPLICATE);
+  }
+  if (scene_.noise_sigma > 0) {
+    cv::Mat noise(img.size(), CV_32F);
+    cv::RNG rng(scene_.seed * 1000003ULL + uint64_t(frame) * 7919ULL + 1ULL);
+    rng.fill(noise, cv::RNG::NORMAL, 0.0, scene_.noise_sigma);
+    img += noise;
+  }
+  cv::Mat grey, bgr;
+  img.convertTo(grey, CV_8U);  // rounds and saturates
+  cv::cvtColor(grey, bgr, cv::COLOR_GRAY2BGR);
+  return bgr;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Scene files
+
+namespace {
+
+double num(const json& j, const std::string& key, double fallback, const std::string& path) {
+  if (!j.contains(key)) return fallback;
+  if (!j[key].is_number()) {
+    throw Error(path + ": field " + key + " is " + j[key].dump() + ", expected a number");
+  }
+  return j[key].get<double>();
+}
+
+Eigen::Vector3d vec3(const json& j, const std::string& path, const std::string& field) {
+  if (!j.is_array() || j.size() != 3 || !j[0].is_number() || !j[1].is_number() ||
+      !j[2].is_number()) {
+    throw Error(path + ": field " + field + " is " + j.dump() + ", expected [x, y, z]");
+  }
+  return {j[0].get<double>(), j[1].get<double>(), j[2].get<double>()};
+}
+
+std::vector<int64_t> int_list(const json& j, const std::string& key, const std::string& path) {
+  std::vector<int64_t> out;
+  if (!j.contains(key)) return out;
+  if (!j[key].is_array()) throw Error(path + ": field " + key + " is not an array of frames");
+  for (const json& v : j[key]) {
+    if (!v.is_number_integer()) {
+      throw Error(path + ": field " + key + " holds " + v.dump() + ", expected frame numbers");
+    }
+    out.push_back(v.get<int64_t>());
+  }
+  return out;
+}
+
+}  // namespace
+
+SyntheticScene read_scene(const std::string& path) {
+  namespace fs = std::filesystem;
+  std::ifstream in(path);
+  if (!in) throw Error(path + ": cannot open scene file");
+  json j;
+  try {
+    in >> j;
+  } catch (const json::exception& e) {
+    throw Error(path + ": not valid JSON (" + e.what() + ")");
+  }
+  if (!j.is_object()) throw Error(path + ": expected a JSON object");
+  const fs::path base = fs::path(path).parent_path();
+  const auto relative = [&](const std::string& p) {
+    return fs::path(p).is_absolute() ? p : (base / p).string();
+  };
+  SyntheticScene s;
+  if (j.contains("camera")) {
+    const json& c = j["camera"];
+    if (c.is_string()) {
+      s.camera = calibration::CameraModel::read_yaml(relative(c.get<std::string>()));
+    } else if (c.is_object()) {
+      const std::string cp = path + ": camera";
+      s.camera.width = int(num(c, "width", s.camera.width, cp));
+      s.camera.height = int(num(c, "height", s.camera.height, cp));
+      s.camera.fx = num(c, "fx", 1000.0, cp);
+      s.camera.fy = num(c, "fy", s.camera.fx, cp);
+      s.camera.cx = num(c, "cx", (s.camera.width - 1) / 2.0, cp);
+      s.camera.cy = num(c, "cy", (s.camera.height - 1) / 2.0, cp);
+      if (c.contains("distortion")) {
+        const json& d = c["distortion"];
+        if (!d.is_array() || d.size() < 4 || d.size() > 5) {
+          throw Error(path + ": field camera.distortion is " + d.dump() +
+                      ", expected [k1, k2, p1, p2, k3]");
+        }
+        for (size_t i = 0; i < d.size(); ++i) {
+          if (!d[i].is_number()) throw Error(path + ": field camera.distortion is not numeric");
+          s.camera.distortion[i] = d[i].get<double>();
+        }
+      }
+    } else {
+      throw Error(path + ": field camera must be an object or the path of a camera.yaml");
+    }
+  }
+  if (j.contains("background")) {
+    const json& b = j["background"];
+    if (b.is_string()) {
+      s.background = b.get<std::string>();
+    } else if (b.is_object()) {
+      if (b.contains("type")) {
+        if (!b["type"].is_string()) throw Error(path + ": field background.type is not a string");
+        s.background = b["type"].get<std::string>();
+      }
+      s.background_grey = num(b, "grey", s.background_grey, path + ": background");
+      s.background_contrast = num(b, "contrast", s.background_contrast, path + ": background");
+    } else {
+      throw Error(path + ": field background must be an object or a type name");
+    }
+  }
+  std::vector<Board> boards;
+  if (!j.contains("boards")) throw Error(path + ": field boards is missing");
+  if (j["boards"].is_string()) {
+    boards = read_boards(relative(j["boards"].get<std::string>()));
+  } else if (j["boards"].is_array()) {
+    boards = read_boards_text(json{{"boards", j["boards"]}}.dump(), path);
+  } else {
+    throw Error(path + ": field boards must be a boards.json path or an array of boards");
+  }
+  if (!j.contains("poses") || !j["poses"].is_object()) {
+    throw Error(path + ": field poses is missing, expected {\"BOARD\": [keyframes], ...}");
+  }
+  for (auto it = j["poses"].begin(); it != j["poses"].end(); ++it) {
+    const bool known = std::any_of(boards.begin(), boards.end(),
+                                   [&](const Board& b) { return b.name == it.key(); });
+    if (!known) throw Error(path + ": field poses." + it.key() + " names no board of the scene");
+  }
+  const bool plate = j.value("plate", true);
+  for (const Board& b : boards) {
+    SceneBoard sb;
+    sb.board = b;
+    sb.plate = plate;
+    const std::string field = "poses." + b.name;
+    if (!j["poses"].contains(b.name) || !j["poses"][b.name].is_array()) {
+      throw Error(path + ": field " + field + " is missing, expected keyframes of board '" +
+                  b.name + "'");
+    }
+    const json& keys = j["poses"][b.name];
+    for (size_t k = 0; k < keys.size(); ++k) {
+      const json& kj = keys[k];
+      const std::string kf = field + "[" + std::to_string(k) + "]";
+      if (!kj.is_object() || !kj.contains("translation_mm")) {
+        throw Error(path + ": field " + kf + ".translation_mm is missing");
+      }
+      PoseKeyframe key;
+      key.time_s = num(kj, "t", 0.0, path + ": " + kf);
+      const Eigen::Vector3d tr = vec3(kj["translation_mm"], path, kf + ".translation_mm");
+      Eigen::Quaterniond q = Eigen::Quaterniond::Identity();
+      if (kj.contains("quaternion")) {
+        const json& qj = kj["quaternion"];
+        if (!qj.is_array() || qj.size() != 4) {
+          throw Error(path + ": field " + kf + ".quaternion, expected [w, x, y, z]");
+        }
+        q = Eigen::Quaterniond(qj[0].get<double>(), qj[1].get<double>(), qj[2].get<double>(),
+                               qj[3].get<double>());
+        if (q.norm() < 1e-9) throw Error(path + ": field " + kf + ".quaternion is zero");
+      } else if (kj.contains("rotvec_deg")) {
+        q = rotvec_deg(vec3(kj["rotvec_deg"], path, kf + ".rotvec_deg"));
+      }
+      key.T_cam_board = make_pose(q, tr);
+      sb.keyframes.push_back(key);
+    }
+    s.boards.push_back(sb);
+  }
+  s.fps = num(j, "fps", s.fps, path);
+  s.frame_count = int64_t(num(j, "frames", double(s.frame_count), path));
+  s.noise_sigma = num(j, "noise_sigma", s.noise_sigma, path);
+  s.blur_sigma = num(j, "blur_sigma", s.blur_sigma, path);
+  s.gain = num(j, "gain", s.gain, path);
+  s.offset = num(j, "offset", s.offset, path);
+  s.black = num(j, "black", s.black, path);
+  s.white = num(j, "white", s.white, path);
+  s.seed = uint64_t(num(j, "seed", double(s.seed), path));
+  s.supersampling = int(num(j, "supersampling", s.supersampling, path));
+  s.dropped_frames = int_list(j, "dropped_frames", path);
+  s.corrupt_frames = int_list(j, "corrupt_frames", path);
+  if (j.contains("occlusions")) {
+    if (!j["occlusions"].is_array()) throw Error(path + ": field occlusions is not an array");
+    for (size_t k = 0; k < j["occlusions"].size(); ++k) {
+      const json& o = j["occlusions"][k];
+      const std::string of = "occlusions[" + std::to_string(k) + "]";
+      if (!o.is_object() || !o.contains("rect_px") || !o["rect_px"].is_array() ||
+          o["rect_px"].size() != 4) {
+        throw Error(path + ": field " + of + ".rect_px is missing, expected [x, y, w, h]");
+      }
+      OcclusionBox box;
+      const json& r = o["rect_px"];
+      box.rect_px = cv::Rect2d(r[0].get<double>(), r[1].get<double>(), r[2].get<double>(),
+                               r[3].get<double>());
+      box.first_frame = 0;
+      box.last_frame = std::numeric_limits<int64_t>::max();
+      if (o.contains("frames")) {
+        const std::vector<int64_t> f = int_list(o, "frames", path + ": " + of);
+        if (f.size() != 2) throw Error(path + ": field " + of + ".frames, expected [first, last]");
+        box.first_frame = f[0];
+        box.last_frame = f[1];
+      }
+      box.grey = num(o, "grey", box.grey, path + ": " + of);
+      s.occlusions.push_back(box);
+    }
+  }
+  s.validate(path);
+  return s;
+}
+
+SyntheticScene builtin_scene() {
+  SyntheticScene s;
+  s.camera.cx = 641.2;
+  s.camera.cy = 358.7;
+  s.camera.fx = 1000.0;
+  s.camera.fy = 1000.0;
+  s.camera.distortion = {-0.05, 0.02, 0.0, 0.0, 0.0};
+  s.background = "noise";
+  s.fps = 30;
+  s.frame_count = 90;  // 3 s
+  s.noise_sigma = 1.5;
+
+  SceneBoard patient;
+  patient.board = make_grid_board("patient", 2, 3, 40.0, 10.0, 0);
+  // CT-visible fiducials near the plate corners (the plate spans +-90 x +-60 mm).
+  patient.board.fiducials = {{-82, -52, 0}, {82, -52, 0}, {82, 52, 0}, {-82, 52, 0}};
+  patient.plate_margin_mm = 15;
+  // The camera looks down at the patient from 50 to 58 cm; the board drifts a little (breathing,
+  // a camera arm settling).
+  const std::vector<std::pair<double, Eigen::Isometry3d>> patient_keys = {
+      {0.0, make_pose(rotvec_deg({-25, 5, 3}), {-100, 25, 500})},
+      {1.5, make_pose(rotvec_deg({-27, 8, 2}), {-95, 30, 540})},
+      {3.0, make_pose(rotvec_deg({-24, 10, 4}), {-90, 35, 580})}};
+  for (const auto& [time, T] : patient_keys) patient.keyframes.push_back({time, T});
+
+  SceneBoard needle;
+  needle.board = make_grid_board("needle", 2, 2, 20.0, 6.0, 10);
+  needle.plate_margin_mm = 4;
+  // The needle points from its entry toward the target; the board is square to it at the hub.
+  const Eigen::Vector3d d = Eigen::Vector3d(-0.25, -0.12, 1.0).normalized();  // patient frame
+  Eigen::Matrix3d R_patient_needle;
+  const Eigen::Vector3d x_axis = (Eigen::Vector3d::UnitX() - d.x() * d).normalized();
+  R_patient_needle.col(0) = x_axis;
+  R_patient_needle.col(1) = d.cross(x_axis);
+  R_patient_needle.col(2) = d;
+  for (int64_t f = 0; f <= s.frame_count; ++f) {
+    const double time = double(f) / s.fps;
+    // Tip from 200 mm to 60 mm short of the target, at a steady speed.
+    const double remaining = 200.0 - 140.0 * std::min(1.0, time / 3.0);
+    const Eigen::Vector3d tip = kTumorTargetInPatient - remaining * d;
+    Eigen::Isometry3d T_patient_needle = Eigen::Isometry3d::Identity();
+    T_patient_needle.linear() = R_patient_needle;
+    T_patient_needle.translation() = tip - R_patient_needle * kNeedleTipInNeedle;
+    needle.keyframes.push_back({time, pose_at(patient, time) * T_patient_needle});
+  }
+  s.boards = {patient, needle};
+  return s;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Frame source
+
+namespace {
+
+class SyntheticSource : public FrameSource {
+ public:
+  SyntheticSource(SyntheticScene scene, std::string description)
+      : renderer_(std::move(scene)), description_(std::move(description)) {
+    for (int64_t f : renderer_.scene().dropped_frames) dropped_.push_back(f);
+  }
+
+  std::optional<Frame> next() override {
+    const SyntheticScene& s = renderer_.scene();
+    while (next_ < s.frame_count &&
+           std::find(dropped_.begin(), dropped_.end(), next_) != dropped_.end()) {
+      ++next_;
+    }
+    if (next_ >= s.frame_count) return std::nullopt;
+    Frame f;
+    f.index = next_;
+    f.timestamp_ns = renderer_.timestamp_ns_of(next_);
+    cv::Mat image = renderer_.render(next_, &f.truth);
+    if (std::find(s.corrupt_frames.begin(), s.corrupt_frames.end(), next_) !=
+        s.corrupt_frames.end()) {
+      // A JPEG cut short, as a camera delivers when its USB transfer breaks off.
+      std::vector<uint8_t> jpeg;
+      cv::imencode(".jpg", image, jpeg, {cv::IMWRITE_JPEG_QUALITY, 90});
+      jpeg.resize(jpeg.size() * 3 / 5);
+      f.image = recordings::decode_image(jpeg, &f.problem);
+      f.encoded = std::move(jpeg);
+      f.encoded_format = "jpg";
+    } else {
+      f.image = image;
+    }
+    ++next_;
+    return f;
+  }
+
+  std::string describe() const override { return description_; }
+  std::optional<calibration::CameraModel> camera() const override {
+    return renderer_.scene().camera;
+  }
+
+ private:
+  SyntheticRenderer renderer_;
+  std::string description_;
+  std::vector<int64_t> dropped_;
+  int64_t next_ = 0;
+};
+
+}  // namespace
+
+std::unique_ptr<FrameSource> make_synthetic_source(SyntheticScene scene,
+                                                   const std::string& description) {
+  return std::make_unique<SyntheticSource>(std::move(scene), description);
+}
+
+std::unique_ptr<FrameSource> open_synthetic_source(const std::string& scene_path) {
+  if (scene_path == "builtin") {
+    return make_synthetic_source(builtin_scene(), "synthetic:builtin (built-in guidance scene)");
+  }
+  return make_synthetic_source(read_scene(scene_path), "synthetic:" + scene_path);
+}
+
+}  // namespace crepuscular::tracking

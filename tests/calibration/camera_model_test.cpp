@@ -101,6 +101,10 @@ TEST(CameraModel, UnprojectAgreesWithOpenCvUndistortPoints) {
       // Normalised units times the focal length = pixels.
       ASSERT_NEAR(xy.x() * m.fx, expected[i].x * m.fx, 1e-6) << "set " << set << " px " << i;
       ASSERT_NEAR(xy.y() * m.fy, expected[i].y * m.fy, 1e-6) << "set " << set << " px " << i;
+      // Newton's method from a nearby guess reaches the same point.
+      const Eigen::Vector2d from_guess =
+          m.unproject({pixels[i].x, pixels[i].y}, xy + Eigen::Vector2d(2e-3, -1.5e-3));
+      ASSERT_NEAR((from_guess - xy).norm() * m.fx, 0.0, 1e-9) << "set " << set << " px " << i;
       // And it is the inverse of the projection.
       const Eigen::Vector2d back = m.project({xy.x() * 500.0, xy.y() * 500.0, 500.0});
       ASSERT_NEAR(back.x(), pixels[i].x, 1e-8) << "set " << set << " px " << i;
