@@ -1,0 +1,352 @@
+// Tests of calibration/intrinsics: synthetic views projected with cv::projectPoints from known
+// intrinsics plus 0.2 px noise (every parameter within its reported 3 sigma, fx and fy within
+// 0.2 %), agreement with cv::calibrateCamera on the same detections, outlier view rejection,
+// refusals with advice, and chessboard detection on rendered images.
+#include "calibration/intrinsics.hpp"
+
+#include <gtest/gtest.h>
+
+#include <Eigen/Geometry>
+#include <chrono>
+#include <cmath>
+#include <initializer_list>
+#include <random>
+#include <string>
+#include <vector>
+
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "kernels/error.hpp"
+
+namespace crepuscular::calibration {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+constexpr int kWidth = 1280;
+constexpr int kHeight = 720;
+
+template <typename F>
+void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
+  try {
+    f();
+    ADD_FAILURE() << "expected crepuscular::Error";
+  } catch (const Error& e) {
+    for (const std::string& part : parts) {
+      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
+          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
+    }
+  }
+}
+
+// The camera the synthetic views are taken with.
+struct TrueCamera {
+  double fx = 910.0, fy = 905.0, cx = 652.0, cy = 351.0;
+  double k1 = -0.21, k2 = 0.09, p1 = 0.0012, p2 = -0.0009, k3 = -0.015;
+  cv::Matx33d K() const { return {fx, 0, cx, 0, fy, cy, 0, 0, 1}; }
+  std::vector<double> dist() const { return {k1, k2, p1, p2, k3}; }
+  std::array<double, 9> params() const { return {fx, fy, cx, cy, k1, k2, p1, p2, k3}; }
+};
+
+// A grid target of cols x rows corners, spacing_mm apart, in its z = 0 plane.
+std::vector<Eigen::Vector3d> grid_points(int cols, int rows, double spacing_mm) {
+  std::vector<Eigen::Vector3d> points;
+  for (int r = 0; r < rows; ++r) {
+    for (int c = 0; c < cols; ++c) points.emplace_back(c * spacing_mm, r * spacing_mm, 0.0);
+  }
+  return points;
+}
+
+std::vector<Eigen::Vector2d> project(const TrueCamera& cam, const Eigen::Isometry3d& T_cam_target,
+                                     const std::vector<Eigen::Vector3d>& points) {
+  std::vector<cv::Point3d> in;
+  for (const auto& p : points) {
+    const Eigen::Vector3d q = T_cam_target * p;
+    in.emplace_back(q.x(), q.y(), q.z());
+  }
+  std::vector<cv::Point2d> out;
+  cv::projectPoints(in, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), cam.K(), cam.dist(), out);
+  std::vector<Eigen::Vector2d> pixels;
+  for (const auto& p : out) pixels.emplace_back(p.x, p.y);
+  return pixels;
+}
+
+struct ViewSpec {
+  double max_tilt_deg = 40.0;
+  double min_depth_mm = 380.0, max_depth_mm = 750.0;
+  double centre_lo = 0.0, centre_hi = 1.0;  // where the target centre lands (fraction of image)
+};
+
+// `count` views of the grid with random tilts and positions that keep every corner in the image,
+// with Gaussian pixel noise of noise_px (seeded, reproducible).
+std::vector<CalibrationView> synthetic_views(const TrueCamera& cam, int count, double noise_px,
+                                             unsigned seed, const ViewSpec& spec = {}) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> uni(0.0, 1.0);
+  std::normal_distribution<double> noise(0.0, noise_px);
+  const auto target = grid_points(10, 7, 30.0);
+  const Eigen::Vector3d centre(135.0, 90.0, 0.0);
+  std::vector<CalibrationView> views;
+  int attempts = 0;
+  while (int(views.size()) < count && attempts++ < 100000) {
+    const double ax = (2 * uni(rng) - 1) * spec.max_tilt_deg * kPi / 180.0;
+    const double ay = (2 * uni(rng) - 1) * spec.max_tilt_deg * kPi / 180.0;
+    const double az = (2 * uni(rng) - 1) * 20.0 * kPi / 180.0;
+    const double depth = spec.min_depth_mm + uni(rng) * (spec.max_depth_mm - spec.min_depth_mm);
+    const double u = (spec.centre_lo + uni(rng) * (spec.centre_hi - spec.centre_lo)) * kWidth;
+    const double v = (spec.centre_lo + uni(rng) * (spec.centre_hi - spec.centre_lo)) * kHeight;
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = (Eigen::AngleAxisd(ax, Eigen::Vector3d::UnitX()) *
+                  Eigen::AngleAxisd(ay, Eigen::Vector3d::UnitY()) *
+                  Eigen::AngleAxisd(az, Eigen::Vector3d::UnitZ()))
+                     .toRotationMatrix();
+    const Eigen::Vector3d c_cam((u - cam.cx) / cam.fx * depth, (v - cam.cy) / cam.fy * depth, depth);
+    T.translation() = c_cam - T.linear() * centre;
+    bool inside = true;
+    for (const auto& p : target) inside = inside && (T * p).z() > 100.0;
+    if (!inside) continue;
+    const auto pixels = project(cam, T, target);
+    for (const auto& p : pixels) {
+      inside = inside && p.x() > 10 && p.y() > 10 && p.x() < kWidth - 10 && p.y() < kHeight - 10;
+    }
+    if (!inside) continue;
+    CalibrationView view;
+    view.name = "view" + std::to_string(views.size());
+    view.object_points = target;
+    for (const auto& p : pixels) view.image_points.push_back(p + Eigen::Vector2d(noise(rng), noise(rng)));
+    views.push_back(std::move(view));
+  }
+  return views;
+}
+
+TEST(Intrinsics, RecoversKnownCameraWithinReportedThreeSigma) {
+  const TrueCamera truth;
+  const auto views = synthetic_views(truth, 20, 0.2, 1234);
+  ASSERT_EQ(views.size(), 20u);
+  const auto t0 = std::chrono::steady_clock::now();
+  const IntrinsicsResult r = calibrate_intrinsics(views, kWidth, kHeight);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const std::array<double, 9> est = {r.camera.fx,
+                                     r.camera.fy,
+                                     r.camera.cx,
+                                     r.camera.cy,
+                                     r.camera.distortion[0],
+                                     r.camera.distortion[1],
+                                     r.camera.distortion[2],
+                                     r.camera.distortion[3],
+                                     r.camera.distortion[4]};
+  const auto want = truth.params();
+  for (size_t p = 0; p < 9; ++p) {
+    EXPECT_GT(r.stddev[p], 0.0) << intrinsic_parameter_names()[p];
+    EXPECT_NEAR(est[p], want[p], 3.0 * r.stddev[p])
+        << intrinsic_parameter_names()[p] << " sigma " << r.stddev[p];
+  }
+  EXPECT_NEAR(r.camera.fx, truth.fx, 0.002 * truth.fx);
+  EXPECT_NEAR(r.camera.fy, truth.fy, 0.002 * truth.fy);
+  // 0.2 px per coordinate: the 2D residual RMS is about 0.2 * sqrt(2) = 0.28 px.
+  EXPECT_GT(r.rms_px, 0.2);
+  EXPECT_LT(r.rms_px, 0.34);
+  EXPECT_EQ(r.views_used, 20);
+  for (const auto& v : r.views) EXPECT_FALSE(v.rejected) << v.name;
+  EXPECT_LT(seconds, 20.0);
+  std::printf("fx %.3f +- %.3f  fy %.3f +- %.3f  cx %.3f +- %.3f  cy %.3f +- %.3f  rms %.3f px  "
+              "%.2f s\n",
+              r.camera.fx, r.stddev[0], r.camera.fy, r.stddev[1], r.camera.cx, r.stddev[2],
+              r.camera.cy, r.stddev[3], r.rms_px, seconds);
+}
+
+TEST(Intrinsics, AgreesWithOpenCvCalibrateCamera) {
+  const TrueCamera truth;
+  const auto views = synthetic_views(truth, 15, 0.2, 99);
+  ASSERT_EQ(views.size(), 15u);
+  const IntrinsicsResult r = calibrate_intrinsics(views, kWidth, kHeight);
+  std::vector<std::vector<cv::Point3f>> obj;
+  std::vector<std::vector<cv::Point2f>> img;
+  for (const auto& v : views) {
+    obj.emplace_back();
+    img.emplace_back();
+    for (size_t k = 0; k < v.object_points.size(); ++k) {
+      obj.back().emplace_back(float(v.object_points[k].x()), float(v.object_points[k].y()), 0.f);
+      img.back().emplace_back(float(v.image_points[k].x()), float(v.image_points[k].y()));
+    }
+  }
+  cv::Mat K, dist;
+  std::vector<cv::Mat> rvecs, tvecs;
+  const double cv_rms = cv::calibrateCamera(obj, img, cv::Size(kWidth, kHeight), K, dist, rvecs,
+                                            tvecs, 0,
+                                            cv::TermCriteria(cv::TermCriteria::COUNT +
+                                                                 cv::TermCriteria::EPS,
+                                                             200, 1e-12));
+  EXPECT_NEAR(r.camera.fx, K.at<double>(0, 0), 0.005 * K.at<double>(0, 0));
+  EXPECT_NEAR(r.camera.fy, K.at<double>(1, 1), 0.005 * K.at<double>(1, 1));
+  EXPECT_NEAR(r.camera.cx, K.at<double>(0, 2), 0.005 * K.at<double>(0, 2));
+  EXPECT_NEAR(r.camera.cy, K.at<double>(1, 2), 0.005 * K.at<double>(1, 2));
+  // OpenCV's RMS is per coordinate pair as well (sqrt(sum |r|^2 / N)).
+  EXPECT_NEAR(r.rms_px, cv_rms, 0.02);
+  // Distortion compared where it matters: the pixel displacement it causes across the image.
+  double worst = 0;
+  for (double x = -0.6; x <= 0.6; x += 0.1) {
+    for (double y = -0.35; y <= 0.35; y += 0.07) {
+      std::vector<cv::Point3d> p = {{x, y, 1.0}};
+      std::vector<cv::Point2d> a, b;
+      cv::projectPoints(p, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), K, dist, a);
+      const cv::Matx33d K2(r.camera.fx, 0, r.camera.cx, 0, r.camera.fy, r.camera.cy, 0, 0, 1);
+      std::vector<double> d2(r.camera.distortion.begin(), r.camera.distortion.end());
+      cv::projectPoints(p, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), K2, d2, b);
+      worst = std::max(worst, cv::norm(a[0] - b[0]));
+    }
+  }
+  EXPECT_LT(worst, 0.5) << "largest pixel difference between the two calibrations";
+  std::printf("Ceres fx %.3f fy %.3f cx %.3f cy %.3f | OpenCV fx %.3f fy %.3f cx %.3f cy %.3f | "
+              "max pixel difference %.3f\n",
+              r.camera.fx, r.camera.fy, r.camera.cx, r.camera.cy, K.at<double>(0, 0),
+              K.at<double>(1, 1), K.at<double>(0, 2), K.at<double>(1, 2), worst);
+}
+
+TEST(Intrinsics, RejectsOutlierView) {
+  const TrueCamera truth;
+  auto views = synthetic_views(truth, 12, 0.2, 7);
+  ASSERT_EQ(views.size(), 12u);
+  // View 5: half of its corners displaced by 6 px (a mis-detection).
+  std::mt19937 rng(5);
+  std::normal_distribution<double> bad(0.0, 6.0);
+  for (size_t k = 0; k < views[5].image_points.size(); k += 2) {
+    views[5].image_points[k] += Eigen::Vector2d(bad(rng), bad(rng));
+  }
+  const IntrinsicsResult r = calibrate_intrinsics(views, kWidth, kHeight);
+  EXPECT_TRUE(r.views[5].rejected);
+  EXPECT_EQ(r.views_used, 11);
+  EXPECT_NEAR(r.camera.fx, truth.fx, 0.002 * truth.fx);
+  EXPECT_NEAR(r.camera.fy, truth.fy, 0.002 * truth.fy);
+  EXPECT_LT(r.rms_px, 0.34);
+}
+
+TEST(Intrinsics, RefusesTooFewViews) {
+  const TrueCamera truth;
+  const auto views = synthetic_views(truth, 3, 0.2, 11);
+  expect_error_containing([&] { calibrate_intrinsics(views, kWidth, kHeight); },
+                          {"only 3 usable view", "Capture"});
+}
+
+TEST(Intrinsics, RefusesFrontoParallelViews) {
+  const TrueCamera truth;
+  ViewSpec spec;
+  spec.max_tilt_deg = 1.5;
+  const auto views = synthetic_views(truth, 10, 0.2, 13, spec);
+  ASSERT_EQ(views.size(), 10u);
+  expect_error_containing([&] { calibrate_intrinsics(views, kWidth, kHeight); },
+                          {"orientation", "tilted"});
+  // Without lens distortion the orientation check before the solve already refuses.
+  TrueCamera pinhole;
+  pinhole.k1 = pinhole.k2 = pinhole.p1 = pinhole.p2 = pinhole.k3 = 0.0;
+  const auto flat = synthetic_views(pinhole, 10, 0.2, 13, spec);
+  expect_error_containing([&] { calibrate_intrinsics(flat, kWidth, kHeight); },
+                          {"same orientation", "tilted"});
+}
+
+TEST(Intrinsics, RefusesCornersOnlyInImageCentre) {
+  const TrueCamera truth;
+  ViewSpec spec;
+  spec.min_depth_mm = 1400;
+  spec.max_depth_mm = 1600;
+  spec.centre_lo = 0.45;
+  spec.centre_hi = 0.55;
+  const auto views = synthetic_views(truth, 10, 0.2, 17, spec);
+  ASSERT_EQ(views.size(), 10u);
+  expect_error_containing([&] { calibrate_intrinsics(views, kWidth, kHeight); },
+                          {"cover only", "top-left", "bottom-right"});
+}
+
+TEST(Intrinsics, ParsesChessboardSpec) {
+  const auto spec = parse_chessboard_spec("chessboard:9x6:25");
+  ASSERT_TRUE(spec.has_value());
+  EXPECT_EQ(spec->cols, 9);
+  EXPECT_EQ(spec->rows, 6);
+  EXPECT_DOUBLE_EQ(spec->square_mm, 25.0);
+  EXPECT_FALSE(parse_chessboard_spec("boards.json").has_value());
+  expect_error_containing([] { parse_chessboard_spec("chessboard:9x6"); }, {"COLSxROWS"});
+  expect_error_containing([] { parse_chessboard_spec("chessboard:9by6:25"); }, {"9by6"});
+  expect_error_containing([] { parse_chessboard_spec("chessboard:9x6:-2"); }, {"SQUARE_MM"});
+}
+
+// Renders a chessboard of (cols+1) x (rows+1) squares seen by a pinhole camera (no distortion)
+// with 4 x 4 supersampling; returns the image and the true inner-corner pixels.
+cv::Mat render_chessboard(const ChessboardSpec& spec, const cv::Matx33d& K,
+                          const Eigen::Isometry3d& T_cam_board) {
+  // Homography board (x, y, 1) -> image.
+  Eigen::Matrix3d H;
+  Eigen::Matrix3d Ke;
+  Ke << K(0, 0), 0, K(0, 2), 0, K(1, 1), K(1, 2), 0, 0, 1;
+  H.col(0) = T_cam_board.linear().col(0);
+  H.col(1) = T_cam_board.linear().col(1);
+  H.col(2) = T_cam_board.translation();
+  const Eigen::Matrix3d Hinv = (Ke * H).inverse();
+  cv::Mat image(kHeight, kWidth, CV_8UC1);
+  const double s = spec.square_mm;
+  for (int v = 0; v < kHeight; ++v) {
+    for (int u = 0; u < kWidth; ++u) {
+      double sum = 0;
+      for (int a = 0; a < 4; ++a) {
+        for (int b = 0; b < 4; ++b) {
+          const Eigen::Vector3d q = Hinv * Eigen::Vector3d(u - 0.375 + 0.25 * b, v - 0.375 + 0.25 * a, 1);
+          const double x = q.x() / q.z(), y = q.y() / q.z();
+          // Squares from -s to cols*s (one square beyond the outer inner corners), white margin.
+          double value = 230;
+          if (x > -s && y > -s && x < spec.cols * s && y < spec.rows * s) {
+            const int i = int(std::floor(x / s)) + 1, j = int(std::floor(y / s)) + 1;
+            value = ((i + j) % 2 == 0) ? 25 : 230;
+          }
+          sum += value;
+        }
+      }
+      image.at<uint8_t>(v, u) = cv::saturate_cast<uint8_t>(sum / 16.0);
+    }
+  }
+  return image;
+}
+
+TEST(Intrinsics, DetectsRenderedChessboardCornersToSubPixel) {
+  const ChessboardSpec spec{9, 6, 25.0};
+  const cv::Matx33d K(900, 0, 640, 0, 900, 360, 0, 0, 1);
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = (Eigen::AngleAxisd(0.35, Eigen::Vector3d::UnitX()) *
+                Eigen::AngleAxisd(-0.25, Eigen::Vector3d::UnitY()))
+                   .toRotationMatrix();
+  T.translation() = Eigen::Vector3d(-90, -60, 600);
+  const cv::Mat image = render_chessboard(spec, K, T);
+  const auto view = detect_chessboard(image, spec, "rendered");
+  ASSERT_TRUE(view.has_value());
+  ASSERT_EQ(view->image_points.size(), 54u);
+  double worst = 0, sum = 0;
+  for (size_t k = 0; k < view->object_points.size(); ++k) {
+    const Eigen::Vector3d p = T * view->object_points[k];
+    const Eigen::Vector2d truth(K(0, 0) * p.x() / p.z() + K(0, 2), K(1, 1) * p.y() / p.z() + K(1, 2));
+    worst = std::max(worst, (view->image_points[k] - truth).norm());
+    sum += (view->image_points[k] - truth).norm();
+  }
+  const double mean = sum / double(view->object_points.size());
+  // cornerSubPix on an anti-aliased, perspective-distorted board: a few hundredths of a pixel on
+  // average, under a quarter pixel at worst.
+  EXPECT_LT(mean, 0.1) << "mean corner error in px";
+  EXPECT_LT(worst, 0.25) << "largest corner error in px";
+  std::printf("chessboard corner error: mean %.3f px, largest %.3f px\n", mean, worst);
+  // A blank image holds no board.
+  EXPECT_FALSE(detect_chessboard(cv::Mat(kHeight, kWidth, CV_8UC1, cv::Scalar(128)), spec, "blank")
+                   .has_value());
+}
+
+TEST(Intrinsics, SelectsViewsForCoverage) {
+  const TrueCamera truth;
+  auto views = synthetic_views(truth, 30, 0.2, 21);
+  const auto picked = select_views_for_coverage(views, kWidth, kHeight, 8);
+  ASSERT_EQ(picked.size(), 8u);
+  std::vector<CalibrationView> chosen;
+  for (size_t i : picked) chosen.push_back(views[i]);
+  std::vector<CalibrationView> first(views.begin(), views.begin() + 8);
+  EXPECT_GE(corner_coverage(chosen, kWidth, kHeight, 10), corner_coverage(first, kWidth, kHeight, 10));
+  for (size_t k = 1; k < picked.size(); ++k) EXPECT_LT(picked[k - 1], picked[k]);
+}
+
+}  // namespace
+}  // namespace crepuscular::calibration
