@@ -1,1 +1,273 @@
-// Being built.
+// Board tracking over frames: region-of-interest search, poses, alpha-beta filter, staleness.
+#include "tracking/tracker.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <cmath>
+
+#include "kernels/error.hpp"
+
+namespace crepuscular::tracking {
+
+namespace {
+
+constexpr double kDegToRad = 3.14159265358979323846 / 180.0;
+
+Eigen::Matrix3d exp_so3(const Eigen::Vector3d& w) {
+  const double a = w.norm();
+  if (a < 1e-15) return Eigen::Matrix3d::Identity();
+  return Eigen::AngleAxisd(a, w / a).toRotationMatrix();
+}
+
+Eigen::Vector3d log_so3(const Eigen::Matrix3d& R) {
+  const Eigen::AngleAxisd aa(R);
+  return aa.angle() * aa.axis();
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// PoseFilter
+
+Eigen::Isometry3d PoseFilter::predict(int64_t timestamp_ns) const {
+  if (!initialised_) return Eigen::Isometry3d::Identity();
+  const double dt = double(timestamp_ns - timestamp_ns_) * 1e-9;
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = exp_so3(angular_velocity_ * dt) * pose_.linear();
+  T.translation() = pose_.translation() + velocity_ * dt;
+  return T;
+}
+
+Eigen::Isometry3d PoseFilter::update(const Eigen::Isometry3d& measured, const Matrix6d& covariance,
+                                     int64_t timestamp_ns, int64_t max_gap_ns, bool* restarted) {
+  const double dt = double(timestamp_ns - timestamp_ns_) * 1e-9;
+  bool restart = !initialised_ || dt <= 0 || timestamp_ns - timestamp_ns_ > max_gap_ns;
+  Eigen::Isometry3d pred;
+  Eigen::Matrix<double, 6, 1> innovation;
+  if (!restart) {
+    pred = predict(timestamp_ns);
+    innovation.head<3>() = log_so3(measured.linear() * pred.linear().transpose());
+    innovation.tail<3>() = measured.translation() - pred.translation();
+    Matrix6d S = 2.0 * covariance;
+    const double fr = options_.floor_deg * kDegToRad, ft = options_.floor_mm;
+    for (int k = 0; k < 3; ++k) {
+      S(k, k) += fr * fr;
+      S(3 + k, 3 + k) += ft * ft;
+    }
+    const double d2 = innovation.dot(S.ldlt().solve(innovation));
+    if (!(d2 <= options_.gate_chi2)) restart = true;
+  }
+  if (restart) {
+    // Start again at the measurement. The velocity since the last filtered pose lets a fast but
+    // steady move be followed from the next frame on.
+    if (initialised_ && dt > 0 && timestamp_ns - timestamp_ns_ <= max_gap_ns) {
+      velocity_ = (measured.translation() - pose_.translation()) / dt;
+      angular_velocity_ = log_so3(measured.linear() * pose_.linear().transpose()) / dt;
+    } else {
+      velocity_.setZero();
+      angular_velocity_.setZero();
+    }
+    pose_ = measured;
+  } else {
+    const double a = options_.alpha, b = options_.beta;
+    pose_.linear() = exp_so3(a * innovation.head<3>()) * pred.linear();
+    pose_.translation() = pred.translation() + a * innovation.tail<3>();
+    angular_velocity_ += b * innovation.head<3>() / dt;
+    velocity_ += b * innovation.tail<3>() / dt;
+  }
+  initialised_ = true;
+  timestamp_ns_ = timestamp_ns;
+  if (restarted) *restarted = restart;
+  return pose_;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Tracker
+
+Tracker::Tracker(const calibration::CameraModel& camera, std::vector<Board> boards,
+                 const TrackerOptions& options)
+    : camera_(camera), boards_(std::move(boards)), options_(options), detector_(options.detector) {
+  if (boards_.empty()) throw Error("tracker: no marker boards given");
+  for (const Board& b : boards_) {
+    if (b.family != options.detector.family) {
+      throw Error("tracker: board '" + b.name + "' uses family " + b.family +
+                  " but the detector searches " + options.detector.family);
+    }
+    if (b.tags.empty()) throw Error("tracker: board '" + b.name + "' has no tags");
+  }
+  if (!(camera.fx > 0 && camera.fy > 0) || camera.width <= 0 || camera.height <= 0) {
+    throw Error("tracker: camera model has no focal length or image size");
+  }
+  if (!(options.max_age_ms > 0)) throw Error("tracker: max_age_ms must be > 0");
+  tracks_.resize(boards_.size());
+  for (Track& t : tracks_) t.filter = PoseFilter(options.filter);
+}
+
+std::vector<cv::Rect> Tracker::predicted_regions(int64_t timestamp_ns, bool* all_predicted) const {
+  std::vector<cv::Rect> rois;
+  *all_predicted = true;
+  const cv::Rect image(0, 0, camera_.width, camera_.height);
+  for (size_t b = 0; b < boards_.size(); ++b) {
+    const Track& tr = tracks_[b];
+    if (!tr.measured_last || !tr.filter.initialised()) {
+      *all_predicted = false;
+      continue;
+    }
+    const Eigen::Isometry3d now = tr.filter.predict(timestamp_ns);
+    const Eigen::Isometry3d before = tr.filter.pose();
+    for (const BoardTag& tag : boards_[b].tags) {
+      double x0 = 1e300, y0 = 1e300, x1 = -1e300, y1 = -1e300, shift = 0;
+      bool ok = true;
+      for (const Eigen::Vector3d& c : tag.corners) {
+        const Eigen::Vector3d p = now * c, q = before * c;
+        // Outside about 60 degrees off axis the distortion polynomial is not to be trusted.
+        if (p.z() <= 1e-3 || std::abs(p.x()) > 2 * p.z() || std::abs(p.y()) > 2 * p.z() ||
+            q.z() <= 1e-3) {
+          ok = false;
+          break;
+        }
+        double uv[2], uv0[2];
+        project_with_distortion(camera_, p.data(), uv);
+        project_with_distortion(camera_, q.data(), uv0);
+        x0 = std::min(x0, uv[0]);
+        y0 = std::min(y0, uv[1]);
+        x1 = std::max(x1, uv[0]);
+        y1 = std::max(y1, uv[1]);
+        shift = std::max(shift, std::hypot(uv[0] - uv0[0], uv[1] - uv0[1]));
+      }
+      if (!ok) continue;
+      const double margin = options_.roi_margin_px +
+                            options_.roi_margin_tag_fraction * std::max(x1 - x0, y1 - y0) + shift;
+      const cv::Rect r(cv::Point(int(std::floor(x0 - margin)), int(std::floor(y0 - margin))),
+                       cv::Point(int(std::ceil(x1 + margin)) + 1, int(std::ceil(y1 + margin)) + 1));
+      const cv::Rect clipped = r & image;
+      if (clipped.area() > 0) rois.push_back(clipped);
+    }
+  }
+  return TagDetector::merge_regions(std::move(rois));
+}
+
+bool Tracker::measure(size_t b, const std::vector<Detection>& detections, int64_t timestamp_ns,
+                      BoardStatus* st) {
+  Track& tr = tracks_[b];
+  const BoardCorners corners = match_board_corners(boards_[b], detections);
+  st->tags = int(corners.tag_ids.size());
+  st->corners = int(corners.board_mm.size());
+  if (corners.tag_ids.empty()) {
+    st->problem = "no tag of the board found";
+    return false;
+  }
+  const double max_age_ns = options_.max_age_ms * 1e6;
+  const bool recent = tr.has_pose && double(timestamp_ns - tr.measured_ns) <= max_age_ns;
+  Eigen::Isometry3d previous = Eigen::Isometry3d::Identity();
+  if (recent) previous = tr.filter.initialised() ? tr.filter.predict(timestamp_ns) : tr.last.T_cam_board;
+  const BoardPose pose = estimate_board_pose(camera_, corners, recent ? &previous : nullptr,
+                                             options_.pose);
+  if (!pose.valid) {
+    st->problem = pose.problem;
+    return false;
+  }
+  bool restarted = false;
+  const Matrix6d cov = pose.covariance_valid ? pose.covariance : Matrix6d::Zero();
+  const Eigen::Isometry3d filtered = tr.filter.update(
+      pose.T_cam_board, cov, timestamp_ns, int64_t(max_age_ns), &restarted);
+  st->measured = true;
+  st->tracked = true;
+  st->T_measured = pose.T_cam_board;
+  st->T_cam_board = options_.smoothing ? filtered : pose.T_cam_board;
+  st->rms_px = pose.rms_px;
+  st->age_ms = 0;
+  st->covariance = pose.covariance;
+  st->covariance_valid = pose.covariance_valid;
+  st->ambiguous = pose.ambiguous;
+  st->filter_restarted = restarted;
+  st->problem.clear();
+  tr.has_pose = true;
+  tr.measured_ns = timestamp_ns;
+  tr.last = *st;
+  return true;
+}
+
+TrackResult Tracker::process(const Frame& frame) {
+  TrackResult res;
+  res.frame = frame.index;
+  res.timestamp_ns = frame.timestamp_ns;
+  res.problem = frame.problem;
+  if (last_index_ >= 0 && frame.index > last_index_ + 1) res.dropped = frame.index - last_index_ - 1;
+  last_index_ = frame.index;
+  ++frames_;
+
+  res.boards.resize(boards_.size());
+  std::vector<bool> measured(boards_.size(), false);
+  for (size_t b = 0; b < boards_.size(); ++b) res.boards[b].board = boards_[b].name;
+
+  if (frame.image.empty()) {
+    if (res.problem.empty()) res.problem = "no image";
+  } else {
+    if (frame.image.cols != camera_.width || frame.image.rows != camera_.height) {
+      throw Error("tracker: frame " + std::to_string(frame.index) + " is " +
+                  std::to_string(frame.image.cols) + "x" + std::to_string(frame.image.rows) +
+                  " but the camera model is " + std::to_string(camera_.width) + "x" +
+                  std::to_string(camera_.height));
+    }
+    bool full = options_.full_search_interval <= 0 ||
+                frames_since_full_ + 1 >= options_.full_search_interval;
+    std::vector<cv::Rect> rois;
+    if (!full) {
+      bool all_predicted = true;
+      rois = predicted_regions(frame.timestamp_ns, &all_predicted);
+      double area = 0;
+      for (const cv::Rect& r : rois) area += r.area();
+      if (!all_predicted || rois.empty() ||
+          area > options_.max_roi_fraction * camera_.width * camera_.height) {
+        full = true;
+      }
+    }
+    if (!full) {
+      res.regions = int(rois.size());
+      res.detections = detector_.detect(frame.image, rois);
+      bool missing = false;
+      for (size_t b = 0; b < boards_.size(); ++b) {
+        measured[b] = measure(b, res.detections, frame.timestamp_ns, &res.boards[b]);
+        if (!measured[b]) missing = true;
+      }
+      // A board the regions did not show is searched for in the whole frame at once.
+      full = missing;
+    }
+    if (full) {
+      res.full_search = true;
+      ++full_searches_;
+      frames_since_full_ = 0;
+      res.detections = detector_.detect(frame.image);
+      for (size_t b = 0; b < boards_.size(); ++b) {
+        if (!measured[b]) measured[b] = measure(b, res.detections, frame.timestamp_ns, &res.boards[b]);
+      }
+    } else {
+      ++frames_since_full_;
+    }
+  }
+
+  // Boards without a measurement now: their last pose while it is young enough, else lost.
+  for (size_t b = 0; b < boards_.size(); ++b) {
+    Track& tr = tracks_[b];
+    tr.measured_last = measured[b];
+    if (measured[b]) continue;
+    BoardStatus& st = res.boards[b];
+    if (st.problem.empty()) st.problem = res.problem.empty() ? "not searched" : res.problem;
+    if (!tr.has_pose) continue;
+    st.age_ms = double(frame.timestamp_ns - tr.measured_ns) * 1e-6;
+    if (st.age_ms <= options_.max_age_ms) {
+      st.tracked = true;
+      st.T_cam_board = tr.last.T_cam_board;
+      st.rms_px = tr.last.rms_px;
+      st.covariance = tr.last.covariance;
+      st.covariance_valid = tr.last.covariance_valid;
+    } else {
+      st.tracked = false;
+    }
+  }
+  return res;
+}
+
+}  // namespace crepuscular::tracking

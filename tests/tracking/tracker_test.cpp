@@ -1,0 +1,368 @@
+// Tests of tracking/tracker and tracking/poses_csv: accuracy against the ground truth of rendered
+// frames, jitter of a static board, the filter's lag, region-of-interest search against full-frame
+// search, and loss reporting (occlusion, blur, undecodable frame, dropped frames, stale poses).
+#include "tracking/tracker.hpp"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+#include <random>
+
+#include "kernels/error.hpp"
+#include "tests/tracking/tag_scene.hpp"
+#include "tracking/poses_csv.hpp"
+
+namespace crepuscular::tracking {
+namespace {
+
+using testing::hd_camera;
+using testing::look_at_board;
+using testing::RenderOptions;
+using testing::SceneRenderer;
+
+constexpr double kRadToDeg = 180.0 / M_PI;
+constexpr int64_t kFrameNs = 16'666'667;  // 60 fps
+
+double angle_deg(const Eigen::Isometry3d& a, const Eigen::Isometry3d& b) {
+  return Eigen::AngleAxisd(a.linear().transpose() * b.linear()).angle() * kRadToDeg;
+}
+double distance_mm(const Eigen::Isometry3d& a, const Eigen::Isometry3d& b) {
+  return (a.translation() - b.translation()).norm();
+}
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v[v.size() / 2];
+}
+
+Frame make_frame(int64_t index, const cv::Mat& image) {
+  Frame f;
+  f.index = index;
+  f.timestamp_ns = index * kFrameNs;
+  f.image = image;
+  return f;
+}
+
+cv::Mat with_noise(const cv::Mat& image, double sigma, unsigned seed) {
+  cv::Mat noise(image.size(), CV_16SC3);
+  cv::theRNG().state = seed;
+  cv::randn(noise, cv::Scalar::all(0), cv::Scalar::all(sigma));
+  cv::Mat grey16, out;
+  image.convertTo(grey16, CV_16SC3);
+  grey16 += noise;
+  grey16.convertTo(out, CV_8UC3);
+  return out;
+}
+
+// ------------------------------------------------------------------------------------------------
+// PoseFilter on measurements given directly.
+
+Eigen::Isometry3d moving_pose(double x_mm) {
+  return look_at_board(x_mm, 10, 500, 10, 5, 0);
+}
+
+Matrix6d small_covariance(double sigma_mm) {
+  Matrix6d c = Matrix6d::Zero();
+  for (int k = 0; k < 3; ++k) {
+    c(k, k) = std::pow(sigma_mm / 500.0, 2);
+    c(3 + k, 3 + k) = sigma_mm * sigma_mm;
+  }
+  return c;
+}
+
+// Constant velocity: after a start-up of a few frames the filter sits on the truth, and it never
+// trails it by more than one frame's motion.
+TEST(PoseFilter, ConstantVelocityMoveIsFollowedWithoutLag) {
+  PoseFilter f;
+  const double step = 1.5;  // mm per frame (90 mm/s)
+  for (int i = 0; i < 40; ++i) {
+    const Eigen::Isometry3d truth = moving_pose(step * std::max(0, i - 5));
+    const Eigen::Isometry3d out = f.update(truth, small_covariance(0.1), i * kFrameNs, 100'000'000);
+    EXPECT_LE(distance_mm(out, truth), step + 1e-9) << "frame " << i;
+    if (i > 15) {
+      EXPECT_LT(distance_mm(out, truth), 0.05) << "frame " << i;
+    }
+  }
+}
+
+// A sudden 5 mm jump is taken at once (the innovation fails the gate and the filter restarts).
+TEST(PoseFilter, JumpRestartsAtTheMeasurement) {
+  PoseFilter f;
+  for (int i = 0; i < 10; ++i) f.update(moving_pose(0), small_covariance(0.1), i * kFrameNs, 100'000'000);
+  bool restarted = false;
+  const Eigen::Isometry3d out =
+      f.update(moving_pose(5), small_covariance(0.1), 10 * kFrameNs, 100'000'000, &restarted);
+  EXPECT_TRUE(restarted);
+  EXPECT_LT(distance_mm(out, moving_pose(5)), 1e-9);
+  // A gap longer than the limit restarts too.
+  f.update(moving_pose(5.05), small_covariance(0.1), 20 * kFrameNs, 100'000'000, &restarted);
+  EXPECT_TRUE(restarted);
+}
+
+// Noise of a static board is reduced (alpha 0.5, beta 0.2: to about 0.65 of its std).
+TEST(PoseFilter, NoiseOfAStaticBoardIsReduced) {
+  PoseFilter f;
+  std::mt19937 rng(3);
+  std::normal_distribution<double> n(0.0, 0.2);
+  double raw = 0, filtered = 0;
+  const Eigen::Isometry3d truth = moving_pose(0);
+  for (int i = 0; i < 400; ++i) {
+    Eigen::Isometry3d m = truth;
+    m.translation() += Eigen::Vector3d(n(rng), n(rng), n(rng));
+    const Eigen::Isometry3d out = f.update(m, small_covariance(0.2), i * kFrameNs, 100'000'000);
+    if (i < 20) continue;
+    raw += (m.translation() - truth.translation()).squaredNorm();
+    filtered += (out.translation() - truth.translation()).squaredNorm();
+  }
+  const double ratio = std::sqrt(filtered / raw);
+  std::printf("filtered / raw std: %.3f\n", ratio);
+  EXPECT_LT(ratio, 0.75);
+  EXPECT_GT(ratio, 0.5);
+}
+
+// ------------------------------------------------------------------------------------------------
+// Tracker on rendered frames.
+
+struct Rig {
+  calibration::CameraModel cam = hd_camera();
+  Board patient = make_grid_board("patient", 2, 3, 40.0, 10.0, 0);
+  Board needle = make_grid_board("needle", 2, 2, 20.0, 6.0, 10);
+  SceneRenderer renderer{cam};
+};
+
+Rig& rig() {
+  static Rig r;
+  return r;
+}
+
+// Issue 5: patient board (6 tags) at 40-60 cm, 1280x720, noise: median error <= 0.5 mm and
+// <= 0.2 deg; needle board (4 small tags) <= 1 mm. Each frame is 200 ms after the previous one,
+// so every pose is a fresh measurement (no filtering).
+TEST(Tracker, PatientAndNeedleBoardPosesMatchGroundTruth) {
+  Rig& r = rig();
+  TrackerOptions o;
+  Tracker tracker(r.cam, {r.patient, r.needle}, o);
+  std::vector<double> pt, pr, nt, nr;
+  for (int i = 0; i < 12; ++i) {
+    const double z = 400 + 200.0 * i / 11.0;
+    const Eigen::Isometry3d Tp =
+        look_at_board(-90 + 6 * i, 40 - 5 * i, z, 25 - 4 * i, -15 + 3 * i, 8 * i);
+    const Eigen::Isometry3d Tn =
+        look_at_board(110 - 4 * i, -60 + 6 * i, z - 20, -20 + 3 * i, 20 - 2 * i, -10 * i);
+    RenderOptions ro;
+    ro.noise_sigma = 2.0;
+    ro.seed = 40 + i;
+    Frame f = make_frame(12 * i, r.renderer.render({{&r.patient, Tp}, {&r.needle, Tn}}, ro));
+    const TrackResult res = tracker.process(f);
+    ASSERT_EQ(res.boards.size(), 2u);
+    ASSERT_TRUE(res.boards[0].measured) << "frame " << i << ": " << res.boards[0].problem;
+    ASSERT_TRUE(res.boards[1].measured) << "frame " << i << ": " << res.boards[1].problem;
+    EXPECT_EQ(res.boards[0].tags, 6);
+    EXPECT_EQ(res.boards[1].tags, 4);
+    pt.push_back(distance_mm(res.boards[0].T_cam_board, Tp));
+    pr.push_back(angle_deg(res.boards[0].T_cam_board, Tp));
+    nt.push_back(distance_mm(res.boards[1].T_cam_board, Tn));
+    nr.push_back(angle_deg(res.boards[1].T_cam_board, Tn));
+  }
+  std::printf("patient: median %.3f mm %.3f deg (max %.3f mm); needle: median %.3f mm %.3f deg\n",
+              median(pt), median(pr), *std::max_element(pt.begin(), pt.end()), median(nt),
+              median(nr));
+  EXPECT_LE(median(pt), 0.5);
+  EXPECT_LE(median(pr), 0.2);
+  EXPECT_LE(median(nt), 1.0);
+}
+
+// Issue 5: jitter of a static board over 100 frames with pixel noise <= 0.1 mm (std of the
+// reported translation; the norm over the three axes).
+TEST(Tracker, StaticBoardJitterIsBelowATenthOfAMillimetre) {
+  Rig& r = rig();
+  const Eigen::Isometry3d T = look_at_board(20, -15, 500, 20, -10, 12);
+  const cv::Mat clean = r.renderer.render({{&r.patient, T}});
+  Tracker tracker(r.cam, {r.patient});
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero(), sum2 = Eigen::Vector3d::Zero();
+  Eigen::Vector3d rsum = Eigen::Vector3d::Zero(), rsum2 = Eigen::Vector3d::Zero();
+  const int n = 100;
+  for (int i = 0; i < n; ++i) {
+    const TrackResult res = tracker.process(make_frame(i, with_noise(clean, 2.0, 900 + i)));
+    ASSERT_TRUE(res.boards[0].measured) << "frame " << i;
+    const Eigen::Vector3d t = res.boards[0].T_cam_board.translation();
+    const Eigen::Vector3d m = res.boards[0].T_measured.translation();
+    sum += t;
+    sum2 += t.cwiseProduct(t);
+    rsum += m;
+    rsum2 += m.cwiseProduct(m);
+  }
+  const Eigen::Vector3d var = sum2 / n - (sum / n).cwiseProduct(sum / n);
+  const Eigen::Vector3d rvar = rsum2 / n - (rsum / n).cwiseProduct(rsum / n);
+  const double jitter = std::sqrt(var.cwiseMax(0).sum());
+  const double raw = std::sqrt(rvar.cwiseMax(0).sum());
+  std::printf("static jitter: filtered %.4f mm, unfiltered %.4f mm (x %.4f y %.4f z %.4f)\n",
+              jitter, raw, std::sqrt(var.x()), std::sqrt(var.y()), std::sqrt(var.z()));
+  EXPECT_LE(jitter, 0.1);
+  EXPECT_LT(jitter, raw);
+  EXPECT_LT(distance_mm(Eigen::Isometry3d(Eigen::Translation3d(sum / n)),
+                        Eigen::Isometry3d(Eigen::Translation3d(T.translation()))),
+            0.5);
+}
+
+// A moving board: after the first frame the tags are searched only where the poses predict them
+// (full frame every 15 frames); every frame gives the same detections and poses as full-frame
+// search, and the filtered pose stays within one frame's motion of the truth.
+TEST(Tracker, RegionSearchFindsWhatFullFrameSearchFinds) {
+  Rig& r = rig();
+  TrackerOptions regions_o, full_o;
+  full_o.full_search_interval = 0;
+  Tracker with_regions(r.cam, {r.patient, r.needle}, regions_o);
+  Tracker full(r.cam, {r.patient, r.needle}, full_o);
+  const int n = 24;
+  int region_frames = 0;
+  for (int i = 0; i < n; ++i) {
+    const Eigen::Isometry3d Tp = look_at_board(-60 + 2.5 * i, 20 - 1.0 * i, 480, 15, -10, 5 + 0.3 * i);
+    const Eigen::Isometry3d Tn = look_at_board(80 - 3.0 * i, -40 + 1.5 * i, 450 - 2.0 * i, -15, 10, -20);
+    RenderOptions ro;
+    ro.noise_sigma = 1.5;
+    ro.seed = 300 + i;
+    const Frame f = make_frame(i, r.renderer.render({{&r.patient, Tp}, {&r.needle, Tn}}, ro));
+    const TrackResult a = with_regions.process(f);
+    const TrackResult b = full.process(f);
+    if (!a.full_search) ++region_frames;
+    EXPECT_EQ(a.detections.size(), b.detections.size()) << "frame " << i;
+    for (size_t k = 0; k < 2; ++k) {
+      ASSERT_TRUE(a.boards[k].measured && b.boards[k].measured) << "frame " << i;
+      EXPECT_LT(distance_mm(a.boards[k].T_measured, b.boards[k].T_measured), 0.3) << "frame " << i;
+    }
+    // 2.7 mm (patient) and 3.7 mm (needle) per frame of motion
+    EXPECT_LT(distance_mm(a.boards[0].T_cam_board, Tp), 2.7) << "frame " << i;
+    EXPECT_LT(distance_mm(a.boards[1].T_cam_board, Tn), 3.7) << "frame " << i;
+    if (i > 6) {
+      EXPECT_LT(distance_mm(a.boards[0].T_cam_board, Tp), 0.8) << "frame " << i;
+    }
+  }
+  std::printf("frames searched by regions only: %d of %d\n", region_frames, n);
+  EXPECT_GE(region_frames, n - 3);  // frames 0 and 15 are full-frame searches
+  EXPECT_EQ(full.full_searches(), n);
+}
+
+// Occluded tags, a blurred frame, an undecodable frame and dropped frames: the tracker keeps going,
+// holds a pose for at most max_age_ms and then reports the board lost; it finds it again.
+TEST(Tracker, LossIsReportedAndStalePosesAreLost) {
+  Rig& r = rig();
+  const Eigen::Isometry3d T = look_at_board(10, 5, 450, 15, -10, 0);
+  RenderOptions ro;
+  ro.noise_sigma = 1.5;
+  const cv::Mat sharp = r.renderer.render({{&r.patient, T}}, ro);
+  RenderOptions occluded = ro;
+  occluded.hidden_ids = {0, 1, 3, 4};  // two of six tags left
+  const cv::Mat partial = r.renderer.render({{&r.patient, T}}, occluded);
+  cv::Mat blurred;
+  cv::GaussianBlur(sharp, blurred, cv::Size(0, 0), 8.0);
+  const cv::Mat empty_scene = r.renderer.render({}, ro);
+
+  Tracker tracker(r.cam, {r.patient});  // max_age_ms 100
+  std::vector<TrackResult> results;
+  auto run = [&](const Frame& f) {
+    results.push_back(tracker.process(f));
+    return results.back();
+  };
+  TrackResult res = run(make_frame(0, sharp));
+  ASSERT_TRUE(res.boards[0].tracked && res.boards[0].measured);
+
+  res = run(make_frame(1, partial));  // occlusion: two tags still give the pose
+  EXPECT_TRUE(res.boards[0].measured);
+  EXPECT_EQ(res.boards[0].tags, 2);
+  EXPECT_LT(distance_mm(res.boards[0].T_measured, T), 1.5);
+
+  res = run(make_frame(2, blurred));  // blurred: no tags; the pose is held (16.7 ms old)
+  EXPECT_FALSE(res.boards[0].measured);
+  EXPECT_TRUE(res.boards[0].tracked);
+  EXPECT_NEAR(res.boards[0].age_ms, 16.667, 0.01);
+  EXPECT_TRUE(res.full_search);  // a missing board is searched in the whole frame
+
+  Frame corrupt = make_frame(3, cv::Mat());
+  corrupt.problem = "frames/000003.jpg: corrupt JPEG (no end-of-image marker)";
+  res = run(corrupt);  // undecodable: keeps going, reports the problem
+  EXPECT_EQ(res.problem, corrupt.problem);
+  EXPECT_TRUE(res.boards[0].tracked);
+  EXPECT_NEAR(res.boards[0].age_ms, 33.333, 0.01);
+
+  // Board out of view: held while its pose is at most 100 ms old, then lost.
+  for (int i = 4; i <= 8; ++i) {
+    res = run(make_frame(i, empty_scene));
+    const double age = (i - 1) * kFrameNs * 1e-6;
+    EXPECT_EQ(res.boards[0].tracked, age <= 100.0) << "frame " << i << " age " << age;
+    EXPECT_NEAR(res.boards[0].age_ms, age, 1e-6);
+  }
+  EXPECT_FALSE(res.boards[0].tracked);  // frame 8: 116.7 ms
+
+  // Frames 9..19 dropped; frame 20 sees the board again.
+  res = run(make_frame(20, sharp));
+  EXPECT_EQ(res.dropped, 11);
+  EXPECT_TRUE(res.boards[0].measured);
+  EXPECT_TRUE(res.boards[0].filter_restarted);
+  EXPECT_LT(distance_mm(res.boards[0].T_cam_board, T), 0.5);
+
+  // Lost rows carry no pose in the CSV; tracked rows round-trip.
+  const std::string path =
+      (std::filesystem::temp_directory_path() / ("tracker_test_" + std::to_string(::getpid()) +
+                                                 ".csv")).string();
+  {
+    PosesCsvWriter w(path);
+    for (const TrackResult& t : results) w.write(t);
+    w.finish();
+  }
+  const std::vector<PoseRecord> rows = read_poses_csv(path);
+  ASSERT_EQ(rows.size(), results.size());
+  for (size_t i = 0; i < rows.size(); ++i) {
+    EXPECT_EQ(rows[i].frame, results[i].frame);
+    EXPECT_EQ(rows[i].tracked, results[i].boards[0].tracked);
+    if (rows[i].tracked) {
+      EXPECT_LT(distance_mm(rows[i].T_cam_board, results[i].boards[0].T_cam_board), 1e-5);
+      EXPECT_LT(angle_deg(rows[i].T_cam_board, results[i].boards[0].T_cam_board), 1e-7);
+    }
+  }
+  std::ifstream in(path);
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  EXPECT_NE(text.find("\n8,133333336,patient,lost,,,,,,,,\n"), std::string::npos) << text;
+  std::filesystem::remove(path);
+}
+
+TEST(PosesCsv, MalformedRowsAreErrorsNamingTheLine) {
+  const std::string path =
+      (std::filesystem::temp_directory_path() / ("poses_bad_" + std::to_string(::getpid()) +
+                                                 ".csv")).string();
+  {
+    std::ofstream out(path);
+    out << "frame,timestamp_ns,board,state,tx,ty,tz,qw,qx,qy,qz,rms_px\n"
+        << "0,0,patient,tracked,1,2,3,1,0,0,0,0.1\n"
+        << "1,16,patient,tracked,1,2,,1,0,0,0,0.1\n";
+  }
+  try {
+    read_poses_csv(path);
+    FAIL() << "no error";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("line 3"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("tz"), std::string::npos) << e.what();
+  }
+  {
+    std::ofstream out(path);
+    out << "frame,board\n";
+  }
+  EXPECT_THROW(read_poses_csv(path), Error);
+  std::filesystem::remove(path);
+  // A writer that is never finished leaves nothing behind.
+  { PosesCsvWriter w(path); }
+  EXPECT_FALSE(std::filesystem::exists(path));
+}
+
+TEST(Tracker, BadSetupIsAnError) {
+  Rig& r = rig();
+  EXPECT_THROW(Tracker(r.cam, {}), Error);
+  Board other = r.patient;
+  other.family = "tag25h9";
+  EXPECT_THROW(Tracker(r.cam, {other}), Error);
+  Tracker t(r.cam, {r.patient});
+  EXPECT_THROW(t.process(make_frame(0, cv::Mat(480, 640, CV_8UC3, cv::Scalar::all(0)))), Error);
+}
+
+}  // namespace
+}  // namespace crepuscular::tracking
