@@ -1,0 +1,301 @@
+// camera.yaml, needle.yaml and registration.yaml through OpenCV FileStorage (see
+// calibration_files.hpp).
+#include "calibration/calibration_files.hpp"
+
+#include <unistd.h>
+
+#include <atomic>
+#include <cmath>
+#include <ctime>
+#include <filesystem>
+#include <functional>
+#include <system_error>
+
+#include <opencv2/core.hpp>
+
+#include "kernels/error.hpp"
+
+namespace crepuscular::calibration {
+namespace {
+
+namespace fs = std::filesystem;
+
+// Writes through a temporary sibling whose name ends like `path` (FileStorage picks the format
+// from the extension), then renames it onto `path`.
+void write_atomically(const std::string& path, const std::function<void(cv::FileStorage&)>& body) {
+  static std::atomic<int> counter{0};
+  const fs::path final_path(path);
+  const fs::path tmp = final_path.parent_path() /
+                       (".tmp-" + std::to_string(getpid()) + "-" + std::to_string(counter++) +
+                        "-" + final_path.filename().string());
+  try {
+    cv::FileStorage out(tmp.string(), cv::FileStorage::WRITE);
+    if (!out.isOpened()) throw Error(path + ": cannot be written (folder missing or read-only?)");
+    body(out);
+    out.release();
+  } catch (const cv::Exception& e) {
+    std::error_code ec;
+    fs::remove(tmp, ec);
+    throw Error(path + ": writing failed: " + e.what());
+  } catch (...) {
+    std::error_code ec;
+    fs::remove(tmp, ec);
+    throw;
+  }
+  std::error_code ec;
+  fs::rename(tmp, final_path, ec);
+  if (ec) {
+    fs::remove(tmp, ec);
+    throw Error(path + ": cannot be written (" + ec.message() + ")");
+  }
+}
+
+void write_strings(cv::FileStorage& out, const std::string& key,
+                   const std::vector<std::string>& values) {
+  out << key << "[";
+  for (const auto& v : values) out << v;
+  out << "]";
+}
+
+cv::Mat to_mat(const Eigen::Vector3d& v) { return (cv::Mat_<double>(3, 1) << v.x(), v.y(), v.z()); }
+
+cv::Mat to_mat(const Eigen::Isometry3d& T) {
+  cv::Mat m(4, 4, CV_64F);
+  for (int r = 0; r < 4; ++r) {
+    for (int c = 0; c < 4; ++c) m.at<double>(r, c) = T.matrix()(r, c);
+  }
+  return m;
+}
+
+cv::Mat points_mat(const std::vector<Eigen::Vector3d>& p) {
+  cv::Mat m(int(p.size()), 3, CV_64F);
+  for (size_t i = 0; i < p.size(); ++i) {
+    for (int c = 0; c < 3; ++c) m.at<double>(int(i), c) = p[i](c);
+  }
+  return m;
+}
+
+class Reader {
+ public:
+  explicit Reader(const std::string& path) : path_(path) {
+    try {
+      in_.open(path, cv::FileStorage::READ);
+    } catch (const cv::Exception& e) {
+      throw Error(path + ": not a readable YAML file (" + e.what() + ")");
+    }
+    if (!in_.isOpened()) throw Error(path + ": cannot be opened (missing or not YAML)");
+  }
+  cv::FileNode node(const std::string& key, bool required = true) const {
+    cv::FileNode n = in_[key];
+    if (required && n.empty()) throw Error(path_ + ": field '" + key + "' is missing");
+    return n;
+  }
+  bool has(const std::string& key) const { return !in_[key].empty(); }
+  double number(const std::string& key) const {
+    const cv::FileNode n = node(key);
+    if (!n.isReal() && !n.isInt()) throw Error(path_ + ": field '" + key + "' must be a number");
+    return double(n);
+  }
+  std::string text(const std::string& key) const {
+    const cv::FileNode n = node(key, false);
+    return n.isString() ? std::string(n) : std::string();
+  }
+  std::vector<std::string> strings(const std::string& key) const {
+    std::vector<std::string> out;
+    const cv::FileNode n = node(key, false);
+    if (n.isSeq()) {
+      for (const auto& item : n) out.push_back(std::string(item));
+    }
+    return out;
+  }
+  cv::Mat matrix(const std::string& key, int rows, int cols) const {
+    cv::Mat m;
+    try {
+      node(key) >> m;
+    } catch (const cv::Exception&) {
+      m.release();
+    }
+    if ((rows >= 0 && m.rows != rows) || m.cols != cols || m.type() != CV_64F) {
+      throw Error(path_ + ": field '" + key + "' must be a " +
+                  (rows >= 0 ? std::to_string(rows) : std::string("N")) + " x " +
+                  std::to_string(cols) + " opencv-matrix of doubles");
+    }
+    for (int r = 0; r < m.rows; ++r) {
+      for (int c = 0; c < m.cols; ++c) {
+        if (!std::isfinite(m.at<double>(r, c))) {
+          throw Error(path_ + ": field '" + key + "' holds a value that is not finite");
+        }
+      }
+    }
+    return m;
+  }
+  Eigen::Vector3d vector3(const std::string& key) const {
+    const cv::Mat m = matrix(key, 3, 1);
+    return Eigen::Vector3d(m.at<double>(0), m.at<double>(1), m.at<double>(2));
+  }
+  std::vector<Eigen::Vector3d> points(const std::string& key) const {
+    std::vector<Eigen::Vector3d> out;
+    if (!has(key)) return out;
+    const cv::Mat m = matrix(key, -1, 3);
+    for (int r = 0; r < m.rows; ++r) {
+      out.emplace_back(m.at<double>(r, 0), m.at<double>(r, 1), m.at<double>(r, 2));
+    }
+    return out;
+  }
+  const std::string& path() const { return path_; }
+
+ private:
+  std::string path_;
+  cv::FileStorage in_;
+};
+
+}  // namespace
+
+std::string utc_timestamp() {
+  const std::time_t now = std::time(nullptr);
+  std::tm tm{};
+  gmtime_r(&now, &tm);
+  char buffer[32];
+  std::strftime(buffer, sizeof buffer, "%Y-%m-%dT%H:%M:%SZ", &tm);
+  return buffer;
+}
+
+void write_camera_calibration(const std::string& path, const IntrinsicsResult& result,
+                              const std::string& board, const std::vector<std::string>& inputs) {
+  const CameraModel& cam = result.camera;
+  write_atomically(path, [&](cv::FileStorage& out) {
+    out << "calibration_date" << utc_timestamp();
+    out << "board" << board;
+    write_strings(out, "inputs", inputs);
+    out << "image_width" << cam.width;
+    out << "image_height" << cam.height;
+    out << "camera_matrix" << (cv::Mat_<double>(3, 3) << cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
+    cv::Mat dist(1, 5, CV_64F);
+    for (int k = 0; k < 5; ++k) dist.at<double>(k) = cam.distortion[size_t(k)];
+    out << "distortion_coefficients" << dist;
+    out << "distortion_model" << "plumb_bob";
+    out << "rms_reprojection_error_px" << result.rms_px;
+    out << "views_used" << result.views_used;
+    out << "points_used" << result.points_used;
+    out << "corner_coverage" << result.coverage;
+    out << "tilt_spread_deg" << result.tilt_spread_deg;
+    out << "parameter_stddev" << "{";
+    for (size_t p = 0; p < 9; ++p) out << intrinsic_parameter_names()[p] << result.stddev[p];
+    out << "}";
+    out << "views" << "[";
+    for (const auto& v : result.views) {
+      out << "{" << "name" << v.name << "points" << v.points << "rms_px" << v.rms_px << "tilt_deg"
+          << v.tilt_deg << "rejected" << int(v.rejected) << "}";
+    }
+    out << "]";
+  });
+}
+
+void write_needle_calibration(const std::string& path, const NeedleCalibration& n) {
+  write_atomically(path, [&](cv::FileStorage& out) {
+    out << "calibration_date" << n.date;
+    out << "board" << n.board;
+    write_strings(out, "inputs", n.inputs);
+    out << "tip_needle" << to_mat(n.tip_needle);
+    out << "tip_stddev_mm" << to_mat(n.tip_stddev_mm);
+    out << "pivot_rms_mm" << n.pivot_rms_mm;
+    out << "poses_used" << n.poses_used;
+    out << "poses_total" << n.poses_total;
+    out << "rotation_spread_deg" << n.rotation_spread_deg;
+    if (n.axis_needle) {
+      out << "axis_needle" << to_mat(*n.axis_needle);
+      out << "axis_rms_deg" << n.axis_rms_deg;
+      out << "tip_to_axis_mm" << n.tip_to_axis_mm;
+    }
+  });
+}
+
+NeedleCalibration read_needle_calibration(const std::string& path) {
+  const Reader in(path);
+  NeedleCalibration n;
+  n.date = in.text("calibration_date");
+  n.board = in.text("board");
+  n.inputs = in.strings("inputs");
+  n.tip_needle = in.vector3("tip_needle");
+  if (in.has("tip_stddev_mm")) n.tip_stddev_mm = in.vector3("tip_stddev_mm");
+  n.pivot_rms_mm = in.has("pivot_rms_mm") ? in.number("pivot_rms_mm") : 0.0;
+  n.poses_used = in.has("poses_used") ? int(in.number("poses_used")) : 0;
+  n.poses_total = in.has("poses_total") ? int(in.number("poses_total")) : 0;
+  n.rotation_spread_deg = in.has("rotation_spread_deg") ? in.number("rotation_spread_deg") : 0.0;
+  if (in.has("axis_needle")) {
+    const Eigen::Vector3d a = in.vector3("axis_needle");
+    if (std::abs(a.norm() - 1.0) > 1e-3) {
+      throw Error(path + ": field 'axis_needle' must be a unit vector (length " +
+                  std::to_string(a.norm()) + ")");
+    }
+    n.axis_needle = a.normalized();
+    n.axis_rms_deg = in.has("axis_rms_deg") ? in.number("axis_rms_deg") : 0.0;
+    n.tip_to_axis_mm = in.has("tip_to_axis_mm") ? in.number("tip_to_axis_mm") : 0.0;
+  }
+  return n;
+}
+
+void write_registration(const std::string& path, const RegistrationRecord& r) {
+  write_atomically(path, [&](cv::FileStorage& out) {
+    out << "registration_date" << r.date;
+    out << "board" << r.board;
+    write_strings(out, "inputs", r.inputs);
+    out << "T_ct_patient" << to_mat(r.T_ct_patient);
+    out << "coordinate_system" << "LPS";
+    out << "fiducials_in_board" << r.fiducials_in_board;
+    out << "fiducials_in_ct" << r.fiducials_in_ct;
+    out << "fiducials_paired" << int(r.fre_mm.size());
+    out << "board_fiducials" << points_mat(r.board_fiducials);
+    out << "ct_fiducials" << points_mat(r.ct_fiducials);
+    out << "fre_mm" << "[";
+    for (double f : r.fre_mm) out << f;
+    out << "]";
+    out << "fre_rms_mm" << r.fre_rms_mm;
+    out << "fle_estimate_mm" << r.fle_mm;
+    if (r.target_ct) {
+      out << "tre_target_ct" << to_mat(*r.target_ct);
+      out << "expected_tre_mm" << r.expected_tre_mm;
+    }
+  });
+}
+
+RegistrationRecord read_registration(const std::string& path) {
+  const Reader in(path);
+  RegistrationRecord r;
+  r.date = in.text("registration_date");
+  r.board = in.text("board");
+  r.inputs = in.strings("inputs");
+  const std::string cs = in.text("coordinate_system");
+  if (!cs.empty() && cs != "LPS") {
+    throw Error(path + ": field 'coordinate_system' is \"" + cs + "\" (expected \"LPS\")");
+  }
+  const cv::Mat T = in.matrix("T_ct_patient", 4, 4);
+  Eigen::Matrix4d M;
+  for (int a = 0; a < 4; ++a) {
+    for (int b = 0; b < 4; ++b) M(a, b) = T.at<double>(a, b);
+  }
+  const Eigen::Matrix3d R = M.topLeftCorner<3, 3>();
+  if ((R.transpose() * R - Eigen::Matrix3d::Identity()).norm() > 1e-6 || R.determinant() < 0 ||
+      (M.row(3) - Eigen::RowVector4d(0, 0, 0, 1)).norm() > 1e-9) {
+    throw Error(path + ": field 'T_ct_patient' is not a rigid transform (expected a rotation and "
+                       "a translation, last row 0 0 0 1)");
+  }
+  r.T_ct_patient.matrix() = M;
+  r.board_fiducials = in.points("board_fiducials");
+  r.ct_fiducials = in.points("ct_fiducials");
+  const cv::FileNode fre = in.node("fre_mm", false);
+  if (fre.isSeq()) {
+    for (const auto& f : fre) r.fre_mm.push_back(double(f));
+  }
+  r.fre_rms_mm = in.has("fre_rms_mm") ? in.number("fre_rms_mm") : 0.0;
+  r.fle_mm = in.has("fle_estimate_mm") ? in.number("fle_estimate_mm") : 0.0;
+  r.fiducials_in_board = in.has("fiducials_in_board") ? int(in.number("fiducials_in_board")) : 0;
+  r.fiducials_in_ct = in.has("fiducials_in_ct") ? int(in.number("fiducials_in_ct")) : 0;
+  if (in.has("tre_target_ct")) {
+    r.target_ct = in.vector3("tre_target_ct");
+    r.expected_tre_mm = in.has("expected_tre_mm") ? in.number("expected_tre_mm") : 0.0;
+  }
+  return r;
+}
+
+}  // namespace crepuscular::calibration
