@@ -1,1 +1,290 @@
-// Being built.
+// Frame source URIs, and the replay of recording folders.
+#include "tracking/frame_source.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <cctype>
+#include <chrono>
+#include <filesystem>
+#include <thread>
+
+#include "kernels/error.hpp"
+#include "recordings/recording.hpp"
+#include "tracking/synthetic.hpp"
+#include "tracking/v4l2_source.hpp"
+
+namespace crepuscular::tracking {
+
+namespace {
+
+bool flag_option(const std::string& uri, const std::string& key, const std::string& value) {
+  if (value == "1" || value == "true" || value == "yes") return true;
+  if (value == "0" || value == "false" || value == "no") return false;
+  throw Error(uri + ": option " + key + "=" + value + " is invalid, expected 0 or 1");
+}
+
+Eigen::Isometry3d pose_of(const recordings::PoseRow& r) {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = Eigen::Quaterniond(r.q[0], r.q[1], r.q[2], r.q[3]).normalized().toRotationMatrix();
+  T.translation() = Eigen::Vector3d(r.t[0], r.t[1], r.t[2]);
+  return T;
+}
+
+class RecordingSource : public FrameSource {
+ public:
+  RecordingSource(const std::string& dir, bool realtime, bool loop)
+      : reader_(dir), realtime_(realtime), loop_(loop) {
+    for (const std::string& p : reader_.problems()) spdlog::warn("recording: {}", p);
+    if (!reader_.camera_path().empty()) {
+      try {
+        camera_ = calibration::CameraModel::read_yaml(reader_.camera_path());
+      } catch (const Error& e) {
+        spdlog::warn("recording: {}", e.what());
+      }
+    }
+    const auto& e = reader_.entries();
+    if (e.size() >= 2) {
+      // One loop lasts the recording plus one mean frame interval.
+      const int64_t span = e.back().timestamp_ns - e.front().timestamp_ns;
+      loop_ns_ = span + span / int64_t(e.size() - 1);
+      loop_frames_ = e.back().frame - e.front().frame + 1;
+    } else if (e.size() == 1) {
+      loop_ns_ = 33333333;
+      loop_frames_ = 1;
+    }
+    spdlog::info("recording: {} frames in {}{}{}", e.size(), dir, realtime_ ? ", recorded timing" : "",
+                 loop_ ? ", looping" : "");
+  }
+
+  std::optional<Frame> next() override {
+    const auto& entries = reader_.entries();
+    if (entries.empty()) return std::nullopt;
+    if (pos_ >= entries.size()) {
+      if (!loop_) return std::nullopt;
+      pos_ = 0;
+      ++loops_;
+    }
+    const recordings::RecordingReader::Entry& e = entries[pos_];
+    Frame f;
+    f.index = e.frame + loops_ * loop_frames_;
+    f.timestamp_ns = e.timestamp_ns + loops_ * loop_ns_;
+    if (realtime_) {
+      const auto now = std::chrono::steady_clock::now();
+      if (!started_) {
+        started_ = true;
+        wall_start_ = now;
+        first_ns_ = f.timestamp_ns;
+      }
+      std::this_thread::sleep_until(wall_start_ + std::chrono::nanoseconds(f.timestamp_ns - first_ns_));
+    }
+    recordings::RecordingReader::Loaded loaded = reader_.load(pos_);
+    f.image = std::move(loaded.image);
+    f.problem = std::move(loaded.problem);
+    f.encoded = std::move(loaded.bytes);
+    const std::string ext = std::filesystem::path(e.file).extension().string();
+    f.encoded_format = ext.empty() ? std::string() : ext.substr(1);
+    if (f.encoded_format == "jpeg") f.encoded_format = "jpg";
+    for (const recordings::PoseRow& r : reader_.ground_truth(e.frame)) {
+      f.truth.push_back({r.board, pose_of(r)});
+    }
+    ++pos_;
+    return f;
+  }
+
+  std::string describe() const override { return "recording:" + reader_.dir(); }
+  std::optional<calibration::CameraModel> camera() const override { return camera_; }
+
+ private:
+  recordings::RecordingReader reader_;
+  bool realtime_;
+  bool loop_;
+  std::optional<calibration::CameraModel> camera_;
+  size_t pos_ = 0;
+  int64_t loops_ = 0;
+  int64_t loop_ns_ = 0;
+  int64_t loop_frames_ = 0;
+  bool started_ = false;
+  std::chrono::steady_clock::time_point wall_start_;
+  int64_t first_ns_ = 0;
+};
+
+}  // namespace
+
+SourceUri parse_source_uri(const std::string& uri) {
+  const size_t colon = uri.find(':');
+  if (colon == std::string::npos || colon == 0) {
+    throw Error("source '" + uri +
+                "': expected KIND:WHERE, e.g. v4l2:/dev/video0, recording:DIR or "
+                "synthetic:SCENE.json");
+  }
+  SourceUri u;
+  u.scheme = uri.substr(0, colon);
+  for (char c : u.scheme) {
+    if (!std::isalnum(static_cast<unsigned char>(c))) {
+      throw Error("source '" + uri + "': kind '" + u.scheme + "' is not a word");
+    }
+  }
+  const std::string rest = uri.substr(colon + 1);
+  const size_t q = rest.find('?');
+  u.path = rest.substr(0, q);
+  if (u.path.empty()) throw Error("source '" + uri + "': nothing after '" + u.scheme + ":'");
+  if (q != std::string::npos) {
+    const std::string query = rest.substr(q + 1);
+    size_t start = 0;
+    while (start <= query.size()) {
+      const size_t amp = std::min(query.find('&', start), query.size());
+      const std::string item = query.substr(start, amp - start);
+      const size_t eq = item.find('=');
+      if (item.empty() || eq == std::string::npos || eq == 0) {
+        throw Error("source '" + uri + "': option '" + item + "' is malformed, expected key=value");
+      }
+      u.options.emplace_back(item.substr(0, eq), item.substr(eq + 1));
+      start = amp + 1;
+    }
+  }
+  return u;
+}
+
+std::unique_ptr<FrameSource> open_recording_source(const std::string& dir, bool realtime,
+                                                   bool loop) {
+  return std::make_unique<RecordingSource>(dir, realtime, loop);
+}
+
+std::unique_ptr<FrameSource> open_frame_source(const std::string& uri) {
+  const SourceUri u = parse_source_uri(uri);
+  if (u.scheme == "recording") {
+    bool realtime = false, loop = false;
+    for (const auto& [key, value] : u.options) {
+      if (key == "realtime") {
+        realtime = flag_option(uri, key, value);
+      } else if (key == "loop") {
+        loop = flag_option(uri, key, value);
+      } else {
+        throw Error(uri + ": unknown option '" + key + "', expected realtime or loop");
+      }
+    }
+    return open_recording_source(u.path, realtime, loop);
+  }
+  if (u.scheme == "synthetic") {
+    if (!u.options.empty()) {
+      throw Error(uri + ": synthetic sources take no options (put them in the scene file)");
+    }
+    return open_synthetic_source(u.path);
+  }
+  if (u.scheme == "v4l2") {
+    return open_v4l2_source(u.path, parse_v4l2_options(uri, u.options));
+  }
+  throw Error("source '" + uri + "': unknown kind '" + u.scheme +
+              "', expected v4l2:, recording: or synthetic:");
+}
+
+RecordSummary record_to_folder(FrameSource& source, const std::string& out_dir,
+                               const RecordOptions& options) {
+  namespace fs = std::filesystem;
+  std::string final_dir = out_dir;
+  while (final_dir.size() > 1 && final_dir.back() == '/') final_dir.pop_back();
+  const std::string partial = final_dir + ".partial";
+  if (fs::exists(final_dir)) {
+    throw Error(final_dir + ": exists; choose another --out or remove it first");
+  }
+  if (fs::exists(partial)) {
+    throw Error(partial + ": exists (an interrupted recording, replayable as recording:" + partial +
+                "); move or remove it first");
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  std::optional<Frame> frame = source.next();
+  recordings::SessionInfo session;
+  session.source = source.describe();
+  session.plan = options.plan;
+  if (!options.boards_json.empty()) {
+    try {
+      session.boards = nlohmann::json::parse(options.boards_json);
+    } catch (const nlohmann::json::exception& e) {
+      throw Error(std::string("boards for the recording are not valid JSON (") + e.what() + ")");
+    }
+  }
+  const bool with_truth = frame && !frame->truth.empty();
+  recordings::RecordingWriter writer(partial, session, options.image_format, options.jpeg_quality,
+                                     with_truth);
+  if (const std::optional<calibration::CameraModel> camera = source.camera()) {
+    camera->write_yaml((fs::path(partial) / "camera.yaml").string());
+  }
+  spdlog::info("record: {} -> {} (a recording in progress is {}: it replays as it is)",
+               source.describe(), final_dir, partial);
+  RecordSummary summary;
+  summary.path = final_dir;
+  int64_t first_ns = 0;
+  bool have_first = false;
+  int64_t last_index = -1;
+  auto last_log = t0;
+  for (; frame; frame = source.next()) {
+    if (options.stop && options.stop->load()) {
+      spdlog::info("record: stopped");
+      break;
+    }
+    if (!have_first) {
+      first_ns = frame->timestamp_ns;
+      have_first = true;
+    }
+    if (options.max_seconds >= 0 &&
+        double(frame->timestamp_ns - first_ns) * 1e-9 >= options.max_seconds) {
+      break;
+    }
+    if (!frame->note.empty()) spdlog::info("record: frame {}: {}", frame->index, frame->note);
+    if (!frame->problem.empty()) {
+      ++summary.problems;
+      spdlog::warn("record: frame {}: {}", frame->index, frame->problem);
+    }
+    if (frame->index <= last_index) {
+      spdlog::warn("record: frame {} does not follow frame {}; skipped", frame->index, last_index);
+      ++summary.skipped;
+      continue;
+    }
+    std::vector<recordings::PoseRow> truth;
+    for (const TruePose& p : frame->truth) {
+      recordings::PoseRow r;
+      r.board = p.board;
+      r.state = "tracked";
+      const Eigen::Quaterniond q(p.T_cam_board.linear());
+      r.q[0] = q.w();
+      r.q[1] = q.x();
+      r.q[2] = q.y();
+      r.q[3] = q.z();
+      for (int k = 0; k < 3; ++k) r.t[k] = p.T_cam_board.translation()[k];
+      truth.push_back(r);
+    }
+    const bool passthrough = !frame->encoded.empty() && frame->encoded_format == "jpg" &&
+                             options.image_format == "jpg";
+    if (passthrough) {
+      writer.add_encoded(frame->index, frame->timestamp_ns, frame->encoded, "jpg", truth);
+    } else if (!frame->image.empty()) {
+      writer.add_frame(frame->index, frame->timestamp_ns, frame->image, truth);
+    } else {
+      ++summary.skipped;
+      continue;
+    }
+    last_index = frame->index;
+    ++summary.frames;
+    summary.truth_rows += int64_t(truth.size());
+    if (options.max_frames >= 0 && summary.frames >= options.max_frames) break;
+    const auto now = std::chrono::steady_clock::now();
+    if (now - last_log > std::chrono::seconds(1)) {
+      last_log = now;
+      const double s = std::chrono::duration<double>(now - t0).count();
+      spdlog::info("record: {} frames in {:.1f} s ({:.1f} fps)", summary.frames, s,
+                   double(summary.frames) / std::max(s, 1e-9));
+    }
+  }
+  writer.finish();
+  std::error_code ec;
+  fs::rename(partial, final_dir, ec);
+  if (ec) {
+    throw Error(partial + ": cannot rename to " + final_dir + " (" + ec.message() +
+                "); the recording is complete under the first name");
+  }
+  summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return summary;
+}
+
+}  // namespace crepuscular::tracking

@@ -1,7 +1,9 @@
 // Frame sources: a V4L2 camera, a recording replay, or synthetic frames with ground truth.
 #pragma once
 
+#include <atomic>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -64,5 +66,35 @@ SourceUri parse_source_uri(const std::string& uri);
 // recording has it, comes with every frame.
 std::unique_ptr<FrameSource> open_recording_source(const std::string& dir, bool realtime = false,
                                                    bool loop = false);
+
+// Recording a source into a recording folder (`crepuscular record`, `crepuscular synth`).
+struct RecordOptions {
+  int64_t max_frames = -1;      // stop after this many frames (-1: until the source ends)
+  double max_seconds = -1;      // stop after this much capture time (-1: no limit)
+  std::string image_format = "jpg";  // jpg or png; frames the source delivers as JPEG bytes
+                                     // (MJPEG cameras, recordings, corrupt frames) are stored as
+                                     // received when the format is jpg
+  int jpeg_quality = 95;
+  std::string boards_json;      // boards.json text to store with the recording ("" = none)
+  std::string plan;             // plan folder this session belongs to ("" = none)
+  const std::atomic<bool>* stop = nullptr;  // set (e.g. by Ctrl-C) to end the recording cleanly
+};
+
+struct RecordSummary {
+  std::string path;             // the final folder
+  int64_t frames = 0;           // frames written
+  int64_t skipped = 0;          // frames without image data (camera lost, missing file)
+  int64_t problems = 0;         // frames written or skipped that came with a problem
+  int64_t truth_rows = 0;       // ground-truth rows written
+  double seconds = 0;           // wall time
+};
+
+// Records `source` into out_dir. The recording is written frame by frame into out_dir + ".partial"
+// (replayable at any moment, also after a crash or kill) and renamed to out_dir when it ends.
+// Throws Error when out_dir or out_dir.partial already exist, or on a write failure. Ground truth
+// (ground_truth.csv) is written when the source's frames carry it; camera.yaml when the source
+// knows its camera. Logs progress about once a second.
+RecordSummary record_to_folder(FrameSource& source, const std::string& out_dir,
+                               const RecordOptions& options);
 
 }  // namespace crepuscular::tracking

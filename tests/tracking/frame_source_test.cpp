@@ -1,0 +1,224 @@
+// Tests of frame sources (tracking/frame_source.hpp): source URIs and their errors, recording
+// replay (as fast as possible, recorded timing, looping, ground truth, corrupt and missing frames),
+// and recording a synthetic source into a folder that replays with the same truth.
+#include "tracking/frame_source.hpp"
+
+#include <gtest/gtest.h>
+
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include <opencv2/imgproc.hpp>
+
+#include "kernels/error.hpp"
+#include "recordings/recording.hpp"
+#include "tracking/synthetic.hpp"
+
+namespace crepuscular::tracking {
+namespace {
+
+namespace fs = std::filesystem;
+
+template <typename F>
+void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
+  try {
+    f();
+    ADD_FAILURE() << "expected crepuscular::Error";
+  } catch (const Error& e) {
+    for (const std::string& part : parts) {
+      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
+          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
+    }
+  }
+}
+
+fs::path temp_dir(const std::string& name) {
+  const fs::path dir = fs::temp_directory_path() / ("crepuscular_frame_source_test_" + name);
+  fs::remove_all(dir);
+  fs::remove_all(dir.string() + ".partial");
+  return dir;
+}
+
+TEST(FrameSource, UrisSplitIntoKindPathAndOptions) {
+  const SourceUri u = parse_source_uri("v4l2:/dev/video0?width=1280&height=720&fps=60");
+  EXPECT_EQ(u.scheme, "v4l2");
+  EXPECT_EQ(u.path, "/dev/video0");
+  ASSERT_EQ(u.options.size(), 3u);
+  EXPECT_EQ(u.options[2].first, "fps");
+  EXPECT_EQ(u.options[2].second, "60");
+  EXPECT_TRUE(parse_source_uri("recording:some/dir").options.empty());
+  expect_error_containing([] { parse_source_uri("/dev/video0"); }, {"/dev/video0", "KIND:WHERE"});
+  expect_error_containing([] { parse_source_uri("recording:dir?loop"); }, {"'loop'", "key=value"});
+  expect_error_containing([] { parse_source_uri("recording:"); }, {"nothing after"});
+}
+
+TEST(FrameSource, BadSourcesAreClearErrors) {
+  expect_error_containing([] { open_frame_source("camera:/dev/video0"); },
+                          {"unknown kind 'camera'", "v4l2:"});
+  expect_error_containing([] { open_frame_source("recording:/nonexistent/rec"); },
+                          {"/nonexistent/rec", "not found"});
+  const fs::path dir = temp_dir("opts");
+  fs::create_directories(dir);
+  expect_error_containing([&] { open_frame_source("recording:" + dir.string() + "?speed=2"); },
+                          {"unknown option 'speed'"});
+  expect_error_containing([&] { open_frame_source("recording:" + dir.string() + "?loop=maybe"); },
+                          {"loop=maybe"});
+  expect_error_containing([] { open_frame_source("synthetic:builtin?fps=3"); }, {"no options"});
+  expect_error_containing([] { open_frame_source("synthetic:/nonexistent/scene.json"); },
+                          {"/nonexistent/scene.json"});
+  expect_error_containing([] { open_frame_source("v4l2:/dev/video_missing?width=640"); },
+                          {"/dev/video_missing", "cannot open"});
+  expect_error_containing([] { open_frame_source("v4l2:/dev/video0?width=-1"); }, {"width=-1"});
+}
+
+// A small recording: 4 frames 50 ms apart with a pose each, camera.yaml, frame 2 corrupt.
+fs::path write_recording(const std::string& name) {
+  const fs::path dir = temp_dir(name);
+  {
+    recordings::RecordingWriter w(dir.string(), recordings::SessionInfo{}, "png", 95, true);
+    for (int64_t f = 0; f < 4; ++f) {
+      cv::Mat img(60, 80, CV_8UC3, cv::Scalar(double(40 * f), 100, 200));
+      recordings::PoseRow r;
+      r.board = "patient";
+      r.t[2] = 400.0 + double(f);
+      r.q[0] = std::cos(0.1 * double(f));
+      r.q[3] = std::sin(0.1 * double(f));
+      if (f == 2) {
+        std::vector<uint8_t> bad = {0xFF, 0xD8, 0xFF, 0xE0, 1, 2, 3};
+        w.add_encoded(f, 1000 + f * 50000000, bad, "jpg", {r});
+      } else {
+        w.add_frame(f, 1000 + f * 50000000, img, {r});
+      }
+    }
+    w.finish();
+  }
+  SyntheticScene s;
+  s.camera.write_yaml((dir / "camera.yaml").string());
+  return dir;
+}
+
+TEST(FrameSource, RecordingReplaysFramesTruthAndProblems) {
+  const fs::path dir = write_recording("replay");
+  auto src = open_frame_source("recording:" + dir.string());
+  ASSERT_TRUE(src->camera().has_value());
+  EXPECT_EQ(src->camera()->width, 1280);
+  int n = 0;
+  while (auto f = src->next()) {
+    EXPECT_EQ(f->index, n);
+    EXPECT_EQ(f->timestamp_ns, 1000 + n * 50000000);
+    ASSERT_EQ(f->truth.size(), 1u);
+    EXPECT_EQ(f->truth[0].board, "patient");
+    EXPECT_NEAR(f->truth[0].T_cam_board.translation().z(), 400.0 + n, 1e-6);
+    EXPECT_NEAR(Eigen::AngleAxisd(f->truth[0].T_cam_board.linear()).angle(), 0.2 * n, 1e-9);
+    if (n == 2) {
+      EXPECT_TRUE(f->image.empty());
+      EXPECT_NE(f->problem.find("corrupt JPEG"), std::string::npos) << f->problem;
+    } else {
+      ASSERT_FALSE(f->image.empty()) << f->problem;
+      EXPECT_EQ(f->image.at<cv::Vec3b>(5, 5)[0], 40 * n);
+    }
+    ++n;
+  }
+  EXPECT_EQ(n, 4);
+}
+
+TEST(FrameSource, RecordingHonoursRecordedTimingAndLoops) {
+  const fs::path dir = write_recording("timing");
+  auto src = open_frame_source("recording:" + dir.string() + "?realtime=1&loop=1");
+  const auto t0 = std::chrono::steady_clock::now();
+  std::vector<Frame> frames;
+  for (int i = 0; i < 6; ++i) frames.push_back(*src->next());
+  const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  // Frames 0..3 then 0..1 of the second loop: 5 intervals of 50 ms.
+  EXPECT_GE(elapsed, 0.245);
+  EXPECT_LT(elapsed, 1.0);
+  EXPECT_EQ(frames[4].index, 4);
+  EXPECT_EQ(frames[5].index, 5);
+  EXPECT_EQ(frames[4].timestamp_ns, 1000 + 4 * 50000000);
+  EXPECT_NEAR(frames[5].truth[0].T_cam_board.translation().z(), 401.0, 1e-6);
+
+  auto fast = open_frame_source("recording:" + dir.string());
+  const auto t1 = std::chrono::steady_clock::now();
+  int n = 0;
+  while (fast->next()) ++n;
+  EXPECT_EQ(n, 4);
+  EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count(), 0.1);
+}
+
+TEST(FrameSource, SyntheticRecordingReplaysWithItsTruth) {
+  SyntheticScene s;
+  s.camera.width = 320;
+  s.camera.height = 240;
+  s.camera.fx = s.camera.fy = 300;
+  s.camera.cx = 159.5;
+  s.camera.cy = 119.5;
+  SceneBoard b;
+  b.board = make_grid_board("patient", 1, 2, 40, 10, 0);
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.translation() = Eigen::Vector3d(0, 0, 400);
+  b.keyframes = {{0.0, T}};
+  T.translation() = Eigen::Vector3d(20, -10, 450);
+  T.linear() = Eigen::AngleAxisd(0.3, Eigen::Vector3d::UnitY()).matrix();
+  b.keyframes.push_back({0.5, T});
+  s.boards = {b};
+  s.frame_count = 8;
+  s.fps = 10;
+  s.dropped_frames = {3};
+  s.corrupt_frames = {5};
+  auto src = make_synthetic_source(s, "synthetic:test");
+  const fs::path out = temp_dir("synth");
+  RecordOptions o;
+  o.boards_json = boards_json_text({b.board});
+  const RecordSummary sum = record_to_folder(*src, out.string(), o);
+  EXPECT_EQ(sum.frames, 7);  // 8 minus the dropped one; the corrupt one is kept as it came
+  EXPECT_EQ(sum.problems, 1);
+  EXPECT_EQ(sum.truth_rows, 7);
+  EXPECT_TRUE(fs::exists(out / "boards.json"));
+  EXPECT_TRUE(fs::exists(out / "camera.yaml"));
+  EXPECT_TRUE(fs::exists(out / "ground_truth.csv"));
+  EXPECT_FALSE(fs::exists(out.string() + ".partial"));
+  EXPECT_EQ(read_boards((out / "boards.json").string())[0].tags.size(), 2u);
+
+  auto replay = open_frame_source("recording:" + out.string());
+  SyntheticRenderer renderer(s);
+  std::vector<int64_t> indices;
+  while (auto f = replay->next()) {
+    indices.push_back(f->index);
+    ASSERT_EQ(f->truth.size(), 1u);
+    const Eigen::Isometry3d expected = pose_at(s.boards[0], f->index / 10.0);
+    EXPECT_LT((f->truth[0].T_cam_board.translation() - expected.translation()).norm(), 1e-5);
+    EXPECT_TRUE(f->truth[0].T_cam_board.linear().isApprox(expected.linear(), 1e-9));
+    if (f->index == 5) {
+      EXPECT_NE(f->problem.find("corrupt JPEG"), std::string::npos) << f->problem;
+    } else {
+      ASSERT_FALSE(f->image.empty()) << f->problem;
+      // JPEG at quality 95 of the same rendering.
+      EXPECT_GT(cv::PSNR(f->image, renderer.render(f->index)), 30.0) << f->index;
+    }
+  }
+  EXPECT_EQ(indices, (std::vector<int64_t>{0, 1, 2, 4, 5, 6, 7}));
+  // A second recording to the same place is refused.
+  auto again = make_synthetic_source(s, "synthetic:test");
+  expect_error_containing([&] { record_to_folder(*again, out.string(), o); }, {"exists"});
+}
+
+TEST(FrameSource, RecordingStopsAtFrameAndTimeLimits) {
+  const fs::path dir = write_recording("limits_src");
+  auto src = open_frame_source("recording:" + dir.string() + "?loop=1");
+  RecordOptions o;
+  o.max_frames = 6;
+  const fs::path out = temp_dir("limits_frames");
+  // Six frames over a loop and a half, the corrupt JPEG stored as received.
+  EXPECT_EQ(record_to_folder(*src, out.string(), o).frames, 6);
+  auto src2 = open_frame_source("recording:" + dir.string() + "?loop=1");
+  RecordOptions t;
+  t.max_seconds = 0.12;  // frames at 0, 50, 100 ms
+  const fs::path out2 = temp_dir("limits_seconds");
+  const RecordSummary s2 = record_to_folder(*src2, out2.string(), t);
+  EXPECT_EQ(s2.frames + s2.skipped, 3);
+}
+
+}  // namespace
+}  // namespace crepuscular::tracking
