@@ -7,11 +7,13 @@
 
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <random>
 
 #include "kernels/error.hpp"
 #include "tests/tracking/tag_scene.hpp"
 #include "tracking/poses_csv.hpp"
+#include "tracking/synthetic.hpp"
 
 namespace crepuscular::tracking {
 namespace {
@@ -324,6 +326,98 @@ TEST(Tracker, LossIsReportedAndStalePosesAreLost) {
   std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   EXPECT_NE(text.find("\n8,133333336,patient,lost,,,,,,,,\n"), std::string::npos) << text;
   std::filesystem::remove(path);
+}
+
+// The same requirements on frames of the other renderer (tracking/synthetic.hpp, ray traced through
+// the exact inverse distortion): the built-in guidance scene with noise, and a second pass with
+// occlusion, a corrupt JPEG and dropped frames delivered by its frame source.
+TEST(Tracker, BuiltinSyntheticSceneMatchesItsGroundTruth) {
+  SyntheticScene scene = builtin_scene();
+  scene.noise_sigma = 2.0;
+  scene.frame_count = 24;
+  scene.seed = 5;
+  std::vector<Board> boards;
+  for (const SceneBoard& b : scene.boards) boards.push_back(b.board);
+  ASSERT_EQ(boards.size(), 2u);
+  Tracker tracker(scene.camera, boards);
+  auto source = make_synthetic_source(scene, "builtin, noise 2");
+  std::map<std::string, std::vector<double>> et, er;
+  int frames = 0;
+  while (auto f = source->next()) {
+    const TrackResult res = tracker.process(*f);
+    ++frames;
+    for (size_t b = 0; b < res.boards.size(); ++b) {
+      ASSERT_TRUE(res.boards[b].measured) << "frame " << f->index << " " << res.boards[b].board;
+      for (const TruePose& t : f->truth) {
+        if (t.board != res.boards[b].board) continue;
+        et[t.board].push_back(distance_mm(res.boards[b].T_cam_board, t.T_cam_board));
+        er[t.board].push_back(angle_deg(res.boards[b].T_cam_board, t.T_cam_board));
+      }
+    }
+  }
+  EXPECT_EQ(frames, 24);
+  std::printf("builtin scene: patient median %.3f mm %.3f deg; needle median %.3f mm %.3f deg\n",
+              median(et["patient"]), median(er["patient"]), median(et["needle"]),
+              median(er["needle"]));
+  ASSERT_EQ(et["patient"].size(), 24u);
+  ASSERT_EQ(et["needle"].size(), 24u);
+  EXPECT_LE(median(et["patient"]), 0.5);
+  EXPECT_LE(median(er["patient"]), 0.2);
+  EXPECT_LE(median(et["needle"]), 1.0);
+}
+
+TEST(Tracker, SyntheticSourceWithCorruptDroppedAndOccludedFramesKeepsGoing) {
+  SyntheticScene scene = builtin_scene();
+  scene.noise_sigma = 1.0;
+  scene.frame_count = 20;  // 30 fps: 33.3 ms per frame
+  scene.corrupt_frames = {4};
+  scene.dropped_frames = {8, 9, 10, 11};
+  std::vector<Board> boards;
+  for (const SceneBoard& b : scene.boards) boards.push_back(b.board);
+  // Hide the needle board in frames 14 to 19 with a grey box over its tags.
+  {
+    SyntheticRenderer probe(scene);
+    std::vector<TruePose> truth;
+    probe.render(14, &truth);
+    const auto& needle = boards[1];
+    const TruePose& tn = truth[1];
+    std::vector<cv::Point2f> pts;
+    for (const BoardTag& t : needle.tags) {
+      for (const Eigen::Vector3d& c : t.corners) {
+        const Eigen::Vector3d p = tn.T_cam_board * c;
+        double uv[2];
+        project_with_distortion(scene.camera, p.data(), uv);
+        pts.emplace_back(float(uv[0]), float(uv[1]));
+      }
+    }
+    cv::Rect box = cv::boundingRect(pts);
+    OcclusionBox occ;
+    occ.rect_px = cv::Rect2d(box.x - 60, box.y - 60, box.width + 120, box.height + 120);
+    occ.first_frame = 14;
+    occ.last_frame = 19;
+    scene.occlusions = {occ};
+  }
+  Tracker tracker(scene.camera, boards);
+  auto source = make_synthetic_source(scene, "builtin with trouble");
+  std::map<int64_t, TrackResult> by_frame;
+  while (auto f = source->next()) by_frame[f->index] = tracker.process(*f);
+  EXPECT_EQ(by_frame.size(), 16u);  // 20 less 4 dropped
+  // The corrupt frame: a problem, no measurement, poses held (33 ms old).
+  EXPECT_FALSE(by_frame[4].problem.empty());
+  EXPECT_FALSE(by_frame[4].boards[0].measured);
+  EXPECT_TRUE(by_frame[4].boards[0].tracked);
+  // After the dropped frames the gap is reported and the boards are measured again.
+  EXPECT_EQ(by_frame[12].dropped, 4);
+  EXPECT_TRUE(by_frame[12].boards[0].measured && by_frame[12].boards[1].measured);
+  // The occluded needle: held for 100 ms (frames 14-16: 33, 67, 100 ms), then lost; the patient
+  // board is tracked throughout.
+  for (int64_t i = 14; i < 20; ++i) {
+    EXPECT_TRUE(by_frame[i].boards[0].measured) << "frame " << i;
+    EXPECT_FALSE(by_frame[i].boards[1].measured) << "frame " << i;
+    EXPECT_EQ(by_frame[i].boards[1].tracked, by_frame[i].boards[1].age_ms <= 100.0)
+        << "frame " << i;
+  }
+  EXPECT_FALSE(by_frame[19].boards[1].tracked);
 }
 
 TEST(PosesCsv, MalformedRowsAreErrorsNamingTheLine) {
