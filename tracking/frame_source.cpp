@@ -207,7 +207,8 @@ RecordSummary record_to_folder(FrameSource& source, const std::string& out_dir,
   const bool with_truth = frame && !frame->truth.empty();
   recordings::RecordingWriter writer(partial, session, options.image_format, options.jpeg_quality,
                                      with_truth);
-  if (const std::optional<calibration::CameraModel> camera = source.camera()) {
+  if (const std::optional<calibration::CameraModel> camera =
+          options.camera ? options.camera : source.camera()) {
     camera->write_yaml((fs::path(partial) / "camera.yaml").string());
   }
   spdlog::info("record: {} -> {} (a recording in progress is {}: it replays as it is)",

@@ -77,6 +77,7 @@ struct RecordOptions {
   int jpeg_quality = 95;
   std::string boards_json;      // boards.json text to store with the recording ("" = none)
   std::string plan;             // plan folder this session belongs to ("" = none)
+  std::optional<calibration::CameraModel> camera;  // camera.yaml to store; default: the source's
   const std::atomic<bool>* stop = nullptr;  // set (e.g. by Ctrl-C) to end the recording cleanly
 };
 

@@ -6,9 +6,11 @@
 #include <gtest/gtest.h>
 
 #include <chrono>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <thread>
 
 #include <opencv2/imgproc.hpp>
 
@@ -218,6 +220,76 @@ TEST(FrameSource, RecordingStopsAtFrameAndTimeLimits) {
   const fs::path out2 = temp_dir("limits_seconds");
   const RecordSummary s2 = record_to_folder(*src2, out2.string(), t);
   EXPECT_EQ(s2.frames + s2.skipped, 3);
+}
+
+// The commands end to end: `synth` renders a scene file, `record` copies the result, and a
+// recorder killed mid-way (SIGKILL) leaves DIR.partial that replays.
+TEST(FrameSource, SynthAndRecordCommandsWriteReplayableRecordings) {
+  const fs::path dir = temp_dir("cli");
+  fs::create_directories(dir);
+  write_boards((dir / "boards.json").string(), {make_grid_board("patient", 1, 2, 40, 10, 0)});
+  std::ofstream(dir / "scene.json") << R"({"camera": {"width": 320, "height": 240, "fx": 300},
+    "boards": "boards.json", "frames": 6, "corrupt_frames": [2], "dropped_frames": [4],
+    "poses": {"patient": [{"t": 0, "translation_mm": [0, 0, 400]}]}})";
+  const std::string bin = CREPUSCULAR_BINARY;
+  const std::string rec = (dir / "rec").string();
+  ASSERT_EQ(std::system((bin + " synth --scene " + (dir / "scene.json").string() + " --out " + rec +
+                         " > " + (dir / "synth.log").string() + " 2>&1")
+                            .c_str()),
+            0);
+  recordings::RecordingReader r(rec);
+  EXPECT_EQ(r.entries().size(), 5u);
+  EXPECT_TRUE(r.has_ground_truth());
+  EXPECT_EQ(r.ground_truth(5).size(), 1u);
+  EXPECT_NE(r.load(2).problem.find("corrupt JPEG"), std::string::npos);
+  EXPECT_FALSE(r.camera_path().empty());
+  EXPECT_FALSE(r.boards_path().empty());
+
+  const std::string copy = (dir / "copy").string();
+  ASSERT_EQ(std::system((bin + " record --source recording:" + rec + " --out " + copy +
+                         " --frames 3 > /dev/null 2>&1")
+                            .c_str()),
+            0);
+  EXPECT_EQ(recordings::RecordingReader(copy).entries().size(), 3u);
+  // Refuses to overwrite; a bad source is an error, not a crash.
+  EXPECT_NE(std::system((bin + " record --source recording:" + rec + " --out " + copy +
+                         " > /dev/null 2>&1")
+                            .c_str()),
+            0);
+  EXPECT_NE(std::system((bin + " record --source nothing --out " + (dir / "x").string() +
+                         " > /dev/null 2>&1")
+                            .c_str()),
+            0);
+
+  // Killed while recording: DIR.partial holds every complete frame and replays.
+  const std::string live = (dir / "live").string();
+  const std::string pid_file = (dir / "pid").string();
+  ASSERT_EQ(std::system((bin + " record --source recording:" + rec + "?realtime=1\\&loop=1 --out " +
+                         live + " > /dev/null 2>&1 & echo $! > " + pid_file)
+                            .c_str()),
+            0);
+  const fs::path partial_csv = fs::path(live + ".partial") / "frames.csv";
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(20);
+  while (std::chrono::steady_clock::now() < deadline) {
+    if (fs::exists(partial_csv)) {
+      recordings::RecordingReader growing(live + ".partial");
+      if (growing.entries().size() >= 4) break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  ASSERT_EQ(std::system(("kill -9 $(cat " + pid_file + ")").c_str()), 0);
+  std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  EXPECT_FALSE(fs::exists(live));
+  auto replay = open_frame_source("recording:" + live + ".partial");
+  int frames = 0;
+  while (auto f = replay->next()) {
+    EXPECT_EQ(f->truth.size(), 1u);
+    if (f->index % 6 != 2) {  // frame 2 of each loop is corrupt on purpose
+      EXPECT_TRUE(f->problem.empty()) << f->problem;
+    }
+    ++frames;
+  }
+  EXPECT_GE(frames, 4);
 }
 
 }  // namespace
