@@ -26,7 +26,9 @@ void add_plan_command(CLI::App& app) {
       "Blocking comes from a label map and a vulnerability table (--labels with --vulnerability\n"
       "or --preset), a ready blocking volume (--blocking), or CT thresholds (--ct alone).\n"
       "Writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/path_safety_<value>.nii.gz (float32, LPS,\n"
-      "NaN outside the region of interest; open in 3D Slicer) and PLAN_DIR/plan.json.\n"
+      "NaN outside the region of interest; open in 3D Slicer), PLAN_DIR/area_safety.vtk (the\n"
+      "safe access regions around the tumor and their leeway, for the first value; a model in\n"
+      "3D Slicer or ParaView) and PLAN_DIR/plan.json.\n"
       "Example:\n"
       "  crepuscular phantom --out data && crepuscular plan --labels data/labels.nii.gz \\\n"
       "      --tumor data/tumor.nii.gz --preset phantom --out plan");
@@ -69,6 +71,22 @@ void add_plan_command(CLI::App& app) {
                   "recomputes 1000 random voxels exactly and reports the difference in plan.json")
       ->capture_default_str();
   cmd->add_option("--threads", req->path_safety.threads, "CPU threads (default: all cores)");
+  // Area safety (§3.3), after path safety, for the first computed value.
+  cmd->add_flag("!--no-area", req->area_safety.enabled,
+                "Skip the area safety step (by default it writes PLAN_DIR/area_safety.vtk: the "
+                "tumor's ellipsoid extruded along its normals until an unsafe point, with safe "
+                "regions and their leeway; see `crepuscular area --help`)");
+  cmd->add_option("--area-unsafe", req->area_safety.unsafe_class,
+                  "Area safety: the path safety class where the extrusion stops: dangerous, or "
+                  "medium (medium and dangerous)")
+      ->check(CLI::IsMember({"dangerous", "medium"}))
+      ->capture_default_str();
+  cmd->add_option("--area-threshold", req->area_safety.threshold,
+                  "Area safety: stop where the path safety value is past this number instead "
+                  "(svv: below it; isbv, ivbv, bvv: above it) (default: the class threshold)");
+  cmd->add_option("--area-max-distance", req->area_safety.max_distance_mm,
+                  "Area safety: maximum extrusion in mm (default: the region of interest "
+                  "radius R)");
   cmd->add_option("--out", req->out_dir, "Output plan folder (replaced only when complete)")
       ->required();
   cmd->callback([req, values, device, mode] {

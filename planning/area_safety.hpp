@@ -9,11 +9,11 @@
 #include <cstdint>
 #include <functional>
 #include <limits>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
 
-#include <nlohmann/json.hpp>
-
+#include "planning/path_safety.hpp"
 #include "planning/volume.hpp"
 
 namespace crepuscular::planning {
@@ -22,31 +22,32 @@ namespace crepuscular::planning {
 struct Ellipsoid {
   Eigen::Vector3d centre = Eigen::Vector3d::Zero();
   Eigen::Matrix3d axes = Eigen::Matrix3d::Identity();  // columns: unit main axes, largest first
-  Eigen::Vector3d radii = Eigen::Vector3d::Ones();      // mm, largest first
+  Eigen::Vector3d radii = Eigen::Vector3d::Ones();     // mm, largest first
 };
 
 // One connected safe region of the extruded surface.
 struct AreaRegion {
-  int id = 0;                                        // 0, 1, ... by decreasing size
-  double size_mm3 = 0;                               // mass by the divergence theorem
+  int id = 0;           // 0, 1, ... by decreasing size
+  double size_mm3 = 0;  // mass by the divergence theorem
   // LPS mm, centre of its extruded vertices (each weighted by its share of the ellipsoid's area,
   // so that the denser vertices near the poles of the spherical grid do not pull it).
   Eigen::Vector3d centre = Eigen::Vector3d::Zero();
   Eigen::Vector3d main_axis = Eigen::Vector3d::Zero();  // unit, from the tumor centre outward
-  double leeway = 0;                                 // size relative to the largest region, 0..1
+  double leeway = 0;                                    // size relative to the largest region, 0..1
   int vertex_count = 0;
 };
 
 struct AreaSafetyGeometry {
   Ellipsoid ellipsoid;
-  std::vector<Eigen::Vector3d> base;       // vertex on the ellipsoid (LPS mm)
-  std::vector<Eigen::Vector3d> normals;    // unit outward normal at the base vertex
-  std::vector<Eigen::Vector3d> vertices;   // extruded vertex (LPS mm)
+  std::vector<Eigen::Vector3d> base;          // vertex on the ellipsoid (LPS mm)
+  std::vector<Eigen::Vector3d> normals;       // unit outward normal at the base vertex
+  std::vector<Eigen::Vector3d> vertices;      // extruded vertex (LPS mm)
   std::vector<std::array<int, 3>> triangles;  // outward-facing, closed surface
-  std::vector<uint8_t> safe;               // 1 where the extrusion reached the maximum distance
-  std::vector<int> region;                 // region id per vertex, -1 where unsafe
-  std::vector<float> leeway;               // per vertex: its region's leeway, 0 where unsafe
-  std::vector<AreaRegion> regions;         // by decreasing size
+  std::vector<uint8_t> safe;                  // 1 where the extrusion reached the maximum distance
+                                              // (or the edge of the computed region, all safe)
+  std::vector<int> region;                    // region id per vertex, -1 where unsafe
+  std::vector<float> leeway;                  // per vertex: its region's leeway, 0 where unsafe
+  std::vector<AreaRegion> regions;            // by decreasing size
 
   // --- Added fields --------------------------------------------------------------------------
   std::vector<float> extrusion;  // per vertex: distance extruded along the normal, mm
@@ -111,11 +112,11 @@ SafetyTest path_safety_test(const Volume<float>& path_safety, bool higher_is_saf
 // --- The geometry -------------------------------------------------------------------------------
 
 struct AreaSafetyOptions {
-  double spacing_mm = 0;       // h: no edge longer than h after full extrusion; required > 0
-  double max_distance_mm = 0;  // extrusion limit; required > 0 (the plan uses R)
-  double step_mm = 0;          // sampling step along each normal; 0 or more than h/2: h/2
+  double spacing_mm = 0;           // h: no edge longer than h after full extrusion; required > 0
+  double max_distance_mm = 0;      // extrusion limit; required > 0 (the plan uses R)
+  double step_mm = 0;              // sampling step along each normal; 0 or more than h/2: h/2
   int64_t max_vertices = 4000000;  // refuse a finer mesh (memory, file size)
-  int threads = 0;             // 0: all cores
+  int threads = 0;                 // 0: all cores
 };
 
 // Tessellates (rings_for_edge_bound), extrudes every vertex along its normal in steps of at most
@@ -161,11 +162,17 @@ struct AreaSafetyPlanOptions {
   double max_distance_mm = 0;  // 0: the plan's region of interest radius R
 };
 
+// The plan's area safety step: for the first value computed in `result`, unsafe past the class
+// threshold of options.unsafe_class (default_classes of that volume) or options.threshold; maximum
+// distance R; edge bound h. Writes the mesh to `vtk_path` and returns plan.json's "area_safety".
+nlohmann::json plan_area_safety(const Volume<uint8_t>& tumor, const PathSafetyResult& result,
+                                const AreaSafetyPlanOptions& options, const std::string& vtk_path);
+
 // --- The `crepuscular area` job -----------------------------------------------------------------
 
 struct AreaRequest {
-  std::string tumor;          // tumor mask; --plan mode: default is the plan's tumor
-  bool preview = false;       // blocking threshold instead of path safety
+  std::string tumor;     // tumor mask; --plan mode: default is the plan's tumor
+  bool preview = false;  // blocking threshold instead of path safety
   // Preview: the blocking volume, from labels + table, or a ready blocking volume.
   std::string labels, vulnerability, preset, blocking;
   double margin_fwhm_mm = 5.0;
@@ -176,8 +183,8 @@ struct AreaRequest {
   // (NaN: from the plan's classes and unsafe_class).
   double threshold = std::numeric_limits<double>::quiet_NaN();
   std::string unsafe_class = "dangerous";  // path safety: "dangerous" or "medium" (medium+)
-  double max_distance_mm = 0;  // 0: the plan's R (path safety) or 100 mm (preview)
-  double spacing_mm = 0;       // 0: the plan's h (path safety) or the smallest input spacing
+  double max_distance_mm = 0;              // 0: the plan's R (path safety) or 100 mm (preview)
+  double spacing_mm = 0;  // 0: the plan's h (path safety) or the smallest input spacing
   std::string out_dir;
 };
 

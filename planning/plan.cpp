@@ -248,6 +248,15 @@ nlohmann::json run_plan(const PlanRequest& req) {
                         {"voxels", n}};
   }
   timings["write_s"] = seconds_since(t);
+
+  // --- Area safety (§3.3): the first computed value ---------------------------------------------
+  nlohmann::json area_safety;
+  if (req.area_safety.enabled) {
+    const auto t_area = Clock::now();
+    area_safety = plan_area_safety(tumor, result, req.area_safety, out.file("area_safety.vtk"));
+    outputs["area_safety"] = "area_safety.vtk";
+    timings["area_safety_s"] = seconds_since(t_area);
+  }
   timings["total_s"] = seconds_since(t_start);
 
   plan["inputs"] = {{"labels", input_json(req.labels)},
@@ -298,6 +307,7 @@ nlohmann::json run_plan(const PlanRequest& req) {
   plan["rays"] = result.rays;
   plan["classes"] = classes;
   plan["statistics"] = statistics;
+  if (!area_safety.is_null()) plan["area_safety"] = area_safety;
   plan["outputs"] = outputs;
   plan["timings"] = timings;
   write_text_file(out.file("plan.json"), plan.dump(2) + "\n");

@@ -6,6 +6,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "planning/area_safety.hpp"
 #include "planning/blocking.hpp"
 #include "planning/path_safety.hpp"
 
@@ -21,12 +22,14 @@ struct PlanRequest {
   PathSafetyOptions path_safety;
   MarginOptions margin;
   CtThresholds ct_thresholds;
+  AreaSafetyPlanOptions area_safety;  // §3.3: area_safety.vtk for the first computed value
   std::string out_dir;
 };
 
 // Runs preprocessing and path safety and writes PLAN_DIR/blocking.nii.gz,
 // PLAN_DIR/path_safety_<value>.nii.gz (float32, NaN outside the region of interest) and
-// PLAN_DIR/plan.json. Returns the content of plan.json. Throws Error on bad input; then nothing is
+// PLAN_DIR/plan.json, and (area_safety.enabled) PLAN_DIR/area_safety.vtk with plan.json's
+// "area_safety" section. Returns the content of plan.json. Throws Error on bad input; then nothing is
 // left at out_dir (an earlier plan there stays untouched).
 nlohmann::json run_plan(const PlanRequest& request);
 
