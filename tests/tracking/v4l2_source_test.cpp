@@ -96,6 +96,37 @@ TEST(V4l2Source, MjpegBufferDecodesAndCorruptOneIsAProblem) {
   EXPECT_TRUE(mjpeg_to_bgr(garbage.data(), 0, &problem).empty());
 }
 
+// Many UVC cameras send MJPEG frames without Huffman tables (DHT segments), relying on the standard
+// tables of the JPEG specification; the decoder must supply them.
+TEST(V4l2Source, MjpegWithoutHuffmanTablesDecodes) {
+  cv::Mat img(48, 64, CV_8UC3, cv::Scalar(90, 20, 200));
+  cv::circle(img, cv::Point(30, 20), 12, cv::Scalar(250, 250, 250), cv::FILLED);
+  std::vector<uint8_t> jpeg;
+  cv::imencode(".jpg", img, jpeg);
+  std::vector<uint8_t> mjpeg(jpeg.begin(), jpeg.begin() + 2);  // SOI
+  int removed = 0;
+  for (size_t i = 2; i + 4 <= jpeg.size();) {
+    ASSERT_EQ(jpeg[i], 0xFF);
+    const uint8_t marker = jpeg[i + 1];
+    if (marker == 0xDA) {  // start of scan: the rest is entropy-coded data and EOI
+      mjpeg.insert(mjpeg.end(), jpeg.begin() + long(i), jpeg.end());
+      break;
+    }
+    const size_t length = size_t(jpeg[i + 2]) << 8 | jpeg[i + 3];
+    if (marker == 0xC4) {
+      ++removed;
+    } else {
+      mjpeg.insert(mjpeg.end(), jpeg.begin() + long(i), jpeg.begin() + long(i + 2 + length));
+    }
+    i += 2 + length;
+  }
+  ASSERT_GT(removed, 0);
+  std::string problem;
+  const cv::Mat out = mjpeg_to_bgr(mjpeg.data(), mjpeg.size(), &problem);
+  ASSERT_TRUE(problem.empty()) << problem;
+  EXPECT_EQ(cv::norm(out, cv::imdecode(jpeg, cv::IMREAD_COLOR), cv::NORM_INF), 0.0);
+}
+
 TEST(V4l2Source, OptionsAreParsedAndCheckedAgainstRanges) {
   const V4l2Options o = parse_v4l2_options(
       "v4l2:/dev/video0", {{"width", "640"}, {"height", "480"}, {"fps", "60"}, {"format", "yuyv"}});
