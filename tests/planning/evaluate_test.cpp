@@ -1,0 +1,423 @@
+// Trajectory evaluation on analytic scenes: line integrals of uniform and slab blocking, the
+// structures a path crosses (depth and length within one sampling step), the rank of the entry's
+// path safety, the area safety region of the entry, the batch CSV, and the command end to end.
+#include "planning/evaluate.hpp"
+
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+
+#include "kernels/error.hpp"
+#include "planning/markups.hpp"
+#include "planning/plan.hpp"
+#include "planning/volume_io.hpp"
+
+namespace fs = std::filesystem;
+
+namespace crepuscular::planning {
+namespace {
+
+ImageGeometry cube_grid(int n, double spacing,
+                        const Eigen::Vector3d& origin = Eigen::Vector3d::Zero()) {
+  ImageGeometry g;
+  g.dims = {n, n, n};
+  g.spacing = Eigen::Vector3d::Constant(spacing);
+  g.origin = origin;
+  return g;
+}
+
+// A plan with only a blocking volume (and h = its spacing, gamma = h / 2).
+PlanData blocking_plan(const Volume<float>& blocking) {
+  PlanData p;
+  p.dir = "(test plan)";
+  p.blocking = blocking;
+  p.gamma_mm = 0.5 * blocking.geometry().spacing.minCoeff();
+  return p;
+}
+
+VulnerabilityTable test_table() {
+  return VulnerabilityTable::from_json(nlohmann::json::parse(R"({"name": "test", "levels": [
+        {"level": 0, "name": "none", "blocking_per_mm": 0.0},
+        {"level": 1, "name": "low", "blocking_per_mm": 0.01},
+        {"level": 2, "name": "medium", "blocking_per_mm": 0.1},
+        {"level": 3, "name": "impassable", "blocking_per_mm": 10.0}],
+      "labels": [{"value": 2, "name": "kidney", "level": 2},
+                 {"value": 3, "name": "vessel", "level": 3}]})"),
+                                       "test table");
+}
+
+TEST(EvaluateTest, UniformBlockingIntegralIsCoefficientTimesLength) {
+  // b = 0.3 per mm everywhere; trilinear interpolation of a constant is the constant, so every
+  // sample is 0.3 and the sum is 0.3 * length exactly (up to rounding).
+  const Volume<float> b(cube_grid(40, 2.0), 0.3f);
+  const PlanData plan = blocking_plan(b);
+  const TrajectoryEvaluator ev(plan);
+  Trajectory t;
+  t.entry = Eigen::Vector3d(5, 7, 9);
+  t.target = Eigen::Vector3d(61, 44, 70);
+  const auto e = ev.evaluate(t);
+  const double length = (t.target - t.entry).norm();
+  EXPECT_NEAR(e.length_mm, length, 1e-9);
+  EXPECT_NEAR(e.line_integral, 0.3 * length, 1e-5 * length);
+  // N = ceil(length / gamma), l = length / N <= gamma (DESIGN.md section 4).
+  EXPECT_EQ(e.samples, int(std::ceil(length / 1.0)));
+  EXPECT_LE(e.step_mm, 1.0 + 1e-12);
+}
+
+TEST(EvaluateTest, SlabBlockingIntegralIsSlabCrossingLength) {
+  // b = 1 per mm on voxel columns i = 15..24 (2 mm voxels), 0 elsewhere. Along x the trilinear
+  // interpolant is 1 on [15, 24] and ramps to 0 over one voxel each side: its integral is 10
+  // voxels = 20 mm for a path along x, and 20 / cos(theta) for a path at angle theta to x.
+  Volume<float> b(cube_grid(40, 2.0), 0.0f);
+  for (int k = 0; k < 40; ++k)
+    for (int j = 0; j < 40; ++j)
+      for (int i = 15; i <= 24; ++i) b(i, j, k) = 1.0f;
+  const PlanData plan = blocking_plan(b);
+  const TrajectoryEvaluator ev(plan);
+  for (double theta_deg : {0.0, 25.0, 50.0}) {
+    const double th = theta_deg * M_PI / 180.0;
+    const Eigen::Vector3d dir(std::cos(th), std::sin(th) * 0.6, std::sin(th) * 0.8);
+    Trajectory t;
+    t.entry = Eigen::Vector3d(10.3, 20, 20) - 5.0 * dir;
+    t.target = t.entry + (60.0 / std::cos(th)) * dir;  // x from 5.3 to 65.3: through the slab
+    const auto e = ev.evaluate(t);
+    const double expected = 20.0 / std::cos(th);
+    // The sum of samples differs from the integral by at most one step times the jump of b.
+    EXPECT_NEAR(e.line_integral, expected, e.step_mm) << "theta " << theta_deg;
+  }
+}
+
+TEST(EvaluateTest, PathThroughLabelledBoxesReportsStructuresDepthsAndLengths) {
+  // 1 mm label grid. Along x at y = z = 20: kidney (2) on voxels 20..29 and 70..74, vessel (3)
+  // on 50..64. Voxel i covers x in [i - 0.5, i + 0.5].
+  Volume<int32_t> labels(cube_grid(100, 1.0), 0);
+  for (int k = 0; k < 100; ++k)
+    for (int j = 0; j < 100; ++j) {
+      for (int i = 20; i <= 29; ++i) labels(i, j, k) = 2;
+      for (int i = 50; i <= 64; ++i) labels(i, j, k) = 3;
+      for (int i = 70; i <= 74; ++i) labels(i, j, k) = 2;
+    }
+  PlanData plan = blocking_plan(Volume<float>(cube_grid(50, 2.0), 0.0f));
+  plan.labels = labels;
+  plan.table = test_table();
+  const TrajectoryEvaluator ev(plan);
+
+  Trajectory t;
+  t.entry = Eigen::Vector3d(5, 20, 20);
+  t.target = Eigen::Vector3d(95, 20, 20);
+  auto e = ev.evaluate(t);
+  ASSERT_TRUE(e.labels_available);
+  ASSERT_EQ(e.structures.size(), 2u);
+  const double tol = e.structure_step_mm + 1e-9;
+  EXPECT_LE(e.structure_step_mm, 0.5);
+  EXPECT_EQ(e.structures[0].label, 2);
+  EXPECT_EQ(e.structures[0].name, "kidney");
+  EXPECT_EQ(e.structures[0].level, 2);
+  EXPECT_EQ(e.structures[0].level_name, "medium");
+  EXPECT_NEAR(e.structures[0].depth_mm, 19.5 - 5.0, tol);
+  EXPECT_NEAR(e.structures[0].length_mm, 10.0 + 5.0, 2 * tol);  // two crossings
+  EXPECT_EQ(e.structures[1].name, "vessel");
+  EXPECT_EQ(e.structures[1].level, 3);
+  EXPECT_NEAR(e.structures[1].depth_mm, 49.5 - 5.0, tol);
+  EXPECT_NEAR(e.structures[1].length_mm, 15.0, tol);
+
+  // Oblique in the xy plane, direction (1, 1, 0) / sqrt(2) from (5, 5, 20): the first kidney box
+  // (x in [19.5, 29.5]) is entered after (19.5 - 5) sqrt(2) mm and crossed over 10 sqrt(2) mm.
+  t.entry = Eigen::Vector3d(5, 5, 20);
+  t.target = Eigen::Vector3d(45, 45, 20);
+  e = ev.evaluate(t);
+  ASSERT_EQ(e.structures.size(), 1u);
+  EXPECT_NEAR(e.structures[0].depth_mm, 14.5 * std::sqrt(2.0), e.structure_step_mm + 1e-9);
+  EXPECT_NEAR(e.structures[0].length_mm, 10.0 * std::sqrt(2.0), e.structure_step_mm + 1e-9);
+}
+
+TEST(EvaluateTest, EntryValueClassAndPercentileWithinTheRegionOfInterest) {
+  // 10^3 grid, value = linear offset (0..999, all distinct); the 8 corner voxels are outside the
+  // region of interest (NaN). A voxel of value v ranks above (v - outside below it) others.
+  const ImageGeometry g = cube_grid(10, 3.0, Eigen::Vector3d(-13.5, -13.5, -13.5));
+  Volume<float> isbv(g, 0.0f);
+  for (int64_t o = 0; o < isbv.voxel_count(); ++o) isbv[o] = float(o);
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  for (int c = 0; c < 8; ++c) isbv((c & 1) * 9, ((c >> 1) & 1) * 9, ((c >> 2) & 1) * 9) = nan;
+  PlanData plan = blocking_plan(Volume<float>(g, 0.0f));
+  plan.values = {"isbv"};
+  plan.path_safety["isbv"] = isbv;
+  SafetyClasses c;
+  c.higher_is_safer = false;
+  c.safe = 200;
+  c.dangerous = 600;
+  plan.classes["isbv"] = c;
+  const TrajectoryEvaluator ev(plan);
+
+  Trajectory t;
+  t.entry = g.index_to_physical(3, 4, 5);  // value 543, medium
+  t.target = g.index_to_physical(5, 5, 5);
+  auto e = ev.evaluate(t);
+  ASSERT_EQ(e.values.size(), 1u);
+  EXPECT_NEAR(e.values[0].at_entry, 543.0, 1e-9);
+  EXPECT_EQ(e.values[0].safety_class, "medium");
+  // Below 543 in the ROI: 543 values minus the corners 0, 9, 90, 99, 900.. that are below: 4.
+  const double n = 1000 - 8, below = 543 - 4;
+  EXPECT_NEAR(e.values[0].percentile, 100.0 * (below + 0.5) / n, 1e-9);
+  EXPECT_NEAR(e.values[0].safety_percentile, 100.0 - 100.0 * (below + 0.5) / n, 1e-9);
+
+  // Half-way between voxels (3,4,5) and (4,4,5): the mean, 543.5.
+  t.entry = g.index_to_physical(Eigen::Vector3d(3.5, 4, 5));
+  EXPECT_NEAR(ev.evaluate(t).values[0].at_entry, 543.5, 1e-9);
+  // A corner voxel is outside the region of interest.
+  t.entry = g.index_to_physical(0, 0, 0);
+  e = ev.evaluate(t);
+  EXPECT_EQ(e.values[0].safety_class, "outside");
+  EXPECT_TRUE(std::isnan(e.values[0].at_entry));
+}
+
+// Six base vertices on the axes around c (an octahedron), extruded along their normals; +x and
+// +y form safe region 0 (300 mm^3), -x alone safe region 1 (100 mm^3); the rest unsafe.
+AreaSafetyGeometry octahedron_area(const Eigen::Vector3d& c) {
+  AreaSafetyGeometry a;
+  a.ellipsoid.centre = c;
+  const Eigen::Vector3d axes[6] = {Eigen::Vector3d::UnitX(), -Eigen::Vector3d::UnitX(),
+                                   Eigen::Vector3d::UnitY(), -Eigen::Vector3d::UnitY(),
+                                   Eigen::Vector3d::UnitZ(), -Eigen::Vector3d::UnitZ()};
+  const int region[6] = {0, 1, 0, -1, -1, -1};
+  for (int i = 0; i < 6; ++i) {
+    a.base.push_back(c + 10 * axes[i]);
+    a.normals.push_back(axes[i]);
+    const double ext = region[i] >= 0 ? 50 : 12;
+    a.vertices.push_back(c + (10 + ext) * axes[i]);
+    a.safe.push_back(region[i] >= 0);
+    a.region.push_back(region[i]);
+    a.leeway.push_back(region[i] == 0 ? 1.0f : region[i] == 1 ? 1.0f / 3.0f : 0.0f);
+  }
+  AreaRegion r0, r1;
+  r0.id = 0;
+  r0.size_mm3 = 300;
+  r0.leeway = 1;
+  r1.id = 1;
+  r1.size_mm3 = 100;
+  r1.leeway = 1.0 / 3.0;
+  a.regions = {r0, r1};
+  return a;
+}
+
+TEST(EvaluateTest, EntryRegionIsThatOfTheNearestExtrusionRay) {
+  const Eigen::Vector3d c(40, 40, 40);
+  PlanData plan = blocking_plan(Volume<float>(cube_grid(40, 2.0), 0.0f));
+  plan.area = octahedron_area(c);
+  const TrajectoryEvaluator ev(plan);
+  Trajectory t;
+  t.target = c;
+  t.entry = c + Eigen::Vector3d(50, 3, 0);  // beside the +x ray, 3 mm off
+  auto e = ev.evaluate(t);
+  ASSERT_TRUE(e.area.available);
+  EXPECT_EQ(e.area.vertex, 0);
+  EXPECT_NEAR(e.area.ray_distance_mm, 3.0, 1e-9);
+  EXPECT_NEAR(e.area.along_normal_mm, 40.0, 1e-9);
+  EXPECT_TRUE(e.area.safe);
+  EXPECT_EQ(e.area.region, 0);
+  EXPECT_NEAR(e.area.relative_area_safety, 1.0, 1e-12);
+
+  t.entry = c + Eigen::Vector3d(-40, 2, -1);
+  e = ev.evaluate(t);
+  EXPECT_EQ(e.area.vertex, 1);
+  EXPECT_EQ(e.area.region, 1);
+  EXPECT_NEAR(e.area.relative_area_safety, 100.0 / 300.0, 1e-12);
+
+  t.entry = c + Eigen::Vector3d(1, -2, 60);  // the +z ray: unsafe, stopped after 12 mm
+  e = ev.evaluate(t);
+  EXPECT_EQ(e.area.vertex, 4);
+  EXPECT_FALSE(e.area.safe);
+  EXPECT_EQ(e.area.region, -1);
+  EXPECT_NEAR(e.area.extrusion_mm, 12.0, 1e-9);
+  EXPECT_EQ(e.area.relative_area_safety, 0.0);
+}
+
+TEST(EvaluateTest, BatchCsvIsReadAndEveryRowHasTheHeadersColumns) {
+  const fs::path dir =
+      fs::temp_directory_path() / ("crepuscular_eval_csv_" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const std::string csv = (dir / "paths.csv").string();
+  std::ofstream(csv) << "name,entry_x,entry_y,entry_z,target_x,target_y,target_z\n"
+                        "\"a, first\",5,7,9,61,44,70\n\n"
+                        "b,10,10,10,30,30,30\n";
+  const auto ts = read_trajectories_csv(csv);
+  ASSERT_EQ(ts.size(), 2u);
+  EXPECT_EQ(ts[0].name, "a, first");
+  EXPECT_EQ(ts[1].target, Eigen::Vector3d(30, 30, 30));
+  PlanData plan = blocking_plan(Volume<float>(cube_grid(40, 2.0), 0.25f));
+  plan.area = octahedron_area(Eigen::Vector3d(40, 40, 40));
+  const TrajectoryEvaluator ev(plan);
+  const auto e = ev.evaluate(ts[0]);
+  const auto count = [](const std::string& s) {
+    int n = 1;
+    bool quoted = false;
+    for (char c : s) {
+      if (c == '"') quoted = !quoted;
+      if (c == ',' && !quoted) ++n;
+    }
+    return n;
+  };
+  EXPECT_EQ(count(evaluation_csv_header(e)), count(evaluation_csv_row(e)));
+  EXPECT_EQ(evaluation_csv_row(e).rfind("\"a, first\",", 0), 0u);
+  EXPECT_DOUBLE_EQ(evaluation_json(e)["line_integral"].get<double>(), e.line_integral);
+
+  std::ofstream(csv) << "name,x,y\n";
+  EXPECT_THROW(read_trajectories_csv(csv), Error);
+  std::ofstream(csv)
+      << "name,entry_x,entry_y,entry_z,target_x,target_y,target_z\nx,1,2,3,4,5,abc\n";
+  try {
+    read_trajectories_csv(csv);
+    ADD_FAILURE() << "accepted a bad number";
+  } catch (const Error& err) {
+    EXPECT_NE(std::string(err.what()).find("line 2"), std::string::npos) << err.what();
+    EXPECT_NE(std::string(err.what()).find("target_z"), std::string::npos) << err.what();
+  }
+  Trajectory same;
+  EXPECT_THROW(ev.evaluate(same), Error);  // entry == target
+  fs::remove_all(dir);
+}
+
+int run(const std::string& command, std::string* output = nullptr) {
+  const std::string out_file =
+      (fs::temp_directory_path() / ("crepuscular_eval_out_" + std::to_string(::getpid()))).string();
+  const int rc = std::system((command + " > " + out_file + " 2>&1").c_str());
+  if (output) {
+    std::ifstream in(out_file);
+    *output = std::string(std::istreambuf_iterator<char>(in), {});
+  }
+  fs::remove(out_file);
+  return WEXITSTATUS(rc);
+}
+
+TEST(EvaluateTest, CommandEvaluatesPointsMarkupsAndBatchesOfARealPlan) {
+  // A small plan: a 3-voxel tumor block at voxels 10..12, a vessel column (label 2) at i = 16.
+  const fs::path dir =
+      fs::temp_directory_path() / ("crepuscular_eval_cmd_" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  ImageGeometry g = cube_grid(24, 2.0, Eigen::Vector3d(-20, 10, 5));
+  Volume<int32_t> labels(g, 1);
+  Volume<uint8_t> tumor(g, 0);
+  for (int k = 10; k <= 12; ++k)
+    for (int j = 10; j <= 12; ++j)
+      for (int i = 10; i <= 12; ++i) tumor(i, j, k) = 1;
+  for (int k = 0; k < 24; ++k)
+    for (int j = 9; j <= 13; ++j) labels(16, j, k) = 2;
+  write_volume(labels, (dir / "labels.nii.gz").string());
+  write_volume(tumor, (dir / "tumor.nii.gz").string());
+  std::ofstream(dir / "table.json") << R"({"name": "t", "levels": [
+        {"level": 0, "name": "none", "blocking_per_mm": 0.0},
+        {"level": 1, "name": "low", "blocking_per_mm": 0.01},
+        {"level": 2, "name": "medium", "blocking_per_mm": 0.1},
+        {"level": 3, "name": "impassable", "blocking_per_mm": 10.0}],
+      "labels": [{"value": 1, "name": "fat", "level": 0},
+                 {"value": 2, "name": "vessel", "level": 3}]})";
+  PlanRequest r;
+  r.labels = (dir / "labels.nii.gz").string();
+  r.tumor = (dir / "tumor.nii.gz").string();
+  r.vulnerability = (dir / "table.json").string();
+  r.margin.fwhm_mm = 0.0;
+  r.path_safety.radius_mm = 16.0;
+  r.path_safety.device = Device::kCpu;
+  r.out_dir = (dir / "plan").string();
+  run_plan(r);
+
+  // Through the vessel column (+i): from voxel (18, 11, 11), inside the 16 mm region of interest,
+  // to the tumor centre (11, 11, 11).
+  const Eigen::Vector3d entry = g.index_to_physical(18, 11, 11),
+                        target = g.index_to_physical(11, 11, 11);
+  const std::string exe = CREPUSCULAR_BINARY;
+  const auto pt = [](const Eigen::Vector3d& p) {
+    char b[96];
+    std::snprintf(b, sizeof(b), "%.4f,%.4f,%.4f", p.x(), p.y(), p.z());
+    return std::string(b);
+  };
+  std::string out;
+  ASSERT_EQ(run(exe + " evaluate --plan " + (dir / "plan").string() + " --entry " + pt(entry) +
+                    " --target " + pt(target) + " --json",
+                &out),
+            0)
+      << out;
+  const auto j = nlohmann::json::parse(out.substr(out.find('{')));
+  // Vessel voxels i = 16 cover 2 mm of the path at 10 per mm: the trilinear interpolant's
+  // integral over the column is one voxel (2 mm) times 10 = 20 (within one step of 1 mm * 10).
+  EXPECT_NEAR(j["line_integral"].get<double>(), 20.0, 10.0 * 1.0 + 1e-6);
+  ASSERT_TRUE(j["structures"].is_array());
+  bool vessel = false;
+  for (const auto& s : j["structures"]) {
+    if (s["name"] == "vessel") {
+      vessel = true;
+      EXPECT_EQ(s["level"].get<int>(), 3);
+      // Voxel 16 covers [15.5, 16.5] in index units: 1.5 voxels = 3 mm from voxel 18's centre.
+      EXPECT_NEAR(s["depth_mm"].get<double>(), 3.0, j["structure_step_mm"].get<double>() + 1e-9);
+      EXPECT_NEAR(s["length_mm"].get<double>(), 2.0, j["structure_step_mm"].get<double>() + 1e-9);
+    }
+  }
+  EXPECT_TRUE(vessel);
+  EXPECT_TRUE(j["target_in_tumor"].get<bool>());
+  // Tumor voxel 12 ends at index 12.5: 5.5 voxels = 11 mm from the entry.
+  EXPECT_NEAR(j["tumor_depth_mm"].get<double>(), 11.0, j["structure_step_mm"].get<double>() + 1e-9);
+  EXPECT_TRUE(j["path_safety"].contains("svv"));
+  // The entry lies across the vessel from the tumor: SVV well below the free side's 100 %.
+  EXPECT_LT(j["path_safety"]["svv"]["at_entry"].get<double>(), 100.0);
+
+  // The plan's area safety geometry, when it has one, places the entry in some column.
+  if (fs::exists(dir / "plan" / "area_safety.vtk")) {
+    ASSERT_TRUE(j["area_safety"].is_object());
+    EXPECT_GE(j["area_safety"]["vertex"].get<int>(), 0);
+  }
+
+  // The same line as a RAS markup with the target first gives the same integral.
+  LineMarkup line;
+  line.first = target;
+  line.second = entry;
+  write_line_markup((dir / "line.mrk.json").string(), line, "RAS");
+  ASSERT_EQ(run(exe + " evaluate --plan " + (dir / "plan").string() + " --trajectory " +
+                    (dir / "line.mrk.json").string() + " --json",
+                &out),
+            0)
+      << out;
+  const auto jm = nlohmann::json::parse(out.substr(out.find('{')));
+  EXPECT_NEAR(jm["line_integral"].get<double>(), j["line_integral"].get<double>(), 1e-9);
+  EXPECT_NEAR(
+      (Eigen::Vector3d(jm["entry_lps_mm"][0], jm["entry_lps_mm"][1], jm["entry_lps_mm"][2]) - entry)
+          .norm(),
+      0.0, 1e-9);
+
+  std::ofstream(dir / "paths.csv")
+      << "name,entry_x,entry_y,entry_z,target_x,target_y,target_z\n"
+      << "through_vessel," << pt(entry) << "," << pt(target) << "\n"
+      << "free_side," << pt(g.index_to_physical(4, 11, 11)) << "," << pt(target) << "\n";
+  ASSERT_EQ(run(exe + " evaluate --plan " + (dir / "plan").string() + " --batch " +
+                    (dir / "paths.csv").string(),
+                &out),
+            0)
+      << out;
+  EXPECT_NE(out.find("name,entry_x"), std::string::npos) << out;
+  EXPECT_NE(out.find("\nthrough_vessel,"), std::string::npos) << out;
+  EXPECT_NE(out.find("\nfree_side,"), std::string::npos) << out;
+  std::string quiet;
+  ASSERT_EQ(run(exe + " evaluate --plan " + (dir / "plan").string() + " --batch " +
+                    (dir / "paths.csv").string() + " --out " + (dir / "results.csv").string(),
+                &quiet),
+            0)
+      << quiet;
+  std::ifstream results(dir / "results.csv");
+  EXPECT_EQ(std::string(std::istreambuf_iterator<char>(results), {}), out);
+
+  // Bad input: a clear error, non-zero exit.
+  EXPECT_NE(run(exe + " evaluate --plan " + (dir / "plan").string() + " --entry 1,2 --target 3,4,5",
+                &out),
+            0);
+  EXPECT_NE(out.find("--entry"), std::string::npos) << out;
+  fs::remove_all(dir);
+}
+
+}  // namespace
+}  // namespace crepuscular::planning
