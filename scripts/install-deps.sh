@@ -12,6 +12,7 @@ packages=(
   libglfw3-dev libglm-dev libgl-dev libegl-dev libv4l-dev
   xvfb xauth libgl1-mesa-dri
   python3-nibabel python3-numpy
+  python3-vtk9  # tests: area_safety.vtk read back by VTK's own reader
 )
 
 missing=()
