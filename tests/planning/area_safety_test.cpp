@@ -526,10 +526,10 @@ sys.exit(0 if ok else 3)
 )";
   char volume[64];
   std::snprintf(volume, sizeof(volume), "%.12g", enclosed_volume(g));
-  const int rc = std::system(("/usr/bin/python3 " + script + " " + path + " " + nv + " " + nt +
-                              " " + volume + " " + std::to_string(g.regions.size()) +
-                              " 2>/dev/null")
-                                 .c_str());
+  const int rc =
+      std::system(("/usr/bin/python3 " + script + " " + path + " " + nv + " " + nt + " " + volume +
+                   " " + std::to_string(g.regions.size()) + " 2>/dev/null")
+                      .c_str());
   if (WEXITSTATUS(rc) == 1) {
     std::printf("VTK's python module is missing: reading through VTK not checked\n");
   } else {
