@@ -103,7 +103,8 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
   }
 
   // Tracking (colour frames in: conversion, detection, poses, filter), and full-frame tracking.
-  auto track = [&](int interval, std::vector<size_t>* counts, double* err_mm, int64_t* fulls) {
+  auto track = [&](int interval, std::vector<size_t>* counts, double* err_mm, int64_t* fulls,
+                   std::vector<double>* region_ms, std::vector<double>* frame_ms) {
     std::vector<double> per;
     for (int r = 0; r < repeats; ++r) {
       TrackerOptions o;
@@ -113,7 +114,11 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
       std::vector<double> errs;
       const auto t0 = Clock::now();
       for (int i = 0; i < frames; ++i) {
+        const auto tf = Clock::now();
         const TrackResult res = tracker.process(seq[i]);
+        const double ms = ms_since(tf);
+        frame_ms->push_back(ms);
+        if (!res.full_search) region_ms->push_back(ms);
         if (r == 0) {
           (*counts)[i] = res.detections.size();
           for (size_t b = 0; b < res.boards.size(); ++b) {
@@ -138,8 +143,9 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
   std::vector<size_t> roi_count(frames), fullt_count(frames);
   double roi_err = 0, fullt_err = 0;
   int64_t roi_fulls = 0, fullt_fulls = 0;
-  const double roi_ms = track(full_every, &roi_count, &roi_err, &roi_fulls);
-  const double fullt_ms = track(0, &fullt_count, &fullt_err, &fullt_fulls);
+  std::vector<double> region_ms, roi_frame_ms, unused1, unused2;
+  const double roi_ms = track(full_every, &roi_count, &roi_err, &roi_fulls, &region_ms, &roi_frame_ms);
+  const double fullt_ms = track(0, &fullt_count, &fullt_err, &fullt_fulls, &unused1, &unused2);
 
   int64_t fewer = 0, det_full = 0, det_roi = 0;
   for (int i = 0; i < frames; ++i) {
@@ -159,6 +165,8 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
   j["tracking_ms"] = roi_ms;
   j["tracking_fps"] = 1e3 / roi_ms;
   j["tracking_full_searches"] = roi_fulls;
+  j["tracking_region_frame_median_ms"] = region_ms.empty() ? 0.0 : median(region_ms);
+  j["tracking_slowest_frame_ms"] = *std::max_element(roi_frame_ms.begin(), roi_frame_ms.end());
   j["full_frame_tracking_ms"] = fullt_ms;
   j["speedup_vs_libapriltag_full_frame"] = full_med / roi_ms;
   j["detections_full_frame"] = det_full;
