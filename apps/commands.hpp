@@ -14,6 +14,8 @@ void add_evaluate_command(CLI::App& app);
 void add_synth_command(CLI::App& app);
 void add_record_command(CLI::App& app);
 void add_track_command(CLI::App& app);
+void add_calibrate_command(CLI::App& app);
+void add_register_command(CLI::App& app);
 void add_demo_command(CLI::App& app);
 
 }  // namespace crepuscular::apps

@@ -36,7 +36,7 @@ void write_atomically(const std::string& path, const std::function<void(cv::File
   } catch (const cv::Exception& e) {
     std::error_code ec;
     fs::remove(tmp, ec);
-    throw Error(path + ": writing failed: " + e.what());
+    throw Error(path + ": cannot be written: " + std::string(e.what()));
   } catch (...) {
     std::error_code ec;
     fs::remove(tmp, ec);

@@ -5,19 +5,30 @@
 #include "calibration/intrinsics.hpp"
 
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <Eigen/Geometry>
 #include <chrono>
+#include <cstdlib>
+#include <filesystem>
 #include <cmath>
+#include <fstream>
 #include <initializer_list>
+#include <iterator>
 #include <random>
 #include <string>
 #include <vector>
 
 #include <opencv2/calib3d.hpp>
+#include <opencv2/core/persistence.hpp>
+#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include "kernels/error.hpp"
+#include "tracking/board.hpp"
+#include "tracking/detector.hpp"
+#include "tracking/pose.hpp"
+#include "tracking/synthetic.hpp"
 
 namespace crepuscular::calibration {
 namespace {
@@ -334,6 +345,123 @@ TEST(Intrinsics, DetectsRenderedChessboardCornersToSubPixel) {
   // A blank image holds no board.
   EXPECT_FALSE(detect_chessboard(cv::Mat(kHeight, kWidth, CV_8UC1, cv::Scalar(128)), spec, "blank")
                    .has_value());
+}
+
+// `crepuscular calibrate camera --images DIR --board chessboard:9x6:25` on rendered images: the
+// written camera.yaml holds the rendering camera (no distortion) and the refusal exits non-zero.
+TEST(Intrinsics, CalibrateCameraCommandOnRenderedChessboards) {
+  namespace fs = std::filesystem;
+  const fs::path dir = fs::temp_directory_path() / ("crepuscular-calib-cmd-" + std::to_string(getpid()));
+  fs::create_directories(dir / "shots");
+  const ChessboardSpec spec{9, 6, 25.0};
+  const cv::Matx33d K(900, 0, 640, 0, 905, 360, 0, 0, 1);
+  const double tilts[][2] = {{0.45, 0.0}, {-0.45, 0.1}, {0.1, 0.5},   {0.0, -0.5},
+                             {0.35, 0.35}, {-0.3, -0.35}, {0.3, -0.3}, {-0.35, 0.3}};
+  const double shifts[][2] = {{-250, -150}, {30, -150}, {-250, 20}, {30, 20},
+                              {-110, -60},  {-240, 10}, {20, -140}, {-100, -80}};
+  for (int v = 0; v < 8; ++v) {
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = (Eigen::AngleAxisd(tilts[v][0], Eigen::Vector3d::UnitX()) *
+                  Eigen::AngleAxisd(tilts[v][1], Eigen::Vector3d::UnitY()))
+                     .toRotationMatrix();
+    T.translation() = Eigen::Vector3d(shifts[v][0], shifts[v][1], 620);
+    cv::imwrite((dir / "shots" / ("view" + std::to_string(v) + ".png")).string(),
+                render_chessboard(spec, K, T));
+  }
+  const std::string out = (dir / "camera.yaml").string();
+  const std::string cmd = std::string(CREPUSCULAR_BINARY) + " calibrate camera --images '" +
+                          (dir / "shots").string() + "/*.png' --board chessboard:9x6:25 --out " +
+                          out + " > " + (dir / "log.txt").string() + " 2>&1";
+  ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
+  cv::FileStorage in(out, cv::FileStorage::READ);
+  ASSERT_TRUE(in.isOpened());
+  cv::Mat Kc;
+  in["camera_matrix"] >> Kc;
+  EXPECT_NEAR(Kc.at<double>(0, 0), 900.0, 0.005 * 900.0);
+  EXPECT_NEAR(Kc.at<double>(1, 1), 905.0, 0.005 * 905.0);
+  EXPECT_NEAR(Kc.at<double>(0, 2), 640.0, 0.005 * 640.0);
+  EXPECT_NEAR(Kc.at<double>(1, 2), 360.0, 0.005 * 360.0);
+  EXPECT_LT(double(in["rms_reprojection_error_px"]), 0.2);
+  EXPECT_EQ(int(in["views_used"]), 8);
+  // Three views are too few: refused with advice, no file written.
+  for (int v = 3; v < 8; ++v) fs::remove(dir / "shots" / ("view" + std::to_string(v) + ".png"));
+  const std::string out2 = (dir / "camera2.yaml").string();
+  const std::string cmd2 = std::string(CREPUSCULAR_BINARY) + " calibrate camera --images " +
+                           (dir / "shots").string() + " --board chessboard:9x6:25 --out " + out2 +
+                           " > " + (dir / "log2.txt").string() + " 2>&1";
+  EXPECT_NE(std::system(cmd2.c_str()), 0);
+  EXPECT_FALSE(fs::exists(out2));
+  std::ifstream log(dir / "log2.txt");
+  const std::string text((std::istreambuf_iterator<char>(log)), std::istreambuf_iterator<char>());
+  EXPECT_NE(text.find("error: camera calibration: only 3 usable view"), std::string::npos) << text;
+  fs::remove_all(dir);
+}
+
+// AprilTag grid board rendered by tracking's synthetic camera (with lens distortion), detected by
+// libapriltag, matched to the board's corners and calibrated: the rendering camera comes back.
+TEST(Intrinsics, CalibratesFromRenderedAprilTagGrid) {
+  const TrueCamera truth;
+  tracking::SyntheticScene scene;
+  scene.camera.width = kWidth;
+  scene.camera.height = kHeight;
+  scene.camera.fx = truth.fx;
+  scene.camera.fy = truth.fy;
+  scene.camera.cx = truth.cx;
+  scene.camera.cy = truth.cy;
+  scene.camera.distortion = {truth.k1, truth.k2, truth.p1, truth.p2, truth.k3};
+  scene.fps = 1.0;
+  scene.noise_sigma = 2.0;
+  tracking::SceneBoard board;
+  board.board = tracking::make_grid_board("calib", 5, 7, 30.0, 8.0, 0);
+  std::vector<Eigen::Vector3d> corners;
+  for (const auto& t : board.board.tags) corners.insert(corners.end(), t.corners.begin(), t.corners.end());
+  std::mt19937 rng(31);
+  std::uniform_real_distribution<double> uni(0.0, 1.0);
+  int attempts = 0;
+  while (board.keyframes.size() < 12 && attempts++ < 100000) {
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = (Eigen::AngleAxisd((2 * uni(rng) - 1) * 0.6, Eigen::Vector3d::UnitX()) *
+                  Eigen::AngleAxisd((2 * uni(rng) - 1) * 0.6, Eigen::Vector3d::UnitY()) *
+                  Eigen::AngleAxisd((2 * uni(rng) - 1) * 0.3, Eigen::Vector3d::UnitZ()))
+                     .toRotationMatrix();
+    const double depth = 420 + 250 * uni(rng);
+    const double u = uni(rng) * kWidth, v = uni(rng) * kHeight;
+    T.translation() = Eigen::Vector3d((u - truth.cx) / truth.fx * depth,
+                                      (v - truth.cy) / truth.fy * depth, depth);
+    bool inside = true;
+    for (const auto& p : project(truth, T, corners)) {
+      inside = inside && p.x() > 15 && p.y() > 15 && p.x() < kWidth - 15 && p.y() < kHeight - 15;
+    }
+    if (!inside) continue;
+    board.keyframes.push_back({double(board.keyframes.size()), T});
+  }
+  ASSERT_EQ(board.keyframes.size(), 12u);
+  scene.boards.push_back(board);
+  scene.frame_count = 12;
+  tracking::SyntheticRenderer renderer(scene);
+  tracking::DetectorOptions options;
+  options.decimate = 1.0;
+  tracking::TagDetector detector(options);
+  std::vector<CalibrationView> views;
+  for (int64_t f = 0; f < 12; ++f) {
+    const cv::Mat image = renderer.render(f);
+    const auto matched = tracking::match_board_corners(board.board, detector.detect(image));
+    CalibrationView view;
+    view.name = "frame " + std::to_string(f);
+    view.object_points = matched.board_mm;
+    view.image_points = matched.pixels;
+    EXPECT_EQ(view.object_points.size(), corners.size()) << view.name;
+    views.push_back(view);
+  }
+  const IntrinsicsResult r = calibrate_intrinsics(views, kWidth, kHeight);
+  EXPECT_NEAR(r.camera.fx, truth.fx, 0.005 * truth.fx);
+  EXPECT_NEAR(r.camera.fy, truth.fy, 0.005 * truth.fy);
+  EXPECT_NEAR(r.camera.cx, truth.cx, 0.01 * truth.cx);
+  EXPECT_NEAR(r.camera.cy, truth.cy, 0.01 * truth.cy);
+  EXPECT_LT(r.rms_px, 0.5);
+  std::printf("AprilTag grid: fx %.2f fy %.2f cx %.2f cy %.2f k1 %.4f, RMS %.3f px over %d views\n",
+              r.camera.fx, r.camera.fy, r.camera.cx, r.camera.cy, r.camera.distortion[0], r.rms_px,
+              r.views_used);
 }
 
 TEST(Intrinsics, SelectsViewsForCoverage) {

@@ -4,13 +4,20 @@
 #include "calibration/pivot.hpp"
 
 #include <gtest/gtest.h>
+#include <unistd.h>
 
+#include <algorithm>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
 #include <initializer_list>
 #include <random>
 #include <string>
 #include <vector>
 
+#include "calibration/calibration_files.hpp"
 #include "kernels/error.hpp"
 
 namespace crepuscular::calibration {
@@ -194,6 +201,65 @@ TEST(Spin, RecoversAxisDirection) {
 TEST(Spin, RefusesSmallRotation) {
   const auto poses = spin_poses(20, 12.0, 0.2, 0.2, 14);
   expect_error_containing([&] { calibrate_spin(poses); }, {"turned by at most", "own axis"});
+}
+
+// Writes poses as a poses CSV (the format of `crepuscular track --out`), board "needle".
+void write_poses_csv(const std::string& path, const std::vector<Eigen::Isometry3d>& poses) {
+  std::ofstream out(path);
+  out << "frame,timestamp_ns,board,state,tx,ty,tz,qw,qx,qy,qz,rms_px\n";
+  char line[512];
+  for (size_t i = 0; i < poses.size(); ++i) {
+    const Eigen::Quaterniond q(poses[i].linear());
+    const Eigen::Vector3d t = poses[i].translation();
+    std::snprintf(line, sizeof line, "%zu,%zu,needle,tracked,%.6f,%.6f,%.6f,%.12f,%.12f,%.12f,%.12f,0.2\n",
+                  i, i * 33333333, t.x(), t.y(), t.z(), q.w(), q.x(), q.y(), q.z());
+    out << line;
+  }
+  // A lost row carries no pose and must be ignored.
+  out << poses.size() << "," << poses.size() * 33333333 << ",needle,lost,,,,,,,,\n";
+}
+
+// `crepuscular calibrate pivot --poses P.csv --spin-poses S.csv --out needle.yaml` end to end.
+TEST(Pivot, CalibratePivotCommandWritesNeedleFile) {
+  namespace fs = std::filesystem;
+  const fs::path dir = fs::temp_directory_path() / ("crepuscular-pivot-cmd-" + std::to_string(getpid()));
+  fs::create_directories(dir);
+  write_poses_csv((dir / "pivot.csv").string(), pivot_poses(100, 30.0, true, true, 0.2, 0.2, 21));
+  // Spin about the true tip axis: a needle along kTip from the origin.
+  const Eigen::Vector3d axis = kTip.normalized();
+  std::vector<Eigen::Isometry3d> spin;
+  std::mt19937 rng(22);
+  for (int i = 0; i < 30; ++i) {
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = Eigen::AngleAxisd(2.8, Eigen::Vector3d(1, 0.2, 0).normalized()) *
+                 Eigen::AngleAxisd(i * 6.0 * kDeg, axis).toRotationMatrix();
+    T.translation() = Eigen::Vector3d(10, -30, 450);
+    spin.push_back(noisy(T, 0.2, 0.2, rng));
+  }
+  write_poses_csv((dir / "spin.csv").string(), spin);
+  const std::string out = (dir / "needle.yaml").string();
+  const std::string cmd = std::string(CREPUSCULAR_BINARY) + " calibrate pivot --poses " +
+                          (dir / "pivot.csv").string() + " --spin-poses " +
+                          (dir / "spin.csv").string() + " --out " + out + " > " +
+                          (dir / "log.txt").string() + " 2>&1";
+  ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
+  const NeedleCalibration n = read_needle_calibration(out);
+  EXPECT_LT((n.tip_needle - kTip).norm(), 0.5);
+  EXPECT_EQ(n.poses_total, 100);
+  ASSERT_TRUE(n.axis_needle.has_value());
+  EXPECT_LT(std::acos(std::min(1.0, n.axis_needle->dot(axis))) / kDeg, 0.5);
+  EXPECT_LT(n.tip_to_axis_mm, 1.0);
+  EXPECT_EQ(n.inputs.size(), 2u);
+  EXPECT_FALSE(n.date.empty());
+  // Too little motion: refused, no file.
+  write_poses_csv((dir / "still.csv").string(), pivot_poses(50, 3.0, true, true, 0.2, 0.2, 23));
+  const std::string out2 = (dir / "needle2.yaml").string();
+  const std::string cmd2 = std::string(CREPUSCULAR_BINARY) + " calibrate pivot --poses " +
+                           (dir / "still.csv").string() + " --out " + out2 + " > " +
+                           (dir / "log2.txt").string() + " 2>&1";
+  EXPECT_NE(std::system(cmd2.c_str()), 0);
+  EXPECT_FALSE(fs::exists(out2));
+  fs::remove_all(dir);
 }
 
 }  // namespace

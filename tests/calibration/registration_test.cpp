@@ -5,16 +5,21 @@
 #include "calibration/registration.hpp"
 
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
 #include <initializer_list>
 #include <numeric>
 #include <random>
 #include <string>
 #include <vector>
 
+#include "calibration/calibration_files.hpp"
 #include "kernels/error.hpp"
 
 namespace crepuscular::calibration {
@@ -181,6 +186,59 @@ TEST(Registration, ExpectedTreMatchesMonteCarlo) {
   EXPECT_LT(expected_tre_mm(ct_exact, T * Eigen::Vector3d(70, 50, 10), fle), predicted);
   std::printf("TRE at target: Fitzpatrick %.3f mm, Monte Carlo %.3f mm\n", predicted_both,
               simulated);
+}
+
+// `crepuscular register --ct-fiducials F.mrk.json --boards B.json --target ...` end to end: CT
+// fiducials in RAS, shuffled, one missing and one extra; a mirrored set is refused.
+TEST(Registration, RegisterCommandWritesRegistrationFile) {
+  namespace fs = std::filesystem;
+  const fs::path dir = fs::temp_directory_path() / ("crepuscular-register-cmd-" + std::to_string(getpid()));
+  fs::create_directories(dir);
+  const auto board = board_layout();
+  std::ofstream(dir / "boards.json")
+      << R"({"boards": [{"name": "patient", "grid": {"rows": 2, "cols": 3, "tag_size_mm": 40,
+         "gap_mm": 10, "first_id": 0}, "fiducials": [)"
+      << "[0,0,0],[120,0,5],[10,85,0],[95,70,25],[55,30,40],[140,95,10]]}]}";
+  auto write_markups = [&](const std::string& name, bool mirrored) {
+    auto ct = transformed(board, known_transform(), 0.1, 30);
+    ct.erase(ct.begin() + 1);
+    ct.push_back(known_transform() * Eigen::Vector3d(-40, 60, 20));
+    std::reverse(ct.begin(), ct.end());
+    std::ofstream out(dir / name);
+    out << R"({"markups": [{"type": "Fiducial", "coordinateSystem": "RAS", "controlPoints": [)";
+    for (size_t i = 0; i < ct.size(); ++i) {
+      const Eigen::Vector3d p = ct[i];
+      const double x = mirrored ? p.x() : -p.x();  // RAS: -x, -y of LPS
+      out << (i ? "," : "") << "{\"label\": \"F-" << i << "\", \"position\": [" << x << ","
+          << -p.y() << "," << p.z() << "]}";
+    }
+    out << "]}]}";
+  };
+  write_markups("ct.mrk.json", false);
+  write_markups("mirrored.mrk.json", true);
+  const Eigen::Vector3d target = known_transform() * Eigen::Vector3d(70, 40, -120);
+  const std::string out = (dir / "registration.yaml").string();
+  auto command = [&](const std::string& markups, const std::string& result) {
+    return std::string(CREPUSCULAR_BINARY) + " register --ct ct.nii.gz --boards " +
+           (dir / "boards.json").string() + " --ct-fiducials " + (dir / markups).string() +
+           " --target=" + std::to_string(target.x()) + "," + std::to_string(target.y()) + "," +
+           std::to_string(target.z()) + " --out " + result + " > " + (dir / "log.txt").string() +
+           " 2>&1";
+  };
+  ASSERT_EQ(std::system(command("ct.mrk.json", out).c_str()), 0);
+  const RegistrationRecord r = read_registration(out);
+  EXPECT_LT((r.T_ct_patient.translation() - known_transform().translation()).norm(), 0.2);
+  EXPECT_LT(rotation_error_deg(r.T_ct_patient, known_transform()), 0.1);
+  EXPECT_EQ(r.fre_mm.size(), 5u);
+  EXPECT_EQ(r.fiducials_in_board, 6);
+  EXPECT_EQ(r.fiducials_in_ct, 6);
+  ASSERT_TRUE(r.target_ct.has_value());
+  EXPECT_GT(r.expected_tre_mm, 0.0);
+  EXPECT_LT(r.expected_tre_mm, 1.0);
+  const std::string out2 = (dir / "mirrored.yaml").string();
+  EXPECT_NE(std::system(command("mirrored.mrk.json", out2).c_str()), 0);
+  EXPECT_FALSE(fs::exists(out2));
+  fs::remove_all(dir);
 }
 
 }  // namespace

@@ -1,0 +1,169 @@
+// Tests of calibration/calibration_files: needle.yaml and registration.yaml round trips, camera.yaml
+// read back by CameraModel::read_yaml and by plain cv::FileStorage, errors naming file and field,
+// and no temporary files left behind.
+#include "calibration/calibration_files.hpp"
+
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+#include <initializer_list>
+#include <string>
+
+#include <opencv2/core.hpp>
+
+#include "kernels/error.hpp"
+
+namespace crepuscular::calibration {
+namespace {
+
+namespace fs = std::filesystem;
+
+template <typename F>
+void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
+  try {
+    f();
+    ADD_FAILURE() << "expected crepuscular::Error";
+  } catch (const Error& e) {
+    for (const std::string& part : parts) {
+      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
+          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
+    }
+  }
+}
+
+class CalibrationFiles : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() / ("crepuscular-calfiles-" + std::to_string(getpid()));
+    fs::create_directories(dir_);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+  std::string path(const std::string& name) const { return (dir_ / name).string(); }
+  int file_count() const {
+    int n = 0;
+    for (const auto& e : fs::directory_iterator(dir_)) n += e.is_regular_file() ? 1 : 0;
+    return n;
+  }
+  fs::path dir_;
+};
+
+TEST_F(CalibrationFiles, NeedleRoundTrip) {
+  NeedleCalibration n;
+  n.date = "2026-11-23T10:00:00Z";
+  n.inputs = {"pivot.csv", "spin.csv"};
+  n.board = "needle";
+  n.tip_needle = Eigen::Vector3d(1.25, -0.5, 151.75);
+  n.tip_stddev_mm = Eigen::Vector3d(0.1, 0.11, 0.2);
+  n.pivot_rms_mm = 0.42;
+  n.poses_used = 95;
+  n.poses_total = 100;
+  n.rotation_spread_deg = 61.5;
+  n.axis_needle = Eigen::Vector3d(0.01, -0.02, 1.0).normalized();
+  n.axis_rms_deg = 0.3;
+  n.tip_to_axis_mm = 0.2;
+  write_needle_calibration(path("needle.yaml"), n);
+  EXPECT_EQ(file_count(), 1);
+  const NeedleCalibration r = read_needle_calibration(path("needle.yaml"));
+  EXPECT_EQ(r.date, n.date);
+  EXPECT_EQ(r.inputs, n.inputs);
+  EXPECT_EQ(r.board, "needle");
+  EXPECT_LT((r.tip_needle - n.tip_needle).norm(), 1e-12);
+  EXPECT_LT((r.tip_stddev_mm - n.tip_stddev_mm).norm(), 1e-12);
+  EXPECT_DOUBLE_EQ(r.pivot_rms_mm, 0.42);
+  EXPECT_EQ(r.poses_used, 95);
+  EXPECT_EQ(r.poses_total, 100);
+  ASSERT_TRUE(r.axis_needle.has_value());
+  EXPECT_LT((*r.axis_needle - *n.axis_needle).norm(), 1e-12);
+  // Without spin calibration there is no axis.
+  n.axis_needle.reset();
+  write_needle_calibration(path("needle2.yaml"), n);
+  EXPECT_FALSE(read_needle_calibration(path("needle2.yaml")).axis_needle.has_value());
+}
+
+TEST_F(CalibrationFiles, RegistrationRoundTrip) {
+  RegistrationRecord rec;
+  rec.date = utc_timestamp();
+  rec.inputs = {"ct.nii.gz", "boards.json"};
+  rec.board = "patient";
+  rec.T_ct_patient.linear() =
+      Eigen::AngleAxisd(0.3, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  rec.T_ct_patient.translation() = Eigen::Vector3d(-10, 20.5, 300);
+  rec.board_fiducials = {{0, 0, 0}, {100, 0, 0}, {0, 80, 10}};
+  rec.ct_fiducials = {rec.T_ct_patient * rec.board_fiducials[0],
+                      rec.T_ct_patient * rec.board_fiducials[1],
+                      rec.T_ct_patient * rec.board_fiducials[2]};
+  rec.fre_mm = {0.1, 0.2, 0.15};
+  rec.fre_rms_mm = 0.155;
+  rec.fle_mm = 0.27;
+  rec.fiducials_in_board = 4;
+  rec.fiducials_in_ct = 3;
+  rec.target_ct = Eigen::Vector3d(1, 2, 3);
+  rec.expected_tre_mm = 0.8;
+  write_registration(path("registration.yaml"), rec);
+  const RegistrationRecord r = read_registration(path("registration.yaml"));
+  EXPECT_EQ(r.date, rec.date);
+  EXPECT_EQ(r.inputs, rec.inputs);
+  EXPECT_LT((r.T_ct_patient.matrix() - rec.T_ct_patient.matrix()).cwiseAbs().maxCoeff(), 1e-12);
+  ASSERT_EQ(r.ct_fiducials.size(), 3u);
+  EXPECT_LT((r.ct_fiducials[2] - rec.ct_fiducials[2]).norm(), 1e-12);
+  EXPECT_EQ(r.fre_mm, rec.fre_mm);
+  EXPECT_EQ(r.fiducials_in_board, 4);
+  ASSERT_TRUE(r.target_ct.has_value());
+  EXPECT_DOUBLE_EQ(r.expected_tre_mm, 0.8);
+  EXPECT_EQ(file_count(), 1);
+}
+
+TEST_F(CalibrationFiles, CameraFileReadsAsCameraModelAndOpenCv) {
+  IntrinsicsResult r;
+  r.camera.width = 1280;
+  r.camera.height = 720;
+  r.camera.fx = 910.5;
+  r.camera.fy = 905.25;
+  r.camera.cx = 652.0;
+  r.camera.cy = 351.5;
+  r.camera.distortion = {-0.2, 0.09, 0.001, -0.0009, -0.01};
+  r.stddev = {0.8, 0.8, 0.5, 0.5, 0.001, 0.002, 0.0001, 0.0001, 0.003};
+  r.rms_px = 0.28;
+  r.views_used = 2;
+  r.views = {ViewReport{"a.png", 70, 0.27, 20.0, false, Eigen::Isometry3d::Identity()},
+             ViewReport{"b.png", 70, 3.1, 35.0, true, Eigen::Isometry3d::Identity()}};
+  write_camera_calibration(path("camera.yaml"), r, "chessboard:9x6:25", {"shots/*.png"});
+  const CameraModel cam = CameraModel::read_yaml(path("camera.yaml"));
+  EXPECT_EQ(cam.width, 1280);
+  EXPECT_EQ(cam.height, 720);
+  EXPECT_DOUBLE_EQ(cam.fx, 910.5);
+  EXPECT_DOUBLE_EQ(cam.cy, 351.5);
+  for (size_t k = 0; k < 5; ++k) EXPECT_DOUBLE_EQ(cam.distortion[k], r.camera.distortion[k]);
+  cv::FileStorage in(path("camera.yaml"), cv::FileStorage::READ);
+  cv::Mat K;
+  in["camera_matrix"] >> K;
+  EXPECT_DOUBLE_EQ(K.at<double>(1, 1), 905.25);
+  EXPECT_DOUBLE_EQ(double(in["rms_reprojection_error_px"]), 0.28);
+  EXPECT_DOUBLE_EQ(double(in["parameter_stddev"]["fx"]), 0.8);
+  EXPECT_EQ(int(in["views"][1]["rejected"]), 1);
+  EXPECT_FALSE(std::string(in["calibration_date"]).empty());
+}
+
+TEST_F(CalibrationFiles, ErrorsNameFileAndField) {
+  expect_error_containing([&] { read_needle_calibration(path("none.yaml")); },
+                          {"none.yaml", "cannot be opened"});
+  std::ofstream(path("empty.yaml")) << "%YAML:1.0\n---\nboard: needle\n";
+  expect_error_containing([&] { read_needle_calibration(path("empty.yaml")); },
+                          {"empty.yaml", "tip_needle", "missing"});
+  std::ofstream(path("bad.yaml")) << "%YAML:1.0\n---\ntip_needle: [1, 2]\n";
+  expect_error_containing([&] { read_needle_calibration(path("bad.yaml")); },
+                          {"bad.yaml", "tip_needle", "3 x 1"});
+  std::ofstream(path("reg.yaml"))
+      << "%YAML:1.0\n---\nT_ct_patient: !!opencv-matrix\n   rows: 4\n   cols: 4\n   dt: d\n"
+         "   data: [ 2., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1. ]\n";
+  expect_error_containing([&] { read_registration(path("reg.yaml")); },
+                          {"reg.yaml", "T_ct_patient", "rigid"});
+  expect_error_containing(
+      [&] { write_needle_calibration(path("no/such/folder/needle.yaml"), NeedleCalibration{}); },
+      {"needle.yaml", "cannot be written"});
+}
+
+}  // namespace
+}  // namespace crepuscular::calibration
