@@ -43,6 +43,7 @@ struct RegisterArgs {
   std::string out = "registration.yaml";
   double threshold = 2500.0;
   double tolerance_mm = 2.0;
+  double fle_mm = 0.0;
   double still_mm = 1.0;
   int still_frames = 10;
   bool in_order = false;
@@ -292,11 +293,12 @@ void run_register(const RegisterArgs& a) {
     rec.inputs = inputs;
   }
   if (rec.target_ct) {
-    rec.expected_tre_mm = calibration::expected_tre_mm(matched_ct, *rec.target_ct, r.fle_mm);
-    spdlog::info("register: expected TRE {:.2f} mm at ({:.1f}, {:.1f}, {:.1f}) LPS (FLE {:.2f} mm "
-                 "estimated from the FRE, Fitzpatrick 1998)",
+    const double fle = a.fle_mm > 0 ? a.fle_mm : r.fle_mm;
+    rec.expected_tre_mm = calibration::expected_tre_mm(matched_ct, *rec.target_ct, fle);
+    spdlog::info("register: expected TRE {:.2f} mm at ({:.1f}, {:.1f}, {:.1f}) LPS (FLE {:.2f} mm {}, "
+                 "Fitzpatrick 1998)",
                  rec.expected_tre_mm, rec.target_ct->x(), rec.target_ct->y(), rec.target_ct->z(),
-                 r.fle_mm);
+                 fle, a.fle_mm > 0 ? "given" : "estimated from the FRE");
   } else {
     spdlog::info("register: give --tumor MASK or --target X,Y,Z for the expected TRE there");
   }
@@ -340,6 +342,10 @@ void add_register_command(CLI::App& app) {
   cmd->add_option("--target", a->target, "Or a point (LPS mm) for the expected TRE: --target=X,Y,Z")
       ->expected(3)
       ->delimiter(',');
+  cmd->add_option("--fle-mm", a->fle_mm,
+                  "Fiducial localisation error for the expected TRE (0: estimated from the FRE)")
+      ->capture_default_str()
+      ->check(CLI::NonNegativeNumber);
   cmd->add_option("--threshold", a->threshold,
                   "Automatic bead detection: beads are brighter than this (HU)")
       ->capture_default_str();

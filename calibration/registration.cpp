@@ -310,7 +310,8 @@ RegistrationResult register_fiducials(const std::vector<Eigen::Vector3d>& board_
     msg.precision(2);
     msg << std::fixed << "registration: the fiducial layout is symmetric: two different pairings "
         << "of " << best.count << " fiducials fit (RMS " << best.rms << " and " << hyps[1].rms
-        << " mm). Use a board whose fiducials have distinct mutual distances.";
+        << " mm). Use a board whose fiducials have distinct mutual distances, or list the CT "
+           "fiducials in the board's order and pair them by order.";
     throw Error(msg.str());
   }
   std::vector<Eigen::Vector3d> f, t;
