@@ -11,6 +11,7 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <initializer_list>
@@ -18,8 +19,10 @@
 #include <string>
 #include <vector>
 
+#include "calibration/calibration_files.hpp"
 #include "calibration/registration.hpp"
 #include "kernels/error.hpp"
+#include "planning/volume_io.hpp"
 
 namespace crepuscular::planning {
 namespace {
@@ -160,6 +163,39 @@ TEST(Fiducials, SyntheticCtRegistrationRecoversTransform) {
   EXPECT_LT((r.T_ct_patient * tumor_board - truth * tumor_board).norm(), 0.5);
   std::printf("registration from detected beads: %.3f mm, %.4f deg, FRE RMS %.3f mm\n", t_err,
               r_err, r.fre_rms_mm);
+}
+
+// `crepuscular register --ct CT.nii.gz --boards B.json` end to end: beads found in the CT file
+// (read as float), paired with the board definition's fiducials, registration.yaml written.
+TEST(Fiducials, RegisterCommandFindsBeadsInCtFile) {
+  namespace fs = std::filesystem;
+  const fs::path dir = fs::temp_directory_path() / ("crepuscular-register-ct-" + std::to_string(getpid()));
+  fs::create_directories(dir);
+  Volume<int16_t> ct = empty_ct();
+  add_distractors(ct);
+  const auto layout = board_layout();
+  for (const auto& p : layout) add_ball(ct, T_ct_patient_truth() * p, 1.5, 6000.0);
+  write_volume(ct, (dir / "ct.nii.gz").string());
+  std::ofstream(dir / "boards.json")
+      << R"({"boards": [{"name": "patient", "grid": {"rows": 2, "cols": 3, "tag_size_mm": 40,
+         "gap_mm": 10, "first_id": 0}, "fiducials": [)"
+      << "[0,0,0],[120,0,5],[10,85,0],[95,70,25],[55,30,40],[140,95,10]]}]}";
+  const std::string out = (dir / "registration.yaml").string();
+  const std::string cmd = std::string(CREPUSCULAR_BINARY) + " register --ct " +
+                          (dir / "ct.nii.gz").string() + " --boards " +
+                          (dir / "boards.json").string() + " --save-ct-fiducials " +
+                          (dir / "beads.mrk.json").string() + " --out " + out + " > " +
+                          (dir / "log.txt").string() + " 2>&1";
+  ASSERT_EQ(std::system(cmd.c_str()), 0) << cmd;
+  const calibration::RegistrationRecord r = calibration::read_registration(out);
+  const Eigen::Isometry3d truth = T_ct_patient_truth();
+  EXPECT_LT((r.T_ct_patient.translation() - truth.translation()).norm(), 0.2);
+  EXPECT_LT(Eigen::AngleAxisd(r.T_ct_patient.linear().transpose() * truth.linear()).angle() * 180.0 /
+                kPi,
+            0.1);
+  EXPECT_EQ(r.fre_mm.size(), 6u);
+  EXPECT_EQ(read_fiducial_markups((dir / "beads.mrk.json").string()).size(), 6u);
+  fs::remove_all(dir);
 }
 
 TEST(Fiducials, NothingAboveThresholdGivesNoBeads) {
