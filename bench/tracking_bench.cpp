@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <ctime>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
 
@@ -24,6 +25,14 @@ using Clock = std::chrono::steady_clock;
 
 double ms_since(Clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
+// CPU time of the whole process (all threads), ms: less sensitive than wall time to other work on
+// a shared machine.
+double cpu_ms() {
+  timespec ts{};
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+  return ts.tv_sec * 1e3 + ts.tv_nsec * 1e-6;
 }
 
 double median(std::vector<double> v) {
@@ -94,18 +103,21 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
 
   // libapriltag alone, whole frame, on the grey image (no colour conversion counted).
   TagDetector detector(det);
-  std::vector<double> full_ms;
+  std::vector<double> full_ms, full_cpu;
   std::vector<size_t> full_count(frames);
   for (int r = 0; r < repeats; ++r) {
     const auto t0 = Clock::now();
+    const double c0 = cpu_ms();
     for (int i = 0; i < frames; ++i) full_count[i] = detector.detect(grey[i]).size();
     full_ms.push_back(ms_since(t0) / frames);
+    full_cpu.push_back((cpu_ms() - c0) / frames);
   }
 
   // Tracking (colour frames in: conversion, detection, poses, filter), and full-frame tracking.
   auto track = [&](int interval, std::vector<size_t>* counts, double* err_mm, int64_t* fulls,
-                   std::vector<double>* region_ms, std::vector<double>* frame_ms) {
-    std::vector<double> per;
+                   std::vector<double>* region_ms, std::vector<double>* frame_ms,
+                   double* cpu_per_frame) {
+    std::vector<double> per, cpu;
     for (int r = 0; r < repeats; ++r) {
       TrackerOptions o;
       o.detector = det;
@@ -113,6 +125,7 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
       Tracker tracker(scene.camera, boards, o);
       std::vector<double> errs;
       const auto t0 = Clock::now();
+      const double c0 = cpu_ms();
       for (int i = 0; i < frames; ++i) {
         const auto tf = Clock::now();
         const TrackResult res = tracker.process(seq[i]);
@@ -133,19 +146,24 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
         }
       }
       per.push_back(ms_since(t0) / frames);
+      cpu.push_back((cpu_ms() - c0) / frames);
       if (r == 0) {
         *err_mm = median(errs);
         *fulls = tracker.full_searches();
       }
     }
+    *cpu_per_frame = median(cpu);
     return median(per);
   };
   std::vector<size_t> roi_count(frames), fullt_count(frames);
   double roi_err = 0, fullt_err = 0;
   int64_t roi_fulls = 0, fullt_fulls = 0;
   std::vector<double> region_ms, roi_frame_ms, unused1, unused2;
-  const double roi_ms = track(full_every, &roi_count, &roi_err, &roi_fulls, &region_ms, &roi_frame_ms);
-  const double fullt_ms = track(0, &fullt_count, &fullt_err, &fullt_fulls, &unused1, &unused2);
+  double roi_cpu = 0, fullt_cpu = 0;
+  const double roi_ms =
+      track(full_every, &roi_count, &roi_err, &roi_fulls, &region_ms, &roi_frame_ms, &roi_cpu);
+  const double fullt_ms =
+      track(0, &fullt_count, &fullt_err, &fullt_fulls, &unused1, &unused2, &fullt_cpu);
 
   int64_t fewer = 0, det_full = 0, det_roi = 0;
   for (int i = 0; i < frames; ++i) {
@@ -169,6 +187,9 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
   j["tracking_slowest_frame_ms"] = *std::max_element(roi_frame_ms.begin(), roi_frame_ms.end());
   j["full_frame_tracking_ms"] = fullt_ms;
   j["speedup_vs_libapriltag_full_frame"] = full_med / roi_ms;
+  j["libapriltag_full_frame_cpu_ms"] = median(full_cpu);
+  j["tracking_cpu_ms"] = roi_cpu;
+  j["full_frame_tracking_cpu_ms"] = fullt_cpu;
   j["detections_full_frame"] = det_full;
   j["detections_tracking"] = det_roi;
   j["frames_with_fewer_detections_than_full_frame"] = fewer;
