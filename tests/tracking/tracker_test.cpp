@@ -5,6 +5,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -418,6 +419,44 @@ TEST(Tracker, SyntheticSourceWithCorruptDroppedAndOccludedFramesKeepsGoing) {
         << "frame " << i;
   }
   EXPECT_FALSE(by_frame[19].boards[1].tracked);
+}
+
+// `crepuscular synth` then `crepuscular track` on the recording, one frame's JPEG truncated on
+// disk: every row is tracked (the truncated frame holds the poses, 33 ms old) and the poses match
+// ground_truth.csv.
+TEST(TrackCommand, TracksASynthRecordingWithACorruptFrame) {
+  const std::filesystem::path dir = std::filesystem::temp_directory_path() /
+                                    ("track_cmd_" + std::to_string(::getpid()));
+  std::filesystem::remove_all(dir);
+  std::filesystem::create_directories(dir);
+  const std::string rec = (dir / "rec").string(), out = (dir / "poses.csv").string();
+  const std::string bin = CREPUSCULAR_BINARY;
+  ASSERT_EQ(std::system((bin + " synth --frames 12 --out " + rec + " > " + (dir / "synth.log").string() +
+                         " 2>&1").c_str()),
+            0);
+  const std::filesystem::path frame5 = std::filesystem::path(rec) / "frames" / "000005.jpg";
+  ASSERT_TRUE(std::filesystem::exists(frame5));
+  std::filesystem::resize_file(frame5, std::filesystem::file_size(frame5) / 2);
+  const std::string log = (dir / "track.log").string();
+  ASSERT_EQ(std::system((bin + " track --source recording:" + rec + " --out " + out + " > " + log +
+                         " 2>&1").c_str()),
+            0);
+  const std::vector<PoseRecord> poses = read_poses_csv(out);
+  const std::vector<PoseRecord> truth = read_poses_csv(rec + "/ground_truth.csv");
+  ASSERT_EQ(poses.size(), truth.size());
+  ASSERT_EQ(poses.size(), 24u);
+  std::vector<double> err;
+  for (size_t i = 0; i < poses.size(); ++i) {
+    EXPECT_EQ(poses[i].frame, truth[i].frame);
+    EXPECT_EQ(poses[i].board, truth[i].board);
+    EXPECT_TRUE(poses[i].tracked) << "row " << i;
+    if (poses[i].frame != 5) err.push_back(distance_mm(poses[i].T_cam_board, truth[i].T_cam_board));
+  }
+  EXPECT_LT(median(err), 0.5);
+  std::ifstream in(log);
+  const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  EXPECT_NE(text.find("frame 5:"), std::string::npos) << text;  // the problem is reported
+  std::filesystem::remove_all(dir);
 }
 
 TEST(PosesCsv, MalformedRowsAreErrorsNamingTheLine) {
