@@ -20,7 +20,8 @@ struct DetectorOptions {
   double blur_sigma = 0.0;          // Gaussian blur before quad detection (px); 0 = none
   double sharpening = 0.25;         // decode sharpening of libapriltag
   bool refine_edges = true;         // snap quad edges to strong gradients at full resolution
-  int max_hamming = 2;              // bits corrected at most (0..2); detections above are dropped
+  int max_hamming = 2;              // bits libapriltag may correct per tag (0..2); fewer: fewer
+                                    // false detections, more missed damaged tags
 };
 
 // One detected tag. corners are in libapriltag's order (apriltag_detection_t::p: counter-clockwise
