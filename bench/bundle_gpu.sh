@@ -4,14 +4,15 @@
 # registry). Then run, on the GPU machine: bash bench/run_gpu.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
-cmake -S . -B build-device -G Ninja -DCMAKE_BUILD_TYPE=Release -DCREPUSCULAR_CUDA=ON \
+build="${BUILD_DIR:-build-device}"
+cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DCREPUSCULAR_CUDA=ON \
   -DCMAKE_CUDA_ARCHITECTURES=90 >/dev/null
 targets=(path_safety_cuda_test path_safety_test path_safety_fast_test bench_path_safety
-         bench_sampling_rate crepuscular)
-cmake --build build-device -j "$(nproc)" --target "${targets[@]}"
+         bench_sampling_rate)
+cmake --build "$build" -j "$(nproc)" --target "${targets[@]}"
 rm -rf .device && mkdir -p .device/bin .device/lib
 for t in "${targets[@]}"; do
-  find build-device -type f -name "$t" -perm -u+x -exec cp {} .device/bin/ \;
+  find "$build" -type f -name "$t" -perm -u+x -exec cp {} .device/bin/ \;
 done
 # Shared libraries that are not part of every Linux system or the CUDA driver.
 for b in .device/bin/*; do

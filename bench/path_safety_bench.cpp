@@ -95,8 +95,13 @@ int main(int argc, char** argv) {
   app.add_option("--gpus", gpus, "CUDA devices (0: all visible)");
   app.add_option("--probe", probe, "ROI voxels probed to count samples");
   app.add_flag("--texture", texture, "CUDA: blocking in a 3D texture (hardware filtering)");
+  bool fast_texture = false;
+  app.add_flag("--fast-texture", fast_texture,
+               "CUDA: texture for fast mode only (exact keeps float filtering, the definition)");
   app.add_option("--mode", mode, "exact, fast, or both (fast compared with exact in full)");
   app.add_option("--angular", angular, "fast mode: angular oversampling");
+  int slots = 0;
+  app.add_option("--slots", slots, "fast mode on CUDA: direction tables per batch (0: auto)");
   CLI11_PARSE(app, argc, argv);
   spdlog::set_level(spdlog::level::warn);
 
@@ -170,6 +175,7 @@ int main(int argc, char** argv) {
       j["samples_estimated"] = samples;
       j["samples_per_second"] = samples / r.seconds;
     }
+    for (const auto& [phase, s] : r.phases) j["phases"][phase] = s;
     if (r.mode == Mode::kFast) {
       j["direction_cells"] = r.direction_cells;
       j["angular"] = angular;
@@ -189,18 +195,22 @@ int main(int argc, char** argv) {
   };
   o.fast_angular = angular;
   o.fast_check_voxels = 0;
+  o.cuda_fast_slots = slots;
   for (unsigned values : runs) {
     o.values = values;
     if (mode == "exact" || mode == "both") {
       o.mode = Mode::kExact;
+      o.cuda_texture = texture;
       const PathSafetyResult exact = compute_path_safety(blocking, tumor, o);
       report(exact, values, "exact", nullptr);
       if (mode == "both") {
         o.mode = Mode::kFast;
+        o.cuda_texture = texture || fast_texture;
         report(compute_path_safety(blocking, tumor, o), values, "fast", &exact);
       }
     } else {
       o.mode = Mode::kFast;
+      o.cuda_texture = texture || fast_texture;
       report(compute_path_safety(blocking, tumor, o), values, "fast", nullptr);
     }
   }

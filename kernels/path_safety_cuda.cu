@@ -209,24 +209,56 @@ __global__ void cast_directions_kernel(PathSafetyScene<float> scene, TableBatch 
                  int(cell / m), sampler);
 }
 
+// Voxel v of the cube in tiled order: tiles of 8 x 8 x 4 voxels (one thread block each), so that
+// the threads of a block look up neighbouring directions and distances of the tables. Returns
+// false outside the grid or the ball.
+__device__ bool tiled_voxel(const SlabGrid& grid, int64_t v, int& i, int& j, int& k) {
+  const int n = grid.n;
+  const int tiles_x = (n + 7) / 8, tiles_y = (n + 7) / 8;
+  const int64_t tile = v >> 8;
+  const int w = int(v & 255);
+  i = int(tile % tiles_x) * 8 + (w & 7);
+  j = int((tile / tiles_x) % tiles_y) * 8 + ((w >> 3) & 7);
+  k = int(tile / (int64_t(tiles_x) * tiles_y)) * 4 + (w >> 6);
+  if (i >= n || j >= n || k >= n) return false;
+  const long long di = i - grid.half, dj = j - grid.half, dk = k - grid.half;
+  return di * di + dj * dj + dk * dk <= grid.max_sq;
+}
+
+int64_t tiled_count(int n) {
+  return int64_t((n + 7) / 8) * ((n + 7) / 8) * ((n + 3) / 4) * 256;
+}
+
 template <unsigned Values>
 __global__ void combine_tables_kernel(PathSafetyScene<float> scene, TableBatch batch,
-                                      int first_point, int count, const uint32_t* __restrict__ roi,
-                                      int64_t roi_count, SlabGrid grid,
+                                      int first_point, int count, SlabGrid grid,
                                       VoxelState<float>* __restrict__ states) {
-  const int64_t v = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (v >= roi_count) return;
-  const uint32_t off = roi[v];
-  const int n = grid.n;
-  const Vec3<float> p = vec_cast<float>(grid_point(grid.origin, grid.axes, int(off % n),
-                                                    int((off / n) % n),
-                                                    int(off / (uint32_t(n) * n))));
-  VoxelState<float> state = states[v];
+  int i, j, k;
+  if (!tiled_voxel(grid, int64_t(blockIdx.x) * blockDim.x + threadIdx.x, i, j, k)) return;
+  const Vec3<float> p = vec_cast<float>(grid_point(grid.origin, grid.axes, i, j, k));
+  const size_t off = (size_t(k) * grid.n + j) * grid.n + i;
+  VoxelState<float> state = states[off];
   for (int slot = 0; slot < count; ++slot) {
     combine_from_table<float, Values>(state, scene, scene.surface[first_point + slot],
                                       slot_table(batch, slot), p);
   }
-  states[v] = state;
+  states[off] = state;
+}
+
+// FINALIZEVALUE of every voxel of the ball; the outputs were set to NaN beforehand.
+__global__ void finalize_kernel(SlabGrid grid, unsigned values, float s2,
+                                const VoxelState<float>* __restrict__ states,
+                                float* __restrict__ out0, float* __restrict__ out1,
+                                float* __restrict__ out2, float* __restrict__ out3) {
+  int i, j, k;
+  if (!tiled_voxel(grid, int64_t(blockIdx.x) * blockDim.x + threadIdx.x, i, j, k)) return;
+  const size_t off = (size_t(k) * grid.n + j) * grid.n + i;
+  float res[kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
+  finalize_values(states[off], values, s2, res);
+  if (out0) out0[off] = res[0];
+  if (out1) out1[off] = res[1];
+  if (out2) out2[off] = res[2];
+  if (out3) out3[off] = res[3];
 }
 
 }  // namespace
@@ -240,6 +272,15 @@ int cuda_device_count() {
   return count;
 }
 
+int cuda_warm_up() {
+  const int count = cuda_device_count();
+  for (int d = 0; d < count; ++d) {
+    if (cudaSetDevice(d) == cudaSuccess) cudaFree(nullptr);
+  }
+  cudaGetLastError();
+  return count;
+}
+
 namespace {
 
 std::string device_name(int d) {
@@ -247,24 +288,35 @@ std::string device_name(int d) {
   return cudaGetDeviceProperties(&prop, d) == cudaSuccess ? prop.name : "unknown";
 }
 
+double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+// Milliseconds between two recorded events.
+float event_ms(cudaEvent_t a, cudaEvent_t b) {
+  float ms = 0.0f;
+  check(cudaEventElapsedTime(&ms, a, b), "cudaEventElapsedTime");
+  return ms;
+}
+
+struct EventPair {
+  cudaEvent_t begin = nullptr, end = nullptr;
+  EventPair() {
+    check(cudaEventCreate(&begin), "cudaEventCreate");
+    check(cudaEventCreate(&end), "cudaEventCreate");
+  }
+  ~EventPair() {
+    cudaEventDestroy(begin);
+    cudaEventDestroy(end);
+  }
+};
+
 CudaRunReport run_fast(const PathSafetyScene<double>& host_scene, const OutputGridDesc& grid,
                        unsigned values, float* const out[kValueCount],
                        const CudaRunOptions& options, int devices) {
   const int n = grid.n;
-  // ROI voxels, compact (offsets < 2^32 since n <= 1625), in tiles of 8x8x4 voxels so that the
-  // threads of a block look up neighbouring directions and distances of the tables.
-  std::vector<uint32_t> roi;
-  for (int tk = 0; tk < n; tk += 4)
-    for (int tj = 0; tj < n; tj += 8)
-      for (int ti = 0; ti < n; ti += 8)
-        for (int k = tk; k < std::min(tk + 4, n); ++k)
-          for (int j = tj; j < std::min(tj + 8, n); ++j)
-            for (int i = ti; i < std::min(ti + 8, n); ++i) {
-              const int64_t di = i - grid.half, dj = j - grid.half, dk = k - grid.half;
-              if (di * di + dj * dj + dk * dk <= grid.max_sq)
-                roi.push_back(uint32_t((int64_t(k) * n + j) * n + i));
-            }
-  const int64_t roi_count = int64_t(roi.size());
+  const size_t voxels = size_t(n) * n * n;
+  const int64_t threads_total = tiled_count(n);
   const int points = host_scene.surface_count;
   const int m = options.fast_cells, radial = options.fast_radial;
   const size_t cells = size_t(m) * size_t(m);
@@ -272,30 +324,30 @@ CudaRunReport run_fast(const PathSafetyScene<double>& host_scene, const OutputGr
   const float h = float(std::sqrt(grid.axes[0][0] * grid.axes[0][0] +
                                   grid.axes[0][1] * grid.axes[0][1] +
                                   grid.axes[0][2] * grid.axes[0][2]));
+  // One device finalizes in place; several download their per-voxel sums and the host adds them.
   std::vector<std::vector<VoxelState<float>>> partial(static_cast<size_t>(devices));
   std::vector<std::exception_ptr> errors(static_cast<size_t>(devices));
   std::atomic<int> points_done{0};
   std::mutex progress_mutex;
+  double setup_s = 0, cast_s = 0, combine_s = 0, finish_s = 0;
   const auto t0 = std::chrono::steady_clock::now();
   const auto work = [&](int d) {
     try {
+      const auto td = std::chrono::steady_clock::now();
       check(cudaSetDevice(d), "cudaSetDevice");
       const int p0 = int(int64_t(points) * d / devices), p1 = int(int64_t(points) * (d + 1) / devices);
       if (p1 <= p0) return;
       DeviceScene ds(host_scene, options.storage);
-      DeviceBuffer<uint32_t> roi_dev{static_cast<size_t>(roi_count)};
-      check(cudaMemcpy(roi_dev.ptr, roi.data(), roi.size() * sizeof(uint32_t),
-                       cudaMemcpyHostToDevice),
-            "upload region of interest");
-      DeviceBuffer<VoxelState<float>> states{static_cast<size_t>(roi_count)};
-      check(cudaMemset(states.ptr, 0, size_t(roi_count) * sizeof(VoxelState<float>)),
-            "cudaMemset");
-      // As many tables at once as half the free memory holds (at most 16).
+      DeviceBuffer<VoxelState<float>> states{voxels};
+      check(cudaMemset(states.ptr, 0, voxels * sizeof(VoxelState<float>)), "cudaMemset");
+      // As many tables at once as half the free memory holds (at most 16, or as asked).
       size_t free_bytes = 0, total_bytes = 0;
       check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
       const size_t per_slot = cells * size_t(radial) * sizeof(float) * (moments ? 3 : 1) +
                               cells * sizeof(DirectionCrossing);
-      const int slots = int(std::max<size_t>(1, std::min<size_t>(16, free_bytes / 2 / per_slot)));
+      const size_t max_slots = options.fast_slots > 0 ? size_t(options.fast_slots) : 16;
+      const int slots =
+          int(std::max<size_t>(1, std::min<size_t>(max_slots, free_bytes / 2 / per_slot)));
       DeviceBuffer<float> c0(cells * radial * slots), c1, c2;
       if (moments) {
         c1.allocate(cells * radial * slots);
@@ -313,11 +365,18 @@ CudaRunReport run_fast(const PathSafetyScene<double>& host_scene, const OutputGr
         for (int b = 0; b < 3; ++b) g.axes[a][b] = grid.axes[a][b];
       }
       g.n = n;
+      g.half = grid.half;
+      g.max_sq = grid.max_sq;
+      check(cudaDeviceSynchronize(), "fast mode setup");
+      if (d == 0) setup_s = seconds_since(td);
+      EventPair cast_events, combine_events;
+      double cast_ms = 0, combine_ms = 0;
       with_value_set(values, [&](auto tag) {
         constexpr unsigned kValues = decltype(tag)::value;
         for (int p = p0; p < p1; p += slots) {
           const int count = std::min(slots, p1 - p);
           const dim3 cast_blocks(unsigned((cells + 255) / 256), unsigned(count));
+          check(cudaEventRecord(cast_events.begin), "cudaEventRecord");
           if (options.storage == BlockingStorage::kTexture) {
             cast_directions_kernel<<<cast_blocks, 256>>>(
                 ds.scene, batch, p, count, TextureSampler{ds.texture, ds.scene.blocking});
@@ -326,10 +385,15 @@ CudaRunReport run_fast(const PathSafetyScene<double>& host_scene, const OutputGr
                                                          GridSampler<float>{ds.scene.blocking});
           }
           check(cudaGetLastError(), "cast kernel launch");
-          combine_tables_kernel<kValues><<<unsigned((roi_count + 255) / 256), 256>>>(
-              ds.scene, batch, p, count, roi_dev.ptr, roi_count, g, states.ptr);
+          check(cudaEventRecord(cast_events.end), "cudaEventRecord");
+          check(cudaEventRecord(combine_events.begin), "cudaEventRecord");
+          combine_tables_kernel<kValues><<<unsigned(threads_total / 256), 256>>>(
+              ds.scene, batch, p, count, g, states.ptr);
           check(cudaGetLastError(), "combine kernel launch");
+          check(cudaEventRecord(combine_events.end), "cudaEventRecord");
           check(cudaDeviceSynchronize(), "fast path safety kernels");
+          cast_ms += event_ms(cast_events.begin, cast_events.end);
+          combine_ms += event_ms(combine_events.begin, combine_events.end);
           const int done = points_done += count;
           if (options.progress) {
             std::lock_guard<std::mutex> lock(progress_mutex);
@@ -337,10 +401,38 @@ CudaRunReport run_fast(const PathSafetyScene<double>& host_scene, const OutputGr
           }
         }
       });
-      partial[size_t(d)].resize(size_t(roi_count));
-      check(cudaMemcpy(partial[size_t(d)].data(), states.ptr,
-                       size_t(roi_count) * sizeof(VoxelState<float>), cudaMemcpyDeviceToHost),
-            "download states");
+      if (d == 0) {
+        cast_s = cast_ms * 1e-3;
+        combine_s = combine_ms * 1e-3;
+      }
+      const auto tf = std::chrono::steady_clock::now();
+      if (devices == 1) {
+        DeviceBuffer<float> results[kValueCount];
+        float* dev_out[kValueCount] = {nullptr, nullptr, nullptr, nullptr};
+        for (int v = 0; v < kValueCount; ++v) {
+          if (!(values & (1u << v))) continue;
+          results[v].allocate(voxels);
+          dev_out[v] = results[v].ptr;
+          check(cudaMemset(dev_out[v], 0xFF, voxels * sizeof(float)), "cudaMemset");  // NaN
+        }
+        finalize_kernel<<<unsigned(threads_total / 256), 256>>>(
+            g, values, float(host_scene.s2), states.ptr, dev_out[0], dev_out[1], dev_out[2],
+            dev_out[3]);
+        check(cudaGetLastError(), "finalize kernel launch");
+        check(cudaDeviceSynchronize(), "finalize kernel");
+        if (options.wait_for_outputs) options.wait_for_outputs();
+        for (int v = 0; v < kValueCount; ++v) {
+          if (!dev_out[v]) continue;
+          check(cudaMemcpy(out[v], dev_out[v], voxels * sizeof(float), cudaMemcpyDeviceToHost),
+                "download results");
+        }
+      } else {
+        partial[size_t(d)].resize(voxels);
+        check(cudaMemcpy(partial[size_t(d)].data(), states.ptr,
+                         voxels * sizeof(VoxelState<float>), cudaMemcpyDeviceToHost),
+              "download states");
+      }
+      if (d == 0) finish_s = seconds_since(tf);
     } catch (...) {
       errors[size_t(d)] = std::current_exception();
     }
@@ -351,34 +443,43 @@ CudaRunReport run_fast(const PathSafetyScene<double>& host_scene, const OutputGr
   for (auto& e : errors) {
     if (e) std::rethrow_exception(e);
   }
-  const double kernel_seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  // Sum the devices' partial states (counts and sums add), finalize, scatter.
-  const float nan = std::numeric_limits<float>::quiet_NaN();
-  for (int v = 0; v < kValueCount; ++v) {
-    if (out[v]) std::fill(out[v], out[v] + size_t(n) * n * n, nan);
-  }
-  for (int64_t r = 0; r < roi_count; ++r) {
-    VoxelState<float> sum{};
-    for (const auto& part : partial) {
-      if (part.empty()) continue;
-      const VoxelState<float>& s = part[size_t(r)];
-      sum.svv.visible += s.svv.visible;
-      sum.svv.clear += s.svv.clear;
-      sum.isbv.sum += s.isbv.sum;
-      sum.ivbv.sum += s.ivbv.sum;
-      sum.bvv.sum += s.bvv.sum;
+  if (devices > 1) {
+    // Sum the devices' partial states (counts and sums add), finalize.
+    const auto tf = std::chrono::steady_clock::now();
+    if (options.wait_for_outputs) options.wait_for_outputs();
+    const float nan = std::numeric_limits<float>::quiet_NaN();
+    for (int k = 0; k < n; ++k) {
+      for (int j = 0; j < n; ++j) {
+        for (int i = 0; i < n; ++i) {
+          const size_t off = (size_t(k) * n + j) * n + i;
+          const int64_t di = i - grid.half, dj = j - grid.half, dk = k - grid.half;
+          const bool inside = di * di + dj * dj + dk * dk <= grid.max_sq;
+          VoxelState<float> sum{};
+          for (const auto& part : partial) {
+            if (part.empty() || !inside) continue;
+            const VoxelState<float>& s = part[off];
+            sum.svv.visible += s.svv.visible;
+            sum.svv.clear += s.svv.clear;
+            sum.isbv.sum += s.isbv.sum;
+            sum.ivbv.sum += s.ivbv.sum;
+            sum.bvv.sum += s.bvv.sum;
+          }
+          float res[kValueCount] = {nan, nan, nan, nan};
+          if (inside) finalize_values(sum, values, float(host_scene.s2), res);
+          for (int v = 0; v < kValueCount; ++v) {
+            if (out[v]) out[v][off] = res[v];
+          }
+        }
+      }
     }
-    float res[kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
-    finalize_values(sum, values, float(host_scene.s2), res);
-    for (int v = 0; v < kValueCount; ++v) {
-      if (out[v]) out[v][roi[size_t(r)]] = res[v];
-    }
+    finish_s += seconds_since(tf);
   }
   CudaRunReport report;
   report.device_count = devices;
   report.devices = "cuda:" + device_name(0) + " x" + std::to_string(devices);
-  report.kernel_seconds = kernel_seconds;
+  report.kernel_seconds = seconds_since(t0);
+  report.phases = {{"setup", setup_s}, {"cast", cast_s}, {"combine", combine_s},
+                   {"finish", finish_s}};
   return report;
 }
 
@@ -410,6 +511,7 @@ CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& host_scene,
   }
 
   std::atomic<int64_t> slices_done{0};
+  std::once_flag outputs_ready;
   std::mutex progress_mutex;
   std::vector<std::exception_ptr> errors(static_cast<size_t>(devices));
   std::string names;
@@ -470,6 +572,7 @@ CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& host_scene,
           }
         }
       });
+      if (options.wait_for_outputs) std::call_once(outputs_ready, options.wait_for_outputs);
       for (int v = 0; v < kValueCount; ++v) {
         if (!dev_out[v]) continue;
         check(cudaMemcpy(out[v] + size_t(z0) * size_t(n) * size_t(n), dev_out[v],

@@ -5,6 +5,8 @@
 #include <cstdint>
 #include <functional>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "kernels/path_safety_math.hpp"
 
@@ -36,12 +38,18 @@ struct CudaRunOptions {
   // radial samples of the direction tables.
   int fast_cells = 0;
   int fast_radial = 0;
+  int fast_slots = 0;  // direction tables cast per batch; 0: as many as fit, at most 16
+  // Called once, before the first result is written to out[]: the caller may still be
+  // allocating the host arrays that out[] points to (it fills out[] here) while the kernels run.
+  std::function<void()> wait_for_outputs;
 };
 
 struct CudaRunReport {
   std::string devices;          // e.g. "cuda:NVIDIA H100 80GB HBM3 x1"
   int device_count = 0;
   double kernel_seconds = 0.0;  // wall time of the kernels, all devices together
+  // Where the time went on device 0 (fast mode: setup, cast, combine, finish), seconds.
+  std::vector<std::pair<std::string, double>> phases;
 };
 
 // Computes the requested values (bits of PathSafetyValue) for every voxel of the ball, in exact
@@ -50,6 +58,10 @@ struct CudaRunReport {
 // holds host pointers (blocking, tumor mask, surface points); out[slot] are host arrays of n^3
 // floats for the requested values (set to NaN outside the ball). Throws crepuscular::Error on a CUDA
 // failure.
+// Number of CUDA devices, after creating the context of each (the first CUDA call of a process
+// costs a good part of a second; callers overlap it with other work).
+int cuda_warm_up();
+
 CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& scene,
                                    const OutputGridDesc& grid, unsigned values,
                                    float* const out[kValueCount], const CudaRunOptions& options);

@@ -5,6 +5,8 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <array>
+#include <future>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -316,22 +318,22 @@ std::vector<uint8_t> blocking_bricks(const Volume<float>& blocking) {
   const int bx = kernels::bricks_along(int(d[0])), by = kernels::bricks_along(int(d[1])),
             bz = kernels::bricks_along(int(d[2]));
   std::vector<uint8_t> bricks(size_t(bx) * by * bz, 0);
-  // A voxel > 0 marks its own brick and, when it is the first of a brick along an axis, the
-  // brick before it (whose samples reach one voxel ahead).
-  for (int64_t k = 0; k < d[2]; ++k) {
-    for (int64_t j = 0; j < d[1]; ++j) {
-      for (int64_t i = 0; i < d[0]; ++i) {
-        if (blocking(i, j, k) == 0.0f) continue;
-        const int64_t b[3] = {i >> kernels::kBrickShift, j >> kernels::kBrickShift,
-                              k >> kernels::kBrickShift};
-        constexpr int64_t kMask = (1 << kernels::kBrickShift) - 1;
-        const bool first[3] = {(i & kMask) == 0, (j & kMask) == 0, (k & kMask) == 0};
-        for (int dz = first[2] ? -1 : 0; dz <= 0; ++dz)
-          for (int dy = first[1] ? -1 : 0; dy <= 0; ++dy)
-            for (int dx = first[0] ? -1 : 0; dx <= 0; ++dx) {
-              const int64_t x = b[0] + dx, y = b[1] + dy, z = b[2] + dz;
-              if (x >= 0 && y >= 0 && z >= 0) bricks[size_t((z * by + y) * bx + x)] = 1;
-            }
+  constexpr int64_t kSide = int64_t(1) << kernels::kBrickShift;
+  // A brick is marked when a voxel it covers, or the next voxel along an axis (the trilinear
+  // support of its samples), is > 0.
+#pragma omp parallel for collapse(2) schedule(dynamic, 4)
+  for (int z = 0; z < bz; ++z) {
+    for (int y = 0; y < by; ++y) {
+      for (int x = 0; x < bx; ++x) {
+        bool any = false;
+        for (int64_t k = z * kSide; !any && k <= std::min<int64_t>(z * kSide + kSide, d[2] - 1); ++k)
+          for (int64_t j = y * kSide; !any && j <= std::min<int64_t>(y * kSide + kSide, d[1] - 1); ++j)
+            for (int64_t i = x * kSide; i <= std::min<int64_t>(x * kSide + kSide, d[0] - 1); ++i)
+              if (blocking(i, j, k) != 0.0f) {
+                any = true;
+                break;
+              }
+        bricks[size_t((int64_t(z) * by + y) * bx + x)] = any ? 1 : 0;
       }
     }
   }
@@ -606,10 +608,25 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
     throw Error("--spacing: output spacing must be > 0 mm (got " +
                 std::to_string(options.spacing_mm) + ")");
   }
+#if defined(CREPUSCULAR_HAVE_CUDA)
+  // Starting CUDA takes a good part of a second; it overlaps the preparation on the host.
+  std::future<int> gpu_count =
+      std::async(options.device == Device::kCpu ? std::launch::deferred : std::launch::async,
+                 [] { return kernels::cuda_warm_up(); });
+#endif
+  const auto t_start = std::chrono::steady_clock::now();
+  auto t_phase = t_start;
+  std::vector<std::pair<std::string, double>> host_phases;
+  const auto phase_done = [&](const char* name) {
+    const auto now = std::chrono::steady_clock::now();
+    host_phases.emplace_back(name, std::chrono::duration<double>(now - t_phase).count());
+    t_phase = now;
+  };
   validate_blocking(blocking, blocking_source);
   const TumorSurface surface = extract_tumor_surface(tumor, tumor_source);
   check_tumor_inside_blocking(blocking, tumor, surface, blocking_source, tumor_source);
   const OutputGrid grid = make_output_grid(blocking, tumor, surface, options);
+  phase_done("prepare");
 
   int value_count = 0;
   for (int v = 0; v < kernels::kValueCount; ++v) value_count += (options.values >> v) & 1u;
@@ -638,16 +655,26 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   result.gamma_mm = 0.5 * grid.geometry.spacing[0];
   result.eps = options.eps;
   result.rays = uint64_t(grid.roi_voxels) * uint64_t(surface.points.size());
+  // The output volumes (NaN = not computed), one thread each: touching a few GB of fresh memory
+  // takes a good fraction of a second, which overlaps the GPU's work where there is one.
+  std::array<std::future<Volume<float>>, kernels::kValueCount> pending_volumes;
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (options.values & (1u << v)) {
-      result.volumes[size_t(v)] =
-          Volume<float>(grid.geometry, std::numeric_limits<float>::quiet_NaN());
+      pending_volumes[size_t(v)] = std::async(std::launch::async, [&grid] {
+        return Volume<float>(grid.geometry, std::numeric_limits<float>::quiet_NaN());
+      });
     }
   }
+  const auto collect_volumes = [&] {
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      if (pending_volumes[size_t(v)].valid())
+        result.volumes[size_t(v)] = pending_volumes[size_t(v)].get();
+    }
+  };
 
   Device device = options.device;
 #if defined(CREPUSCULAR_HAVE_CUDA)
-  const int gpus = kernels::cuda_device_count();
+  const int gpus = device == Device::kCpu ? 0 : gpu_count.get();
 #else
   const int gpus = 0;
 #endif
@@ -667,6 +694,7 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                device == Device::kCuda ? "cuda" : "cpu");
   const std::vector<uint8_t> bricks = blocking_bricks(blocking);
   const auto scene = make_scene(blocking, tumor, surface, result.gamma_mm, options.eps, bricks);
+  phase_done("bricks");
   if (device == Device::kCuda) {
 #if defined(CREPUSCULAR_HAVE_CUDA)
     kernels::OutputGridDesc desc{};
@@ -679,10 +707,17 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
     desc.half = int(grid.half);
     desc.max_sq = grid.max_sq;
     float* out[kernels::kValueCount] = {};
-    for (int v = 0; v < kernels::kValueCount; ++v) {
-      if (options.values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
-    }
     kernels::CudaRunOptions cuda;
+    cuda.wait_for_outputs = [&] {
+      const auto t = std::chrono::steady_clock::now();
+      collect_volumes();
+      for (int v = 0; v < kernels::kValueCount; ++v) {
+        if (options.values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
+      }
+      host_phases.emplace_back(
+          "allocate_wait",
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count());
+    };
     cuda.storage = options.cuda_texture ? kernels::BlockingStorage::kTexture
                                         : kernels::BlockingStorage::kGlobal;
     cuda.max_devices = options.max_gpus;
@@ -693,13 +728,18 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                                     radial, options.fast_angular);
       cuda.fast_cells = m;
       cuda.fast_radial = radial;
+      cuda.fast_slots = options.cuda_fast_slots;
       result.direction_cells = m;
     }
     const kernels::CudaRunReport report =
         kernels::run_path_safety_cuda(scene, desc, options.values, out, cuda);
+    collect_volumes();  // when the backend failed before asking for them
     result.device = report.devices + (options.cuda_texture ? " (texture)" : "");
+    result.phases = host_phases;
+    result.phases.insert(result.phases.end(), report.phases.begin(), report.phases.end());
 #endif
   } else {
+    collect_volumes();
     const int threads = options.threads > 0 ? options.threads : omp_get_max_threads();
     result.threads = threads;
     result.device = "cpu";

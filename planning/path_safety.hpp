@@ -7,6 +7,7 @@
 #include <cstdint>
 #include <functional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "kernels/path_safety_math.hpp"
@@ -49,6 +50,8 @@ struct PathSafetyOptions {
   double fast_angular = 5.0;
   // Fast mode: ROI voxels recomputed exactly afterwards to report the difference (0: none).
   int fast_check_voxels = 1000;
+  // Fast mode on CUDA: direction tables cast per batch (0: as many as fit, at most 16).
+  int cuda_fast_slots = 0;
   // Memory the output may take, bytes; 0: 80 % of the memory available now.
   uint64_t memory_limit_bytes = 0;
   // Called from the computing thread with the fraction done (0..1), about every 2 % of the work.
@@ -102,6 +105,8 @@ struct PathSafetyResult {
   std::string device;  // "cpu" or "cuda:<name>"
   int threads = 0;
   double seconds = 0.0;
+  // Where the time went (seconds), when the backend says: e.g. fast mode on CUDA.
+  std::vector<std::pair<std::string, double>> phases;
   uint64_t rays = 0;  // output voxels in the ROI x surface points
   // Fast mode: its difference from exact mode at `check_voxels` random ROI voxels (classes by
   // default_classes of the fast volume); empty in exact mode.
