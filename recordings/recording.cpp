@@ -23,18 +23,14 @@ namespace fs = std::filesystem;
 
 const char* const kPoseCsvHeader = "frame,timestamp_ns,board,state,tx,ty,tz,qw,qx,qy,qz,rms_px";
 
-namespace {
-
-constexpr const char* kFramesHeader = "frame,timestamp_ns,file";
-
-std::vector<std::string> split(const std::string& line, char sep) {
+std::vector<std::string> split_fields(const std::string& line, char sep) {
   std::vector<std::string> out;
   std::string cur;
   for (char c : line) {
     if (c == sep) {
       out.push_back(cur);
       cur.clear();
-    } else {
+    } else if (c != '\r') {
       cur += c;
     }
   }
@@ -60,6 +56,10 @@ bool parse_double(const std::string& s, double* v) {
   *v = x;
   return true;
 }
+
+namespace {
+
+constexpr const char* kFramesHeader = "frame,timestamp_ns,file";
 
 // Lines of a text file. `incomplete` is set when the last line lacks its newline (a writer was
 // interrupted in the middle of it); that line is not returned.
@@ -135,7 +135,7 @@ PoseCsv read_pose_csv(const std::string& path) {
   }
   for (size_t i = 1; i < lines.size(); ++i) {
     if (lines[i].empty()) continue;
-    const std::vector<std::string> f = split(lines[i], ',');
+    const std::vector<std::string> f = split_fields(lines[i], ',');
     PoseRow r;
     bool ok = f.size() == 12 && parse_int64(f[0], &r.frame) && parse_int64(f[1], &r.timestamp_ns);
     if (ok) {
@@ -296,7 +296,7 @@ RecordingReader::RecordingReader(const std::string& dir) : dir_(dir) {
   }
   for (size_t i = 1; i < lines.size(); ++i) {
     if (lines[i].empty()) continue;
-    const std::vector<std::string> f = split(lines[i], ',');
+    const std::vector<std::string> f = split_fields(lines[i], ',');
     Entry e;
     if (f.size() != 3 || !parse_int64(f[0], &e.frame) || !parse_int64(f[1], &e.timestamp_ns) ||
         f[2].empty()) {

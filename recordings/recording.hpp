@@ -45,6 +45,13 @@ extern const char* const kPoseCsvHeader;
 // One CSV line without the newline (mm to 1e-6, quaternion to 1e-12).
 std::string format_pose_row(const PoseRow& row);
 
+// CSV fields of one line split at `sep` (carriage returns dropped), and whole-field numbers
+// (false when the field is empty, has trailing text, overflows or is not finite). Shared by the
+// frame, truth and pose files.
+std::vector<std::string> split_fields(const std::string& line, char sep = ',');
+bool parse_int64(const std::string& text, int64_t* value);
+bool parse_double(const std::string& text, double* value);
+
 struct PoseCsv {
   std::vector<PoseRow> rows;
   std::vector<std::string> problems;  // rows skipped, each naming the file and line

@@ -3,15 +3,6 @@
 #include "tracking/board.hpp"
 
 #include <apriltag.h>
-#include <tag16h5.h>
-#include <tag25h9.h>
-#include <tag36h10.h>
-#include <tag36h11.h>
-#include <tagCircle21h7.h>
-#include <tagCircle49h12.h>
-#include <tagCustom48h12.h>
-#include <tagStandard41h12.h>
-#include <tagStandard52h13.h>
 #include <unistd.h>
 
 #include <cmath>
@@ -24,42 +15,13 @@
 #include <sstream>
 
 #include "kernels/error.hpp"
+#include "tracking/tag_family.hpp"
 
 namespace crepuscular::tracking {
 
 namespace {
 
 using nlohmann::json;
-
-struct FamilyEntry {
-  const char* name;
-  apriltag_family_t* (*create)();
-  void (*destroy)(apriltag_family_t*);
-};
-
-constexpr FamilyEntry kFamilies[] = {
-    {"tag36h11", tag36h11_create, tag36h11_destroy},
-    {"tag36h10", tag36h10_create, tag36h10_destroy},
-    {"tag25h9", tag25h9_create, tag25h9_destroy},
-    {"tag16h5", tag16h5_create, tag16h5_destroy},
-    {"tagCircle21h7", tagCircle21h7_create, tagCircle21h7_destroy},
-    {"tagCircle49h12", tagCircle49h12_create, tagCircle49h12_destroy},
-    {"tagStandard41h12", tagStandard41h12_create, tagStandard41h12_destroy},
-    {"tagStandard52h13", tagStandard52h13_create, tagStandard52h13_destroy},
-    {"tagCustom48h12", tagCustom48h12_create, tagCustom48h12_destroy},
-};
-
-// A libapriltag family, destroyed with its own function.
-using FamilyPtr = std::unique_ptr<apriltag_family_t, void (*)(apriltag_family_t*)>;
-
-FamilyPtr open_family(const std::string& name) {
-  for (const FamilyEntry& f : kFamilies) {
-    if (name == f.name) return FamilyPtr(f.create(), f.destroy);
-  }
-  std::string names;
-  for (const FamilyEntry& f : kFamilies) names += std::string(" ") + f.name;
-  throw Error("tag family '" + name + "' is unknown; expected one of" + names);
-}
 
 std::string where(const std::string& path, const std::string& field) {
   return path + ": " + field;
@@ -308,11 +270,11 @@ void write_boards(const std::string& path, const std::vector<Board>& boards) {
 }
 
 int tag_family_code_count(const std::string& family) {
-  return int(open_family(family)->ncodes);
+  return int(open_tag_family(family)->ncodes);
 }
 
 TagPattern tag_pattern(const std::string& family, int id) {
-  const FamilyPtr fam = open_family(family);
+  const TagFamilyPtr fam = open_tag_family(family);
   if (id < 0 || uint32_t(id) >= fam->ncodes) {
     throw Error("tag id " + std::to_string(id) + " is outside family " + family + " (0 to " +
                 std::to_string(fam->ncodes - 1) + ")");

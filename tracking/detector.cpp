@@ -2,21 +2,13 @@
 #include "tracking/detector.hpp"
 
 #include <apriltag.h>
-#include <tag16h5.h>
-#include <tag25h9.h>
-#include <tag36h10.h>
-#include <tag36h11.h>
-#include <tagCircle21h7.h>
-#include <tagCircle49h12.h>
-#include <tagCustom48h12.h>
-#include <tagStandard41h12.h>
-#include <tagStandard52h13.h>
 
 #include <algorithm>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
 #include "kernels/error.hpp"
+#include "tracking/tag_family.hpp"
 
 namespace crepuscular::tracking {
 
@@ -25,57 +17,22 @@ namespace {
 // Where libapriltag puts the centre of the top-left pixel (x and y).
 constexpr double kApriltagPixelCentre = 0.5;
 
-struct FamilyEntry {
-  const char* name;
-  apriltag_family_t* (*create)();
-  void (*destroy)(apriltag_family_t*);
-};
-
-constexpr FamilyEntry kFamilies[] = {
-    {"tag36h11", tag36h11_create, tag36h11_destroy},
-    {"tag36h10", tag36h10_create, tag36h10_destroy},
-    {"tag25h9", tag25h9_create, tag25h9_destroy},
-    {"tag16h5", tag16h5_create, tag16h5_destroy},
-    {"tagCircle21h7", tagCircle21h7_create, tagCircle21h7_destroy},
-    {"tagCircle49h12", tagCircle49h12_create, tagCircle49h12_destroy},
-    {"tagStandard41h12", tagStandard41h12_create, tagStandard41h12_destroy},
-    {"tagStandard52h13", tagStandard52h13_create, tagStandard52h13_destroy},
-    {"tagCustom48h12", tagCustom48h12_create, tagCustom48h12_destroy},
-};
-
-const FamilyEntry* find_family(const std::string& name) {
-  for (const FamilyEntry& f : kFamilies) {
-    if (name == f.name) return &f;
-  }
-  return nullptr;
-}
-
 }  // namespace
 
-std::vector<std::string> tag_family_names() {
-  std::vector<std::string> names;
-  for (const FamilyEntry& f : kFamilies) names.emplace_back(f.name);
-  return names;
-}
-
 struct TagDetector::Impl {
-  const FamilyEntry* entry = nullptr;
-  apriltag_family_t* family = nullptr;
-  apriltag_detector_t* detector = nullptr;
+  TagFamilyPtr family{nullptr, nullptr};
+  apriltag_detector_t* detector = nullptr;  // destroyed before the family it refers to
   ~Impl() {
     if (detector) apriltag_detector_destroy(detector);
-    if (family) entry->destroy(family);
   }
 };
 
 TagDetector::TagDetector(const DetectorOptions& options)
     : options_(options), impl_(std::make_unique<Impl>()) {
-  impl_->entry = find_family(options.family);
-  if (!impl_->entry) {
-    std::ostringstream names;
-    for (const std::string& n : tag_family_names()) names << " " << n;
-    throw Error("tag detector: family '" + options.family + "' is unknown; expected one of" +
-                names.str());
+  try {
+    impl_->family = open_tag_family(options.family);
+  } catch (const Error& e) {
+    throw Error(std::string("tag detector: ") + e.what());
   }
   if (!(options.decimate >= 1.0 && options.decimate <= 8.0)) {
     throw Error("tag detector: decimate " + std::to_string(options.decimate) +
@@ -89,9 +46,8 @@ TagDetector::TagDetector(const DetectorOptions& options)
     throw Error("tag detector: max_hamming " + std::to_string(options.max_hamming) +
                 " is out of range; expected 0 to 2");
   }
-  impl_->family = impl_->entry->create();
   impl_->detector = apriltag_detector_create();
-  apriltag_detector_add_family_bits(impl_->detector, impl_->family, options.max_hamming);
+  apriltag_detector_add_family_bits(impl_->detector, impl_->family.get(), options.max_hamming);
   impl_->detector->quad_decimate = static_cast<float>(options.decimate);
   impl_->detector->quad_sigma = static_cast<float>(options.blur_sigma);
   impl_->detector->nthreads = options.threads;

@@ -16,44 +16,6 @@
 
 namespace crepuscular::tracking {
 
-namespace {
-
-std::vector<std::string> split(const std::string& s, char sep) {
-  std::vector<std::string> out;
-  std::string cur;
-  for (char c : s) {
-    if (c == sep) {
-      out.push_back(cur);
-      cur.clear();
-    } else if (c != '\r') {
-      cur += c;
-    }
-  }
-  out.push_back(cur);
-  return out;
-}
-
-bool to_int64(const std::string& s, int64_t* v) {
-  if (s.empty()) return false;
-  char* end = nullptr;
-  errno = 0;
-  const long long x = std::strtoll(s.c_str(), &end, 10);
-  if (errno != 0 || end != s.c_str() + s.size()) return false;
-  *v = x;
-  return true;
-}
-
-bool to_double(const std::string& s, double* v) {
-  if (s.empty()) return false;
-  char* end = nullptr;
-  const double x = std::strtod(s.c_str(), &end);
-  if (end != s.c_str() + s.size() || !std::isfinite(x)) return false;
-  *v = x;
-  return true;
-}
-
-}  // namespace
-
 PoseRecord to_record(const TrackResult& result, const BoardStatus& status) {
   PoseRecord r;
   r.frame = result.frame;
@@ -153,14 +115,14 @@ std::vector<PoseRecord> read_poses_csv(const std::string& path) {
   while (std::getline(in, line)) {
     ++number;
     if (line.empty() || line == "\r") continue;
-    const std::vector<std::string> f = split(line, ',');
+    const std::vector<std::string> f = recordings::split_fields(line, ',');
     const std::string where = path + ": line " + std::to_string(number) + ": ";
     if (f.size() != 12) {
       throw Error(where + std::to_string(f.size()) + " fields, expected 12");
     }
     PoseRecord r;
-    if (!to_int64(f[0], &r.frame)) throw Error(where + "frame '" + f[0] + "' is not an integer");
-    if (!to_int64(f[1], &r.timestamp_ns)) {
+    if (!recordings::parse_int64(f[0], &r.frame)) throw Error(where + "frame '" + f[0] + "' is not an integer");
+    if (!recordings::parse_int64(f[1], &r.timestamp_ns)) {
       throw Error(where + "timestamp_ns '" + f[1] + "' is not an integer");
     }
     r.board = f[2];
@@ -171,7 +133,7 @@ std::vector<PoseRecord> read_poses_csv(const std::string& path) {
       double v[8];
       static const char* names[8] = {"tx", "ty", "tz", "qw", "qx", "qy", "qz", "rms_px"};
       for (int k = 0; k < 8; ++k) {
-        if (!to_double(f[size_t(4 + k)], &v[k])) {
+        if (!recordings::parse_double(f[size_t(4 + k)], &v[k])) {
           throw Error(where + names[k] + " '" + f[size_t(4 + k)] + "' is not a number");
         }
       }
