@@ -49,8 +49,9 @@ void add_demo_command(CLI::App& app) {
     req.out_dir = *out + "/plan";
     spdlog::info("demo: planning path safety in {} (radius {} mm)", req.out_dir, *radius);
     planning::run_plan(req);
-    spdlog::info("demo: done. Outputs: {}/phantom (ct, labels, tumor), {}/plan (path safety)", *out,
-                 *out);
+    spdlog::info("demo: done. Outputs: {}/phantom (ct, labels, tumor), {}/plan (path safety, area "
+                 "safety)",
+                 *out, *out);
   });
 }
 
