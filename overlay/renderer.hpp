@@ -1,0 +1,69 @@
+// Overlay renderer: draws the video frame as background and, on top of it, drawings given in the
+// camera frame (mm), projected with the calibrated camera model including its distortion, and
+// reads the result back as an image. OpenGL 3.3 core in a GLFW window (hidden when headless).
+//
+// Projection happens on the CPU per vertex with CameraModel::project(); segments are subdivided in
+// 3D so that no projected piece is longer than max_segment_px, which lets distortion bend them.
+// Parts of a polyline closer than near_mm to the camera plane are clipped away.
+#pragma once
+
+#include <Eigen/Core>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+#include "calibration/camera_model.hpp"
+
+namespace crepuscular::overlay {
+
+struct Polyline {
+  std::vector<Eigen::Vector3d> points_cam;  // camera frame, mm
+  cv::Scalar colour{0, 255, 0};             // BGR, 0..255
+  double width_px = 2.0;
+  bool closed = false;
+};
+
+struct RendererOptions {
+  bool visible = false;          // show the window (live use); hidden for headless output
+  double max_segment_px = 4.0;   // longest projected straight piece of a polyline
+  double near_mm = 1.0;          // drawings closer than this to the camera plane are clipped
+};
+
+class OverlayRenderer {
+ public:
+  // Creates the GL context and a framebuffer of the camera's image size. Throws Error when no
+  // OpenGL 3.3 core context can be made (no display, no driver).
+  explicit OverlayRenderer(const calibration::CameraModel& camera, RendererOptions options = {});
+  ~OverlayRenderer();
+  OverlayRenderer(const OverlayRenderer&) = delete;
+  OverlayRenderer& operator=(const OverlayRenderer&) = delete;
+
+  // Background video frame: CV_8UC3 BGR of the camera's image size. Throws Error otherwise.
+  void set_frame(const cv::Mat& bgr);
+
+  // Layers are named groups drawn in the order they were first used; all start visible.
+  void add_polyline(const std::string& layer, const Polyline& polyline);
+  // Dots at 3D points, each drawn as a bilinear splat of one pixel's footprint centred at the exact
+  // projected position (its intensity-weighted centroid is the projection, to sub-pixel accuracy).
+  void add_points(const std::string& layer, const std::vector<Eigen::Vector3d>& points_cam,
+                  const cv::Scalar& colour);
+  void clear_layer(const std::string& layer);
+  void set_layer_visible(const std::string& layer, bool visible);
+  bool layer_visible(const std::string& layer) const;
+  std::vector<std::string> layer_names() const;
+
+  // Draws everything and returns the image (CV_8UC3 BGR, image row order).
+  cv::Mat render();
+
+  const calibration::CameraModel& camera() const { return camera_; }
+
+ private:
+  struct Impl;
+  calibration::CameraModel camera_;
+  RendererOptions options_;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace crepuscular::overlay

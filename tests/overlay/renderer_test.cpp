@@ -1,0 +1,258 @@
+// Overlay renderer, run for real on an OpenGL 3.3 core context (Mesa llvmpipe under Xvfb).
+#include "overlay/renderer.hpp"
+
+#include <gtest/gtest.h>
+
+#include <chrono>
+#include <cmath>
+#include <iostream>
+#include <memory>
+#include <random>
+
+#include <opencv2/calib3d.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "kernels/error.hpp"
+
+namespace crepuscular::overlay {
+namespace {
+
+calibration::CameraModel test_camera(int width = 640, int height = 480) {
+  calibration::CameraModel cam;
+  cam.width = width;
+  cam.height = height;
+  cam.fx = 0.9 * width;
+  cam.fy = 0.92 * width;
+  cam.cx = width / 2.0 + 7.3;
+  cam.cy = height / 2.0 - 4.1;
+  cam.distortion = {-0.28, 0.09, 0.0012, -0.0009, -0.01};  // strong barrel distortion
+  return cam;
+}
+
+// A renderer, or nullptr when this machine cannot make an OpenGL 3.3 core context.
+std::unique_ptr<OverlayRenderer> make_renderer(const calibration::CameraModel& cam) {
+  try {
+    return std::make_unique<OverlayRenderer>(cam);
+  } catch (const Error& e) {
+    std::cerr << "no OpenGL context: " << e.what() << "\n";
+    return nullptr;
+  }
+}
+
+cv::Mat noise_frame(int width, int height, unsigned seed) {
+  cv::Mat frame(height, width, CV_8UC3);
+  cv::RNG rng(seed);
+  rng.fill(frame, cv::RNG::UNIFORM, 0, 256);
+  return frame;
+}
+
+cv::Mat differing(const cv::Mat& a, const cv::Mat& b) {
+  cv::Mat diff;
+  cv::absdiff(a, b, diff);
+  cv::Mat gray;
+  cv::transform(diff, gray, cv::Matx13f(1, 1, 1));
+  return gray > 0;
+}
+
+TEST(OverlayRenderer, DotsLandWhereOpenCvProjects) {
+  const auto cam = test_camera();
+  auto renderer = make_renderer(cam);
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context";
+  renderer->set_frame(cv::Mat::zeros(cam.height, cam.width, CV_8UC3));
+
+  // Known 3D points spread over the image, including the strongly distorted corners.
+  std::vector<Eigen::Vector3d> points;
+  std::vector<cv::Point3d> cv_points;
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-0.55, 0.55), depth(150, 400);
+  for (int i = 0; i < 40; ++i) {
+    const double z = depth(rng);
+    const Eigen::Vector3d p(u(rng) * z, u(rng) * z * 0.75, z);
+    points.push_back(p);
+    cv_points.emplace_back(p.x(), p.y(), p.z());
+  }
+  std::vector<cv::Point2d> expected;
+  cv::projectPoints(cv_points, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), cam.camera_matrix(),
+                    cam.distortion_coefficients(), expected);
+
+  int checked = 0;
+  for (size_t i = 0; i < points.size(); ++i) {
+    const cv::Point2d e = expected[i];
+    if (e.x < 3 || e.y < 3 || e.x > cam.width - 4 || e.y > cam.height - 4) continue;
+    renderer->clear_layer("dots");
+    renderer->add_points("dots", {points[i]}, cv::Scalar(255, 255, 255));
+    const cv::Mat image = renderer->render();
+    // Intensity-weighted centroid of the drawn pixels around the expectation.
+    double sum = 0, sx = 0, sy = 0;
+    int lit = 0;
+    for (int y = 0; y < image.rows; ++y)
+      for (int x = 0; x < image.cols; ++x) {
+        const double v = image.at<cv::Vec3b>(y, x)[1];
+        if (v == 0) continue;
+        ++lit;
+        sum += v;
+        sx += v * x;
+        sy += v * y;
+      }
+    ASSERT_GT(sum, 0) << "dot " << i << " not drawn";
+    EXPECT_LE(lit, 4) << "a dot covers at most 2x2 pixels";
+    const cv::Point2d c(sx / sum, sy / sum);
+    EXPECT_LT(cv::norm(c - e), 0.5) << "dot " << i << " at " << c << ", OpenCV says " << e;
+    EXPECT_LT(cv::norm(c - e), 0.05) << "dot " << i << " at " << c << ", OpenCV says " << e;
+    ++checked;
+  }
+  EXPECT_GE(checked, 30);
+}
+
+TEST(OverlayRenderer, BackgroundUnchangedWhereNothingIsDrawn) {
+  const auto cam = test_camera();
+  auto renderer = make_renderer(cam);
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context";
+  const cv::Mat frame = noise_frame(cam.width, cam.height, 3);
+  renderer->set_frame(frame);
+  const cv::Mat bare = renderer->render();
+  EXPECT_EQ(cv::norm(bare, frame, cv::NORM_INF), 0) << "background alone must be the frame";
+
+  Polyline square;
+  square.points_cam = {{-40, -30, 300}, {40, -30, 300}, {40, 30, 300}, {-40, 30, 300}};
+  square.closed = true;
+  square.width_px = 3;
+  square.colour = cv::Scalar(0, 0, 255);
+  renderer->add_polyline("outline", square);
+  const cv::Mat drawn = renderer->render();
+  const cv::Mat changed = differing(drawn, frame);
+  const int changed_count = cv::countNonZero(changed);
+  EXPECT_GT(changed_count, 4 * 60 * 3) << "the square's outline was drawn";
+  // Away from the outline (its projected vertices' bounding box grown by 4 px), nothing changed.
+  std::vector<cv::Point2f> corners;
+  for (const auto& p : square.points_cam) {
+    const auto px = cam.project(p);
+    corners.emplace_back(static_cast<float>(px.x()), static_cast<float>(px.y()));
+  }
+  cv::Rect box = cv::boundingRect(corners);
+  box -= cv::Point(5, 5);
+  box += cv::Size(10, 10);
+  cv::Mat outside = changed.clone();
+  outside(box).setTo(0);
+  EXPECT_EQ(cv::countNonZero(outside), 0);
+  // Drawn pixels are the line colour exactly.
+  for (int y = 0; y < drawn.rows; ++y)
+    for (int x = 0; x < drawn.cols; ++x)
+      if (changed.at<uchar>(y, x)) {
+        ASSERT_EQ(drawn.at<cv::Vec3b>(y, x), cv::Vec3b(0, 0, 255)) << x << "," << y;
+      }
+}
+
+TEST(OverlayRenderer, DistortionBendsLongLines) {
+  const auto cam = test_camera();
+  auto renderer = make_renderer(cam);
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context";
+  renderer->set_frame(cv::Mat::zeros(cam.height, cam.width, CV_8UC3));
+  // A long straight edge near the top of the image: barrel distortion bows it.
+  Polyline edge;
+  edge.points_cam = {{-150, -105, 300}, {150, -105, 300}};
+  edge.width_px = 1;
+  edge.colour = cv::Scalar(255, 255, 255);
+  renderer->add_polyline("edge", edge);
+  const cv::Mat image = renderer->render();
+  double max_bow = 0;
+  for (double t = 0.05; t < 0.96; t += 0.05) {
+    const Eigen::Vector3d p = edge.points_cam[0] + t * (edge.points_cam[1] - edge.points_cam[0]);
+    const Eigen::Vector2d px = cam.project(p);
+    const int x = static_cast<int>(std::lround(px.x())), y = static_cast<int>(std::lround(px.y()));
+    ASSERT_TRUE(x >= 0 && y >= 0 && x < cam.width && y < cam.height);
+    EXPECT_GT(image.at<cv::Vec3b>(y, x)[0], 0) << "curve point t=" << t << " at " << px.transpose();
+    // Distance to the chord between the projected end points.
+    const Eigen::Vector2d a = cam.project(edge.points_cam[0]), b = cam.project(edge.points_cam[1]);
+    const Eigen::Vector2d d = (b - a).normalized();
+    max_bow = std::max(max_bow, std::abs((px - a).x() * d.y() - (px - a).y() * d.x()));
+  }
+  EXPECT_GT(max_bow, 10.0) << "the test line must be visibly bent for this test to mean anything";
+}
+
+TEST(OverlayRenderer, TogglingALayerChangesExactlyItsPixels) {
+  const auto cam = test_camera();
+  auto renderer = make_renderer(cam);
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context";
+  const cv::Mat frame = noise_frame(cam.width, cam.height, 11);
+  renderer->set_frame(frame);
+
+  Polyline a;  // first layer: a diagonal
+  a.points_cam = {{-80, -60, 250}, {80, 60, 250}};
+  a.width_px = 5;
+  a.colour = cv::Scalar(0, 255, 0);
+  Polyline b;  // second layer, drawn on top and crossing the first
+  b.points_cam = {{-80, 60, 250}, {0, 0, 250}, {80, -60, 250}};
+  b.width_px = 7;
+  b.colour = cv::Scalar(255, 0, 255);
+  renderer->add_polyline("first", a);
+  renderer->add_polyline("second", b);
+
+  const cv::Mat both = renderer->render();
+  renderer->set_layer_visible("first", false);
+  EXPECT_FALSE(renderer->layer_visible("first"));
+  const cv::Mat without_first = renderer->render();
+  renderer->set_layer_visible("second", false);
+  const cv::Mat neither = renderer->render();
+  renderer->set_layer_visible("first", true);
+  const cv::Mat only_first = renderer->render();
+  renderer->set_layer_visible("second", true);
+  EXPECT_EQ(cv::norm(renderer->render(), both, cv::NORM_INF), 0) << "back on: same image";
+
+  EXPECT_EQ(cv::norm(neither, frame, cv::NORM_INF), 0);
+  const cv::Mat first_pixels = differing(only_first, frame);
+  const cv::Mat second_pixels = differing(without_first, frame);
+  ASSERT_GT(cv::countNonZero(first_pixels), 500);
+  ASSERT_GT(cv::countNonZero(second_pixels), 500);
+  // Turning "first" off changes exactly its pixels, except where "second" covers them.
+  cv::Mat expected = first_pixels & ~second_pixels;
+  const cv::Mat changed = differing(both, without_first);
+  EXPECT_EQ(cv::countNonZero(changed ^ expected), 0);
+  EXPECT_GT(cv::countNonZero(first_pixels & second_pixels), 0) << "the layers must overlap";
+}
+
+TEST(OverlayRenderer, RejectsFrameOfWrongSize) {
+  const auto cam = test_camera();
+  auto renderer = make_renderer(cam);
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context";
+  EXPECT_THROW(renderer->set_frame(cv::Mat::zeros(100, 100, CV_8UC3)), Error);
+  EXPECT_THROW(renderer->set_frame(cv::Mat::zeros(cam.height, cam.width, CV_8UC1)), Error);
+}
+
+// Frame time of upload + render + readback on this machine's OpenGL (reported, not asserted).
+TEST(OverlayRenderer, FrameTime) {
+  for (const auto& size : {cv::Size(1280, 720), cv::Size(1920, 1080)}) {
+    const auto cam = test_camera(size.width, size.height);
+    auto renderer = make_renderer(cam);
+    if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context";
+    const cv::Mat frame = noise_frame(size.width, size.height, 5);
+    for (int i = 0; i < 50; ++i) {  // 50 circles of 64 vertices
+      Polyline ring;
+      for (int k = 0; k < 64; ++k) {
+        const double ang = 2 * M_PI * k / 64;
+        ring.points_cam.emplace_back(-100 + 4 * i + 20 * std::cos(ang), 20 * std::sin(ang),
+                                     300 + i);
+      }
+      ring.closed = true;
+      ring.width_px = 3;
+      renderer->add_polyline(i % 2 ? "odd" : "even", ring);
+    }
+    renderer->set_frame(frame);
+    renderer->render();  // warm-up
+    const int n = 20;
+    const auto t0 = std::chrono::steady_clock::now();
+    for (int i = 0; i < n; ++i) {
+      renderer->set_frame(frame);
+      const cv::Mat image = renderer->render();
+      ASSERT_EQ(image.cols, size.width);
+    }
+    const double ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / n;
+    std::cout << "frame time (upload + render + readback) " << size.width << "x" << size.height
+              << ": " << ms << " ms\n";
+    RecordProperty("frame_ms_" + std::to_string(size.width), std::to_string(ms));
+  }
+}
+
+}  // namespace
+}  // namespace crepuscular::overlay
