@@ -255,6 +255,12 @@ OverlayRenderer::~OverlayRenderer() {
   glfw_release();
 }
 
+std::string OverlayRenderer::gl_description() const {
+  glfwMakeContextCurrent(impl_->window);
+  return std::string(reinterpret_cast<const char*>(glGetString(GL_RENDERER))) + " / " +
+         reinterpret_cast<const char*>(glGetString(GL_VERSION));
+}
+
 void OverlayRenderer::set_frame(const cv::Mat& bgr) {
   if (bgr.type() != CV_8UC3 || bgr.cols != camera_.width || bgr.rows != camera_.height) {
     throw Error("overlay renderer: video frame must be 8-bit BGR of " +

@@ -58,6 +58,8 @@ class OverlayRenderer {
   cv::Mat render();
 
   const calibration::CameraModel& camera() const { return camera_; }
+  // The OpenGL implementation in use, e.g. "llvmpipe (LLVM 15.0.6, 256 bits) / 4.5 (Core Profile)".
+  std::string gl_description() const;
 
  private:
   struct Impl;
