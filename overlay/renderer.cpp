@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <functional>
 #include <mutex>
 
 #include <opencv2/core.hpp>
@@ -73,10 +74,12 @@ void main() {
 const char* kBackgroundFragment = R"(#version 330 core
 uniform sampler2D frame;
 uniform vec2 size;
+uniform float with_alpha;  // 0: opaque video frame; 1: image layer with its own alpha
 out vec4 out_colour;
 void main() {
   ivec2 texel = ivec2(int(gl_FragCoord.x), int(size.y) - 1 - int(gl_FragCoord.y));
-  out_colour = vec4(texelFetch(frame, texel, 0).rgb, 1.0);
+  vec4 c = texelFetch(frame, texel, 0);
+  out_colour = vec4(c.rgb, with_alpha > 0.5 ? c.a : 1.0);
 }
 )";
 
@@ -141,10 +144,10 @@ void glfw_release() {
 }
 
 Vertex make_vertex(const Eigen::Vector2d& p, const cv::Scalar& bgr, const Eigen::Vector2d& centre,
-                   float mode) {
+                   float mode, double opacity = 1.0) {
   return Vertex{static_cast<float>(p.x()),         static_cast<float>(p.y()),
                 static_cast<float>(bgr[2] / 255.0), static_cast<float>(bgr[1] / 255.0),
-                static_cast<float>(bgr[0] / 255.0), 1.0f,
+                static_cast<float>(bgr[0] / 255.0), static_cast<float>(std::clamp(opacity, 0.0, 1.0)),
                 static_cast<float>(centre.x()),     static_cast<float>(centre.y()),
                 mode};
 }
@@ -155,6 +158,22 @@ void push_quad(std::vector<Vertex>& out, const Vertex& a, const Vertex& b, const
   out.insert(out.end(), {a, b, c, a, c, d});
 }
 
+// A straight piece a -> b of a line of half width `half`, with square caps of half the width that
+// close the joints between pieces.
+void push_piece(std::vector<Vertex>& out, const Eigen::Vector2d& a, const Eigen::Vector2d& b,
+                double half, const cv::Scalar& colour, double opacity) {
+  Eigen::Vector2d dir = b - a;
+  const double n = dir.norm();
+  dir = n > 1e-9 ? Eigen::Vector2d(dir / n) : Eigen::Vector2d(1, 0);
+  const Eigen::Vector2d normal(-dir.y(), dir.x());
+  const Eigen::Vector2d s0 = a - dir * half, s1 = b + dir * half;
+  const Eigen::Vector2d zero(0, 0);
+  push_quad(out, make_vertex(s0 + normal * half, colour, zero, 0, opacity),
+            make_vertex(s1 + normal * half, colour, zero, 0, opacity),
+            make_vertex(s1 - normal * half, colour, zero, 0, opacity),
+            make_vertex(s0 - normal * half, colour, zero, 0, opacity));
+}
+
 }  // namespace
 
 struct OverlayRenderer::Impl {
@@ -162,8 +181,12 @@ struct OverlayRenderer::Impl {
     std::string name;
     bool visible = true;
     std::vector<Vertex> vertices;
+    std::function<void(const DrawContext&)> draw;
+    GLuint image_texture = 0;
+    bool has_image = false;
   };
   GLFWwindow* window = nullptr;
+  std::vector<int> keys;  // pressed since the last poll_keys()
   GLuint fbo = 0, colour_rb = 0, frame_texture = 0;
   GLuint shape_program = 0, background_program = 0;
   GLuint vao = 0, vbo = 0;
@@ -173,7 +196,8 @@ struct OverlayRenderer::Impl {
   Layer& layer(const std::string& name) {
     for (auto& l : layers)
       if (l.name == name) return l;
-    layers.push_back(Layer{name, true, {}});
+    layers.push_back(Layer{});
+    layers.back().name = name;
     return layers.back();
   }
   const Layer* find(const std::string& name) const {
@@ -203,6 +227,10 @@ OverlayRenderer::OverlayRenderer(const calibration::CameraModel& camera, Rendere
                 ")");
   }
   glfwMakeContextCurrent(impl_->window);
+  glfwSetWindowUserPointer(impl_->window, impl_.get());
+  glfwSetKeyCallback(impl_->window, [](GLFWwindow* w, int key, int, int action, int) {
+    if (action == GLFW_PRESS) static_cast<Impl*>(glfwGetWindowUserPointer(w))->keys.push_back(key);
+  });
   spdlog::debug("overlay renderer: {} / {}", reinterpret_cast<const char*>(glGetString(GL_RENDERER)),
                 reinterpret_cast<const char*>(glGetString(GL_VERSION)));
 
@@ -249,6 +277,8 @@ OverlayRenderer::~OverlayRenderer() {
   glDeleteProgram(impl_->shape_program);
   glDeleteProgram(impl_->background_program);
   glDeleteTextures(1, &impl_->frame_texture);
+  for (auto& l : impl_->layers)
+    if (l.image_texture) glDeleteTextures(1, &l.image_texture);
   glDeleteFramebuffers(1, &impl_->fbo);
   glDeleteRenderbuffers(1, &impl_->colour_rb);
   glfwDestroyWindow(impl_->window);
@@ -303,17 +333,7 @@ void OverlayRenderer::add_polyline(const std::string& layer_name, const Polyline
     for (int i = 1; i <= pieces; ++i) {
       const Eigen::Vector2d next =
           i == pieces ? b : camera_.project(p + (q - p) * (static_cast<double>(i) / pieces));
-      Eigen::Vector2d dir = next - prev;
-      const double n = dir.norm();
-      dir = n > 1e-9 ? Eigen::Vector2d(dir / n) : Eigen::Vector2d(1, 0);
-      const Eigen::Vector2d normal(-dir.y(), dir.x());
-      // Square caps of half the width close the joints between pieces.
-      const Eigen::Vector2d s0 = prev - dir * half, s1 = next + dir * half;
-      const Eigen::Vector2d zero(0, 0);
-      push_quad(out, make_vertex(s0 + normal * half, polyline.colour, zero, 0),
-                make_vertex(s1 + normal * half, polyline.colour, zero, 0),
-                make_vertex(s1 - normal * half, polyline.colour, zero, 0),
-                make_vertex(s0 - normal * half, polyline.colour, zero, 0));
+      push_piece(out, prev, next, half, polyline.colour, polyline.opacity);
       prev = next;
     }
   }
@@ -335,8 +355,58 @@ void OverlayRenderer::add_points(const std::string& layer_name,
   }
 }
 
-void OverlayRenderer::clear_layer(const std::string& layer) {
-  impl_->layer(layer).vertices.clear();
+void OverlayRenderer::add_polyline_px(const std::string& layer_name,
+                                      const std::vector<Eigen::Vector2d>& points_px,
+                                      const cv::Scalar& colour, double width_px, bool closed,
+                                      double opacity) {
+  auto& out = impl_->layer(layer_name).vertices;
+  if (points_px.size() < 2) return;
+  const double half = std::max(0.5, width_px / 2.0);
+  const size_t segments = closed ? points_px.size() : points_px.size() - 1;
+  for (size_t s = 0; s < segments; ++s) {
+    const Eigen::Vector2d& a = points_px[s];
+    const Eigen::Vector2d& b = points_px[(s + 1) % points_px.size()];
+    if (a.allFinite() && b.allFinite()) push_piece(out, a, b, half, colour, opacity);
+  }
+}
+
+void OverlayRenderer::set_layer_image(const std::string& layer_name, const cv::Mat& bgra) {
+  auto& layer = impl_->layer(layer_name);
+  if (bgra.empty()) {
+    layer.has_image = false;
+    return;
+  }
+  if (bgra.type() != CV_8UC4 || bgra.cols != camera_.width || bgra.rows != camera_.height) {
+    throw Error("overlay renderer: layer image of '" + layer_name + "' must be 8-bit BGRA of " +
+                std::to_string(camera_.width) + "x" + std::to_string(camera_.height));
+  }
+  const cv::Mat contiguous = bgra.isContinuous() ? bgra : bgra.clone();
+  glfwMakeContextCurrent(impl_->window);
+  if (!layer.image_texture) {
+    glGenTextures(1, &layer.image_texture);
+    glBindTexture(GL_TEXTURE_2D, layer.image_texture);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+    glTexImage2D(GL_TEXTURE_2D, 0, GL_RGBA8, camera_.width, camera_.height, 0, GL_BGRA,
+                 GL_UNSIGNED_BYTE, nullptr);
+  }
+  glBindTexture(GL_TEXTURE_2D, layer.image_texture);
+  glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
+  glTexSubImage2D(GL_TEXTURE_2D, 0, 0, 0, camera_.width, camera_.height, GL_BGRA,
+                  GL_UNSIGNED_BYTE, contiguous.data);
+  layer.has_image = true;
+}
+
+void OverlayRenderer::set_layer_draw(const std::string& layer,
+                                     std::function<void(const DrawContext&)> draw) {
+  impl_->layer(layer).draw = std::move(draw);
+}
+
+void OverlayRenderer::clear_layer(const std::string& layer_name) {
+  auto& layer = impl_->layer(layer_name);
+  layer.vertices.clear();
+  layer.has_image = false;
+  layer.draw = nullptr;
 }
 
 void OverlayRenderer::set_layer_visible(const std::string& layer, bool visible) {
@@ -354,7 +424,7 @@ std::vector<std::string> OverlayRenderer::layer_names() const {
   return names;
 }
 
-cv::Mat OverlayRenderer::render() {
+void OverlayRenderer::draw() {
   glfwMakeContextCurrent(impl_->window);
   glBindFramebuffer(GL_FRAMEBUFFER, impl_->fbo);
   glViewport(0, 0, camera_.width, camera_.height);
@@ -371,23 +441,74 @@ cv::Mat OverlayRenderer::render() {
     glBindTexture(GL_TEXTURE_2D, impl_->frame_texture);
     glUniform1i(glGetUniformLocation(impl_->background_program, "frame"), 0);
     glUniform2f(glGetUniformLocation(impl_->background_program, "size"), w, h);
+    glUniform1f(glGetUniformLocation(impl_->background_program, "with_alpha"), 0.0f);
     glDrawArrays(GL_TRIANGLES, 0, 3);
   }
 
-  std::vector<Vertex> all;
-  for (const auto& l : impl_->layers)
-    if (l.visible) all.insert(all.end(), l.vertices.begin(), l.vertices.end());
-  if (!all.empty()) {
-    glEnable(GL_BLEND);
-    glBlendFunc(GL_SRC_ALPHA, GL_ONE_MINUS_SRC_ALPHA);
-    glUseProgram(impl_->shape_program);
-    glUniform2f(glGetUniformLocation(impl_->shape_program, "size"), w, h);
-    glBindBuffer(GL_ARRAY_BUFFER, impl_->vbo);
-    glBufferData(GL_ARRAY_BUFFER, static_cast<GLsizeiptr>(all.size() * sizeof(Vertex)),
-                 all.data(), GL_STREAM_DRAW);
-    glDrawArrays(GL_TRIANGLES, 0, static_cast<GLsizei>(all.size()));
+  // Layer by layer, in order: its own drawing step, its shapes, its image.
+  glEnable(GL_BLEND);
+  glBlendFunc(GL_SRC_ALPHA, GL_ONE_MINUS_SRC_ALPHA);
+  const DrawContext context{camera_, camera_.width, camera_.height};
+  for (const auto& l : impl_->layers) {
+    if (!l.visible) continue;
+    if (l.draw) {
+      l.draw(context);
+      glBindFramebuffer(GL_FRAMEBUFFER, impl_->fbo);
+      glViewport(0, 0, camera_.width, camera_.height);
+      glEnable(GL_BLEND);
+      glBlendFunc(GL_SRC_ALPHA, GL_ONE_MINUS_SRC_ALPHA);
+      glBindVertexArray(impl_->vao);
+    }
+    if (!l.vertices.empty()) {
+      glUseProgram(impl_->shape_program);
+      glUniform2f(glGetUniformLocation(impl_->shape_program, "size"), w, h);
+      glBindBuffer(GL_ARRAY_BUFFER, impl_->vbo);
+      glBufferData(GL_ARRAY_BUFFER, static_cast<GLsizeiptr>(l.vertices.size() * sizeof(Vertex)),
+                   l.vertices.data(), GL_STREAM_DRAW);
+      glDrawArrays(GL_TRIANGLES, 0, static_cast<GLsizei>(l.vertices.size()));
+    }
+    if (l.has_image) {
+      glUseProgram(impl_->background_program);
+      glActiveTexture(GL_TEXTURE0);
+      glBindTexture(GL_TEXTURE_2D, l.image_texture);
+      glUniform1i(glGetUniformLocation(impl_->background_program, "frame"), 0);
+      glUniform2f(glGetUniformLocation(impl_->background_program, "size"), w, h);
+      glUniform1f(glGetUniformLocation(impl_->background_program, "with_alpha"), 1.0f);
+      glDrawArrays(GL_TRIANGLES, 0, 3);
+    }
   }
+  const GLenum err = glGetError();
+  if (err != GL_NO_ERROR) {
+    throw Error("overlay renderer: OpenGL error " + std::to_string(err) + " while drawing");
+  }
+}
 
+bool OverlayRenderer::present() {
+  glfwMakeContextCurrent(impl_->window);
+  int fw = 0, fh = 0;
+  glfwGetFramebufferSize(impl_->window, &fw, &fh);
+  glBindFramebuffer(GL_READ_FRAMEBUFFER, impl_->fbo);
+  glBindFramebuffer(GL_DRAW_FRAMEBUFFER, 0);
+  glDrawBuffer(GL_BACK);
+  glBlitFramebuffer(0, 0, camera_.width, camera_.height, 0, 0, fw, fh, GL_COLOR_BUFFER_BIT,
+                    (fw == camera_.width && fh == camera_.height) ? GL_NEAREST : GL_LINEAR);
+  glBindFramebuffer(GL_FRAMEBUFFER, impl_->fbo);
+  glfwSwapBuffers(impl_->window);
+  glfwPollEvents();
+  return !glfwWindowShouldClose(impl_->window);
+}
+
+std::vector<int> OverlayRenderer::poll_keys() {
+  glfwPollEvents();
+  std::vector<int> keys;
+  keys.swap(impl_->keys);
+  return keys;
+}
+
+cv::Mat OverlayRenderer::render() {
+  draw();
+  glfwMakeContextCurrent(impl_->window);
+  glBindFramebuffer(GL_FRAMEBUFFER, impl_->fbo);
   cv::Mat flipped(camera_.height, camera_.width, CV_8UC3);
   glPixelStorei(GL_PACK_ALIGNMENT, 1);
   glReadBuffer(GL_COLOR_ATTACHMENT0);

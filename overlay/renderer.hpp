@@ -8,6 +8,8 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -23,6 +25,16 @@ struct Polyline {
   cv::Scalar colour{0, 255, 0};             // BGR, 0..255
   double width_px = 2.0;
   bool closed = false;
+  double opacity = 1.0;  // 0..1, blended over what is below
+};
+
+// What a layer's custom drawing step (set_layer_draw) gets: the renderer's OpenGL context is
+// current, its off-screen framebuffer of the image size is bound, blending is on
+// (GL_SRC_ALPHA, GL_ONE_MINUS_SRC_ALPHA). The step must leave the vertex array and program
+// bindings to the renderer (it binds its own before drawing).
+struct DrawContext {
+  const calibration::CameraModel& camera;
+  int width = 0, height = 0;
 };
 
 struct RendererOptions {
@@ -49,6 +61,19 @@ class OverlayRenderer {
   // projected position (its intensity-weighted centroid is the projection, to sub-pixel accuracy).
   void add_points(const std::string& layer, const std::vector<Eigen::Vector3d>& points_cam,
                   const cv::Scalar& colour);
+  // Drawings given in image pixels (OpenCV convention: (0,0) is the centre of the top-left pixel),
+  // for outlines found in the image and screen-fixed marks.
+  void add_polyline_px(const std::string& layer, const std::vector<Eigen::Vector2d>& points_px,
+                       const cv::Scalar& colour, double width_px, bool closed = false,
+                       double opacity = 1.0);
+  // An image of the camera's size (CV_8UC4, BGRA, alpha 0 = transparent) drawn over the layer's
+  // other drawings, e.g. text from cv::putText. Replaces the layer's previous image; an empty Mat
+  // removes it.
+  void set_layer_image(const std::string& layer, const cv::Mat& bgra);
+  // A drawing step of the layer's own (e.g. a volume rendering), run before its shapes. An empty
+  // function removes it.
+  void set_layer_draw(const std::string& layer, std::function<void(const DrawContext&)> draw);
+  // Removes the layer's shapes, image and drawing step (it stays in the list, with its visibility).
   void clear_layer(const std::string& layer);
   void set_layer_visible(const std::string& layer, bool visible);
   bool layer_visible(const std::string& layer) const;
@@ -56,6 +81,15 @@ class OverlayRenderer {
 
   // Draws everything and returns the image (CV_8UC3 BGR, image row order).
   cv::Mat render();
+  // Draws everything without reading the image back (for the window; render() reads it back).
+  void draw();
+
+  // Window (visible renderers): shows the last drawn image, scaled to the window, and handles
+  // window events. Returns false once the user has closed the window. Keys pressed since the
+  // last call come from poll_keys() (GLFW key codes, e.g. '1', 'S', 256 = Escape).
+  bool present();
+  std::vector<int> poll_keys();
+  bool visible() const { return options_.visible; }
 
   const calibration::CameraModel& camera() const { return camera_; }
   // The OpenGL implementation in use, e.g. "llvmpipe (LLVM 15.0.6, 256 bits) / 4.5 (Core Profile)".
