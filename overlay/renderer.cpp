@@ -2,18 +2,34 @@
 
 #define GL_GLEXT_PROTOTYPES 1
 #include <GL/glcorearb.h>
+#define EGL_NO_X11 1  // no X11 types in the EGL headers: the EGL path needs no display
+#include <EGL/egl.h>
+#include <EGL/eglext.h>
 #define GLFW_INCLUDE_NONE
 #include <GLFW/glfw3.h>
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <functional>
+#include <map>
 #include <mutex>
+#include <sstream>
 
 #include <opencv2/core.hpp>
 #include <spdlog/spdlog.h>
 
 #include "kernels/error.hpp"
+
+// Last: Xlib's macros (None, Success, Status, ...) must not reach the headers above.
+#include <X11/Xlib.h>
+#include <X11/Xutil.h>
+// GLFW's X11 accessors as <GLFW/glfw3native.h> declares them (that header also wants the XRandR
+// development headers, which nothing here needs).
+extern "C" {
+Display* glfwGetX11Display(void);
+Window glfwGetX11Window(GLFWwindow* window);
+}
 
 namespace crepuscular::overlay {
 
@@ -143,6 +159,181 @@ void glfw_release() {
   if (--glfw_users == 0) glfwTerminate();
 }
 
+// A thread has one current context across GLX and EGL (libglvnd refuses to make one current while
+// the other API's is): each backend releases the other's before making its own current.
+void release_glfw_current() {
+  std::lock_guard<std::mutex> lock(glfw_mutex);
+  if (glfw_users > 0 && glfwGetCurrentContext()) glfwMakeContextCurrent(nullptr);
+}
+
+void release_egl_current() {
+  eglBindAPI(EGL_OPENGL_API);
+  if (eglGetCurrentContext() != EGL_NO_CONTEXT) {
+    eglMakeCurrent(eglGetCurrentDisplay(), EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT);
+  }
+}
+
+// EGL: displays are per process and eglTerminate ends every context on them, so initialisations
+// are counted per display and the last renderer using one terminates it.
+std::mutex egl_mutex;
+std::map<EGLDisplay, int> egl_users;
+
+bool egl_initialise(EGLDisplay display) {
+  std::lock_guard<std::mutex> lock(egl_mutex);
+  EGLint major = 0, minor = 0;
+  if (!eglInitialize(display, &major, &minor)) return false;
+  ++egl_users[display];
+  return true;
+}
+
+void egl_release(EGLDisplay display) {
+  std::lock_guard<std::mutex> lock(egl_mutex);
+  auto it = egl_users.find(display);
+  if (it == egl_users.end()) return;
+  if (--it->second == 0) {
+    eglTerminate(display);
+    egl_users.erase(it);
+  }
+}
+
+std::string egl_error() {
+  std::ostringstream s;
+  s << "EGL error 0x" << std::hex << eglGetError();
+  return s.str();
+}
+
+bool has_extension(const char* list, const char* name) {
+  if (!list) return false;
+  const size_t n = std::strlen(name);
+  for (const char* p = list; (p = std::strstr(p, name)) != nullptr; p += n) {
+    if ((p == list || p[-1] == ' ') && (p[n] == ' ' || p[n] == '\0')) return true;
+  }
+  return false;
+}
+
+struct EglTarget {
+  EGLDisplay display = EGL_NO_DISPLAY;
+  EGLContext context = EGL_NO_CONTEXT;
+  EGLSurface surface = EGL_NO_SURFACE;  // a 1x1 pbuffer only where surfaceless contexts are missing
+};
+
+// An OpenGL 3.3 core context on `display`, made current without a surface (everything is drawn
+// into the renderer's own framebuffer). Returns false with the reason in `why`.
+bool egl_make_context(EGLDisplay display, EglTarget& out, std::string& why) {
+  if (display == EGL_NO_DISPLAY) {
+    why = "no display (" + egl_error() + ")";
+    return false;
+  }
+  if (!egl_initialise(display)) {
+    why = "eglInitialize failed (" + egl_error() + ")";
+    return false;
+  }
+  const char* extensions = eglQueryString(display, EGL_EXTENSIONS);
+  const bool surfaceless = has_extension(extensions, "EGL_KHR_surfaceless_context");
+  const EGLint pbuffer_config[] = {EGL_SURFACE_TYPE, EGL_PBUFFER_BIT, EGL_RENDERABLE_TYPE,
+                                   EGL_OPENGL_BIT, EGL_RED_SIZE, 8, EGL_GREEN_SIZE, 8,
+                                   EGL_BLUE_SIZE, 8, EGL_NONE};
+  const EGLint any_config[] = {EGL_SURFACE_TYPE, 0, EGL_RENDERABLE_TYPE, EGL_OPENGL_BIT, EGL_NONE};
+  EGLConfig config = nullptr;
+  EGLint count = 0;
+  bool pbuffer = eglChooseConfig(display, pbuffer_config, &config, 1, &count) && count > 0;
+  if (!pbuffer && surfaceless) {
+    if (!(eglChooseConfig(display, any_config, &config, 1, &count) && count > 0)) {
+      if (has_extension(extensions, "EGL_KHR_no_config_context")) config = EGL_NO_CONFIG_KHR;
+      else count = 0;
+    }
+  }
+  if (!pbuffer && !(surfaceless && (count > 0 || config == EGL_NO_CONFIG_KHR))) {
+    why = "no OpenGL configuration";
+    egl_release(display);
+    return false;
+  }
+  if (!eglBindAPI(EGL_OPENGL_API)) {
+    why = "desktop OpenGL not supported (" + egl_error() + ")";
+    egl_release(display);
+    return false;
+  }
+  const EGLint context_attributes[] = {EGL_CONTEXT_MAJOR_VERSION, 3, EGL_CONTEXT_MINOR_VERSION, 3,
+                                       EGL_CONTEXT_OPENGL_PROFILE_MASK,
+                                       EGL_CONTEXT_OPENGL_CORE_PROFILE_BIT, EGL_NONE};
+  const EGLContext context = eglCreateContext(display, config, EGL_NO_CONTEXT, context_attributes);
+  if (context == EGL_NO_CONTEXT) {
+    why = "no OpenGL 3.3 core context (" + egl_error() + ")";
+    egl_release(display);
+    return false;
+  }
+  EGLSurface surface = EGL_NO_SURFACE;
+  if (!surfaceless) {
+    const EGLint pbuffer_attributes[] = {EGL_WIDTH, 1, EGL_HEIGHT, 1, EGL_NONE};
+    surface = eglCreatePbufferSurface(display, config, pbuffer_attributes);
+    if (surface == EGL_NO_SURFACE) {
+      why = "neither EGL_KHR_surfaceless_context nor a pbuffer (" + egl_error() + ")";
+      eglDestroyContext(display, context);
+      egl_release(display);
+      return false;
+    }
+  }
+  release_glfw_current();
+  if (!eglMakeCurrent(display, surface, surface, context)) {
+    why = "eglMakeCurrent failed (" + egl_error() + ")";
+    if (surface != EGL_NO_SURFACE) eglDestroySurface(display, surface);
+    eglDestroyContext(display, context);
+    egl_release(display);
+    return false;
+  }
+  out = EglTarget{display, context, surface};
+  return true;
+}
+
+// Tries, in order: each EGL device (a GPU without any display server), Mesa's surfaceless
+// platform, the default display. Returns false with what was tried in `why`.
+bool egl_create(EglTarget& out, std::string& kind, std::string& why) {
+  std::vector<std::string> tried;
+  std::string reason;
+  // Client extensions; null (and an EGL_BAD_DISPLAY error) where the library has none.
+  const char* client = eglQueryString(EGL_NO_DISPLAY, EGL_EXTENSIONS);
+  eglGetError();
+  const auto get_platform_display = reinterpret_cast<PFNEGLGETPLATFORMDISPLAYEXTPROC>(
+      eglGetProcAddress("eglGetPlatformDisplayEXT"));
+  const auto query_devices =
+      reinterpret_cast<PFNEGLQUERYDEVICESEXTPROC>(eglGetProcAddress("eglQueryDevicesEXT"));
+  if (get_platform_display && query_devices && has_extension(client, "EGL_EXT_platform_device")) {
+    EGLDeviceEXT devices[16];
+    EGLint n = 0;
+    if (query_devices(16, devices, &n) && n > 0) {
+      for (EGLint i = 0; i < n; ++i) {
+        const EGLDisplay display = get_platform_display(EGL_PLATFORM_DEVICE_EXT, devices[i], nullptr);
+        if (egl_make_context(display, out, reason)) {
+          kind = "EGL device";
+          return true;
+        }
+        tried.push_back("EGL device " + std::to_string(i) + ": " + reason);
+      }
+    } else {
+      tried.push_back("EGL devices: none found");
+    }
+  } else {
+    tried.push_back("EGL devices: EGL_EXT_device_enumeration/EGL_EXT_platform_device missing");
+  }
+  if (get_platform_display && has_extension(client, "EGL_MESA_platform_surfaceless")) {
+    const EGLDisplay display =
+        get_platform_display(EGL_PLATFORM_SURFACELESS_MESA, EGL_DEFAULT_DISPLAY, nullptr);
+    if (egl_make_context(display, out, reason)) {
+      kind = "EGL surfaceless";
+      return true;
+    }
+    tried.push_back("EGL surfaceless: " + reason);
+  }
+  if (egl_make_context(eglGetDisplay(EGL_DEFAULT_DISPLAY), out, reason)) {
+    kind = "EGL default display";
+    return true;
+  }
+  tried.push_back("EGL default display: " + reason);
+  why.clear();
+  for (const auto& t : tried) why += (why.empty() ? "" : "; ") + t;
+  return false;
+}
+
 Vertex make_vertex(const Eigen::Vector2d& p, const cv::Scalar& bgr, const Eigen::Vector2d& centre,
                    float mode, double opacity = 1.0) {
   return Vertex{static_cast<float>(p.x()),         static_cast<float>(p.y()),
@@ -185,7 +376,9 @@ struct OverlayRenderer::Impl {
     GLuint image_texture = 0;
     bool has_image = false;
   };
-  GLFWwindow* window = nullptr;
+  GLFWwindow* window = nullptr;  // GLFW backend
+  EglTarget egl;                 // EGL backend
+  std::string kind;              // "EGL device", "EGL surfaceless", ..., "GLFW/GLX"
   std::vector<int> keys;  // pressed since the last poll_keys()
   GLuint fbo = 0, colour_rb = 0, frame_texture = 0;
   GLuint shape_program = 0, background_program = 0;
@@ -205,6 +398,65 @@ struct OverlayRenderer::Impl {
       if (l.name == name) return &l;
     return nullptr;
   }
+
+  void make_current() {
+    if (window) {
+      release_egl_current();
+      if (glfwGetCurrentContext() != window) glfwMakeContextCurrent(window);
+      return;
+    }
+    eglBindAPI(EGL_OPENGL_API);
+    if (eglGetCurrentContext() == egl.context) return;
+    release_glfw_current();
+    if (!eglMakeCurrent(egl.display, egl.surface, egl.surface, egl.context)) {
+      throw Error("overlay renderer: cannot make the EGL context current (" + egl_error() + ")");
+    }
+  }
+
+  // Ends the context (the caller has deleted its GL objects).
+  void release_context() {
+    if (window) {
+      glfwDestroyWindow(window);
+      window = nullptr;
+      glfw_release();
+    } else if (egl.context != EGL_NO_CONTEXT) {
+      eglMakeCurrent(egl.display, EGL_NO_SURFACE, EGL_NO_SURFACE, EGL_NO_CONTEXT);
+      if (egl.surface != EGL_NO_SURFACE) eglDestroySurface(egl.display, egl.surface);
+      eglDestroyContext(egl.display, egl.context);
+      egl_release(egl.display);
+      egl = EglTarget{};
+    }
+  }
+
+  // A hidden or shown GLFW window of the image size; false with the reason in `why`.
+  bool create_glfw(int width, int height, bool shown, std::string& why) {
+    try {
+      glfw_acquire();
+    } catch (const Error& e) {
+      why = e.what();
+      return false;
+    }
+    glfwWindowHint(GLFW_CONTEXT_VERSION_MAJOR, 3);
+    glfwWindowHint(GLFW_CONTEXT_VERSION_MINOR, 3);
+    glfwWindowHint(GLFW_OPENGL_PROFILE, GLFW_OPENGL_CORE_PROFILE);
+    glfwWindowHint(GLFW_OPENGL_FORWARD_COMPAT, GLFW_TRUE);
+    glfwWindowHint(GLFW_VISIBLE, shown ? GLFW_TRUE : GLFW_FALSE);
+    glfwWindowHint(GLFW_RESIZABLE, GLFW_FALSE);
+    release_egl_current();
+    window = glfwCreateWindow(width, height, "Crepuscular", nullptr, nullptr);
+    if (!window) {
+      glfw_release();
+      why = "cannot create an OpenGL 3.3 core window (" + glfw_last_error + ")";
+      return false;
+    }
+    glfwMakeContextCurrent(window);
+    glfwSetWindowUserPointer(window, this);
+    glfwSetKeyCallback(window, [](GLFWwindow* w, int key, int, int action, int) {
+      if (action == GLFW_PRESS) static_cast<Impl*>(glfwGetWindowUserPointer(w))->keys.push_back(key);
+    });
+    kind = "GLFW/GLX";
+    return true;
+  }
 };
 
 OverlayRenderer::OverlayRenderer(const calibration::CameraModel& camera, RendererOptions options)
@@ -213,26 +465,48 @@ OverlayRenderer::OverlayRenderer(const calibration::CameraModel& camera, Rendere
   if (!(options_.max_segment_px > 0) || !(options_.near_mm > 0)) {
     throw Error("overlay renderer: max_segment_px and near_mm must be > 0");
   }
-  glfw_acquire();
-  glfwWindowHint(GLFW_CONTEXT_VERSION_MAJOR, 3);
-  glfwWindowHint(GLFW_CONTEXT_VERSION_MINOR, 3);
-  glfwWindowHint(GLFW_OPENGL_PROFILE, GLFW_OPENGL_CORE_PROFILE);
-  glfwWindowHint(GLFW_OPENGL_FORWARD_COMPAT, GLFW_TRUE);
-  glfwWindowHint(GLFW_VISIBLE, options_.visible ? GLFW_TRUE : GLFW_FALSE);
-  glfwWindowHint(GLFW_RESIZABLE, GLFW_FALSE);
-  impl_->window = glfwCreateWindow(camera_.width, camera_.height, "Crepuscular", nullptr, nullptr);
-  if (!impl_->window) {
-    glfw_release();
-    throw Error("overlay renderer: cannot create an OpenGL 3.3 core context (" + glfw_last_error +
-                ")");
+  if (options_.visible && options_.backend == RendererBackend::kEgl) {
+    throw Error("overlay renderer: a visible window needs the GLFW backend (EGL is headless only)");
   }
-  glfwMakeContextCurrent(impl_->window);
-  glfwSetWindowUserPointer(impl_->window, impl_.get());
-  glfwSetKeyCallback(impl_->window, [](GLFWwindow* w, int key, int, int action, int) {
-    if (action == GLFW_PRESS) static_cast<Impl*>(glfwGetWindowUserPointer(w))->keys.push_back(key);
-  });
-  spdlog::debug("overlay renderer: {} / {}", reinterpret_cast<const char*>(glGetString(GL_RENDERER)),
-                reinterpret_cast<const char*>(glGetString(GL_VERSION)));
+  // Headless: EGL first (no display needed), then a hidden GLFW window. Visible: a GLFW window.
+  std::string egl_why, glfw_why;
+  bool made = false;
+  if (!options_.visible && options_.backend != RendererBackend::kGlfw) {
+    made = egl_create(impl_->egl, impl_->kind, egl_why);
+    if (!made) spdlog::debug("overlay renderer: EGL unavailable: {}", egl_why);
+  }
+  if (!made && options_.backend != RendererBackend::kEgl) {
+    made = impl_->create_glfw(camera_.width, camera_.height, options_.visible, glfw_why);
+  }
+  if (!made) {
+    std::string message = "overlay renderer: no OpenGL 3.3 core context. ";
+    if (!egl_why.empty()) message += "EGL: " + egl_why + ". ";
+    if (!glfw_why.empty()) message += "GLFW: " + glfw_why + ". ";
+    const char* display = std::getenv("DISPLAY");
+    if (options_.visible || options_.backend == RendererBackend::kGlfw) {
+      message += (display && *display) ? "Check that the X display is reachable and has GLX."
+                                       : "There is no X display: set DISPLAY or run under "
+                                         "xvfb-run -a.";
+    } else {
+      message += (display && *display)
+                     ? "Install an EGL driver (libegl-mesa0 or the GPU driver's EGL library)."
+                     : "No display and no EGL device: run under xvfb-run -a, or install an EGL "
+                       "driver (libegl-mesa0 or the GPU driver's EGL library).";
+    }
+    throw Error(message);
+  }
+  spdlog::debug("overlay renderer: {} / {} [{}]",
+                reinterpret_cast<const char*>(glGetString(GL_RENDERER)),
+                reinterpret_cast<const char*>(glGetString(GL_VERSION)), impl_->kind);
+  try {
+    create_gl_objects();
+  } catch (...) {
+    impl_->release_context();
+    throw;
+  }
+}
+
+void OverlayRenderer::create_gl_objects() {
 
   // Off-screen target of the image size: the same pixels whether the window is shown or hidden.
   glGenRenderbuffers(1, &impl_->colour_rb);
@@ -242,8 +516,6 @@ OverlayRenderer::OverlayRenderer(const calibration::CameraModel& camera, Rendere
   glBindFramebuffer(GL_FRAMEBUFFER, impl_->fbo);
   glFramebufferRenderbuffer(GL_FRAMEBUFFER, GL_COLOR_ATTACHMENT0, GL_RENDERBUFFER, impl_->colour_rb);
   if (glCheckFramebufferStatus(GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE) {
-    glfwDestroyWindow(impl_->window);
-    glfw_release();
     throw Error("overlay renderer: off-screen framebuffer incomplete");
   }
 
@@ -270,8 +542,12 @@ OverlayRenderer::OverlayRenderer(const calibration::CameraModel& camera, Rendere
 }
 
 OverlayRenderer::~OverlayRenderer() {
-  if (!impl_ || !impl_->window) return;
-  glfwMakeContextCurrent(impl_->window);
+  if (!impl_ || (!impl_->window && impl_->egl.context == EGL_NO_CONTEXT)) return;
+  try {
+    impl_->make_current();
+  } catch (const Error& e) {
+    spdlog::warn("{}", e.what());
+  }
   glDeleteBuffers(1, &impl_->vbo);
   glDeleteVertexArrays(1, &impl_->vao);
   glDeleteProgram(impl_->shape_program);
@@ -281,14 +557,17 @@ OverlayRenderer::~OverlayRenderer() {
     if (l.image_texture) glDeleteTextures(1, &l.image_texture);
   glDeleteFramebuffers(1, &impl_->fbo);
   glDeleteRenderbuffers(1, &impl_->colour_rb);
-  glfwDestroyWindow(impl_->window);
-  glfw_release();
+  impl_->release_context();
 }
 
 std::string OverlayRenderer::gl_description() const {
-  glfwMakeContextCurrent(impl_->window);
+  impl_->make_current();
   return std::string(reinterpret_cast<const char*>(glGetString(GL_RENDERER))) + " / " +
-         reinterpret_cast<const char*>(glGetString(GL_VERSION));
+         reinterpret_cast<const char*>(glGetString(GL_VERSION)) + " [" + impl_->kind + "]";
+}
+
+RendererBackend OverlayRenderer::backend() const {
+  return impl_->window ? RendererBackend::kGlfw : RendererBackend::kEgl;
 }
 
 void OverlayRenderer::set_frame(const cv::Mat& bgr) {
@@ -300,7 +579,7 @@ void OverlayRenderer::set_frame(const cv::Mat& bgr) {
                 " channel(s)");
   }
   const cv::Mat contiguous = bgr.isContinuous() ? bgr : bgr.clone();
-  glfwMakeContextCurrent(impl_->window);
+  impl_->make_current();
   glBindTexture(GL_TEXTURE_2D, impl_->frame_texture);
   glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
   glTexSubImage2D(GL_TEXTURE_2D, 0, 0, 0, camera_.width, camera_.height, GL_BGR, GL_UNSIGNED_BYTE,
@@ -381,7 +660,7 @@ void OverlayRenderer::set_layer_image(const std::string& layer_name, const cv::M
                 std::to_string(camera_.width) + "x" + std::to_string(camera_.height));
   }
   const cv::Mat contiguous = bgra.isContinuous() ? bgra : bgra.clone();
-  glfwMakeContextCurrent(impl_->window);
+  impl_->make_current();
   if (!layer.image_texture) {
     glGenTextures(1, &layer.image_texture);
     glBindTexture(GL_TEXTURE_2D, layer.image_texture);
@@ -425,7 +704,7 @@ std::vector<std::string> OverlayRenderer::layer_names() const {
 }
 
 void OverlayRenderer::draw() {
-  glfwMakeContextCurrent(impl_->window);
+  impl_->make_current();
   glBindFramebuffer(GL_FRAMEBUFFER, impl_->fbo);
   glViewport(0, 0, camera_.width, camera_.height);
   glDisable(GL_DEPTH_TEST);
@@ -484,7 +763,8 @@ void OverlayRenderer::draw() {
 }
 
 bool OverlayRenderer::present() {
-  glfwMakeContextCurrent(impl_->window);
+  if (!impl_->window) return true;  // headless EGL: nothing to show
+  impl_->make_current();
   int fw = 0, fh = 0;
   glfwGetFramebufferSize(impl_->window, &fw, &fh);
   glBindFramebuffer(GL_READ_FRAMEBUFFER, impl_->fbo);
@@ -499,6 +779,7 @@ bool OverlayRenderer::present() {
 }
 
 std::vector<int> OverlayRenderer::poll_keys() {
+  if (!impl_->window) return {};
   glfwPollEvents();
   std::vector<int> keys;
   keys.swap(impl_->keys);
@@ -507,7 +788,7 @@ std::vector<int> OverlayRenderer::poll_keys() {
 
 cv::Mat OverlayRenderer::render() {
   draw();
-  glfwMakeContextCurrent(impl_->window);
+  impl_->make_current();
   glBindFramebuffer(GL_FRAMEBUFFER, impl_->fbo);
   cv::Mat flipped(camera_.height, camera_.width, CV_8UC3);
   glPixelStorei(GL_PACK_ALIGNMENT, 1);
@@ -520,6 +801,55 @@ cv::Mat OverlayRenderer::render() {
   cv::Mat image;
   cv::flip(flipped, image, 0);
   return image;
+}
+
+}  // namespace crepuscular::overlay
+
+namespace crepuscular::overlay {
+
+cv::Mat OverlayRenderer::screenshot_window() {
+  if (!impl_->window) {
+    throw Error("overlay renderer: screenshot_window() needs a window; this renderer is headless (" +
+                impl_->kind + ")");
+  }
+  if (!options_.visible) {
+    throw Error("overlay renderer: screenshot_window() needs a shown window (visible = true)");
+  }
+  impl_->make_current();
+  glFinish();
+  Display* display = glfwGetX11Display();
+  const Window window = glfwGetX11Window(impl_->window);
+  if (!display || !window) {
+    throw Error("overlay renderer: screenshot_window() needs an X11 window");
+  }
+  XSync(display, False);
+  XWindowAttributes attributes;
+  if (!XGetWindowAttributes(display, window, &attributes) || attributes.map_state != IsViewable) {
+    throw Error("overlay renderer: screenshot_window(): the window is not mapped on the X server");
+  }
+  XImage* image =
+      XGetImage(display, window, 0, 0, static_cast<unsigned>(attributes.width),
+                static_cast<unsigned>(attributes.height), AllPlanes, ZPixmap);
+  if (!image) throw Error("overlay renderer: screenshot_window(): XGetImage failed");
+  // Each channel from its mask in the server's pixel format, scaled to 8 bits.
+  const auto channel = [](unsigned long pixel, unsigned long mask) {
+    if (!mask) return static_cast<uchar>(0);
+    int shift = 0;
+    while (!((mask >> shift) & 1UL)) ++shift;
+    const unsigned long max = mask >> shift;
+    return static_cast<uchar>(((pixel & mask) >> shift) * 255UL / max);
+  };
+  cv::Mat bgr(attributes.height, attributes.width, CV_8UC3);
+  for (int y = 0; y < bgr.rows; ++y) {
+    auto* row = bgr.ptr<cv::Vec3b>(y);
+    for (int x = 0; x < bgr.cols; ++x) {
+      const unsigned long p = XGetPixel(image, x, y);
+      row[x] = cv::Vec3b(channel(p, image->blue_mask), channel(p, image->green_mask),
+                         channel(p, image->red_mask));
+    }
+  }
+  XDestroyImage(image);
+  return bgr;
 }
 
 }  // namespace crepuscular::overlay

@@ -1,6 +1,11 @@
 // Overlay renderer: draws the video frame as background and, on top of it, drawings given in the
 // camera frame (mm), projected with the calibrated camera model including its distortion, and
-// reads the result back as an image. OpenGL 3.3 core in a GLFW window (hidden when headless).
+// reads the result back as an image. OpenGL 3.3 core, drawn into an off-screen framebuffer of the
+// image size in every case, so the same code and the same pixels serve both targets:
+// - live use: a GLFW window (X11/GLX) that present() shows the image in;
+// - headless output (video file, PNG snapshots): an EGL context without any window or display
+//   (a GPU's EGL device, or Mesa's surfaceless platform), or, where EGL is unavailable, a hidden
+//   GLFW window.
 //
 // Projection happens on the CPU per vertex with CameraModel::project(); segments are subdivided in
 // 3D so that no projected piece is longer than max_segment_px, which lets distortion bend them.
@@ -37,8 +42,16 @@ struct DrawContext {
   int width = 0, height = 0;
 };
 
+// Where the OpenGL context comes from.
+enum class RendererBackend {
+  kAuto,  // visible: GLFW; headless: EGL, falling back to a hidden GLFW window
+  kEgl,   // headless only: EGL device (eglQueryDevicesEXT), Mesa surfaceless, or default display
+  kGlfw,  // a GLFW window (hidden when headless); needs an X display
+};
+
 struct RendererOptions {
   bool visible = false;          // show the window (live use); hidden for headless output
+  RendererBackend backend = RendererBackend::kAuto;
   double max_segment_px = 4.0;   // longest projected straight piece of a polyline
   double near_mm = 1.0;          // drawings closer than this to the camera plane are clipped
 };
@@ -46,7 +59,8 @@ struct RendererOptions {
 class OverlayRenderer {
  public:
   // Creates the GL context and a framebuffer of the camera's image size. Throws Error when no
-  // OpenGL 3.3 core context can be made (no display, no driver).
+  // OpenGL 3.3 core context can be made (no display, no driver; the message says what was tried),
+  // and for backend kEgl with visible = true (a window needs GLFW).
   explicit OverlayRenderer(const calibration::CameraModel& camera, RendererOptions options = {});
   ~OverlayRenderer();
   OverlayRenderer(const OverlayRenderer&) = delete;
@@ -87,16 +101,27 @@ class OverlayRenderer {
   // Window (visible renderers): shows the last drawn image, scaled to the window, and handles
   // window events. Returns false once the user has closed the window. Keys pressed since the
   // last call come from poll_keys() (GLFW key codes, e.g. '1', 'S', 256 = Escape).
+  // Headless renderers have nothing to show: present() returns true and poll_keys() is empty.
   bool present();
   std::vector<int> poll_keys();
   bool visible() const { return options_.visible; }
+  // The window's pixels as the X server holds them (XGetImage of the GLFW window: what the user
+  // sees after present()), CV_8UC3 BGR of the window's size. Throws Error for renderers without a
+  // window (EGL) and when the window system is not X11. For tests and for checking the live view.
+  cv::Mat screenshot_window();
+
+  // The backend in use (kEgl or kGlfw, never kAuto).
+  RendererBackend backend() const;
 
   const calibration::CameraModel& camera() const { return camera_; }
-  // The OpenGL implementation in use, e.g. "llvmpipe (LLVM 15.0.6, 256 bits) / 4.5 (Core Profile)".
+  // The OpenGL implementation in use and where its context comes from, e.g.
+  // "llvmpipe (LLVM 15.0.6, 256 bits) / 4.5 (Core Profile) Mesa 22.3.6 [EGL device]"; the bracket
+  // is one of "EGL device", "EGL surfaceless", "EGL default display", "GLFW/GLX".
   std::string gl_description() const;
 
  private:
   struct Impl;
+  void create_gl_objects();  // framebuffer, textures, programs, buffers (context current)
   calibration::CameraModel camera_;
   RendererOptions options_;
   std::unique_ptr<Impl> impl_;

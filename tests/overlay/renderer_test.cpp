@@ -336,5 +336,135 @@ TEST(OverlayRenderer, FrameTime) {
   }
 }
 
+// The same input for two renderers: noise frame, lines in 3D (opaque and translucent), dots,
+// a pixel-space outline and a text image layer.
+void draw_scene(OverlayRenderer& r, const cv::Mat& frame) {
+  const auto& cam = r.camera();
+  r.set_frame(frame);
+  Polyline ring;
+  for (int k = 0; k < 48; ++k) {
+    const double a = 2 * M_PI * k / 48;
+    ring.points_cam.emplace_back(60 * std::cos(a), 45 * std::sin(a), 280 + 10 * std::sin(3 * a));
+  }
+  ring.closed = true;
+  ring.width_px = 4;
+  ring.colour = cv::Scalar(0, 200, 255);
+  r.add_polyline("rays", ring);
+  Polyline ray;
+  ray.points_cam = {{-150, -100, 300}, {0, 0, 260}, {140, 110, 320}};
+  ray.width_px = 6;
+  ray.opacity = 0.6;
+  ray.colour = cv::Scalar(40, 220, 40);
+  r.add_polyline("rays", ray);
+  r.add_points("dots", {{10, 20, 250}, {-50, 30, 300}, {70, -40, 200}}, cv::Scalar(255, 255, 255));
+  r.add_polyline_px("outline", {{20.5, 20.5}, {200.3, 40.7}, {180, 150}}, cv::Scalar(255, 0, 0), 3,
+                    true, 0.8);
+  cv::Mat text(cam.height, cam.width, CV_8UC4, cv::Scalar(0, 0, 0, 0));
+  cv::putText(text, "tracking OK  12.3 ms", cv::Point(30, cam.height - 40),
+              cv::FONT_HERSHEY_SIMPLEX, 1.0, cv::Scalar(255, 255, 255, 255), 2, cv::LINE_AA);
+  r.set_layer_image("status", text);
+}
+
+std::unique_ptr<OverlayRenderer> make_renderer_with(const calibration::CameraModel& cam,
+                                                    bool visible, RendererBackend backend) {
+  RendererOptions options;
+  options.visible = visible;
+  options.backend = backend;
+  try {
+    return std::make_unique<OverlayRenderer>(cam, options);
+  } catch (const Error& e) {
+    std::cerr << "no OpenGL context (" << (visible ? "window" : "headless") << "): " << e.what()
+              << "\n";
+    return nullptr;
+  }
+}
+
+// What the user sees in the live window (read back from the X server) is the headless frame.
+TEST(OverlayRenderer, WindowScreenshotMatchesHeadlessFrame) {
+  const auto cam = test_camera();
+  auto window = make_renderer_with(cam, true, RendererBackend::kAuto);
+  if (!window) GTEST_SKIP() << "no X display with GLX";
+  auto headless = make_renderer_with(cam, false, RendererBackend::kAuto);
+  ASSERT_TRUE(headless);
+  EXPECT_EQ(window->backend(), RendererBackend::kGlfw);
+  EXPECT_EQ(headless->backend(), RendererBackend::kEgl) << headless->gl_description();
+  std::cout << "window: " << window->gl_description()
+            << "\nheadless: " << headless->gl_description() << "\n";
+
+  const cv::Mat frame = noise_frame(cam.width, cam.height, 21);
+  draw_scene(*window, frame);
+  draw_scene(*headless, frame);
+  const cv::Mat expected = headless->render();
+  window->draw();
+  cv::Mat shot;
+  for (int i = 0; i < 3; ++i) {  // the first swaps may reach the X server late
+    ASSERT_TRUE(window->present());
+    shot = window->screenshot_window();
+    ASSERT_EQ(shot.size(), expected.size());
+    if (cv::norm(shot, expected, cv::NORM_INF) <= 2) break;
+  }
+  EXPECT_LE(cv::norm(shot, expected, cv::NORM_INF), 2) << "screenshot differs from headless frame";
+  // Not trivially equal: both hold the drawings over the frame, in the same pixels.
+  const cv::Mat drawn_headless = differing(expected, frame);
+  const cv::Mat drawn_window = differing(shot, frame);
+  EXPECT_GT(cv::countNonZero(drawn_headless), 3000);
+  EXPECT_GT(cv::countNonZero(drawn_window), 3000);
+  EXPECT_EQ(cv::countNonZero(drawn_headless ^ drawn_window), 0);
+  // And the window shows the (noise) video frame itself, exactly, wherever nothing is drawn: not a
+  // black, stale or scaled image.
+  EXPECT_GT(cam.width * cam.height - cv::countNonZero(drawn_window), cam.width * cam.height * 3 / 4);
+
+  // Hiding a layer in the window changes the screenshot exactly as it changes the headless image.
+  window->set_layer_visible("status", false);
+  headless->set_layer_visible("status", false);
+  const cv::Mat expected_without = headless->render();
+  window->draw();
+  cv::Mat shot_without;
+  for (int i = 0; i < 3; ++i) {
+    ASSERT_TRUE(window->present());
+    shot_without = window->screenshot_window();
+    if (cv::norm(shot_without, expected_without, cv::NORM_INF) <= 2) break;
+  }
+  EXPECT_LE(cv::norm(shot_without, expected_without, cv::NORM_INF), 2);
+  EXPECT_GT(cv::countNonZero(differing(shot_without, shot)), 200) << "the text layer went away";
+}
+
+// Headless through EGL and through a hidden GLFW window: the same pixels.
+TEST(OverlayRenderer, EglAndHiddenGlfwWindowGiveIdenticalImages) {
+  const auto cam = test_camera();
+  auto egl = make_renderer_with(cam, false, RendererBackend::kEgl);
+  ASSERT_TRUE(egl) << "EGL (Mesa) must work here";
+  auto glfw = make_renderer_with(cam, false, RendererBackend::kGlfw);
+  if (!glfw) GTEST_SKIP() << "no X display with GLX";
+  EXPECT_EQ(egl->backend(), RendererBackend::kEgl);
+  EXPECT_EQ(glfw->backend(), RendererBackend::kGlfw);
+  EXPECT_NE(egl->gl_description().find("[EGL"), std::string::npos) << egl->gl_description();
+  EXPECT_NE(glfw->gl_description().find("[GLFW/GLX]"), std::string::npos)
+      << glfw->gl_description();
+  const cv::Mat frame = noise_frame(cam.width, cam.height, 22);
+  draw_scene(*egl, frame);
+  draw_scene(*glfw, frame);
+  // Interleaved use of both contexts on one thread.
+  const cv::Mat a = egl->render();
+  const cv::Mat b = glfw->render();
+  const cv::Mat a2 = egl->render();
+  EXPECT_EQ(cv::norm(a, b, cv::NORM_INF), 0);
+  EXPECT_EQ(cv::norm(a, a2, cv::NORM_INF), 0);
+  EXPECT_GT(cv::countNonZero(differing(a, frame)), 3000) << "the drawings are in the image";
+}
+
+TEST(OverlayRenderer, HeadlessEglHasNoWindow) {
+  const auto cam = test_camera();
+  auto r = make_renderer_with(cam, false, RendererBackend::kEgl);
+  ASSERT_TRUE(r);
+  EXPECT_TRUE(r->present());
+  EXPECT_TRUE(r->poll_keys().empty());
+  EXPECT_THROW(r->screenshot_window(), Error);
+  RendererOptions options;
+  options.visible = true;
+  options.backend = RendererBackend::kEgl;
+  EXPECT_THROW(OverlayRenderer(cam, options), Error) << "a window needs GLFW";
+}
+
 }  // namespace
 }  // namespace crepuscular::overlay
