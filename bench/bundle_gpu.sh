@@ -9,12 +9,16 @@ cmake -S . -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=Release -DCREPUSCULAR_CUDA=ON
   -DCMAKE_CUDA_ARCHITECTURES=90 >/dev/null
 targets=(path_safety_cuda_test path_safety_test path_safety_fast_test bench_path_safety
          bench_sampling_rate)
+# BUNDLE=overlay: the overlay renderer benchmark alone (with OpenCV, GLFW, X11 and libglvnd it does
+# not fit beside the CUDA programs in the 64 MiB a carried path may hold).
+if [ "${BUNDLE:-}" = overlay ]; then targets=(overlay_bench); fi
 cmake --build "$build" -j "$(nproc)" --target "${targets[@]}"
 rm -rf .device && mkdir -p .device/bin .device/lib
 for t in "${targets[@]}"; do
   find "$build" -type f -name "$t" -perm -u+x -exec cp {} .device/bin/ \;
 done
-# Shared libraries that are not part of every Linux system or the CUDA driver.
+# Shared libraries that are not part of every Linux system or the CUDA driver. libglvnd's libEGL and
+# libOpenGL travel too; they load the GPU driver's EGL library (libEGL_nvidia) on the GPU machine.
 for b in .device/bin/*; do
   ldd "$b" | awk '/=> \// {print $3}'
 done | sort -u | grep -vE '/(libc|libm|libdl|libpthread|librt|ld-linux[^/]*|libcuda)\.so' |

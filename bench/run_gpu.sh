@@ -1,11 +1,35 @@
 #!/usr/bin/env bash
 # On the GPU machine, from the repository root, after bench/bundle_gpu.sh ran here: GPU tests,
-# the card's sampling rate, and the headline case (exact and fast, each value). Logs go to $OUT.
+# the card's sampling rate, the headline case (exact and fast, each value), and the overlay
+# renderer's frame time through EGL (no X server needed). Logs go to $OUT.
+# ONLY=overlay runs the overlay renderer benchmark alone.
 set -uo pipefail
 export LD_LIBRARY_PATH="$PWD/.device/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 out="${OUT:-/tmp/crepuscular-gpu}"
 mkdir -p "$out"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$out/gpu.txt"
+overlay() {
+  echo "== overlay renderer (EGL)"
+  if [ ! -x .device/bin/overlay_bench ]; then
+    echo "overlay_bench not bundled: run BUNDLE=overlay bash bench/bundle_gpu.sh first"
+    return
+  fi
+  ls /usr/share/glvnd/egl_vendor.d /etc/glvnd/egl_vendor.d 2>/dev/null
+  ldconfig -p | grep -E 'libEGL_nvidia|libnvidia-eglcore' | head -3
+  # The driver's EGL library without its libglvnd vendor file: name it to libglvnd directly.
+  if ! ls /usr/share/glvnd/egl_vendor.d/*nvidia* /etc/glvnd/egl_vendor.d/*nvidia* >/dev/null 2>&1 &&
+     ldconfig -p | grep -q libEGL_nvidia.so.0; then
+    printf '{"file_format_version":"1.0.0","ICD":{"library_path":"libEGL_nvidia.so.0"}}\n' \
+      >"$out/10_nvidia.json"
+    export __EGL_VENDOR_LIBRARY_FILENAMES="$out/10_nvidia.json"
+  fi
+  env -u DISPLAY .device/bin/overlay_bench --backend egl --frames "${OVERLAY_FRAMES:-300}" 2>&1 |
+    tee "$out/overlay.log"
+}
+if [ "${ONLY:-}" = overlay ]; then
+  overlay
+  exit
+fi
 echo "== GPU tests"
 .device/bin/path_safety_cuda_test 2>&1 | tee "$out/path_safety_cuda_test.log"
 echo "== sampling rate"
@@ -13,3 +37,4 @@ echo "== sampling rate"
 echo "== headline case"
 .device/bin/bench_path_safety --case headline --device cuda --each-value --mode "${MODE:-both}" \
   ${BENCH_ARGS:-} 2>&1 | tee "$out/headline.jsonl"
+overlay
