@@ -1,0 +1,455 @@
+#include "overlay/volume_rendering.hpp"
+
+#define GL_GLEXT_PROTOTYPES 1
+#include <GL/glcorearb.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <string>
+
+#include <spdlog/spdlog.h>
+
+#include "kernels/error.hpp"
+
+namespace crepuscular::overlay {
+
+namespace {
+
+// Most samples one ray takes (a 512^3 grid's diagonal at half a voxel per step is ~1800).
+constexpr int kMaxSteps = 8192;
+
+const char* kFullScreenVertex = R"(#version 330 core
+void main() {
+  vec2 corners[3] = vec2[3](vec2(-1.0, -1.0), vec2(3.0, -1.0), vec2(-1.0, 3.0));
+  gl_Position = vec4(corners[gl_VertexID], 0.0, 1.0);
+}
+)";
+
+// Ray casting (§3.4): one ray per pixel from the camera centre along the pixel's undistorted
+// direction, into the voxel grid's index space; the box of classified voxels is crossed in steps
+// of step_mm, each step sampled at its middle from the nearest voxel, composited front to back
+// with alpha = 1 - exp(-k * length); no shading. Output is premultiplied. reference_pixel() is the
+// same computation on the CPU: keep the two in step.
+const char* kMarchFragment = R"(#version 330 core
+uniform usampler3D classes;
+uniform sampler2D rays;
+uniform mat3 M;
+uniform vec3 m0;
+uniform vec3 box_lo;
+uniform vec3 box_hi;
+uniform ivec3 dims;
+uniform float opacity[4];
+uniform vec3 colour[4];
+uniform float step_mm;
+uniform int rows;
+uniform int max_steps;
+uniform float opaque;
+out vec4 out_colour;
+void main() {
+  out_colour = vec4(0.0);
+  ivec2 p = ivec2(int(gl_FragCoord.x), rows - 1 - int(gl_FragCoord.y));
+  vec3 d = texelFetch(rays, p, 0).xyz;
+  if (dot(d, d) < 0.5) return;
+  vec3 D = M * d;
+  float t_in = 0.0;
+  float t_out = 1e30;
+  for (int a = 0; a < 3; ++a) {
+    if (abs(D[a]) < 1e-12) {
+      if (m0[a] < box_lo[a] || m0[a] > box_hi[a]) return;
+    } else {
+      float t1 = (box_lo[a] - m0[a]) / D[a];
+      float t2 = (box_hi[a] - m0[a]) / D[a];
+      t_in = max(t_in, min(t1, t2));
+      t_out = min(t_out, max(t1, t2));
+    }
+  }
+  if (!(t_out > t_in)) return;
+  int n = min(int(ceil((t_out - t_in) / step_mm)), max_steps);
+  vec3 C = vec3(0.0);
+  float A = 0.0;
+  for (int i = 0; i < n; ++i) {
+    float t0 = t_in + float(i) * step_mm;
+    float t1 = min(t0 + step_mm, t_out);
+    float t = 0.5 * (t0 + t1);
+    ivec3 v = clamp(ivec3(floor(m0 + t * D + 0.5)), ivec3(0), dims - 1);
+    int c = int(texelFetch(classes, v, 0).r);
+    float k = opacity[c];
+    if (k > 0.0) {
+      float a = 1.0 - exp(-k * (t1 - t0));
+      C += (1.0 - A) * a * colour[c];
+      A += (1.0 - A) * a;
+      if (A >= opaque) break;
+    }
+  }
+  out_colour = vec4(C, A);
+}
+)";
+
+// Reduced-resolution result over the full image: bilinear in premultiplied colour.
+const char* kCompositeFragment = R"(#version 330 core
+uniform sampler2D image;
+uniform vec2 size;
+out vec4 out_colour;
+void main() {
+  out_colour = texture(image, gl_FragCoord.xy / size);
+}
+)";
+
+GLuint compile_shader(GLenum type, const char* source) {
+  const GLuint shader = glCreateShader(type);
+  glShaderSource(shader, 1, &source, nullptr);
+  glCompileShader(shader);
+  GLint ok = 0;
+  glGetShaderiv(shader, GL_COMPILE_STATUS, &ok);
+  if (!ok) {
+    char log[2048];
+    glGetShaderInfoLog(shader, sizeof(log), nullptr, log);
+    glDeleteShader(shader);
+    throw Error(std::string("volume rendering: shader compilation failed: ") + log);
+  }
+  return shader;
+}
+
+GLuint link_program(const char* vertex, const char* fragment) {
+  const GLuint vs = compile_shader(GL_VERTEX_SHADER, vertex);
+  const GLuint fs = compile_shader(GL_FRAGMENT_SHADER, fragment);
+  const GLuint program = glCreateProgram();
+  glAttachShader(program, vs);
+  glAttachShader(program, fs);
+  glLinkProgram(program);
+  glDeleteShader(vs);
+  glDeleteShader(fs);
+  GLint ok = 0;
+  glGetProgramiv(program, GL_LINK_STATUS, &ok);
+  if (!ok) {
+    char log[2048];
+    glGetProgramInfoLog(program, sizeof(log), nullptr, log);
+    glDeleteProgram(program);
+    throw Error(std::string("volume rendering: shader link failed: ") + log);
+  }
+  return program;
+}
+
+bool same_camera(const calibration::CameraModel& a, const calibration::CameraModel& b) {
+  return a.width == b.width && a.height == b.height && a.fx == b.fx && a.fy == b.fy &&
+         a.cx == b.cx && a.cy == b.cy && a.distortion == b.distortion;
+}
+
+void validate_options(const VolumeRenderingOptions& o) {
+  for (int c = 0; c < 3; ++c) {
+    if (!(o.opacity_per_mm[c] >= 0) || !std::isfinite(o.opacity_per_mm[c])) {
+      throw Error("volume rendering: opacity_per_mm[" + std::to_string(c) + "] is " +
+                  std::to_string(o.opacity_per_mm[c]) + ", expected a finite value >= 0");
+    }
+  }
+  if (!(o.step_mm >= 0) || !std::isfinite(o.step_mm)) {
+    throw Error("volume rendering: step_mm is " + std::to_string(o.step_mm) +
+                ", expected >= 0 (0: half the smallest voxel spacing)");
+  }
+  if (!(o.resolution_scale > 0 && o.resolution_scale <= 1)) {
+    throw Error("volume rendering: resolution_scale is " + std::to_string(o.resolution_scale) +
+                ", expected 0 < scale <= 1");
+  }
+}
+
+}  // namespace
+
+Eigen::Vector3f pixel_ray(const calibration::CameraModel& camera, double u, double v) {
+  const Eigen::Vector2d xy = camera.unproject(Eigen::Vector2d(u, v));
+  if (!xy.allFinite()) return Eigen::Vector3f::Zero();
+  return Eigen::Vector3d(xy.x(), xy.y(), 1.0).normalized().cast<float>();
+}
+
+struct SafetyVolumeRendering::Gl {
+  GLuint march_program = 0, composite_program = 0, vao = 0;
+  GLuint class_texture = 0, ray_texture = 0;
+  GLuint low_texture = 0, low_fbo = 0;  // reduced-resolution target
+  int low_width = 0, low_height = 0;
+  calibration::CameraModel ray_camera;  // the camera the rays were made for
+  int ray_width = 0, ray_height = 0;
+};
+
+SafetyVolumeRendering::SafetyVolumeRendering(const planning::Volume<float>& path_safety,
+                                             const planning::SafetyClasses& classes,
+                                             VolumeRenderingOptions options)
+    : geometry_(path_safety.geometry()), options_(options) {
+  if (path_safety.empty()) throw Error("volume rendering: the path safety volume is empty");
+  geometry_.validate("volume rendering: path safety volume");
+  validate_options(options_);
+  voxel_classes_.resize(size_t(path_safety.voxel_count()));
+  Eigen::Vector3i lo(std::numeric_limits<int>::max(), std::numeric_limits<int>::max(),
+                     std::numeric_limits<int>::max());
+  Eigen::Vector3i hi(-1, -1, -1);
+  const auto& dims = geometry_.dims;
+  for (int64_t k = 0; k < dims[2]; ++k) {
+    for (int64_t j = 0; j < dims[1]; ++j) {
+      for (int64_t i = 0; i < dims[0]; ++i) {
+        const int64_t offset = geometry_.offset(i, j, k);
+        const float value = path_safety[offset];
+        uint8_t c = 0;
+        if (std::isfinite(value)) {
+          c = uint8_t(1 + int(classes.classify(value)));
+          const Eigen::Vector3i index(static_cast<int>(i), static_cast<int>(j), static_cast<int>(k));
+          lo = lo.cwiseMin(index);
+          hi = hi.cwiseMax(index);
+        }
+        voxel_classes_[size_t(offset)] = c;
+      }
+    }
+  }
+  // Voxel centres are at integer indices: voxel (i,j,k) covers [i-0.5, i+0.5] etc.
+  box_lo_ = lo.cast<float>() - Eigen::Vector3f::Constant(0.5f);
+  box_hi_ = hi.cast<float>() + Eigen::Vector3f::Constant(0.5f);
+}
+
+SafetyVolumeRendering::~SafetyVolumeRendering() = default;
+
+void SafetyVolumeRendering::set_options(const VolumeRenderingOptions& options) {
+  validate_options(options);
+  options_ = options;
+}
+
+void SafetyVolumeRendering::set_pose(const Eigen::Isometry3d& T_cam_ct) {
+  if (!T_cam_ct.matrix().allFinite()) throw Error("volume rendering: pose T_cam_ct is not finite");
+  T_cam_ct_ = T_cam_ct;
+}
+
+double SafetyVolumeRendering::step() const {
+  return options_.step_mm > 0 ? options_.step_mm : 0.5 * geometry_.spacing.minCoeff();
+}
+
+SafetyVolumeRendering::RaySetup SafetyVolumeRendering::ray_setup() const {
+  // index = A (p_ct - origin), p_ct = T_ct_cam (t d): index = A R_ct_cam d t + A (t_ct_cam - origin).
+  const Eigen::Matrix3d A = geometry_.index_to_physical_matrix().inverse();
+  const Eigen::Isometry3d T_ct_cam = T_cam_ct_.inverse();
+  RaySetup s;
+  s.M = (A * T_ct_cam.linear()).cast<float>();
+  s.m0 = (A * (T_ct_cam.translation() - geometry_.origin)).cast<float>();
+  return s;
+}
+
+Eigen::Vector4d SafetyVolumeRendering::reference_pixel(const calibration::CameraModel& camera,
+                                                       double u, double v, bool* ambiguous) const {
+  const Eigen::Vector4d none(0, 0, 0, 0);
+  if (ambiguous) *ambiguous = false;
+  const Eigen::Vector3f df = pixel_ray(camera, u, v);
+  if (df.squaredNorm() < 0.5f || box_lo_.x() > box_hi_.x()) return none;
+  const RaySetup s = ray_setup();
+  const Eigen::Vector3d d = df.cast<double>();
+  const Eigen::Vector3d m0 = s.m0.cast<double>();
+  const Eigen::Vector3d D = s.M.cast<double>() * d;
+  double t_in = 0.0, t_out = 1e30;
+  for (int a = 0; a < 3; ++a) {
+    if (std::abs(D[a]) < 1e-12) {
+      if (m0[a] < box_lo_[a] || m0[a] > box_hi_[a]) return none;
+    } else {
+      const double t1 = (box_lo_[a] - m0[a]) / D[a];
+      const double t2 = (box_hi_[a] - m0[a]) / D[a];
+      t_in = std::max(t_in, std::min(t1, t2));
+      t_out = std::min(t_out, std::max(t1, t2));
+    }
+  }
+  if (!(t_out > t_in)) return none;
+  const auto colours = planning::class_colours(options_.palette);
+  const bool shown[3] = {options_.show_safe, options_.show_medium, options_.show_dangerous};
+  const float step_f = float(step());
+  const double step_mm = step_f;
+  const int n = std::min(int(std::ceil((t_out - t_in) / step_mm)), kMaxSteps);
+  const auto& dims = geometry_.dims;
+  Eigen::Vector3d C = Eigen::Vector3d::Zero();
+  double alpha = 0;
+  for (int i = 0; i < n; ++i) {
+    const double t0 = t_in + i * step_mm;
+    const double t1 = std::min(t0 + step_mm, t_out);
+    const double t = 0.5 * (t0 + t1);
+    const Eigen::Vector3d x = m0 + t * D;
+    int64_t index[3];
+    for (int a = 0; a < 3; ++a) {
+      index[a] = std::clamp<int64_t>(int64_t(std::floor(x[a] + 0.5)), 0, dims[size_t(a)] - 1);
+    }
+    const int c = voxel_classes_[size_t(geometry_.offset(index[0], index[1], index[2]))];
+    if (ambiguous && !*ambiguous) {
+      for (int a = 0; a < 3; ++a) {
+        const double f = x[a] + 0.5 - std::floor(x[a] + 0.5);  // position within the voxel, 0..1
+        const int64_t side = f < kVolumeRenderingAmbiguity         ? -1
+                             : f > 1.0 - kVolumeRenderingAmbiguity ? 1
+                                                                   : 0;
+        int64_t neighbour[3] = {index[0], index[1], index[2]};
+        neighbour[a] += side;
+        if (side == 0 || neighbour[a] < 0 || neighbour[a] >= dims[size_t(a)]) continue;
+        if (voxel_classes_[size_t(geometry_.offset(neighbour[0], neighbour[1], neighbour[2]))] != c)
+          *ambiguous = true;
+      }
+    }
+    if (c == 0 || !shown[c - 1]) continue;
+    const double k = float(options_.opacity_per_mm[c - 1]);
+    if (!(k > 0)) continue;
+    const double a = 1.0 - std::exp(-k * (t1 - t0));
+    const auto& rgb = colours[size_t(c - 1)];
+    C += (1.0 - alpha) * a * Eigen::Vector3d(rgb[0], rgb[1], rgb[2]) / 255.0;
+    alpha += (1.0 - alpha) * a;
+    if (alpha >= kVolumeRenderingOpaque) break;
+  }
+  return {C.x(), C.y(), C.z(), alpha};
+}
+
+void SafetyVolumeRendering::release_gl() {
+  if (!gl_) return;
+  glDeleteProgram(gl_->march_program);
+  glDeleteProgram(gl_->composite_program);
+  glDeleteVertexArrays(1, &gl_->vao);
+  const GLuint textures[3] = {gl_->class_texture, gl_->ray_texture, gl_->low_texture};
+  glDeleteTextures(3, textures);
+  glDeleteFramebuffers(1, &gl_->low_fbo);
+  gl_.reset();
+}
+
+void SafetyVolumeRendering::draw(const DrawContext& context) {
+  // The objects are lost with their context (e.g. a renderer made anew): make them again.
+  if (gl_ && (!glIsProgram(gl_->march_program) || !glIsTexture(gl_->class_texture))) gl_.reset();
+  if (!gl_) {
+    auto gl = std::make_unique<Gl>();
+    GLint max_size = 0;
+    glGetIntegerv(GL_MAX_3D_TEXTURE_SIZE, &max_size);
+    const auto& dims = geometry_.dims;
+    if (dims[0] > max_size || dims[1] > max_size || dims[2] > max_size) {
+      throw Error("volume rendering: path safety grid " + std::to_string(dims[0]) + "x" +
+                  std::to_string(dims[1]) + "x" + std::to_string(dims[2]) +
+                  " exceeds the OpenGL 3D texture limit of " + std::to_string(max_size));
+    }
+    gl->march_program = link_program(kFullScreenVertex, kMarchFragment);
+    gl->composite_program = link_program(kFullScreenVertex, kCompositeFragment);
+    glGenVertexArrays(1, &gl->vao);
+    glGenTextures(1, &gl->class_texture);
+    glBindTexture(GL_TEXTURE_3D, gl->class_texture);
+    glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+    glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+    glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAX_LEVEL, 0);
+    glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
+    glTexImage3D(GL_TEXTURE_3D, 0, GL_R8UI, GLsizei(dims[0]), GLsizei(dims[1]), GLsizei(dims[2]),
+                 0, GL_RED_INTEGER, GL_UNSIGNED_BYTE, voxel_classes_.data());
+    glGenTextures(1, &gl->ray_texture);
+    glBindTexture(GL_TEXTURE_2D, gl->ray_texture);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAX_LEVEL, 0);
+    const GLenum err = glGetError();
+    gl_ = std::move(gl);
+    if (err != GL_NO_ERROR) {
+      throw Error("volume rendering: OpenGL error " + std::to_string(err) +
+                  " while creating the class texture");
+    }
+  }
+  if (box_lo_.x() > box_hi_.x()) return;  // nothing classified: nothing to draw
+
+  const auto& camera = context.camera;
+  const double scale = options_.resolution_scale;
+  const int width = scale < 1 ? std::max(1, int(std::lround(context.width * scale))) : context.width;
+  const int height =
+      scale < 1 ? std::max(1, int(std::lround(context.height * scale))) : context.height;
+
+  // Per-pixel rays of the grid the rays are cast on (the image, or its reduced version whose pixel
+  // centres map to image positions by the size ratio).
+  if (!same_camera(gl_->ray_camera, camera) || gl_->ray_width != width ||
+      gl_->ray_height != height) {
+    std::vector<float> rays(size_t(width) * size_t(height) * 3);
+    const double sx = double(context.width) / width, sy = double(context.height) / height;
+    for (int r = 0; r < height; ++r) {
+      for (int c = 0; c < width; ++c) {
+        const Eigen::Vector3f d = pixel_ray(camera, (c + 0.5) * sx - 0.5, (r + 0.5) * sy - 0.5);
+        std::copy(d.data(), d.data() + 3, rays.begin() + (size_t(r) * size_t(width) + size_t(c)) * 3);
+      }
+    }
+    glBindTexture(GL_TEXTURE_2D, gl_->ray_texture);
+    glPixelStorei(GL_UNPACK_ALIGNMENT, 4);
+    glTexImage2D(GL_TEXTURE_2D, 0, GL_RGB32F, width, height, 0, GL_RGB, GL_FLOAT, rays.data());
+    gl_->ray_camera = camera;
+    gl_->ray_width = width;
+    gl_->ray_height = height;
+  }
+
+  GLint target_fbo = 0;
+  GLint viewport[4] = {0, 0, 0, 0};
+  glGetIntegerv(GL_DRAW_FRAMEBUFFER_BINDING, &target_fbo);
+  glGetIntegerv(GL_VIEWPORT, viewport);
+  const bool reduced = width != context.width || height != context.height;
+  if (reduced && (gl_->low_width != width || gl_->low_height != height)) {
+    if (!gl_->low_texture) glGenTextures(1, &gl_->low_texture);
+    if (!gl_->low_fbo) glGenFramebuffers(1, &gl_->low_fbo);
+    glBindTexture(GL_TEXTURE_2D, gl_->low_texture);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_LINEAR);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_LINEAR);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_WRAP_S, GL_CLAMP_TO_EDGE);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_WRAP_T, GL_CLAMP_TO_EDGE);
+    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAX_LEVEL, 0);
+    glTexImage2D(GL_TEXTURE_2D, 0, GL_RGBA16F, width, height, 0, GL_RGBA, GL_FLOAT, nullptr);
+    glBindFramebuffer(GL_FRAMEBUFFER, gl_->low_fbo);
+    glFramebufferTexture2D(GL_FRAMEBUFFER, GL_COLOR_ATTACHMENT0, GL_TEXTURE_2D, gl_->low_texture, 0);
+    if (glCheckFramebufferStatus(GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE) {
+      glBindFramebuffer(GL_FRAMEBUFFER, GLuint(target_fbo));
+      throw Error("volume rendering: reduced-resolution framebuffer incomplete");
+    }
+    gl_->low_width = width;
+    gl_->low_height = height;
+  }
+
+  // Ray casting, premultiplied output.
+  const GLuint program = gl_->march_program;
+  glUseProgram(program);
+  glBindVertexArray(gl_->vao);
+  glActiveTexture(GL_TEXTURE0);
+  glBindTexture(GL_TEXTURE_3D, gl_->class_texture);
+  glActiveTexture(GL_TEXTURE1);
+  glBindTexture(GL_TEXTURE_2D, gl_->ray_texture);
+  glUniform1i(glGetUniformLocation(program, "classes"), 0);
+  glUniform1i(glGetUniformLocation(program, "rays"), 1);
+  const RaySetup s = ray_setup();
+  glUniformMatrix3fv(glGetUniformLocation(program, "M"), 1, GL_FALSE, s.M.data());  // column-major
+  glUniform3fv(glGetUniformLocation(program, "m0"), 1, s.m0.data());
+  glUniform3fv(glGetUniformLocation(program, "box_lo"), 1, box_lo_.data());
+  glUniform3fv(glGetUniformLocation(program, "box_hi"), 1, box_hi_.data());
+  const auto& dims = geometry_.dims;
+  glUniform3i(glGetUniformLocation(program, "dims"), GLint(dims[0]), GLint(dims[1]), GLint(dims[2]));
+  const bool shown[3] = {options_.show_safe, options_.show_medium, options_.show_dangerous};
+  float opacity[4] = {0, 0, 0, 0};
+  float colour[12] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+  const auto colours = planning::class_colours(options_.palette);
+  for (int c = 0; c < 3; ++c) {
+    opacity[c + 1] = shown[c] ? float(options_.opacity_per_mm[c]) : 0.0f;
+    for (int ch = 0; ch < 3; ++ch) colour[(c + 1) * 3 + ch] = float(colours[size_t(c)][size_t(ch)] / 255.0);
+  }
+  glUniform1fv(glGetUniformLocation(program, "opacity"), 4, opacity);
+  glUniform3fv(glGetUniformLocation(program, "colour"), 4, colour);
+  glUniform1f(glGetUniformLocation(program, "step_mm"), float(step()));
+  glUniform1i(glGetUniformLocation(program, "rows"), height);
+  glUniform1i(glGetUniformLocation(program, "max_steps"), kMaxSteps);
+  glUniform1f(glGetUniformLocation(program, "opaque"), float(kVolumeRenderingOpaque));
+  if (reduced) {
+    glBindFramebuffer(GL_FRAMEBUFFER, gl_->low_fbo);
+    glViewport(0, 0, width, height);
+    glDisable(GL_BLEND);
+    glClearColor(0, 0, 0, 0);
+    glClear(GL_COLOR_BUFFER_BIT);
+    glDrawArrays(GL_TRIANGLES, 0, 3);
+    glBindFramebuffer(GL_FRAMEBUFFER, GLuint(target_fbo));
+    glViewport(viewport[0], viewport[1], viewport[2], viewport[3]);
+    glUseProgram(gl_->composite_program);
+    glActiveTexture(GL_TEXTURE0);
+    glBindTexture(GL_TEXTURE_2D, gl_->low_texture);
+    glUniform1i(glGetUniformLocation(gl_->composite_program, "image"), 0);
+    glUniform2f(glGetUniformLocation(gl_->composite_program, "size"), float(context.width),
+                float(context.height));
+  }
+  glEnable(GL_BLEND);
+  glBlendFunc(GL_ONE, GL_ONE_MINUS_SRC_ALPHA);
+  glDrawArrays(GL_TRIANGLES, 0, 3);
+  glBlendFunc(GL_SRC_ALPHA, GL_ONE_MINUS_SRC_ALPHA);
+  glActiveTexture(GL_TEXTURE0);
+  const GLenum err = glGetError();
+  if (err != GL_NO_ERROR) {
+    throw Error("volume rendering: OpenGL error " + std::to_string(err) + " while drawing");
+  }
+}
+
+}  // namespace crepuscular::overlay
