@@ -385,6 +385,7 @@ struct OverlayRenderer::Impl {
   GLuint vao = 0, vbo = 0;
   bool has_frame = false;
   std::vector<Layer> layers;
+  cv::Mat readback;  // render()'s glReadPixels target (bottom row first)
 
   Layer& layer(const std::string& name) {
     for (auto& l : layers)
@@ -790,7 +791,10 @@ cv::Mat OverlayRenderer::render() {
   draw();
   impl_->make_current();
   glBindFramebuffer(GL_FRAMEBUFFER, impl_->fbo);
-  cv::Mat flipped(camera_.height, camera_.width, CV_8UC3);
+  // The readback buffer is kept between frames: a fresh 6 MB buffer per 1080p frame costs more in
+  // page faults than the readback itself.
+  cv::Mat& flipped = impl_->readback;
+  flipped.create(camera_.height, camera_.width, CV_8UC3);
   glPixelStorei(GL_PACK_ALIGNMENT, 1);
   glReadBuffer(GL_COLOR_ATTACHMENT0);
   glReadPixels(0, 0, camera_.width, camera_.height, GL_BGR, GL_UNSIGNED_BYTE, flipped.data);
