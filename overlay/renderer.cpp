@@ -488,6 +488,9 @@ OverlayRenderer::OverlayRenderer(const calibration::CameraModel& camera, Rendere
       message += (display && *display) ? "Check that the X display is reachable and has GLX."
                                        : "There is no X display: set DISPLAY or run under "
                                          "xvfb-run -a.";
+    } else if (options_.backend == RendererBackend::kEgl) {
+      message += "Install an EGL driver (libegl-mesa0 or the GPU driver's EGL library), or use the "
+                 "GLFW backend on an X display (xvfb-run -a).";
     } else {
       message += (display && *display)
                      ? "Install an EGL driver (libegl-mesa0 or the GPU driver's EGL library)."
