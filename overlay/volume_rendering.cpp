@@ -41,6 +41,7 @@ uniform vec3 box_hi;
 uniform ivec3 dims;
 uniform float opacity[4];
 uniform vec3 colour[4];
+uniform vec4 full_step[4];  // a whole step of each class: premultiplied colour, alpha
 uniform float step_mm;
 uniform int rows;
 uniform int max_steps;
@@ -66,21 +67,31 @@ void main() {
   }
   if (!(t_out > t_in)) return;
   int n = min(int(ceil((t_out - t_in) / step_mm)), max_steps);
+  // Empty-space leaping: a voxel `g` (Chebyshev, in voxels) away from any classified voxel lets
+  // the samples whose positions move less than g - 1 voxels per axis be passed over: they all
+  // fall in unclassified voxels (the CPU reference takes them and finds nothing there).
+  float reach = max(abs(D.x), max(abs(D.y), abs(D.z))) * step_mm;
   vec3 C = vec3(0.0);
   float A = 0.0;
-  for (int i = 0; i < n; ++i) {
+  int i = 0;
+  while (i < n) {
     float t0 = t_in + float(i) * step_mm;
-    float t1 = min(t0 + step_mm, t_out);
-    float t = 0.5 * (t0 + t1);
+    float dt = i < n - 1 ? step_mm : t_out - t0;
+    float t = t0 + 0.5 * dt;
     ivec3 v = clamp(ivec3(floor(m0 + t * D + 0.5)), ivec3(0), dims - 1);
-    int c = int(texelFetch(classes, v, 0).r);
-    float k = opacity[c];
-    if (k > 0.0) {
-      float a = 1.0 - exp(-k * (t1 - t0));
-      C += (1.0 - A) * a * colour[c];
-      A += (1.0 - A) * a;
+    uvec2 cg = texelFetch(classes, v, 0).rg;
+    int c = int(cg.r);
+    if (c == 0) {
+      i += 1 + max(0, int(floor((float(cg.g) - 1.01) / reach)));
+      continue;
+    }
+    if (opacity[c] > 0.0) {
+      vec4 s = i < n - 1 ? full_step[c] : vec4(colour[c], 1.0) * (1.0 - exp(-opacity[c] * dt));
+      C += (1.0 - A) * s.rgb;
+      A += (1.0 - A) * s.a;
       if (A >= opaque) break;
     }
+    ++i;
   }
   out_colour = vec4(C, A);
 }
@@ -151,6 +162,36 @@ void validate_options(const VolumeRenderingOptions& o) {
     throw Error("volume rendering: resolution_scale is " + std::to_string(o.resolution_scale) +
                 ", expected 0 < scale <= 1");
   }
+}
+
+// Chebyshev distance (in voxels, capped at kMaxLeap) from each voxel to the nearest voxel with a
+// class: every voxel closer than that to it (in each index) has none. Separable: exact 1D distance
+// along i, then min over j' of max(|j - j'|, g(j')), then the same along k.
+constexpr int kMaxLeap = 32;
+std::vector<uint8_t> empty_distance(const planning::Index3& dims, const std::vector<uint8_t>& classes) {
+  const int64_t nx = dims[0], ny = dims[1], nz = dims[2];
+  std::vector<uint8_t> g(classes.size());
+  for (size_t v = 0; v < classes.size(); ++v) g[v] = classes[v] ? 0 : kMaxLeap;
+  // One pass along an axis: g(x) <- min over x' of max(|x - x'|, g(x')), within kMaxLeap.
+  const auto pass = [&](int64_t n, int64_t stride, int64_t lines, auto&& line_start) {
+    std::vector<uint8_t> in(size_t(n), 0);
+    for (int64_t l = 0; l < lines; ++l) {
+      const int64_t start = line_start(l);
+      for (int64_t x = 0; x < n; ++x) in[size_t(x)] = g[size_t(start + x * stride)];
+      for (int64_t x = 0; x < n; ++x) {
+        int best = in[size_t(x)];
+        for (int64_t r = 1; r < best; ++r) {
+          if (x - r >= 0) best = std::min(best, std::max(int(r), int(in[size_t(x - r)])));
+          if (x + r < n) best = std::min(best, std::max(int(r), int(in[size_t(x + r)])));
+        }
+        g[size_t(start + x * stride)] = uint8_t(best);
+      }
+    }
+  };
+  pass(nx, 1, ny * nz, [&](int64_t l) { return l * nx; });
+  pass(ny, nx, nx * nz, [&](int64_t l) { return (l % nx) + (l / nx) * nx * ny; });
+  pass(nz, nx * ny, nx * ny, [&](int64_t l) { return l; });
+  return g;
 }
 
 }  // namespace
@@ -261,8 +302,8 @@ Eigen::Vector4d SafetyVolumeRendering::reference_pixel(const calibration::Camera
   double alpha = 0;
   for (int i = 0; i < n; ++i) {
     const double t0 = t_in + i * step_mm;
-    const double t1 = std::min(t0 + step_mm, t_out);
-    const double t = 0.5 * (t0 + t1);
+    const double dt = i < n - 1 ? step_mm : t_out - t0;
+    const double t = t0 + 0.5 * dt;
     const Eigen::Vector3d x = m0 + t * D;
     int64_t index[3];
     for (int a = 0; a < 3; ++a) {
@@ -285,7 +326,7 @@ Eigen::Vector4d SafetyVolumeRendering::reference_pixel(const calibration::Camera
     if (c == 0 || !shown[c - 1]) continue;
     const double k = float(options_.opacity_per_mm[c - 1]);
     if (!(k > 0)) continue;
-    const double a = 1.0 - std::exp(-k * (t1 - t0));
+    const double a = 1.0 - std::exp(-k * dt);
     const auto& rgb = colours[size_t(c - 1)];
     C += (1.0 - alpha) * a * Eigen::Vector3d(rgb[0], rgb[1], rgb[2]) / 255.0;
     alpha += (1.0 - alpha) * a;
@@ -327,8 +368,15 @@ void SafetyVolumeRendering::draw(const DrawContext& context) {
     glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
     glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAX_LEVEL, 0);
     glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
-    glTexImage3D(GL_TEXTURE_3D, 0, GL_R8UI, GLsizei(dims[0]), GLsizei(dims[1]), GLsizei(dims[2]),
-                 0, GL_RED_INTEGER, GL_UNSIGNED_BYTE, voxel_classes_.data());
+    // Per voxel: class, and Chebyshev distance (voxels) to the nearest classified voxel.
+    const std::vector<uint8_t> distance = empty_distance(geometry_.dims, voxel_classes_);
+    std::vector<uint8_t> texels(voxel_classes_.size() * 2);
+    for (size_t v = 0; v < voxel_classes_.size(); ++v) {
+      texels[2 * v] = voxel_classes_[v];
+      texels[2 * v + 1] = distance[v];
+    }
+    glTexImage3D(GL_TEXTURE_3D, 0, GL_RG8UI, GLsizei(dims[0]), GLsizei(dims[1]), GLsizei(dims[2]),
+                 0, GL_RG_INTEGER, GL_UNSIGNED_BYTE, texels.data());
     glGenTextures(1, &gl->ray_texture);
     glBindTexture(GL_TEXTURE_2D, gl->ray_texture);
     glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
@@ -419,6 +467,13 @@ void SafetyVolumeRendering::draw(const DrawContext& context) {
     opacity[c + 1] = shown[c] ? float(options_.opacity_per_mm[c]) : 0.0f;
     for (int ch = 0; ch < 3; ++ch) colour[(c + 1) * 3 + ch] = float(colours[size_t(c)][size_t(ch)] / 255.0);
   }
+  float full_step[16] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+  for (int c = 1; c < 4; ++c) {
+    const double a = 1.0 - std::exp(-double(opacity[c]) * double(float(step())));
+    for (int ch = 0; ch < 3; ++ch) full_step[c * 4 + ch] = float(colour[c * 3 + ch] * a);
+    full_step[c * 4 + 3] = float(a);
+  }
+  glUniform4fv(glGetUniformLocation(program, "full_step"), 4, full_step);
   glUniform1fv(glGetUniformLocation(program, "opacity"), 4, opacity);
   glUniform3fv(glGetUniformLocation(program, "colour"), 4, colour);
   glUniform1f(glGetUniformLocation(program, "step_mm"), float(step()));

@@ -27,8 +27,8 @@ struct VolumeRenderingOptions {
   bool show_safe = true, show_medium = true, show_dangerous = true;
   // Absorption coefficient per mm of each class (safe, medium, dangerous): a ray crossing L mm of
   // one class gets opacity 1 - exp(-k L). Defaults keep the video visible: 100 mm of safe region
-  // give 33 %, of medium 55 %, of dangerous 80 %. Each must be >= 0.
-  double opacity_per_mm[3] = {0.004, 0.008, 0.016};
+  // give 33 %, of medium 45 %, of dangerous 63 %. Each must be >= 0.
+  double opacity_per_mm[3] = {0.004, 0.006, 0.010};
   // Distance between samples along a ray, mm; 0: half the smallest voxel spacing.
   double step_mm = 0;
   // Fraction of the image resolution the rays are cast at (0 < s <= 1); below 1 the result is
