@@ -16,6 +16,7 @@ void add_record_command(CLI::App& app);
 void add_track_command(CLI::App& app);
 void add_calibrate_command(CLI::App& app);
 void add_register_command(CLI::App& app);
+void add_guide_command(CLI::App& app);
 void add_demo_command(CLI::App& app);
 
 }  // namespace crepuscular::apps

@@ -31,6 +31,7 @@ int main(int argc, char** argv) {
   crepuscular::apps::add_track_command(app);
   crepuscular::apps::add_calibrate_command(app);
   crepuscular::apps::add_register_command(app);
+  crepuscular::apps::add_guide_command(app);
   crepuscular::apps::add_demo_command(app);
   try {
     app.parse(argc, argv);

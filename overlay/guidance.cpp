@@ -1,0 +1,545 @@
+#include "overlay/guidance.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <set>
+
+#include <opencv2/imgproc.hpp>
+#include <spdlog/spdlog.h>
+
+#include "kernels/error.hpp"
+#include "overlay/renderer.hpp"
+
+namespace crepuscular::overlay {
+
+namespace {
+
+constexpr std::array<const char*, kGuidanceLayerCount> kLayerNames = {"rays",  "volume", "entry",
+                                                                       "tumor", "needle", "status"};
+
+cv::Scalar bgr(const std::array<uint8_t, 3>& rgb) { return cv::Scalar(rgb[2], rgb[1], rgb[0]); }
+
+cv::Scalar class_bgr(planning::Palette palette, planning::SafetyClass c) {
+  return bgr(planning::class_colours(palette)[static_cast<size_t>(c)]);
+}
+
+cv::Scalar safety_bgr(planning::Palette palette, planning::NeedleSafety s) {
+  switch (s) {
+    case planning::NeedleSafety::kSafe: return class_bgr(palette, planning::SafetyClass::kSafe);
+    case planning::NeedleSafety::kMedium: return class_bgr(palette, planning::SafetyClass::kMedium);
+    case planning::NeedleSafety::kDangerous: break;
+  }
+  return class_bgr(palette, planning::SafetyClass::kDangerous);
+}
+
+// Evenly spread unit directions (Fibonacci sphere).
+std::vector<Eigen::Vector3d> sphere_directions(int n) {
+  std::vector<Eigen::Vector3d> dirs;
+  dirs.reserve(size_t(n));
+  const double golden = M_PI * (3.0 - std::sqrt(5.0));
+  for (int i = 0; i < n; ++i) {
+    const double z = 1.0 - (2.0 * i + 1.0) / n;
+    const double r = std::sqrt(std::max(0.0, 1.0 - z * z));
+    dirs.emplace_back(r * std::cos(golden * i), r * std::sin(golden * i), z);
+  }
+  return dirs;
+}
+
+template <typename T>
+bool voxel_at(const planning::Volume<T>& v, const Eigen::Vector3d& p, T* out) {
+  const planning::Index3 i = v.geometry().nearest_index(p);
+  if (!v.geometry().contains(i[0], i[1], i[2])) return false;
+  *out = v(i[0], i[1], i[2]);
+  return true;
+}
+
+// Text panel helpers: lines of text on a translucent dark box, drawn into a BGRA image.
+struct TextLine {
+  std::string text;
+  cv::Scalar colour{255, 255, 255};
+  double scale = 0.55;
+};
+
+cv::Rect draw_panel(cv::Mat& bgra, cv::Point origin, const std::vector<TextLine>& lines,
+                    bool anchor_bottom) {
+  if (lines.empty()) return {};
+  const int font = cv::FONT_HERSHEY_SIMPLEX;
+  int width = 0, height = 8;
+  std::vector<int> heights;
+  for (const auto& l : lines) {
+    int base = 0;
+    const cv::Size s = cv::getTextSize(l.text, font, l.scale, 1, &base);
+    width = std::max(width, s.width);
+    heights.push_back(s.height + base + 6);
+    height += heights.back();
+  }
+  cv::Rect box(origin.x, anchor_bottom ? origin.y - height : origin.y, width + 16, height);
+  box &= cv::Rect(0, 0, bgra.cols, bgra.rows);
+  bgra(box).setTo(cv::Scalar(20, 20, 20, 170));
+  int y = box.y + 4;
+  for (size_t i = 0; i < lines.size(); ++i) {
+    y += heights[i];
+    const cv::Scalar c = lines[i].colour;
+    cv::putText(bgra, lines[i].text, cv::Point(box.x + 8, y - 6), font, lines[i].scale,
+                cv::Scalar(c[0], c[1], c[2], 255), 1, cv::LINE_AA);
+  }
+  return box;
+}
+
+std::string format(const char* fmt, double a) {
+  char buf[128];
+  std::snprintf(buf, sizeof(buf), fmt, a);
+  return buf;
+}
+
+}  // namespace
+
+const char* guidance_layer_name(GuidanceLayer layer) { return kLayerNames[size_t(layer)]; }
+
+GuidanceLayer parse_guidance_layer(const std::string& text) {
+  for (int i = 0; i < kGuidanceLayerCount; ++i) {
+    if (text == kLayerNames[size_t(i)] || text == std::to_string(i + 1)) {
+      return static_cast<GuidanceLayer>(i);
+    }
+  }
+  throw Error("unknown overlay layer '" + text +
+              "', expected rays, volume, entry, tumor, needle or status (or 1-6)");
+}
+
+std::vector<std::string> needle_text(const planning::NeedleState& s) {
+  std::vector<std::string> out;
+  for (const auto& hit : s.evaluation.structures) {
+    if (hit.blocking_per_mm <= 0) continue;
+    char buf[200];
+    std::snprintf(buf, sizeof(buf), "%s (%s) at %.0f mm, %.1f mm long", hit.name.c_str(),
+                  hit.level_name.empty() ? "?" : hit.level_name.c_str(), hit.depth_mm,
+                  hit.length_mm);
+    out.push_back(buf);
+  }
+  return out;
+}
+
+GuidanceOverlay::GuidanceOverlay(const planning::PlanData& plan, GuidanceSetup setup,
+                                 GuidanceOptions options)
+    : plan_(plan), setup_(std::move(setup)), options_(std::move(options)) {
+  if (plan_.values.empty() || plan_.path_safety.empty()) {
+    throw Error(plan_.dir + "/plan.json: the plan has no path safety volume to guide with");
+  }
+  value_ = options_.value.empty() ? plan_.values.front() : options_.value;
+  if (!plan_.path_safety.count(value_) || !plan_.classes.count(value_)) {
+    throw Error(plan_.dir + "/plan.json: no path safety volume '" + value_ + "' in the plan");
+  }
+  if (!(setup_.axis_in_needle.norm() > 0)) throw Error("guidance: the needle axis is zero");
+  setup_.axis_in_needle.normalize();
+  if (options_.ray_directions < 1 || options_.ray_directions > 200000) {
+    throw Error("guidance: ray directions must be 1 to 200000");
+  }
+  guide_ = std::make_unique<planning::NeedleGuide>(plan_);
+  build_tumor_surface();
+  build_rays();
+  build_entry_contours();
+  spdlog::info("guidance: {} safe or medium rays of {}, {} entry contours, {} tumor surface points",
+               rays_.size(), options_.ray_directions, contours_.size(), tumor_surface_.size());
+}
+
+GuidanceOverlay::~GuidanceOverlay() = default;
+
+void GuidanceOverlay::set_visible(GuidanceLayer layer, bool visible) {
+  options_.visible[size_t(layer)] = visible;
+}
+bool GuidanceOverlay::visible(GuidanceLayer layer) const {
+  return options_.visible[size_t(layer)];
+}
+void GuidanceOverlay::set_palette(planning::Palette palette) { options_.palette = palette; }
+
+bool GuidanceOverlay::inside_body(const Eigen::Vector3d& p) const {
+  int32_t label = 0;
+  return voxel_at(plan_.labels, p, &label) && label > 0;
+}
+
+std::optional<Eigen::Vector3d> GuidanceOverlay::skin_exit(const Eigen::Vector3d& from,
+                                                          const Eigen::Vector3d& dir) const {
+  const double step = 0.5 * plan_.grid.spacing.minCoeff();
+  const double reach = plan_.radius_mm > 0 ? plan_.radius_mm : 200.0;
+  if (plan_.labels.empty()) return from + dir * reach;  // no body outline: the region's edge
+  std::optional<Eigen::Vector3d> last_inside;
+  const Eigen::Vector3d& centre = plan_.tumor_centre;
+  for (double t = 0; t <= 2 * reach; t += step) {
+    const Eigen::Vector3d p = from + t * dir;
+    if ((p - centre).norm() > reach) return std::nullopt;  // still inside at the region's edge
+    if (inside_body(p)) {
+      last_inside = p;
+    } else if (last_inside) {
+      return last_inside;
+    }
+  }
+  return std::nullopt;
+}
+
+void GuidanceOverlay::build_tumor_surface() {
+  const auto& tumor = plan_.tumor;
+  if (tumor.empty()) return;
+  const auto d = tumor.dims();
+  tumor_voxel_mm_ = tumor.geometry().spacing.maxCoeff();
+  auto in = [&](int64_t i, int64_t j, int64_t k) {
+    return tumor.geometry().contains(i, j, k) && tumor(i, j, k) > 0;
+  };
+  for (int64_t k = 0; k < d[2]; ++k)
+    for (int64_t j = 0; j < d[1]; ++j)
+      for (int64_t i = 0; i < d[0]; ++i) {
+        if (!in(i, j, k)) continue;
+        if (in(i - 1, j, k) && in(i + 1, j, k) && in(i, j - 1, k) && in(i, j + 1, k) &&
+            in(i, j, k - 1) && in(i, j, k + 1)) {
+          continue;
+        }
+        tumor_surface_.push_back(tumor.index_to_physical(i, j, k));
+      }
+  // Thin out very large tumors: the outline needs a few thousand points at most.
+  if (tumor_surface_.size() > 6000) {
+    const size_t stride = tumor_surface_.size() / 6000 + 1;
+    std::vector<Eigen::Vector3d> kept;
+    for (size_t i = 0; i < tumor_surface_.size(); i += stride) kept.push_back(tumor_surface_[i]);
+    tumor_voxel_mm_ *= std::cbrt(double(stride));
+    tumor_surface_.swap(kept);
+  }
+}
+
+void GuidanceOverlay::build_rays() {
+  const auto& volume = plan_.path_safety.at(value_);
+  const planning::SafetyClasses& classes = plan_.classes.at(value_);
+  const Eigen::Vector3d& centre = plan_.tumor_centre;
+  const double step = 0.5 * plan_.grid.spacing.minCoeff();
+  for (const Eigen::Vector3d& dir : sphere_directions(options_.ray_directions)) {
+    // Leave the tumor (mask, else the centre itself).
+    Eigen::Vector3d start = centre;
+    if (!plan_.tumor.empty()) {
+      for (double t = 0; t < 100.0; t += step) {
+        uint8_t v = 0;
+        if (!voxel_at(plan_.tumor, centre + t * dir, &v) || v == 0) {
+          start = centre + t * dir;
+          break;
+        }
+      }
+    }
+    const auto end = skin_exit(start, dir);
+    if (!end) continue;
+    const double value = planning::sample_path_safety(volume, *end);
+    if (!std::isfinite(value)) continue;
+    const planning::SafetyClass c = classes.classify(value);
+    if (c == planning::SafetyClass::kDangerous) continue;
+    rays_.push_back({start, *end, c});
+  }
+}
+
+void GuidanceOverlay::build_entry_contours() {
+  if (!plan_.area) return;
+  const planning::AreaSafetyGeometry& g = *plan_.area;
+  const double fallback = g.max_distance_mm > 0 ? g.max_distance_mm : 50.0;
+  // Marching triangles on the region id: a contour point at the middle of every edge between a
+  // vertex of region r and one outside it; each triangle with such edges gives a segment.
+  for (const auto& region : g.regions) {
+    const int r = region.id;
+    using Key = std::pair<int, int>;
+    std::vector<std::array<Key, 2>> segments;
+    for (const auto& tri : g.triangles) {
+      std::vector<Key> crossing;
+      for (int e = 0; e < 3; ++e) {
+        const int a = tri[size_t(e)], b = tri[size_t((e + 1) % 3)];
+        if ((g.region[size_t(a)] == r) != (g.region[size_t(b)] == r)) {
+          crossing.emplace_back(std::min(a, b), std::max(a, b));
+        }
+      }
+      if (crossing.size() == 2) segments.push_back({crossing[0], crossing[1]});
+    }
+    if (segments.empty()) continue;
+    // Chain segments that share an edge point into polylines.
+    std::map<Key, std::vector<size_t>> by_point;
+    for (size_t s = 0; s < segments.size(); ++s)
+      for (const Key& k : segments[s]) by_point[k].push_back(s);
+    std::vector<bool> used(segments.size(), false);
+    std::map<Key, Eigen::Vector3d> skin;
+    auto skin_point = [&](const Key& k) {
+      auto it = skin.find(k);
+      if (it != skin.end()) return it->second;
+      const Eigen::Vector3d base = 0.5 * (g.base[size_t(k.first)] + g.base[size_t(k.second)]);
+      const Eigen::Vector3d n =
+          (g.normals[size_t(k.first)] + g.normals[size_t(k.second)]).normalized();
+      const Eigen::Vector3d p = skin_exit(base, n).value_or(base + fallback * n);
+      skin.emplace(k, p);
+      return p;
+    };
+    for (size_t s0 = 0; s0 < segments.size(); ++s0) {
+      if (used[s0]) continue;
+      used[s0] = true;
+      std::vector<Key> chain = {segments[s0][0], segments[s0][1]};
+      // Extend forward from the back, then backward from the front.
+      for (int direction = 0; direction < 2; ++direction) {
+        while (true) {
+          const Key end = direction == 0 ? chain.back() : chain.front();
+          size_t next = segments.size();
+          for (size_t s : by_point[end])
+            if (!used[s]) next = s;
+          if (next == segments.size()) break;
+          used[next] = true;
+          const Key other = segments[next][0] == end ? segments[next][1] : segments[next][0];
+          if (direction == 0) {
+            chain.push_back(other);
+          } else {
+            chain.insert(chain.begin(), other);
+          }
+        }
+      }
+      Contour c;
+      c.region = r;
+      c.leeway = region.leeway;
+      c.closed = chain.size() > 2 && chain.front() == chain.back();
+      if (c.closed) chain.pop_back();
+      for (const Key& k : chain) c.points.push_back(skin_point(k));
+      if (c.points.size() >= 2) contours_.push_back(std::move(c));
+    }
+  }
+}
+
+void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct) {
+  const auto palette = options_.palette;
+  if (visible(GuidanceLayer::kRays)) {
+    for (const Ray& ray : rays_) {
+      Polyline line;
+      line.points_cam = {T_cam_ct * ray.start, T_cam_ct * ray.end};
+      line.colour = class_bgr(palette, ray.safety_class);
+      line.width_px = 1.5;
+      line.opacity = 0.45;
+      renderer.add_polyline("rays", line);
+    }
+  }
+  if (visible(GuidanceLayer::kEntry)) {
+    for (const Contour& c : contours_) {
+      Polyline line;
+      for (const auto& p : c.points) line.points_cam.push_back(T_cam_ct * p);
+      line.closed = c.closed;
+      line.colour = bgr(planning::leeway_colour(palette, c.leeway));
+      line.width_px = 2.0 + 6.0 * std::clamp(c.leeway, 0.0, 1.0);
+      line.opacity = 0.9;
+      renderer.add_polyline("entry", line);
+    }
+  }
+  if (visible(GuidanceLayer::kTumor)) {
+    const cv::Scalar magenta(255, 0, 255);
+    const calibration::CameraModel& cam = renderer.camera();
+    // Silhouette: project the surface voxels as discs of their apparent size, outline the union.
+    std::vector<cv::Point2f> pts;
+    double radius_px = 1;
+    for (const auto& p_ct : tumor_surface_) {
+      const Eigen::Vector3d p = T_cam_ct * p_ct;
+      if (p.z() < 1.0) continue;
+      const Eigen::Vector2d uv = cam.project(p);
+      if (!uv.allFinite()) continue;
+      pts.emplace_back(float(uv.x()), float(uv.y()));
+      radius_px = std::max(radius_px, 0.6 * cam.fx * tumor_voxel_mm_ / p.z());
+    }
+    if (!pts.empty()) {
+      cv::Rect box = cv::boundingRect(pts);
+      const int pad = int(std::ceil(radius_px)) + 2;
+      box = cv::Rect(box.x - pad, box.y - pad, box.width + 2 * pad, box.height + 2 * pad);
+      if (box.width < 4000 && box.height < 4000) {
+        cv::Mat mask(box.size(), CV_8U, cv::Scalar(0));
+        const int shift = 4;
+        for (const auto& q : pts) {
+          cv::circle(mask,
+                     cv::Point(int(std::lround((q.x - box.x) * 16)),
+                               int(std::lround((q.y - box.y) * 16))),
+                     int(std::lround(radius_px * 16)), cv::Scalar(255), cv::FILLED, cv::LINE_8,
+                     shift);
+        }
+        std::vector<std::vector<cv::Point>> outlines;
+        cv::findContours(mask, outlines, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+        for (const auto& o : outlines) {
+          std::vector<Eigen::Vector2d> px;
+          for (const auto& q : o) px.emplace_back(q.x + box.x, q.y + box.y);
+          renderer.add_polyline_px("tumor", px, magenta, 2.0, true);
+        }
+      }
+    }
+    // The centre: a small cross in 3D.
+    const Eigen::Vector3d c = plan_.tumor_centre;
+    for (int axis = 0; axis < 3; ++axis) {
+      Polyline line;
+      Eigen::Vector3d d = Eigen::Vector3d::Zero();
+      d[axis] = 4.0;
+      line.points_cam = {T_cam_ct * (c - d), T_cam_ct * (c + d)};
+      line.colour = magenta;
+      line.width_px = 2;
+      renderer.add_polyline("tumor", line);
+    }
+  }
+}
+
+void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct,
+                                  const Eigen::Isometry3d& T_cam_needle,
+                                  const NeedleReading& reading) {
+  const auto& s = reading.state;
+  const auto palette = options_.palette;
+  const cv::Scalar colour = safety_bgr(palette, s.safety);
+  const Eigen::Vector3d tip = T_cam_needle * setup_.tip_in_needle;
+  // The shaft: from the hub (the board origin's foot on the axis) to the tip.
+  const double length = setup_.tip_in_needle.dot(setup_.axis_in_needle);
+  const Eigen::Vector3d hub = T_cam_needle * (setup_.tip_in_needle - length * setup_.axis_in_needle);
+  Polyline shaft;
+  shaft.points_cam = {hub, tip};
+  shaft.colour = cv::Scalar(255, 255, 255);
+  shaft.width_px = 3;
+  renderer.add_polyline("needle", shaft);
+  if (!s.points_away) {
+    Polyline ext;
+    ext.points_cam = {tip, T_cam_ct * s.target};
+    ext.colour = colour;
+    ext.width_px = 3;
+    renderer.add_polyline("needle", ext);
+  }
+  if (s.nearest_safe_vertex >= 0 && s.safety != planning::NeedleSafety::kSafe) {
+    // The nearest safe direction, from the tumor out: where to turn the needle.
+    Polyline dir;
+    const Eigen::Vector3d c = plan_.tumor_centre;
+    for (int k = 0; k < 12; k += 2) {
+      Polyline dash;
+      dash.points_cam = {T_cam_ct * (c + (10.0 + 8.0 * k) * s.nearest_safe_direction),
+                         T_cam_ct * (c + (10.0 + 8.0 * (k + 1)) * s.nearest_safe_direction)};
+      dash.colour = class_bgr(palette, planning::SafetyClass::kSafe);
+      dash.width_px = 2;
+      renderer.add_polyline("needle", dash);
+    }
+  }
+
+  // Text panel, bottom left.
+  cv::Mat panel(renderer.camera().height, renderer.camera().width, CV_8UC4, cv::Scalar(0, 0, 0, 0));
+  std::vector<TextLine> lines;
+  std::string headline = std::string("NEEDLE PATH: ") + planning::needle_safety_name(s.safety);
+  std::transform(headline.begin(), headline.end(), headline.begin(), ::toupper);
+  lines.push_back({headline, colour, 0.8});
+  if (s.points_away) {
+    lines.push_back({"needle points away from the tumor"});
+  } else {
+    char buf[200];
+    std::snprintf(buf, sizeof(buf), "line integral %.2f (insignificant <= %.2f)",
+                  s.evaluation.line_integral, s.eps);
+    lines.push_back({buf});
+    for (const auto& t : needle_text(s)) lines.push_back({"crosses " + t, colour, 0.5});
+    std::snprintf(buf, sizeof(buf), "tip to target %.1f mm, passes %.1f mm from the centre",
+                  s.tip_to_centroid_mm, s.miss_distance_mm);
+    lines.push_back({buf});
+  }
+  if (std::isfinite(s.angle_to_safe_deg)) {
+    lines.push_back({format("nearest safe direction %.1f deg away", s.angle_to_safe_deg)});
+  }
+  draw_panel(panel, cv::Point(10, panel.rows - 10), lines, true);
+  renderer.set_layer_image("needle", panel);
+}
+
+void GuidanceOverlay::draw_status(OverlayRenderer& renderer, const GuidanceFrameInfo& info,
+                                  const GuidanceTiming& timing) {
+  const auto& cam = renderer.camera();
+  cv::Mat panel(cam.height, cam.width, CV_8UC4, cv::Scalar(0, 0, 0, 0));
+  const cv::Scalar ok(120, 230, 120), bad(60, 60, 255);
+  std::vector<TextLine> lines;
+  auto board_line = [&](const char* name, bool tracked, double age) {
+    char buf[120];
+    if (tracked) {
+      std::snprintf(buf, sizeof(buf), "%s marker: tracked (%.0f ms)", name, age);
+    } else {
+      std::snprintf(buf, sizeof(buf), "%s marker: LOST", name);
+    }
+    lines.push_back({buf, tracked ? ok : bad});
+  };
+  board_line("patient", info.patient_tracked, info.patient_age_ms);
+  board_line("needle", info.needle_tracked, info.needle_age_ms);
+  char buf[160];
+  std::snprintf(buf, sizeof(buf), "%.1f fps, frame %lld", timing.fps, (long long)info.frame);
+  lines.push_back({buf});
+  if (timing.latency_ms >= 0) {
+    std::snprintf(buf, sizeof(buf), "latency %.0f ms (%s)", timing.latency_ms,
+                  timing.latency_from_capture ? "from capture" : "from frame arrival");
+    lines.push_back({buf});
+  }
+  if (visible(GuidanceLayer::kStatus)) draw_panel(panel, cv::Point(10, 10), lines, false);
+  // Warnings: large, red, at the top centre.
+  int y = 20;
+  for (const auto& w : info.warnings) {
+    int base = 0;
+    const cv::Size s = cv::getTextSize(w, cv::FONT_HERSHEY_SIMPLEX, 1.0, 2, &base);
+    const cv::Rect box(std::max(0, (cam.width - s.width) / 2 - 12), y, s.width + 24,
+                       s.height + base + 16);
+    panel(box & cv::Rect(0, 0, cam.width, cam.height)).setTo(cv::Scalar(0, 0, 160, 200));
+    cv::putText(panel, w, cv::Point(box.x + 12, box.y + s.height + 8), cv::FONT_HERSHEY_SIMPLEX,
+                1.0, cv::Scalar(255, 255, 255, 255), 2, cv::LINE_AA);
+    y += box.height + 8;
+  }
+  renderer.set_layer_image("status", panel);
+}
+
+GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const tracking::Frame& frame,
+                                          const tracking::TrackResult& track,
+                                          const GuidanceTiming& timing) {
+  const calibration::CameraModel& cam = renderer.camera();
+  GuidanceFrameInfo info;
+  info.frame = frame.index;
+  info.timestamp_ns = frame.timestamp_ns;
+  info.problem = frame.problem.empty() ? track.problem : frame.problem;
+  info.image = !frame.image.empty();
+
+  for (int i = 0; i < kGuidanceLayerCount; ++i) {
+    const char* name = kLayerNames[size_t(i)];
+    renderer.clear_layer(name);
+    renderer.set_layer_visible(name, options_.visible[size_t(i)]);
+  }
+
+  const tracking::BoardStatus* patient = nullptr;
+  const tracking::BoardStatus* needle = nullptr;
+  for (const auto& b : track.boards) {
+    if (b.board == setup_.patient_board) patient = &b;
+    if (b.board == setup_.needle_board) needle = &b;
+  }
+  info.patient_tracked = patient && patient->tracked;
+  info.needle_tracked = needle && needle->tracked;
+  if (info.patient_tracked) info.patient_age_ms = patient->age_ms;
+  if (info.needle_tracked) info.needle_age_ms = needle->age_ms;
+
+  if (info.image) {
+    renderer.set_frame(frame.image);
+  } else {
+    // No picture: a dark frame, no overlay, and the reason.
+    renderer.set_frame(cv::Mat(cam.height, cam.width, CV_8UC3, cv::Scalar(40, 40, 40)));
+    info.warnings.push_back("NO CAMERA IMAGE" +
+                            (info.problem.empty() ? std::string() : ": " + info.problem));
+  }
+  if (track.dropped > 0) {
+    info.warnings.push_back(std::to_string(track.dropped) + " FRAME(S) DROPPED");
+  }
+
+  if (info.image && info.patient_tracked) {
+    const Eigen::Isometry3d T_cam_ct = patient->T_cam_board * setup_.T_ct_patient.inverse();
+    info.anatomy_drawn = true;
+    draw_anatomy(renderer, T_cam_ct);
+    if (info.needle_tracked) {
+      NeedleReading reading;
+      reading.T_ct_needle = setup_.T_ct_patient * patient->T_cam_board.inverse() * needle->T_cam_board;
+      reading.state =
+          guide_->evaluate(reading.T_ct_needle, setup_.tip_in_needle, setup_.axis_in_needle);
+      if (visible(GuidanceLayer::kNeedle)) {
+        draw_needle(renderer, T_cam_ct, needle->T_cam_board, reading);
+      }
+      info.needle = std::move(reading);
+    }
+  }
+  if (info.image && !info.patient_tracked) {
+    info.warnings.push_back("PATIENT MARKER LOST: NO GUIDANCE SHOWN");
+  } else if (info.image && !info.needle_tracked) {
+    info.warnings.push_back("NEEDLE MARKER LOST");
+  }
+  // Warnings always show: hiding the status layer hides only its panel.
+  draw_status(renderer, info, timing);
+  renderer.set_layer_visible("status", true);
+  return info;
+}
+
+}  // namespace crepuscular::overlay

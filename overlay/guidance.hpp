@@ -1,0 +1,165 @@
+// The AR guidance overlay: what the radiologist sees on the live video. Geometry that depends only
+// on the plan (safe ray bundles, entry-area contours on the skin, the tumor's surface) is built
+// once in CT coordinates; every frame it is moved into the camera with the tracked patient board
+// and handed to the OverlayRenderer, together with the tracked needle, its live safety and the
+// tracking status.
+//
+// Layers (names, keys in the window):
+//   1 "rays"    safe ray bundles: rays from the tumor out to the skin whose entry point is safe or
+//               medium in the plan's path safety volume, coloured by class
+//   2 "volume"  volume rendering of the path safety volume (SafetyVolumeRendering), off by default
+//   3 "entry"   entry areas: where each safe area-safety region meets the skin, as contours whose
+//               width and colour show the region's leeway
+//   4 "tumor"   the tumor's outline as seen from the camera, and its centre
+//   5 "needle"  the tracked needle, its line extended to the tumor coloured by its live safety,
+//               the nearest safe direction, and a text panel (line integral, structures crossed
+//               with depth, tip-to-target distance, angle to the nearest safe direction)
+//   6 "status"  tracking state of both boards, frame rate, end-to-end latency, and warnings
+//
+// Tracking loss is shown, never hidden: the anatomy layers (1-4) are drawn only while the patient
+// board is tracked (the tracker reports a pose older than its limit as lost), the needle layer
+// only while both boards are, and a frame without an image shows no overlay at all.
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+#include "calibration/camera_model.hpp"
+#include "planning/evaluate.hpp"
+#include "planning/needle_guidance.hpp"
+#include "planning/slices.hpp"
+#include "tracking/tracker.hpp"
+
+namespace crepuscular::overlay {
+
+class OverlayRenderer;
+
+enum class GuidanceLayer { kRays = 0, kVolume, kEntry, kTumor, kNeedle, kStatus };
+constexpr int kGuidanceLayerCount = 6;
+const char* guidance_layer_name(GuidanceLayer layer);  // "rays", "volume", ...
+// "rays" -> kRays, ... ; also "1".."6". Throws Error naming the text otherwise.
+GuidanceLayer parse_guidance_layer(const std::string& text);
+
+// How the tracked boards relate to the plan.
+struct GuidanceSetup {
+  calibration::CameraModel camera;
+  Eigen::Isometry3d T_ct_patient = Eigen::Isometry3d::Identity();  // registration
+  std::string patient_board = "patient";
+  std::string needle_board = "needle";
+  Eigen::Vector3d tip_in_needle = Eigen::Vector3d(0, 0, 150);  // needle frame, mm
+  // Unit direction of the needle from the hub toward the tip, needle frame. When the needle
+  // calibration has no spin axis, the direction from the board origin to the tip.
+  Eigen::Vector3d axis_in_needle = Eigen::Vector3d::UnitZ();
+};
+
+struct GuidanceOptions {
+  std::string value;  // path safety value for the ray bundles ("" = the plan's first)
+  planning::Palette palette = planning::Palette::kDefault;
+  int ray_directions = 3000;  // directions sampled evenly on the sphere around the tumor
+  std::array<bool, kGuidanceLayerCount> visible = {true, false, true, true, true, true};
+};
+
+// The needle part of one frame (present when both boards were tracked).
+struct NeedleReading {
+  Eigen::Isometry3d T_ct_needle = Eigen::Isometry3d::Identity();
+  planning::NeedleState state;
+};
+
+// What one frame showed, for logs and reports.
+struct GuidanceFrameInfo {
+  int64_t frame = 0;
+  int64_t timestamp_ns = 0;
+  bool image = true;           // the frame had an image
+  std::string problem;         // the frame's own problem (corrupt, missing), or ""
+  bool patient_tracked = false;
+  bool needle_tracked = false;
+  double patient_age_ms = 0, needle_age_ms = 0;  // age of the pose in use (when tracked)
+  bool anatomy_drawn = false;  // layers 1-4 were drawn from a current patient pose
+  std::optional<NeedleReading> needle;
+  std::vector<std::string> warnings;  // shown on screen
+};
+
+// Frame rate and latency shown in the status layer.
+struct GuidanceTiming {
+  double fps = 0;              // frames shown per second, recent average
+  double latency_ms = -1;      // of the previous frame (this one is not shown yet); -1: unknown
+  bool latency_from_capture = false;  // true: from the capture timestamp; false: from arrival
+  double track_ms = 0;
+};
+
+class GuidanceOverlay {
+ public:
+  // Builds the plan's geometry (ray bundles, entry contours, tumor surface). The plan must hold a
+  // path safety volume; labels, tumor mask and area safety are used when present. `plan` must
+  // outlive the overlay.
+  GuidanceOverlay(const planning::PlanData& plan, GuidanceSetup setup, GuidanceOptions options = {});
+  ~GuidanceOverlay();
+  GuidanceOverlay(const GuidanceOverlay&) = delete;
+  GuidanceOverlay& operator=(const GuidanceOverlay&) = delete;
+
+  // Fills the renderer's layers for one frame: background, anatomy, needle, status. Returns what
+  // was shown. The renderer's camera must be setup.camera's image size.
+  GuidanceFrameInfo update(OverlayRenderer& renderer, const tracking::Frame& frame,
+                           const tracking::TrackResult& track, const GuidanceTiming& timing);
+
+  void set_visible(GuidanceLayer layer, bool visible);
+  bool visible(GuidanceLayer layer) const;
+  void toggle(GuidanceLayer layer) { set_visible(layer, !visible(layer)); }
+  void set_palette(planning::Palette palette);
+  planning::Palette palette() const { return options_.palette; }
+
+  // The plan geometry in CT (LPS mm), for tests and logs.
+  struct Ray {
+    Eigen::Vector3d start, end;  // tumor surface -> skin
+    planning::SafetyClass safety_class;
+  };
+  const std::vector<Ray>& rays() const { return rays_; }
+  struct Contour {
+    int region = 0;
+    double leeway = 0;  // 0..1
+    std::vector<Eigen::Vector3d> points;
+    bool closed = false;
+  };
+  const std::vector<Contour>& entry_contours() const { return contours_; }
+  const std::vector<Eigen::Vector3d>& tumor_surface() const { return tumor_surface_; }
+  const planning::NeedleGuide& needle_guide() const { return *guide_; }
+  const GuidanceSetup& setup() const { return setup_; }
+
+ private:
+  void build_rays();
+  void build_entry_contours();
+  void build_tumor_surface();
+  void draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
+  void draw_needle(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct,
+                   const Eigen::Isometry3d& T_cam_needle, const NeedleReading& reading);
+  void draw_status(OverlayRenderer& renderer, const GuidanceFrameInfo& info,
+                   const GuidanceTiming& timing);
+  // Last point inside the body going out from `from` along `dir` (labels > 0), within the plan's
+  // region of interest; nullopt when the walk never leaves the body there.
+  std::optional<Eigen::Vector3d> skin_exit(const Eigen::Vector3d& from,
+                                           const Eigen::Vector3d& dir) const;
+  bool inside_body(const Eigen::Vector3d& p) const;
+
+  const planning::PlanData& plan_;
+  GuidanceSetup setup_;
+  GuidanceOptions options_;
+  std::string value_;
+  std::unique_ptr<planning::NeedleGuide> guide_;
+  std::vector<Ray> rays_;
+  std::vector<Contour> contours_;
+  std::vector<Eigen::Vector3d> tumor_surface_;
+  double tumor_voxel_mm_ = 1;
+};
+
+// One line per structure the needle's line crosses: "portal vein (high) at 43 mm, 6.2 mm long".
+std::vector<std::string> needle_text(const planning::NeedleState& state);
+
+}  // namespace crepuscular::overlay

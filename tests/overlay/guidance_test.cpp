@@ -1,0 +1,392 @@
+// The guidance overlay on an analytic plan: a ball-shaped body (radius 40 mm) around a ball tumor
+// (5 mm) with an impassable vessel column parallel to z at x = 16 mm (radius 4 mm). Ray bundles end
+// on the skin and never pass through the vessel; entry contours lie on the skin; every layer on
+// and off changes only its own pixels; the needle's colour switches from safe to dangerous as it
+// swings onto the vessel; no overlay is drawn from a pose older than the tracker's limit.
+#include "overlay/guidance.hpp"
+
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <memory>
+
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "kernels/error.hpp"
+#include "overlay/renderer.hpp"
+#include "planning/plan.hpp"
+#include "planning/volume_io.hpp"
+#include "tracking/synthetic.hpp"
+#include "tracking/tracker.hpp"
+
+namespace fs = std::filesystem;
+
+namespace crepuscular::overlay {
+namespace {
+
+constexpr double kBody = 40.0, kTumor = 5.0, kVesselX = 16.0, kVesselR = 4.0;
+
+// Azimuth (deg, from +x toward +y) and elevation (deg, from the xy plane) of a direction.
+double azimuth_deg(const Eigen::Vector3d& d) { return std::atan2(d.y(), d.x()) * 180 / M_PI; }
+double elevation_deg(const Eigen::Vector3d& d) {
+  return std::asin(std::clamp(d.z() / d.norm(), -1.0, 1.0)) * 180 / M_PI;
+}
+
+// Camera 300 mm anterior of the tumor (-y, LPS), looking posterior; image x = patient left.
+Eigen::Isometry3d T_ct_cam() {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear().col(0) = Eigen::Vector3d(1, 0, 0);
+  T.linear().col(1) = Eigen::Vector3d(0, 0, -1);
+  T.linear().col(2) = Eigen::Vector3d(0, 1, 0);
+  T.translation() = Eigen::Vector3d(0, -300, 0);
+  return T;
+}
+
+calibration::CameraModel test_camera() {
+  calibration::CameraModel c;
+  c.width = 640;
+  c.height = 480;
+  c.fx = c.fy = 700;
+  c.cx = 321.5;
+  c.cy = 238.0;
+  c.distortion = {-0.1, 0.02, 0, 0, 0};
+  return c;
+}
+
+// The registration of the test: a board frame turned and shifted against CT.
+Eigen::Isometry3d T_ct_patient() {
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear() = Eigen::AngleAxisd(0.4, Eigen::Vector3d(0.3, 1, -0.2).normalized()).toRotationMatrix();
+  T.translation() = Eigen::Vector3d(-30, -45, 12);
+  return T;
+}
+
+tracking::BoardStatus board(const std::string& name, const Eigen::Isometry3d& T_cam_board,
+                            bool tracked = true) {
+  tracking::BoardStatus s;
+  s.board = name;
+  s.tracked = tracked;
+  s.measured = tracked;
+  s.T_cam_board = T_cam_board;
+  s.age_ms = tracked ? 0 : 1e9;
+  return s;
+}
+
+// A needle board whose needle (tip at +150 mm along z) ends at `tip` pointing along `axis` (CT).
+Eigen::Isometry3d T_ct_needle_for(const Eigen::Vector3d& tip, const Eigen::Vector3d& axis) {
+  const Eigen::Vector3d z = axis.normalized();
+  const Eigen::Vector3d x = z.unitOrthogonal();
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.linear().col(0) = x;
+  T.linear().col(1) = z.cross(x);
+  T.linear().col(2) = z;
+  T.translation() = tip - z * 150.0;
+  return T;
+}
+
+std::unique_ptr<OverlayRenderer> make_renderer(const calibration::CameraModel& cam) {
+  try {
+    return std::make_unique<OverlayRenderer>(cam);
+  } catch (const Error& e) {
+    std::cerr << "no OpenGL context: " << e.what() << "\n";
+    return nullptr;
+  }
+}
+
+class GuidanceTest : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    dir_ = new fs::path(fs::temp_directory_path() /
+                        ("crepuscular_guidance_" + std::to_string(::getpid())));
+    fs::remove_all(*dir_);
+    fs::create_directories(*dir_);
+    planning::ImageGeometry g;
+    g.dims = {44, 44, 44};
+    g.spacing = Eigen::Vector3d::Constant(2.0);
+    g.origin = Eigen::Vector3d::Constant(-43.0);  // voxel centres at -43 .. 43 mm
+    planning::Volume<int32_t> labels(g, 0);
+    planning::Volume<uint8_t> tumor(g, 0);
+    for (int64_t k = 0; k < 44; ++k)
+      for (int64_t j = 0; j < 44; ++j)
+        for (int64_t i = 0; i < 44; ++i) {
+          const Eigen::Vector3d p = g.index_to_physical(i, j, k);
+          if (p.norm() < kBody) labels(i, j, k) = 1;
+          if (p.norm() < kBody && std::hypot(p.x() - kVesselX, p.y()) < kVesselR) labels(i, j, k) = 2;
+          if (p.norm() < kTumor) tumor(i, j, k) = 1;
+        }
+    planning::write_volume(labels, (*dir_ / "labels.nii.gz").string());
+    planning::write_volume(tumor, (*dir_ / "tumor.nii.gz").string());
+    std::ofstream(*dir_ / "table.json") << R"({"name": "t", "levels": [
+        {"level": 0, "name": "none", "blocking_per_mm": 0.0},
+        {"level": 1, "name": "low", "blocking_per_mm": 0.01},
+        {"level": 2, "name": "medium", "blocking_per_mm": 0.1},
+        {"level": 3, "name": "impassable", "blocking_per_mm": 10.0}],
+      "labels": [{"value": 1, "name": "fat", "level": 0},
+                 {"value": 2, "name": "vessel", "level": 3}]})";
+    planning::PlanRequest r;
+    r.labels = (*dir_ / "labels.nii.gz").string();
+    r.tumor = (*dir_ / "tumor.nii.gz").string();
+    r.vulnerability = (*dir_ / "table.json").string();
+    r.margin.fwhm_mm = 0.0;
+    r.path_safety.radius_mm = 43.0;
+    r.path_safety.device = planning::Device::kCpu;
+    r.path_safety.mode = planning::Mode::kFast;
+    r.out_dir = (*dir_ / "plan").string();
+    planning::run_plan(r);
+    plan_ = new planning::PlanData(planning::load_plan((*dir_ / "plan").string()));
+    GuidanceSetup setup;
+    setup.camera = test_camera();
+    setup.T_ct_patient = T_ct_patient();
+    GuidanceOptions options;
+    options.ray_directions = 1500;
+    overlay_ = new GuidanceOverlay(*plan_, setup, options);
+  }
+  static void TearDownTestSuite() {
+    delete overlay_;
+    delete plan_;
+    fs::remove_all(*dir_);
+    delete dir_;
+  }
+
+  // A frame and tracking result with the patient board seen and, optionally, the needle.
+  static tracking::TrackResult track(const std::optional<Eigen::Isometry3d>& T_ct_needle) {
+    tracking::TrackResult t;
+    const Eigen::Isometry3d T_cam_ct = T_ct_cam().inverse();
+    t.boards.push_back(board("patient", T_cam_ct * T_ct_patient()));
+    if (T_ct_needle) {
+      t.boards.push_back(board("needle", T_cam_ct * *T_ct_needle));
+    } else {
+      t.boards.push_back(board("needle", Eigen::Isometry3d::Identity(), false));
+    }
+    return t;
+  }
+  static tracking::Frame grey_frame(int64_t index = 0) {
+    tracking::Frame f;
+    f.index = index;
+    f.image = cv::Mat(480, 640, CV_8UC3, cv::Scalar(90, 100, 110));
+    return f;
+  }
+
+  static fs::path* dir_;
+  static planning::PlanData* plan_;
+  static GuidanceOverlay* overlay_;
+};
+fs::path* GuidanceTest::dir_ = nullptr;
+planning::PlanData* GuidanceTest::plan_ = nullptr;
+GuidanceOverlay* GuidanceTest::overlay_ = nullptr;
+
+TEST_F(GuidanceTest, RayBundlesEndOnTheSkinAndAvoidTheVessel) {
+  const auto& rays = overlay_->rays();
+  ASSERT_GT(rays.size(), 500u);
+  int through_vessel_core = 0, far_from_vessel = 0;
+  for (const auto& ray : rays) {
+    const Eigen::Vector3d d = (ray.end - ray.start).normalized();
+    EXPECT_NEAR(ray.start.norm(), kTumor, 2.5);
+    EXPECT_NEAR(ray.end.norm(), kBody, 3.0);
+    // Blocked: the ray's xy path meets the column (|azimuth| < asin(4/16) = 14.5 deg) before it
+    // leaves the body (|elevation| < acos(16/40) = 66 deg); 6 deg of margin for the tumor's size.
+    if (std::abs(azimuth_deg(d)) < 8.5 && std::abs(elevation_deg(d)) < 60) ++through_vessel_core;
+    if (std::abs(azimuth_deg(d)) > 40) ++far_from_vessel;
+  }
+  EXPECT_EQ(through_vessel_core, 0);
+  // Every direction well away from the vessel is drawn, as safe: the whole tumor is in view.
+  int expected = 0;
+  const int n = 1500;
+  const double golden = M_PI * (3.0 - std::sqrt(5.0));
+  for (int i = 0; i < n; ++i) {
+    const double z = 1.0 - (2.0 * i + 1.0) / n, r = std::sqrt(1 - z * z);
+    if (std::abs(azimuth_deg({r * std::cos(golden * i), r * std::sin(golden * i), z})) > 40)
+      ++expected;
+  }
+  EXPECT_EQ(far_from_vessel, expected);
+  for (const auto& ray : rays) {
+    const Eigen::Vector3d d = (ray.end - ray.start).normalized();
+    if (std::abs(azimuth_deg(d)) > 40) {
+      EXPECT_EQ(ray.safety_class, planning::SafetyClass::kSafe);
+    }
+  }
+}
+
+TEST_F(GuidanceTest, EntryContoursLieOnTheSkin) {
+  const auto& contours = overlay_->entry_contours();
+  ASSERT_FALSE(contours.empty());
+  size_t points = 0;
+  bool closed = false;
+  for (const auto& c : contours) {
+    closed |= c.closed;
+    EXPECT_GE(c.leeway, 0.0);
+    EXPECT_LE(c.leeway, 1.0);
+    for (const auto& p : c.points) {
+      EXPECT_NEAR(p.norm(), kBody, 3.5);
+      ++points;
+    }
+  }
+  EXPECT_TRUE(closed);
+  EXPECT_GT(points, 20u);
+}
+
+TEST_F(GuidanceTest, EachLayerOnAndOffChangesOnlyItsPixels) {
+  auto renderer = make_renderer(test_camera());
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context on this machine";
+  GuidanceOverlay& o = *overlay_;
+  // A needle 70 mm out along a safe direction (-x, +y side), pointing at the tumor.
+  const Eigen::Vector3d dir = Eigen::Vector3d(-1, -1, 0.3).normalized();
+  const auto needle = T_ct_needle_for(70.0 * dir, -dir);
+  const tracking::TrackResult t = track(needle);
+  GuidanceTiming timing;
+  timing.fps = 30;
+  timing.latency_ms = 20;
+  auto render_with = [&](const std::vector<GuidanceLayer>& on) {
+    for (int l = 0; l < kGuidanceLayerCount; ++l) o.set_visible(GuidanceLayer(l), false);
+    for (auto l : on) o.set_visible(l, true);
+    o.update(*renderer, grey_frame(), t, timing);
+    return renderer->render();
+  };
+  auto changed = [](const cv::Mat& a, const cv::Mat& b) {
+    cv::Mat diff, mask;
+    cv::absdiff(a, b, diff);
+    cv::cvtColor(diff, mask, cv::COLOR_BGR2GRAY);
+    return cv::Mat(mask > 0);
+  };
+  const std::vector<GuidanceLayer> all = {GuidanceLayer::kRays, GuidanceLayer::kEntry,
+                                          GuidanceLayer::kTumor, GuidanceLayer::kNeedle,
+                                          GuidanceLayer::kStatus};
+  const cv::Mat none = render_with({});
+  const cv::Mat everything = render_with(all);
+  for (GuidanceLayer layer : all) {
+    std::vector<GuidanceLayer> others;
+    for (auto l : all)
+      if (l != layer) others.push_back(l);
+    const cv::Mat without = render_with(others);
+    const cv::Mat alone = render_with({layer});
+    const cv::Mat toggled = changed(everything, without);  // what switching it off changes
+    const cv::Mat own = changed(alone, none);              // where it draws at all
+    const int toggled_count = cv::countNonZero(toggled);
+    EXPECT_GT(toggled_count, 50) << guidance_layer_name(layer);
+    cv::Mat outside;
+    cv::bitwise_and(toggled, ~own, outside);
+    EXPECT_EQ(cv::countNonZero(outside), 0) << guidance_layer_name(layer);
+  }
+}
+
+TEST_F(GuidanceTest, NeedleColourSwitchesFromSafeToDangerousOnTheVessel) {
+  auto renderer = make_renderer(test_camera());
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context on this machine";
+  GuidanceOverlay& o = *overlay_;
+  for (int l = 0; l < kGuidanceLayerCount; ++l) o.set_visible(GuidanceLayer(l), false);
+  o.set_visible(GuidanceLayer::kNeedle, true);
+  const auto colours = planning::class_colours(o.palette());
+  const cv::Vec3b safe(colours[0][2], colours[0][1], colours[0][0]);
+  const cv::Vec3b dangerous(colours[2][2], colours[2][1], colours[2][0]);
+  const Eigen::Isometry3d T_cam_ct = T_ct_cam().inverse();
+  // The needle swings in the plane z = 0 from 60 deg azimuth onto the vessel (0 deg), its tip
+  // 60 mm from the tumor, always aimed at the centre.
+  std::vector<planning::NeedleSafety> seen;
+  for (double az : {60.0, 45.0, 30.0, 15.0, 5.0, 0.0}) {
+    const double a = az * M_PI / 180;
+    const Eigen::Vector3d out(std::cos(a), std::sin(a), 0.0);
+    const Eigen::Vector3d tip = 60.0 * out;
+    const GuidanceFrameInfo info =
+        o.update(*renderer, grey_frame(), track(T_ct_needle_for(tip, -out)), {});
+    ASSERT_TRUE(info.needle.has_value());
+    const auto& s = info.needle->state;
+    seen.push_back(s.safety);
+    const cv::Mat image = renderer->render();
+    // The extension's pixel halfway between the tip and the target (drawn 3 px wide, opaque).
+    const Eigen::Vector2d uv = test_camera().project(T_cam_ct * (0.5 * (tip + s.target)));
+    const cv::Vec3b px = image.at<cv::Vec3b>(int(std::lround(uv.y())), int(std::lround(uv.x())));
+    if (s.safety == planning::NeedleSafety::kSafe) {
+      EXPECT_EQ(px, safe) << "azimuth " << az;
+    }
+    if (s.safety == planning::NeedleSafety::kDangerous) {
+      EXPECT_EQ(px, dangerous) << "azimuth " << az;
+      EXPECT_FALSE(s.clear);
+      bool vessel = false;
+      for (const auto& h : s.evaluation.structures) vessel |= h.name == "vessel";
+      EXPECT_TRUE(vessel);
+    }
+  }
+  EXPECT_EQ(seen.front(), planning::NeedleSafety::kSafe);
+  EXPECT_EQ(seen.back(), planning::NeedleSafety::kDangerous);
+  for (int l = 0; l < kGuidanceLayerCount; ++l) o.set_visible(GuidanceLayer(l), true);
+}
+
+// Through the real tracker: a frame showing both boards, then frames without them. While the last
+// pose is younger than the limit (100 ms) the overlay stays; after that, nothing but the frame,
+// the status and the warning.
+TEST_F(GuidanceTest, NoOverlayFromAPoseOlderThanTheLimit) {
+  tracking::SyntheticScene scene = tracking::builtin_scene();
+  auto renderer = make_renderer(scene.camera);
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context on this machine";
+  std::vector<tracking::Board> boards;
+  for (const auto& b : scene.boards) boards.push_back(b.board);
+  tracking::TrackerOptions to;
+  to.max_age_ms = 100;
+  tracking::Tracker tracker(scene.camera, boards, to);
+  // Registration: the tumor centre (CT origin here) at the scene's target, axes as if the board
+  // lay on the anterior skin.
+  GuidanceSetup setup;
+  setup.camera = scene.camera;
+  Eigen::Isometry3d T_ct_patient = Eigen::Isometry3d::Identity();
+  T_ct_patient.linear().col(0) = Eigen::Vector3d(1, 0, 0);
+  T_ct_patient.linear().col(1) = Eigen::Vector3d(0, 0, -1);
+  T_ct_patient.linear().col(2) = Eigen::Vector3d(0, 1, 0);
+  T_ct_patient.translation() = -(T_ct_patient.linear() * tracking::kTumorTargetInPatient);
+  setup.T_ct_patient = T_ct_patient;
+  GuidanceOverlay o(*plan_, setup);
+
+  tracking::SyntheticRenderer frames(scene);
+  const cv::Mat seen = frames.render(0);
+  const cv::Mat empty(seen.size(), CV_8UC3, cv::Scalar(128, 128, 128));
+  struct Step {
+    int64_t ms;
+    bool boards_visible;
+    bool expect_overlay;
+  };
+  int64_t index = 0;
+  for (const Step& step : {Step{0, true, true}, Step{60, false, true}, Step{160, false, false}}) {
+    tracking::Frame f;
+    f.index = index++;
+    f.timestamp_ns = step.ms * 1000000;
+    f.image = step.boards_visible ? seen : empty;
+    const tracking::TrackResult t = tracker.process(f);
+    const GuidanceFrameInfo info = o.update(*renderer, f, t, {});
+    EXPECT_EQ(info.patient_tracked, step.expect_overlay) << step.ms << " ms";
+    EXPECT_EQ(info.anatomy_drawn, step.expect_overlay) << step.ms << " ms";
+    EXPECT_EQ(info.needle.has_value(), step.expect_overlay) << step.ms << " ms";
+    // Hide the status panel: what remains besides the frame is overlay (and warnings).
+    o.set_visible(GuidanceLayer::kStatus, false);
+    o.update(*renderer, f, t, {});
+    const cv::Mat image = renderer->render();
+    o.set_visible(GuidanceLayer::kStatus, true);
+    cv::Mat diff, grey;
+    cv::absdiff(image, f.image, diff);
+    cv::cvtColor(diff, grey, cv::COLOR_BGR2GRAY);
+    const int changed = cv::countNonZero(grey > 0);
+    if (step.expect_overlay) {
+      EXPECT_GT(changed, 500) << step.ms << " ms";
+    } else {
+      bool warned = false;
+      for (const auto& w : info.warnings) warned |= w.find("PATIENT MARKER LOST") != std::string::npos;
+      EXPECT_TRUE(warned);
+      // Only the warning banner at the top: nothing below the banners.
+      EXPECT_EQ(cv::countNonZero(grey(cv::Rect(0, 120, grey.cols, grey.rows - 120)) > 0), 0);
+    }
+  }
+}
+
+TEST(GuidanceLayers, NamesParseBothWays) {
+  for (int i = 0; i < kGuidanceLayerCount; ++i) {
+    const auto layer = static_cast<GuidanceLayer>(i);
+    EXPECT_EQ(parse_guidance_layer(guidance_layer_name(layer)), layer);
+    EXPECT_EQ(parse_guidance_layer(std::to_string(i + 1)), layer);
+  }
+  EXPECT_THROW(parse_guidance_layer("bones"), Error);
+}
+
+}  // namespace
+}  // namespace crepuscular::overlay
