@@ -55,9 +55,12 @@ struct GuidanceScenarioOptions {
   double robust_deg = 6;
   // The dangerous approach lies this far from the safe one.
   double min_separation_deg = 15, max_separation_deg = 35;
-  // Camera: optical axis in CT (the direction the camera looks, into the body); the safe approach
-  // nearest to it is chosen so the needle board faces the camera. Default: from anterior and the
-  // patient's right (the tumor lies in the right lobe), 25 degrees off vertical.
+  // Camera: nominal optical axis in CT (the direction the camera looks, into the body); the safe
+  // approach nearest to it is chosen so the needle board faces the camera. Default: from anterior
+  // and the patient's right (the tumor lies in the right lobe), 25 degrees off vertical. When the
+  // boards do not stay in view and apart with this axis, the camera looks along the bisector of
+  // the two approaches instead, or that bisector turned by 10 to 30 degrees about the body axis or
+  // tilted 10 to 20 degrees toward head or feet (the first that works; T_cam_ct_nominal tells).
   Eigen::Vector3d view_axis_ct = Eigen::Vector3d(0.42, 0.906, 0.0);
   double camera_distance_mm = 540;  // mean distance camera -> patient board centre (500..580)
   double camera_drift_mm = 25;      // the camera drifts this much over the recording
@@ -75,8 +78,9 @@ struct GuidanceScenario {
   tracking::SyntheticScene scene;
   // Tip kNeedleTipInNeedle, axis +z, board "needle".
   calibration::NeedleCalibration needle;
-  // Nominal camera pose (without drift): T_cam_ct at time 0 .. end are scene keyframes composed
-  // with T_ct_patient^-1.
+  // Camera pose without its drift (T_cam_ct); its third row is the optical axis in CT. The
+  // patient board's keyframes are drift * T_cam_ct_nominal * T_ct_patient at 0, the middle and the
+  // end; the camera stays 50-58 cm from the board.
   Eigen::Isometry3d T_cam_ct_nominal = Eigen::Isometry3d::Identity();
   double duration_s = 0;
 
@@ -90,6 +94,14 @@ struct GuidanceScenario {
 // label map, a path safety volume and plan.json's tumor centroid (load_plan defaults). Throws Error
 // naming the plan folder when no robustly safe or no vessel-crossing dangerous approach exists, or
 // when the boards cannot be kept inside the image.
+// Safe: clear (line integral <= eps), tip class "safe", no vessel crossed, and so for the 8
+// directions robust_deg around it. Dangerous: NeedleSafety::kDangerous and a vessel crossed,
+// min..max_separation_deg from the safe one; preferred: no bone or lung crossed, dangerous also
+// 1 degree around it, >= 3 mm in the vessel, nearest the view axis. Patient board: on the anterior
+// skin 130 mm (plus half the entries' spread) medial of the entries, its plane fitted to the skin
+// (the 0.5 level of the trilinearly interpolated body mask) around its 5 fiducials, which then lie
+// within 2 mm of the skin. Needle: approach, withdrawal along the safe line (first half of
+// switch_s), swing to 60 mm outside the dangerous entry (second half), approach.
 GuidanceScenario make_guidance_scenario(const planning::PlanData& plan,
                                         const GuidanceScenarioOptions& options = {});
 
