@@ -10,6 +10,7 @@
 
 #include "kernels/error.hpp"
 #include "overlay/renderer.hpp"
+#include "overlay/volume_rendering.hpp"
 
 namespace crepuscular::overlay {
 
@@ -151,7 +152,14 @@ void GuidanceOverlay::set_visible(GuidanceLayer layer, bool visible) {
 bool GuidanceOverlay::visible(GuidanceLayer layer) const {
   return options_.visible[size_t(layer)];
 }
-void GuidanceOverlay::set_palette(planning::Palette palette) { options_.palette = palette; }
+void GuidanceOverlay::set_palette(planning::Palette palette) {
+  options_.palette = palette;
+  if (volume_) {
+    VolumeRenderingOptions vo = volume_->options();
+    vo.palette = palette;
+    volume_->set_options(vo);
+  }
+}
 
 bool GuidanceOverlay::inside_body(const Eigen::Vector3d& p) const {
   int32_t label = 0;
@@ -303,6 +311,22 @@ void GuidanceOverlay::build_entry_contours() {
 
 void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct) {
   const auto palette = options_.palette;
+  if (visible(GuidanceLayer::kVolume)) {
+    if (!volume_) {
+      VolumeRenderingOptions vo;
+      vo.palette = palette;
+      vo.resolution_scale = options_.volume_resolution_scale;
+      if (!(vo.resolution_scale > 0)) {
+        vo.resolution_scale =
+            renderer.gl_description().find("llvmpipe") != std::string::npos ? 0.25 : 1.0;
+      }
+      volume_ = std::make_unique<SafetyVolumeRendering>(plan_.path_safety.at(value_),
+                                                        plan_.classes.at(value_), vo);
+    }
+    volume_->set_pose(T_cam_ct);
+    SafetyVolumeRendering* volume = volume_.get();
+    renderer.set_layer_draw("volume", [volume](const DrawContext& c) { volume->draw(c); });
+  }
   if (visible(GuidanceLayer::kRays)) {
     for (const Ray& ray : rays_) {
       Polyline line;
@@ -318,7 +342,9 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
       Polyline line;
       for (const auto& p : c.points) line.points_cam.push_back(T_cam_ct * p);
       line.closed = c.closed;
-      line.colour = bgr(planning::leeway_colour(palette, c.leeway));
+      // Every entry area is safe: its leeway runs from the medium colour (a small region) to the
+      // safe colour (the largest).
+      line.colour = bgr(planning::leeway_colour(palette, 0.5 + 0.5 * std::clamp(c.leeway, 0.0, 1.0)));
       line.width_px = 2.0 + 6.0 * std::clamp(c.leeway, 0.0, 1.0);
       line.opacity = 0.9;
       renderer.add_polyline("entry", line);

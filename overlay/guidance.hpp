@@ -41,6 +41,7 @@
 namespace crepuscular::overlay {
 
 class OverlayRenderer;
+class SafetyVolumeRendering;
 
 enum class GuidanceLayer { kRays = 0, kVolume, kEntry, kTumor, kNeedle, kStatus };
 constexpr int kGuidanceLayerCount = 6;
@@ -65,6 +66,9 @@ struct GuidanceOptions {
   planning::Palette palette = planning::Palette::kDefault;
   int ray_directions = 3000;  // directions sampled evenly on the sphere around the tumor
   std::array<bool, kGuidanceLayerCount> visible = {true, false, true, true, true, true};
+  // Volume rendering resolution relative to the image (0 < s <= 1); 0: automatic, 1 on a GPU and
+  // 0.25 on a software renderer (Mesa llvmpipe), where a full-size rendering takes ~0.5 s.
+  double volume_resolution_scale = 0;
 };
 
 // The needle part of one frame (present when both boards were tracked).
@@ -153,6 +157,7 @@ class GuidanceOverlay {
   GuidanceOptions options_;
   std::string value_;
   std::unique_ptr<planning::NeedleGuide> guide_;
+  std::unique_ptr<SafetyVolumeRendering> volume_;
   std::vector<Ray> rays_;
   std::vector<Contour> contours_;
   std::vector<Eigen::Vector3d> tumor_surface_;

@@ -67,10 +67,35 @@ NeedleState NeedleGuide::evaluate(const Eigen::Isometry3d& T_ct_needle,
   s.target = s.tip + s.along_axis_mm * s.axis;
   s.miss_distance_mm = (c - s.target).norm();
 
+  // A tip already inside the body: the line is evaluated from where it entered the body (the
+  // nearest voxel outside the body behind the tip), so structures already pierced still count.
+  s.line_start = s.tip;
+  if (!plan.labels.empty() && s.along_axis_mm > 1e-6) {
+    const auto label_at = [&](const Eigen::Vector3d& p, bool* inside_grid) {
+      const Index3 n = plan.labels.geometry().nearest_index(p);
+      *inside_grid = plan.labels.geometry().contains(n[0], n[1], n[2]);
+      return *inside_grid ? plan.labels(n[0], n[1], n[2]) : 0;
+    };
+    bool in_grid = false;
+    if (label_at(s.tip, &in_grid) > 0) {
+      const double step = 0.5 * plan.labels.geometry().spacing.minCoeff();
+      for (double back = step; back < 1000.0; back += step) {
+        const Eigen::Vector3d p = s.tip - back * s.axis;
+        const int32_t label = label_at(p, &in_grid);
+        if (!in_grid) break;  // no outside voxel behind the tip: keep the tip
+        if (label == 0) {
+          s.line_start = p;
+          s.tip_in_body = true;
+          break;
+        }
+      }
+    }
+  }
+
   if (s.along_axis_mm > 1e-6) {
     Trajectory t;
     t.name = "needle";
-    t.entry = s.tip;
+    t.entry = s.line_start;
     t.target = s.target;
     s.evaluation = evaluator_->evaluate(t);
     s.clear = s.evaluation.line_integral <= eps_;
@@ -97,6 +122,9 @@ NeedleState NeedleGuide::evaluate(const Eigen::Isometry3d& T_ct_needle,
 
   if (!plan.tumor.empty()) {
     s.tumor_depth_mm = s.evaluation.tumor_depth_mm;
+    if (s.tumor_depth_mm >= 0 && s.tip_in_body) {
+      s.tumor_depth_mm = std::max(0.0, s.tumor_depth_mm - (s.tip - s.line_start).norm());
+    }
     if (s.along_axis_mm <= 1e-6 && !s.points_away) {
       const Index3 n = plan.tumor.geometry().nearest_index(s.tip);
       const bool in = plan.tumor.geometry().contains(n[0], n[1], n[2]) &&

@@ -33,13 +33,18 @@ struct NeedleState {
   bool hits_tumor = false;
   double tumor_depth_mm = -1;  // distance from the tip to where the line enters the tumor mask
 
-  // The trajectory tip -> target, evaluated exactly as `crepuscular evaluate` does (entry = tip):
-  // line integral, structures with depth from the tip, path safety values at the tip.
+  // Where the evaluated line starts: the tip, or, when the tip is already inside the body (label
+  // map > 0), the point where the needle's line entered it (the first voxel outside the body
+  // behind the tip), so that structures the needle has already pierced still count.
+  Eigen::Vector3d line_start = Eigen::Vector3d::Zero();
+  bool tip_in_body = false;
+  // The trajectory line_start -> target, evaluated exactly as `crepuscular evaluate` does (entry =
+  // line_start): line integral, structures with depth from line_start, path safety values there.
   // Empty (samples 0, line integral 0) when the needle points away.
   TrajectoryEvaluation evaluation;
   double eps = 0.5;   // insignificant blocking (plan.json parameters.eps)
   bool clear = true;  // line_integral <= eps (DESIGN.md section 4)
-  // Path safety class at the tip for the plan's first value ("safe", "medium", "dangerous",
+  // Path safety class at line_start for the plan's first value ("safe", "medium", "dangerous",
   // "outside" beyond the region of interest, "" when the plan has no path safety volume).
   std::string tip_class;
   // Overall: dangerous when not clear or the tip's class is dangerous; medium when clear and the

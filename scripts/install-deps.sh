@@ -10,7 +10,7 @@ packages=(
   libgtest-dev libgmock-dev
   libopencv-dev libapriltag-dev libceres-dev
   libglfw3-dev libglm-dev libgl-dev libegl-dev libv4l-dev
-  xvfb xauth libgl1-mesa-dri
+  xvfb xauth libgl1-mesa-dri libegl-mesa0
   python3-nibabel python3-numpy
   python3-vtk9  # tests: area_safety.vtk read back by VTK's own reader
 )

@@ -252,7 +252,7 @@ TEST_F(GuidanceTest, EachLayerOnAndOffChangesOnlyItsPixels) {
     cv::cvtColor(diff, mask, cv::COLOR_BGR2GRAY);
     return cv::Mat(mask > 0);
   };
-  const std::vector<GuidanceLayer> all = {GuidanceLayer::kRays, GuidanceLayer::kEntry,
+  const std::vector<GuidanceLayer> all = {GuidanceLayer::kRays, GuidanceLayer::kVolume, GuidanceLayer::kEntry,
                                           GuidanceLayer::kTumor, GuidanceLayer::kNeedle,
                                           GuidanceLayer::kStatus};
   const cv::Mat none = render_with({});
@@ -313,6 +313,30 @@ TEST_F(GuidanceTest, NeedleColourSwitchesFromSafeToDangerousOnTheVessel) {
   EXPECT_EQ(seen.front(), planning::NeedleSafety::kSafe);
   EXPECT_EQ(seen.back(), planning::NeedleSafety::kDangerous);
   for (int l = 0; l < kGuidanceLayerCount; ++l) o.set_visible(GuidanceLayer(l), true);
+}
+
+// A needle whose tip has passed the vessel: the line is evaluated from where it entered the body,
+// so the vessel it pierced still makes it dangerous.
+TEST_F(GuidanceTest, NeedlePastTheVesselStaysDangerous) {
+  const planning::NeedleGuide& guide = overlay_->needle_guide();
+  const Eigen::Vector3d out = Eigen::Vector3d::UnitX();
+  for (double tip_distance : {60.0, 30.0, 10.0}) {  // outside, in front of and past the vessel
+    const Eigen::Isometry3d T = T_ct_needle_for(tip_distance * out, -out);
+    const planning::NeedleState s =
+        guide.evaluate(T, Eigen::Vector3d(0, 0, 150), Eigen::Vector3d::UnitZ());
+    EXPECT_EQ(s.safety, planning::NeedleSafety::kDangerous) << tip_distance;
+    EXPECT_FALSE(s.clear) << tip_distance;
+    EXPECT_EQ(s.tip_in_body, tip_distance < kBody) << tip_distance;
+    if (s.tip_in_body) EXPECT_NEAR(s.line_start.norm(), kBody, 2.5) << tip_distance;
+    bool vessel = false;
+    for (const auto& h : s.evaluation.structures) {
+      if (h.name != "vessel") continue;
+      vessel = true;
+      // Depth from where the line starts: the vessel's outer wall at x = 20 mm.
+      EXPECT_NEAR(h.depth_mm, (s.line_start.x() - (kVesselX + kVesselR)), 2.5) << tip_distance;
+    }
+    EXPECT_TRUE(vessel) << tip_distance;
+  }
 }
 
 // Through the real tracker: a frame showing both boards, then frames without them. While the last
