@@ -36,8 +36,8 @@ int label_at(const planning::Volume<int32_t>& labels, const Eigen::Vector3d& p) 
   return labels(n[0], n[1], n[2]);
 }
 
-// First crossing from label 0 to label > 0 on start + s dir, 0 <= s <= max_mm (bisected to
-// 0.001 mm); nullopt when the ray stays outside the body.
+// First crossing from label 0 to label > 0 on start + s dir, 0 <= s <= max_mm, bisected to
+// 0.001 mm: the last s outside the body (label 0); nullopt when the ray stays outside the body.
 std::optional<double> first_inside(const planning::Volume<int32_t>& labels,
                                    const Eigen::Vector3d& start, const Eigen::Vector3d& dir,
                                    double max_mm, double step_mm) {
@@ -50,7 +50,7 @@ std::optional<double> first_inside(const planning::Volume<int32_t>& labels,
         const double mid = 0.5 * (lo + hi);
         (label_at(labels, start + mid * dir) > 0 ? hi : lo) = mid;
       }
-      return hi;
+      return lo;
     }
     prev = s;
   }
@@ -95,7 +95,8 @@ std::optional<double> first_skin(const planning::Volume<int32_t>& labels,
 }
 
 // Where the line from the centroid outward along u finally leaves the body: the outermost
-// crossing. nullopt when it never meets the body.
+// crossing, on its outside (label 0, within 0.001 mm of the first body voxel), so that a needle tip
+// placed there is not yet in the body. nullopt when the line never meets the body.
 std::optional<Eigen::Vector3d> skin_entry(const planning::Volume<int32_t>& labels,
                                           const Eigen::Vector3d& centroid,
                                           const Eigen::Vector3d& u) {
@@ -659,11 +660,13 @@ GuidanceScenario make_guidance_scenario(const planning::PlanData& plan,
       danger.push_back({&c, steady});
     }
     // Vessel-only crossings first, then steady ones, then a clear crossing (>= 3 mm in the
-    // vessel), then the direction nearest the camera's axis.
+    // vessel), then a short swing (within 28 degrees), then the direction nearest the camera's
+    // axis.
+    const double short_swing_deg = std::min(28.0, o.max_separation_deg);
     std::sort(danger.begin(), danger.end(), [&](const Danger& a, const Danger& b) {
       const auto key = [&](const Danger& d) {
         return std::make_tuple(d.c->other_high_risk, !d.steady, d.c->vessel_length_mm < 3.0,
-                               angle_deg(-d.c->u, v));
+                               angle_deg(d.c->u, s->u) > short_swing_deg, angle_deg(-d.c->u, v));
       };
       return key(a) < key(b);
     });

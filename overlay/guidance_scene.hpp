@@ -23,7 +23,7 @@ struct GuidanceApproach {
   // Unit, from the skin entry toward the tumor centroid (into the body), CT LPS.
   Eigen::Vector3d direction_ct = Eigen::Vector3d::UnitY();
   // Where the line enters the body: the outermost crossing from label 0 to label > 0 of the plan's
-  // label map (nearest voxel), CT LPS mm.
+  // label map (nearest voxel), on its outside (label 0, within 0.001 mm of the body), CT LPS mm.
   Eigen::Vector3d entry_ct = Eigen::Vector3d::Zero();
   // NeedleGuide evaluation of a needle with its tip at the entry, pointing along direction_ct.
   planning::NeedleState state;
@@ -97,11 +97,12 @@ struct GuidanceScenario {
 // Safe: clear (line integral <= eps), tip class "safe", no vessel crossed, and so for the 8
 // directions robust_deg around it. Dangerous: NeedleSafety::kDangerous and a vessel crossed,
 // min..max_separation_deg from the safe one; preferred: no bone or lung crossed, dangerous also
-// 1 degree around it, >= 3 mm in the vessel, nearest the view axis. Patient board: on the anterior
-// skin 130 mm (plus half the entries' spread) medial of the entries, its plane fitted to the skin
-// (the 0.5 level of the trilinearly interpolated body mask) around its 5 fiducials, which then lie
-// within 2 mm of the skin. Needle: approach, withdrawal along the safe line (first half of
-// switch_s), swing to 60 mm outside the dangerous entry (second half), approach.
+// 1 degree around it, >= 3 mm in the vessel, within 28 degrees of the safe one, nearest the view
+// axis. Patient board: on the anterior skin 130 mm (plus half the entries' spread) medial of the
+// entries, its plane fitted to the skin (the 0.5 level of the trilinearly interpolated body mask)
+// around its 5 fiducials, which then lie within 2 mm of the skin. Needle: approach, withdrawal
+// along the safe line (first half of switch_s), swing to 60 mm outside the dangerous entry (second
+// half), approach.
 GuidanceScenario make_guidance_scenario(const planning::PlanData& plan,
                                         const GuidanceScenarioOptions& options = {});
 
