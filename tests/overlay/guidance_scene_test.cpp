@@ -21,6 +21,7 @@
 
 #include "calibration/camera_model.hpp"
 #include "calibration/registration.hpp"
+#include "planning/needle_guidance.hpp"
 #include "planning/phantom.hpp"
 #include "planning/plan.hpp"
 #include "tracking/board.hpp"
@@ -253,6 +254,33 @@ TEST_F(GuidanceSceneTest, NeedleTipOfEveryKeyframeLiesOnTheScriptedLine) {
   }
 }
 
+// What guide will show: the needle of the scene, evaluated with the plan while its tip is still
+// outside the body, is safe all along the safe approach and dangerous all along the dangerous one.
+TEST_F(GuidanceSceneTest, NeedleIsSafeOnTheSafeApproachAndDangerousOnTheOther) {
+  const GuidanceScenario& sc = *scenario_;
+  const planning::NeedleGuide guide(*plan_);
+  int safe_frames = 0, danger_frames = 0;
+  for (int64_t f = 0; f < sc.scene.frame_count; ++f) {
+    const double t = double(f) / sc.scene.fps;
+    const Eigen::Isometry3d T = sc.T_ct_needle_at(t);
+    if (label_at(T * tracking::kNeedleTipInNeedle) > 0) continue;  // tip in the body
+    const planning::NeedleState s =
+        guide.evaluate(T, tracking::kNeedleTipInNeedle, Eigen::Vector3d::UnitZ());
+    if (t >= sc.safe.start_s && t <= sc.safe.end_s) {
+      EXPECT_EQ(s.safety, planning::NeedleSafety::kSafe) << "t " << t;
+      EXPECT_NEAR(s.miss_distance_mm, 0.0, 1e-6);
+      ++safe_frames;
+    }
+    if (t >= sc.dangerous.start_s && t <= sc.dangerous.end_s) {
+      EXPECT_EQ(s.safety, planning::NeedleSafety::kDangerous) << "t " << t;
+      EXPECT_FALSE(s.clear);
+      ++danger_frames;
+    }
+  }
+  EXPECT_GE(safe_frames, 10);
+  EXPECT_GE(danger_frames, 10);
+}
+
 TEST_F(GuidanceSceneTest, AllTagsStayInsideTheImageAndTheBoardsApart) {
   const GuidanceScenario& sc = *scenario_;
   const calibration::CameraModel& cam = sc.scene.camera;
@@ -452,6 +480,17 @@ TEST(GuidanceSceneReport, DISABLED_ReportForPlanFolder) {
   std::printf("angle between approaches %.1f deg\n",
               std::acos(sc.safe.direction_ct.dot(sc.dangerous.direction_ct)) * 180 / M_PI);
   std::cout << "T_ct_patient\n" << sc.T_ct_patient.matrix() << "\n";
+  // The needle's safety along the recording (ground-truth poses).
+  const planning::NeedleGuide guide(plan);
+  for (int64_t f = 0; f < sc.scene.frame_count; f += 6) {
+    const double t = double(f) / sc.scene.fps;
+    const planning::NeedleState s =
+        guide.evaluate(sc.T_ct_needle_at(t), tracking::kNeedleTipInNeedle, Eigen::Vector3d::UnitZ());
+    std::printf("t %.2f s: %s, line integral %.3f, tip class %s, tip to centroid %.1f mm, miss "
+                "%.1f mm\n",
+                t, planning::needle_safety_name(s.safety), s.evaluation.line_integral,
+                s.tip_class.c_str(), s.tip_to_centroid_mm, s.miss_distance_mm);
+  }
   write_guidance_setup(sc, out);
   tracking::SyntheticRenderer renderer(sc.scene);
   for (double t : {0.5 * (sc.safe.start_s + sc.safe.end_s),
