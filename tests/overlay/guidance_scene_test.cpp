@@ -21,6 +21,7 @@
 
 #include "calibration/camera_model.hpp"
 #include "calibration/registration.hpp"
+#include "kernels/error.hpp"
 #include "planning/needle_guidance.hpp"
 #include "planning/phantom.hpp"
 #include "planning/plan.hpp"
@@ -367,6 +368,31 @@ TEST_F(GuidanceSceneTest, RenderedFramesTrackBothBoardsAndPlaceTheTip) {
     std::printf("frame %lld: tracked tip %.2f mm from the truth\n", static_cast<long long>(f),
                 (tracked - truth).norm());
   }
+}
+
+TEST_F(GuidanceSceneTest, UnusablePlanOrOptionsAreRefusedWithTheReason) {
+  planning::PlanData no_labels = *plan_;
+  no_labels.labels = planning::Volume<int32_t>();
+  try {
+    make_guidance_scenario(no_labels);
+    FAIL() << "no error without a label map";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("label map"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find(plan_->dir), std::string::npos) << e.what();
+  }
+  // No dangerous direction can be that close to the safe one: the message says what is missing.
+  GuidanceScenarioOptions o;
+  o.min_separation_deg = 0.1;
+  o.max_separation_deg = 0.5;
+  try {
+    make_guidance_scenario(*plan_, o);
+    FAIL() << "no error without a dangerous direction";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("no dangerous direction"), std::string::npos) << e.what();
+  }
+  o = GuidanceScenarioOptions();
+  o.fps = 0;
+  EXPECT_THROW(make_guidance_scenario(*plan_, o), Error);
 }
 
 TEST_F(GuidanceSceneTest, WrittenSetupReadsBackEqual) {
