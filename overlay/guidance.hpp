@@ -35,7 +35,7 @@
 #include "calibration/camera_model.hpp"
 #include "planning/evaluate.hpp"
 #include "planning/needle_guidance.hpp"
-#include "planning/slices.hpp"
+#include "planning/palette.hpp"
 #include "tracking/tracker.hpp"
 
 namespace crepuscular::overlay {

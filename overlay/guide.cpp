@@ -1,9 +1,10 @@
 #include "overlay/guide.hpp"
 
+#include "overlay/guide_loop.hpp"
+
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
-#include <deque>
 #include <filesystem>
 #include <memory>
 #include <optional>
@@ -26,16 +27,6 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-double ms_between(Clock::time_point a, Clock::time_point b) {
-  return std::chrono::duration<double, std::milli>(b - a).count();
-}
-
-double percentile(std::vector<double> v, double p) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  const size_t i = std::min(v.size() - 1, size_t(p / 100.0 * double(v.size() - 1) + 0.5));
-  return v[i];
-}
 
 std::string csv_field(std::string s) {
   if (s.find_first_of(",\"\n") == std::string::npos) return s;
@@ -98,11 +89,6 @@ class VideoOutput {
   bool committed_ = false;
 };
 
-int64_t monotonic_now_ns() {
-  timespec ts{};
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  return int64_t(ts.tv_sec) * 1000000000LL + ts.tv_nsec;
-}
 
 }  // namespace
 
@@ -167,15 +153,6 @@ std::string guide_log_row(const GuidanceFrameInfo& i, double latency_ms, double 
 
 GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& request) {
   const GuidanceSetup& setup = request.setup;
-  bool has_patient = false, has_needle = false;
-  for (const auto& b : request.boards) {
-    has_patient |= b.name == setup.patient_board;
-    has_needle |= b.name == setup.needle_board;
-  }
-  if (!has_patient || !has_needle) {
-    throw Error("guide: the boards must include the patient board '" + setup.patient_board +
-                "' and the needle board '" + setup.needle_board + "'");
-  }
   if (!request.window && request.video.empty() && request.snapshots.empty() &&
       request.snapshot_every <= 0 && request.log.empty()) {
     throw Error("guide: nothing to show: open a window, or give a video, snapshots or a log");
@@ -189,11 +166,11 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
                   std::to_string(setup.camera.width) + "x" + std::to_string(setup.camera.height));
     }
   }
-  tracking::Tracker tracker(setup.camera, request.boards, request.tracker);
-  GuidanceOverlay overlay(plan, setup, request.options);
   RendererOptions ro = request.renderer;
   ro.visible = request.window;
-  OverlayRenderer renderer(setup.camera, ro);
+  GuideLoop loop(plan, setup, request.boards, request.options, request.tracker, ro);
+  OverlayRenderer& renderer = loop.renderer();
+  GuidanceOverlay& overlay = loop.overlay();
 
   GuideSummary summary;
   summary.gl = renderer.gl_description();
@@ -234,13 +211,15 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
     }
   } log_closer{log, log_tmp};
 
-  GuidanceTiming timing;
-  std::deque<Clock::time_point> shown;  // recent display times, for the frame rate
   std::vector<double> latencies, track_ms, overlay_ms, render_ms;
   const auto t0 = Clock::now();
   auto last_progress = t0;
   int manual_snapshots = 0;
   bool quit = false;
+  auto snapshot = [&](const std::string& name, const cv::Mat& image) {
+    write_png(snapshot_dir + "/" + name, image);
+    summary.snapshots_written.push_back(snapshot_dir + "/" + name);
+  };
 
   while (!quit) {
     if (request.stop && request.stop->load()) break;
@@ -248,56 +227,26 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
     std::optional<tracking::Frame> frame = source->next();
     if (!frame) break;
     const auto arrival = Clock::now();
-    const int64_t capture_offset_ns = monotonic_now_ns() - frame->timestamp_ns;
-    const bool from_capture = capture_offset_ns >= 0 && capture_offset_ns < 2000000000LL;
     if (!frame->note.empty()) spdlog::info("guide: frame {}: {}", frame->index, frame->note);
-
-    tracking::TrackResult track = tracker.process(*frame);
-    const auto tracked = Clock::now();
-    timing.track_ms = ms_between(arrival, tracked);
-    GuidanceFrameInfo info = overlay.update(renderer, *frame, track, timing);
-    const auto overlaid = Clock::now();
-
-    cv::Mat image;
-    if (need_image) {
-      image = renderer.render();
-    } else {
-      renderer.draw();
-    }
-    if (request.window && !renderer.present()) quit = true;
-    const auto done = Clock::now();
-    const double latency =
-        ms_between(arrival, done) + (from_capture ? double(capture_offset_ns) * 1e-6 : 0.0);
-    timing.latency_ms = latency;
-    timing.latency_from_capture = from_capture;
-    latencies.push_back(latency);
-    track_ms.push_back(timing.track_ms);
-    overlay_ms.push_back(ms_between(tracked, overlaid));
-    render_ms.push_back(ms_between(overlaid, done));
-    shown.push_back(done);
-    while (shown.size() > 1 && shown.back() - shown.front() > std::chrono::seconds(1)) {
-      shown.pop_front();
-    }
-    timing.fps = shown.size() > 1 ? double(shown.size() - 1) /
-                                        std::chrono::duration<double>(shown.back() - shown.front()).count()
-                                  : 0.0;
+    GuideFrameResult r = loop.process(*frame, arrival, need_image);
+    if (loop.window_closed()) quit = true;
+    latencies.push_back(r.latency_ms);
+    track_ms.push_back(r.track_ms);
+    overlay_ms.push_back(r.overlay_ms);
+    render_ms.push_back(r.render_ms);
 
     if (!request.video.empty()) {
-      if (!video) video.emplace(request.video, image.size(), request.video_fps);
-      video->write(image);
+      if (!video) video.emplace(request.video, r.image.size(), request.video_fps);
+      video->write(r.image);
     }
-    bool snap = request.snapshot_every > 0 && summary.frames % request.snapshot_every == 0;
-    std::string snap_name;
     while (!pending_snapshots.empty() && pending_snapshots.front().first <= frame->index) {
-      write_png(snapshot_dir + "/" + pending_snapshots.front().second, image);
-      summary.snapshots_written.push_back(snapshot_dir + "/" + pending_snapshots.front().second);
+      snapshot(pending_snapshots.front().second, r.image);
       pending_snapshots.erase(pending_snapshots.begin());
     }
-    if (snap) {
+    if (request.snapshot_every > 0 && summary.frames % request.snapshot_every == 0) {
       char name[64];
       std::snprintf(name, sizeof(name), "frame_%06lld.png", (long long)frame->index);
-      write_png(snapshot_dir + "/" + name, image);
-      summary.snapshots_written.push_back(snapshot_dir + "/" + name);
+      snapshot(name, r.image);
     }
     if (request.window) {
       for (int key : renderer.poll_keys()) {
@@ -313,9 +262,8 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
         } else if (key == 'S') {
           char name[64];
           std::snprintf(name, sizeof(name), "snapshot_%03d.png", ++manual_snapshots);
-          write_png(snapshot_dir + "/" + name, image.empty() ? renderer.render() : image);
+          snapshot(name, r.image.empty() ? renderer.render() : r.image);
           spdlog::info("guide: snapshot {}/{}", snapshot_dir, name);
-          summary.snapshots_written.push_back(snapshot_dir + "/" + name);
         } else if (key == 'Q' || key == 256 /* Escape */) {
           quit = true;
         }
@@ -323,27 +271,28 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
     }
 
     if (log) {
-      std::fprintf(log, "%s\n", guide_log_row(info, latency, render_ms.back()).c_str());
+      std::fprintf(log, "%s\n", guide_log_row(r.info, r.latency_ms, r.render_ms).c_str());
     }
     ++summary.frames;
-    summary.dropped += track.dropped;
-    if (!info.image) ++summary.frames_without_image;
-    if (info.anatomy_drawn) ++summary.patient_tracked;
-    if (info.needle) {
+    summary.dropped += r.dropped;
+    if (!r.info.image) ++summary.frames_without_image;
+    if (r.info.anatomy_drawn) ++summary.patient_tracked;
+    if (r.info.needle) {
       ++summary.needle_evaluated;
-      switch (info.needle->state.safety) {
+      switch (r.info.needle->state.safety) {
         case planning::NeedleSafety::kSafe: ++summary.needle_safe; break;
         case planning::NeedleSafety::kMedium: ++summary.needle_medium; break;
         case planning::NeedleSafety::kDangerous: ++summary.needle_dangerous; break;
       }
     }
-    summary.latency_from_capture = from_capture;
-    summary.frame_infos.push_back(std::move(info));
+    summary.latency_from_capture = r.latency_from_capture;
+    summary.frame_infos.push_back(std::move(r.info));
 
-    if (done - last_progress > std::chrono::seconds(2)) {
-      last_progress = done;
-      spdlog::info("guide: {} frames, {:.1f} fps, latency {:.0f} ms (median so far)",
-                   summary.frames, timing.fps, percentile(latencies, 50));
+    const auto now = Clock::now();
+    if (now - last_progress > std::chrono::seconds(2)) {
+      last_progress = now;
+      spdlog::info("guide: {} frames, latency {:.0f} ms (median so far)", summary.frames,
+                   percentile(latencies, 50));
     }
   }
 
@@ -351,7 +300,8 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
   summary.fps = summary.seconds > 0 ? double(summary.frames) / summary.seconds : 0;
   summary.latency_median_ms = percentile(latencies, 50);
   summary.latency_p95_ms = percentile(latencies, 95);
-  summary.latency_max_ms = latencies.empty() ? 0 : *std::max_element(latencies.begin(), latencies.end());
+  summary.latency_max_ms =
+      latencies.empty() ? 0 : *std::max_element(latencies.begin(), latencies.end());
   summary.track_median_ms = percentile(track_ms, 50);
   summary.overlay_median_ms = percentile(overlay_ms, 50);
   summary.render_median_ms = percentile(render_ms, 50);

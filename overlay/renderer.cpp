@@ -814,6 +814,11 @@ cv::Mat OverlayRenderer::render() {
 
 namespace crepuscular::overlay {
 
+void OverlayRenderer::finish() {
+  impl_->make_current();
+  glFinish();
+}
+
 cv::Mat OverlayRenderer::screenshot_window() {
   if (!impl_->window) {
     throw Error("overlay renderer: screenshot_window() needs a window; this renderer is headless (" +

@@ -97,6 +97,8 @@ class OverlayRenderer {
   cv::Mat render();
   // Draws everything without reading the image back (for the window; render() reads it back).
   void draw();
+  // Waits until the GPU has finished everything drawn so far (glFinish), for timing.
+  void finish();
 
   // Window (visible renderers): shows the last drawn image, scaled to the window, and handles
   // window events. Returns false once the user has closed the window. Keys pressed since the

@@ -14,7 +14,7 @@
 #include "calibration/camera_model.hpp"
 #include "overlay/renderer.hpp"
 #include "planning/safety_classes.hpp"
-#include "planning/slices.hpp"
+#include "planning/palette.hpp"
 #include "planning/volume.hpp"
 
 namespace crepuscular::overlay {

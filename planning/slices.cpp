@@ -28,7 +28,6 @@ namespace crepuscular::planning {
 
 namespace {
 
-using Rgb = std::array<uint8_t, 3>;
 
 // Outline colours of labelled structures (by label value, cycling); none is a class colour.
 const Rgb kLabelColours[] = {{230, 159, 0},   {86, 180, 233},  {204, 121, 167}, {166, 86, 40},
@@ -116,12 +115,6 @@ cv::Size text_size(const std::string& text, double scale, int thickness) {
   return cv::getTextSize(text, cv::FONT_HERSHEY_SIMPLEX, scale, thickness, &baseline);
 }
 
-Rgb mix(const Rgb& a, const Rgb& b, double t) {
-  Rgb r;
-  for (int c = 0; c < 3; ++c)
-    r[size_t(c)] = uint8_t(std::lround(a[size_t(c)] + t * (b[size_t(c)] - a[size_t(c)])));
-  return r;
-}
 
 std::string class_rule(const SafetyClasses& c, SafetyClass k, const std::string& unit) {
   const std::string s = fmt("%.4g", c.safe) + unit, d = fmt("%.4g", c.dangerous) + unit;
@@ -174,11 +167,6 @@ std::vector<SlicePlaneKind> parse_planes(const std::string& text) {
   return planes;
 }
 
-Palette parse_palette(const std::string& text) {
-  if (text == "default") return Palette::kDefault;
-  if (text == "colorblind" || text == "colourblind") return Palette::kColorblind;
-  throw Error("--palette: unknown palette \"" + text + "\" (expected default or colorblind)");
-}
 
 std::array<bool, 3> parse_hidden_classes(const std::string& text) {
   std::array<bool, 3> hidden{false, false, false};
@@ -269,20 +257,6 @@ Eigen::Vector3d SliceView::point_of(double x, double y) const {
 
 // --- Colours ------------------------------------------------------------------------------------
 
-std::array<Rgb, 3> class_colours(Palette palette) {
-  if (palette == Palette::kColorblind) {
-    // Blue (safe) to yellow (dangerous), told apart by every common colour vision deficiency.
-    const Rgb blue{0, 114, 178}, yellow{240, 228, 66};
-    return {blue, mix(blue, yellow, 0.5), yellow};
-  }
-  return {Rgb{0, 200, 0}, Rgb{255, 220, 0}, Rgb{230, 0, 0}};
-}
-
-Rgb leeway_colour(Palette palette, double leeway) {
-  const auto c = class_colours(palette);
-  const double t = std::clamp(leeway, 0.0, 1.0);
-  return t >= 0.5 ? mix(c[1], c[0], (t - 0.5) * 2.0) : mix(c[2], c[1], t * 2.0);
-}
 
 uint8_t window_grey(double hu, double width, double level) {
   const double g = (hu - (level - 0.5 * width)) / width * 255.0;

@@ -15,17 +15,16 @@
 #include "planning/area_safety.hpp"
 #include "planning/safety_classes.hpp"
 #include "planning/volume.hpp"
+#include "planning/palette.hpp"
 #include "planning/vulnerability.hpp"
 
 namespace crepuscular::planning {
 
 enum class SlicePlaneKind { kAxial, kCoronal, kSagittal, kOblique };
-enum class Palette { kDefault, kColorblind };
 
 const char* plane_name(SlicePlaneKind kind);
 // "axial,coronal,sagittal,oblique" (any subset, any order); throws Error on an unknown name.
 std::vector<SlicePlaneKind> parse_planes(const std::string& text);
-Palette parse_palette(const std::string& text);
 // "safe,medium,dangerous" (any subset, or empty) -> hidden flags indexed by SafetyClass.
 std::array<bool, 3> parse_hidden_classes(const std::string& text);
 
@@ -105,10 +104,6 @@ struct SliceView {
   Eigen::Vector3d point_of(double x, double y) const;
 };
 
-// Colours (RGB) of the palette for safe, medium, dangerous.
-std::array<std::array<uint8_t, 3>, 3> class_colours(Palette palette);
-// Colour of a leeway in [0, 1]: dangerous colour at 0, medium at 0.5, safe at 1 (linear between).
-std::array<uint8_t, 3> leeway_colour(Palette palette, double leeway);
 // Grey level of a CT value in the window (0..255).
 uint8_t window_grey(double hu, double width, double level);
 

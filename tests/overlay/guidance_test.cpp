@@ -327,7 +327,9 @@ TEST_F(GuidanceTest, NeedlePastTheVesselStaysDangerous) {
     EXPECT_EQ(s.safety, planning::NeedleSafety::kDangerous) << tip_distance;
     EXPECT_FALSE(s.clear) << tip_distance;
     EXPECT_EQ(s.tip_in_body, tip_distance < kBody) << tip_distance;
-    if (s.tip_in_body) EXPECT_NEAR(s.line_start.norm(), kBody, 2.5) << tip_distance;
+    if (s.tip_in_body) {
+      EXPECT_NEAR(s.line_start.norm(), kBody, 2.5) << tip_distance;
+    }
     bool vessel = false;
     for (const auto& h : s.evaluation.structures) {
       if (h.name != "vessel") continue;

@@ -1,0 +1,156 @@
+// End-to-end latency of the guidance loop on the demo's recording: the built-in phantom is planned
+// (fast mode), the demo's guidance scenario (a needle on a safe, then a vessel-crossing path) is
+// rendered into memory, and every frame goes through tracking, the overlay's layers and rendering
+// with read-back (what `crepuscular guide --headless` does per frame, without the video encoder).
+// Frames are handed over back to back; latency counts from the hand-over to the finished image.
+//
+// Prints one JSON line per image size and volume-layer setting: latency median / p95 / max, the
+// medians of tracking, overlay and rendering, and the OpenGL implementation.
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <iostream>
+#include <string>
+#include <vector>
+
+#include <unistd.h>
+
+#include <nlohmann/json.hpp>
+#include <spdlog/spdlog.h>
+
+#include "kernels/error.hpp"
+#include "overlay/guidance_scene.hpp"
+#include "overlay/guide_loop.hpp"
+#include "planning/evaluate.hpp"
+#include "planning/phantom.hpp"
+#include "planning/plan.hpp"
+#include "tracking/synthetic.hpp"
+
+namespace fs = std::filesystem;
+using namespace crepuscular;
+
+int main(int argc, char** argv) {
+  CLI::App app{"End-to-end latency of the guidance loop (tracking + overlay + rendering)"};
+  double spacing = 3.0;
+  int frames = 120;
+  std::vector<std::string> sizes = {"1280x720", "1920x1080"};
+  std::string backend = "auto";
+  std::string device = "auto";
+  double volume_scale = 0;
+  app.add_option("--spacing", spacing, "Phantom voxel size, mm")->capture_default_str();
+  app.add_option("--frames", frames, "Frames per configuration (the first 5 are warm-up)")
+      ->capture_default_str();
+  app.add_option("--size", sizes, "Image sizes")->capture_default_str();
+  app.add_option("--backend", backend, "auto, egl or glfw")->capture_default_str();
+  app.add_option("--device", device, "Path safety device for the plan: auto, cpu or cuda")
+      ->capture_default_str();
+  app.add_option("--volume-scale", volume_scale,
+                 "Volume rendering resolution (0: automatic, 1 on a GPU, 0.25 on Mesa)")
+      ->capture_default_str();
+  CLI11_PARSE(app, argc, argv);
+  spdlog::set_level(spdlog::level::warn);
+  try {
+    const fs::path dir = fs::temp_directory_path() / ("crepuscular_guide_bench_" +
+                                                      std::to_string(::getpid()));
+    fs::remove_all(dir);
+    planning::PhantomOptions po;
+    po.spacing_mm = spacing;
+    planning::write_phantom(planning::make_phantom(po), (dir / "phantom").string());
+    planning::PlanRequest req;
+    req.labels = (dir / "phantom/labels.nii.gz").string();
+    req.tumor = (dir / "phantom/tumor.nii.gz").string();
+    req.vulnerability = (dir / "phantom/vulnerability.json").string();
+    req.path_safety.mode = planning::Mode::kFast;
+    req.path_safety.device = planning::parse_device(device);
+    req.path_safety.radius_mm = 120;
+    req.out_dir = (dir / "plan").string();
+    const auto t_plan = std::chrono::steady_clock::now();
+    planning::run_plan(req);
+    std::cerr << "plan: " << std::chrono::duration<double>(std::chrono::steady_clock::now() - t_plan).count()
+              << " s\n";
+    const planning::PlanData plan = planning::load_plan(req.out_dir);
+    const overlay::GuidanceScenario scenario = overlay::make_guidance_scenario(plan);
+    std::vector<tracking::Board> boards;
+    for (const auto& b : scenario.scene.boards) boards.push_back(b.board);
+
+    for (const std::string& size : sizes) {
+      int w = 0, h = 0;
+      if (std::sscanf(size.c_str(), "%dx%d", &w, &h) != 2 || w <= 0 || h <= 0) {
+        throw Error("--size " + size + ": expected WIDTHxHEIGHT");
+      }
+      // The same view at another resolution: the camera's intrinsics scaled.
+      tracking::SyntheticScene scene = scenario.scene;
+      const double s = double(w) / scene.camera.width;
+      scene.camera.fx *= s;
+      scene.camera.fy *= s;
+      scene.camera.cx = (scene.camera.cx + 0.5) * s - 0.5;
+      scene.camera.cy = (scene.camera.cy + 0.5) * s - 0.5;
+      scene.camera.width = w;
+      scene.camera.height = h;
+      tracking::SyntheticRenderer renderer(scene);
+      std::vector<tracking::Frame> video;
+      const int64_t n = std::min<int64_t>(frames, scene.frame_count);
+      for (int64_t f = 0; f < n; ++f) {
+        // Spread over the whole recording: both approaches.
+        const int64_t index = f * scene.frame_count / n;
+        tracking::Frame frame;
+        frame.index = index;
+        frame.timestamp_ns = renderer.timestamp_ns_of(index);
+        frame.image = renderer.render(index);
+        video.push_back(std::move(frame));
+      }
+      overlay::GuidanceSetup setup;
+      setup.camera = scene.camera;
+      setup.T_ct_patient = scenario.T_ct_patient;
+      setup.tip_in_needle = scenario.needle.tip_needle;
+      setup.axis_in_needle =
+          scenario.needle.axis_needle ? *scenario.needle.axis_needle : Eigen::Vector3d::UnitZ();
+      for (bool volume : {false, true}) {
+        overlay::GuidanceOptions go;
+        go.visible[size_t(overlay::GuidanceLayer::kVolume)] = volume;
+        go.volume_resolution_scale = volume_scale;
+        tracking::TrackerOptions to;
+        // Frames are spread over the recording: allow the gaps between them.
+        to.max_age_ms = 1000;
+        overlay::RendererOptions ro;
+        ro.backend = backend == "egl"    ? overlay::RendererBackend::kEgl
+                     : backend == "glfw" ? overlay::RendererBackend::kGlfw
+                                         : overlay::RendererBackend::kAuto;
+        overlay::GuideLoop loop(plan, setup, boards, go, to, ro);
+        std::vector<double> latency, track, over, render;
+        int64_t needle = 0;
+        for (size_t i = 0; i < video.size(); ++i) {
+          const auto arrival = std::chrono::steady_clock::now();
+          const overlay::GuideFrameResult r = loop.process(video[i], arrival, true);
+          if (i < 5) continue;
+          latency.push_back(r.latency_ms);
+          track.push_back(r.track_ms);
+          over.push_back(r.overlay_ms);
+          render.push_back(r.render_ms);
+          needle += r.info.needle ? 1 : 0;
+        }
+        nlohmann::json j;
+        j["bench"] = "guide";
+        j["size"] = size;
+        j["volume_layer"] = volume;
+        j["frames"] = latency.size();
+        j["needle_evaluated"] = needle;
+        j["latency_median_ms"] = overlay::percentile(latency, 50);
+        j["latency_p95_ms"] = overlay::percentile(latency, 95);
+        j["latency_max_ms"] = overlay::percentile(latency, 100);
+        j["track_median_ms"] = overlay::percentile(track, 50);
+        j["overlay_median_ms"] = overlay::percentile(over, 50);
+        j["render_median_ms"] = overlay::percentile(render, 50);
+        j["render_p95_ms"] = overlay::percentile(render, 95);
+        j["gl"] = loop.renderer().gl_description();
+        std::cout << j.dump() << std::endl;
+      }
+    }
+    fs::remove_all(dir);
+  } catch (const std::exception& e) {
+    std::cerr << "guide_bench: " << e.what() << "\n";
+    return 1;
+  }
+  return 0;
+}
