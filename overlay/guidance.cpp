@@ -62,9 +62,10 @@ struct TextLine {
   double scale = 0.55;
 };
 
-cv::Rect draw_panel(cv::Mat& bgra, cv::Point origin, const std::vector<TextLine>& lines,
-                    bool anchor_bottom) {
-  if (lines.empty()) return {};
+// A panel of text lines on a translucent dark box, as a BGRA image of its own size; its top-left
+// corner in the frame goes to *origin (anchored at `at`, from below when anchor_bottom).
+cv::Mat text_panel(const std::vector<TextLine>& lines, cv::Point at, bool anchor_bottom,
+                   const cv::Size& frame, cv::Point* origin) {
   const int font = cv::FONT_HERSHEY_SIMPLEX;
   int width = 0, height = 8;
   std::vector<int> heights;
@@ -75,17 +76,19 @@ cv::Rect draw_panel(cv::Mat& bgra, cv::Point origin, const std::vector<TextLine>
     heights.push_back(s.height + base + 6);
     height += heights.back();
   }
-  cv::Rect box(origin.x, anchor_bottom ? origin.y - height : origin.y, width + 16, height);
-  box &= cv::Rect(0, 0, bgra.cols, bgra.rows);
-  bgra(box).setTo(cv::Scalar(20, 20, 20, 170));
-  int y = box.y + 4;
+  cv::Rect box(at.x, anchor_bottom ? at.y - height : at.y, width + 16, height);
+  box &= cv::Rect(0, 0, frame.width, frame.height);
+  if (lines.empty() || box.empty()) return {};
+  cv::Mat panel(box.size(), CV_8UC4, cv::Scalar(20, 20, 20, 170));
+  int y = 4;
   for (size_t i = 0; i < lines.size(); ++i) {
     y += heights[i];
     const cv::Scalar c = lines[i].colour;
-    cv::putText(bgra, lines[i].text, cv::Point(box.x + 8, y - 6), font, lines[i].scale,
+    cv::putText(panel, lines[i].text, cv::Point(8, y - 6), font, lines[i].scale,
                 cv::Scalar(c[0], c[1], c[2], 255), 1, cv::LINE_AA);
   }
-  return box;
+  *origin = box.tl();
+  return panel;
 }
 
 std::string format(const char* fmt, double a) {
@@ -438,7 +441,6 @@ void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isomet
   }
 
   // Text panel, bottom left.
-  cv::Mat panel(renderer.camera().height, renderer.camera().width, CV_8UC4, cv::Scalar(0, 0, 0, 0));
   std::vector<TextLine> lines;
   std::string headline = std::string("NEEDLE PATH: ") + planning::needle_safety_name(s.safety);
   std::transform(headline.begin(), headline.end(), headline.begin(), ::toupper);
@@ -458,14 +460,16 @@ void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isomet
   if (std::isfinite(s.angle_to_safe_deg)) {
     lines.push_back({format("nearest safe direction %.1f deg away", s.angle_to_safe_deg)});
   }
-  draw_panel(panel, cv::Point(10, panel.rows - 10), lines, true);
-  renderer.set_layer_image("needle", panel);
+  const cv::Size frame(renderer.camera().width, renderer.camera().height);
+  cv::Point origin;
+  const cv::Mat panel = text_panel(lines, cv::Point(10, frame.height - 10), true, frame, &origin);
+  renderer.add_layer_image("needle", panel, origin);
 }
 
 void GuidanceOverlay::draw_status(OverlayRenderer& renderer, const GuidanceFrameInfo& info,
                                   const GuidanceTiming& timing) {
   const auto& cam = renderer.camera();
-  cv::Mat panel(cam.height, cam.width, CV_8UC4, cv::Scalar(0, 0, 0, 0));
+  const cv::Size frame(cam.width, cam.height);
   const cv::Scalar ok(120, 230, 120), bad(60, 60, 255);
   std::vector<TextLine> lines;
   auto board_line = [&](const char* name, bool tracked, double age) {
@@ -487,20 +491,26 @@ void GuidanceOverlay::draw_status(OverlayRenderer& renderer, const GuidanceFrame
                   timing.latency_from_capture ? "from capture" : "from frame arrival");
     lines.push_back({buf});
   }
-  if (visible(GuidanceLayer::kStatus)) draw_panel(panel, cv::Point(10, 10), lines, false);
+  if (visible(GuidanceLayer::kStatus)) {
+    cv::Point origin;
+    const cv::Mat panel = text_panel(lines, cv::Point(10, 10), false, frame, &origin);
+    renderer.add_layer_image("status", panel, origin);
+  }
   // Warnings: large, red, at the top centre.
   int y = 20;
   for (const auto& w : info.warnings) {
     int base = 0;
     const cv::Size s = cv::getTextSize(w, cv::FONT_HERSHEY_SIMPLEX, 1.0, 2, &base);
-    const cv::Rect box(std::max(0, (cam.width - s.width) / 2 - 12), y, s.width + 24,
-                       s.height + base + 16);
-    panel(box & cv::Rect(0, 0, cam.width, cam.height)).setTo(cv::Scalar(0, 0, 160, 200));
-    cv::putText(panel, w, cv::Point(box.x + 12, box.y + s.height + 8), cv::FONT_HERSHEY_SIMPLEX,
-                1.0, cv::Scalar(255, 255, 255, 255), 2, cv::LINE_AA);
+    const cv::Rect box =
+        cv::Rect(std::max(0, (cam.width - s.width) / 2 - 12), y, s.width + 24, s.height + base + 16) &
+        cv::Rect(0, 0, cam.width, cam.height);
+    if (box.empty()) break;
+    cv::Mat banner(box.size(), CV_8UC4, cv::Scalar(0, 0, 160, 200));
+    cv::putText(banner, w, cv::Point(12, s.height + 8), cv::FONT_HERSHEY_SIMPLEX, 1.0,
+                cv::Scalar(255, 255, 255, 255), 2, cv::LINE_AA);
+    renderer.add_layer_image("status", banner, box.tl());
     y += box.height + 8;
   }
-  renderer.set_layer_image("status", panel);
 }
 
 GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const tracking::Frame& frame,

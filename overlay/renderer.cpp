@@ -91,9 +91,10 @@ const char* kBackgroundFragment = R"(#version 330 core
 uniform sampler2D frame;
 uniform vec2 size;
 uniform float with_alpha;  // 0: opaque video frame; 1: image layer with its own alpha
+uniform ivec2 offset;      // image position (top-left pixel) in the frame
 out vec4 out_colour;
 void main() {
-  ivec2 texel = ivec2(int(gl_FragCoord.x), int(size.y) - 1 - int(gl_FragCoord.y));
+  ivec2 texel = ivec2(int(gl_FragCoord.x), int(size.y) - 1 - int(gl_FragCoord.y)) - offset;
   vec4 c = texelFetch(frame, texel, 0);
   out_colour = vec4(c.rgb, with_alpha > 0.5 ? c.a : 1.0);
 }
@@ -373,8 +374,13 @@ struct OverlayRenderer::Impl {
     bool visible = true;
     std::vector<Vertex> vertices;
     std::function<void(const DrawContext&)> draw;
-    GLuint image_texture = 0;
-    bool has_image = false;
+    struct Image {
+      GLuint texture = 0;
+      int width = 0, height = 0;
+      cv::Point origin;
+    };
+    std::vector<Image> images;  // textures are kept for reuse; the first image_count are shown
+    size_t image_count = 0;
   };
   GLFWwindow* window = nullptr;  // GLFW backend
   EglTarget egl;                 // EGL backend
@@ -558,7 +564,7 @@ OverlayRenderer::~OverlayRenderer() {
   glDeleteProgram(impl_->background_program);
   glDeleteTextures(1, &impl_->frame_texture);
   for (auto& l : impl_->layers)
-    if (l.image_texture) glDeleteTextures(1, &l.image_texture);
+    for (auto& image : l.images) glDeleteTextures(1, &image.texture);
   glDeleteFramebuffers(1, &impl_->fbo);
   glDeleteRenderbuffers(1, &impl_->colour_rb);
   impl_->release_context();
@@ -654,30 +660,48 @@ void OverlayRenderer::add_polyline_px(const std::string& layer_name,
 }
 
 void OverlayRenderer::set_layer_image(const std::string& layer_name, const cv::Mat& bgra) {
-  auto& layer = impl_->layer(layer_name);
-  if (bgra.empty()) {
-    layer.has_image = false;
-    return;
-  }
-  if (bgra.type() != CV_8UC4 || bgra.cols != camera_.width || bgra.rows != camera_.height) {
+  impl_->layer(layer_name).image_count = 0;
+  if (bgra.empty()) return;
+  if (bgra.cols != camera_.width || bgra.rows != camera_.height) {
     throw Error("overlay renderer: layer image of '" + layer_name + "' must be 8-bit BGRA of " +
                 std::to_string(camera_.width) + "x" + std::to_string(camera_.height));
   }
+  add_layer_image(layer_name, bgra, cv::Point(0, 0));
+}
+
+void OverlayRenderer::add_layer_image(const std::string& layer_name, const cv::Mat& bgra,
+                                      const cv::Point& origin) {
+  auto& layer = impl_->layer(layer_name);
+  if (bgra.empty()) return;
+  if (bgra.type() != CV_8UC4 || origin.x < 0 || origin.y < 0 ||
+      origin.x + bgra.cols > camera_.width || origin.y + bgra.rows > camera_.height) {
+    throw Error("overlay renderer: an image of layer '" + layer_name +
+                "' must be 8-bit BGRA and lie inside the " + std::to_string(camera_.width) + "x" +
+                std::to_string(camera_.height) + " frame");
+  }
   const cv::Mat contiguous = bgra.isContinuous() ? bgra : bgra.clone();
   impl_->make_current();
-  if (!layer.image_texture) {
-    glGenTextures(1, &layer.image_texture);
-    glBindTexture(GL_TEXTURE_2D, layer.image_texture);
+  if (layer.image_count == layer.images.size()) {
+    Impl::Layer::Image image;
+    glGenTextures(1, &image.texture);
+    glBindTexture(GL_TEXTURE_2D, image.texture);
     glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
     glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
-    glTexImage2D(GL_TEXTURE_2D, 0, GL_RGBA8, camera_.width, camera_.height, 0, GL_BGRA,
-                 GL_UNSIGNED_BYTE, nullptr);
+    layer.images.push_back(image);
   }
-  glBindTexture(GL_TEXTURE_2D, layer.image_texture);
+  auto& image = layer.images[layer.image_count++];
+  image.origin = origin;
+  glBindTexture(GL_TEXTURE_2D, image.texture);
   glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
-  glTexSubImage2D(GL_TEXTURE_2D, 0, 0, 0, camera_.width, camera_.height, GL_BGRA,
-                  GL_UNSIGNED_BYTE, contiguous.data);
-  layer.has_image = true;
+  if (image.width != bgra.cols || image.height != bgra.rows) {
+    image.width = bgra.cols;
+    image.height = bgra.rows;
+    glTexImage2D(GL_TEXTURE_2D, 0, GL_RGBA8, image.width, image.height, 0, GL_BGRA,
+                 GL_UNSIGNED_BYTE, contiguous.data);
+  } else {
+    glTexSubImage2D(GL_TEXTURE_2D, 0, 0, 0, image.width, image.height, GL_BGRA, GL_UNSIGNED_BYTE,
+                    contiguous.data);
+  }
 }
 
 void OverlayRenderer::set_layer_draw(const std::string& layer,
@@ -688,7 +712,7 @@ void OverlayRenderer::set_layer_draw(const std::string& layer,
 void OverlayRenderer::clear_layer(const std::string& layer_name) {
   auto& layer = impl_->layer(layer_name);
   layer.vertices.clear();
-  layer.has_image = false;
+  layer.image_count = 0;
   layer.draw = nullptr;
 }
 
@@ -725,6 +749,7 @@ void OverlayRenderer::draw() {
     glUniform1i(glGetUniformLocation(impl_->background_program, "frame"), 0);
     glUniform2f(glGetUniformLocation(impl_->background_program, "size"), w, h);
     glUniform1f(glGetUniformLocation(impl_->background_program, "with_alpha"), 0.0f);
+    glUniform2i(glGetUniformLocation(impl_->background_program, "offset"), 0, 0);
     glDrawArrays(GL_TRIANGLES, 0, 3);
   }
 
@@ -750,14 +775,24 @@ void OverlayRenderer::draw() {
                    l.vertices.data(), GL_STREAM_DRAW);
       glDrawArrays(GL_TRIANGLES, 0, static_cast<GLsizei>(l.vertices.size()));
     }
-    if (l.has_image) {
+    if (l.image_count > 0) {
+      // Each image over its own rectangle only (scissor), sampled texel for pixel.
       glUseProgram(impl_->background_program);
       glActiveTexture(GL_TEXTURE0);
-      glBindTexture(GL_TEXTURE_2D, l.image_texture);
       glUniform1i(glGetUniformLocation(impl_->background_program, "frame"), 0);
       glUniform2f(glGetUniformLocation(impl_->background_program, "size"), w, h);
       glUniform1f(glGetUniformLocation(impl_->background_program, "with_alpha"), 1.0f);
-      glDrawArrays(GL_TRIANGLES, 0, 3);
+      glEnable(GL_SCISSOR_TEST);
+      for (size_t i = 0; i < l.image_count; ++i) {
+        const auto& image = l.images[i];
+        glBindTexture(GL_TEXTURE_2D, image.texture);
+        glUniform2i(glGetUniformLocation(impl_->background_program, "offset"), image.origin.x,
+                    image.origin.y);
+        glScissor(image.origin.x, camera_.height - image.origin.y - image.height, image.width,
+                  image.height);
+        glDrawArrays(GL_TRIANGLES, 0, 3);
+      }
+      glDisable(GL_SCISSOR_TEST);
     }
   }
   const GLenum err = glGetError();

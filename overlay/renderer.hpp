@@ -84,6 +84,10 @@ class OverlayRenderer {
   // other drawings, e.g. text from cv::putText. Replaces the layer's previous image; an empty Mat
   // removes it.
   void set_layer_image(const std::string& layer, const cv::Mat& bgra);
+  // Adds an image (CV_8UC4 BGRA) of any size at `origin` (its top-left pixel in the frame; it must
+  // lie inside the frame) to the layer's images, e.g. a text panel; cheaper than a full-frame
+  // image. clear_layer() removes them.
+  void add_layer_image(const std::string& layer, const cv::Mat& bgra, const cv::Point& origin);
   // A drawing step of the layer's own (e.g. a volume rendering), run before its shapes. An empty
   // function removes it.
   void set_layer_draw(const std::string& layer, std::function<void(const DrawContext&)> draw);
