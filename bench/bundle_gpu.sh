@@ -11,7 +11,7 @@ targets=(path_safety_cuda_test path_safety_test path_safety_fast_test bench_path
          bench_sampling_rate)
 # BUNDLE=overlay: the overlay renderer benchmark alone (with OpenCV, GLFW, X11 and libglvnd it does
 # not fit beside the CUDA programs in the 64 MiB a carried path may hold).
-if [ "${BUNDLE:-}" = overlay ]; then targets=(overlay_bench); fi
+if [ "${BUNDLE:-}" = overlay ]; then targets=(overlay_bench guide_bench); fi
 cmake --build "$build" -j "$(nproc)" --target "${targets[@]}"
 rm -rf .device && mkdir -p .device/bin .device/lib
 for t in "${targets[@]}"; do
@@ -24,3 +24,9 @@ for b in .device/bin/*; do
 done | sort -u | grep -vE '/(libc|libm|libdl|libpthread|librt|ld-linux[^/]*|libcuda)\.so' |
   while read -r lib; do cp -L "$lib" .device/lib/; done
 du -sh .device
+# The overlay programs' libraries exceed the carry limit uncompressed: carry .device.tar.xz and
+# unpack it there (run_gpu.sh does).
+if [ "${BUNDLE:-}" = overlay ]; then
+  tar -cJf .device.tar.xz .device && rm -rf .device
+  du -sh .device.tar.xz
+fi

@@ -4,6 +4,7 @@
 # renderer's frame time through EGL (no X server needed). Logs go to $OUT.
 # ONLY=overlay runs the overlay renderer benchmark alone.
 set -uo pipefail
+if [ -f .device.tar.xz ]; then tar -xJf .device.tar.xz; fi
 export LD_LIBRARY_PATH="$PWD/.device/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 out="${OUT:-/tmp/crepuscular-gpu}"
 mkdir -p "$out"
@@ -25,6 +26,11 @@ overlay() {
   fi
   env -u DISPLAY .device/bin/overlay_bench --backend egl --frames "${OVERLAY_FRAMES:-300}" 2>&1 |
     tee "$out/overlay.log"
+  if [ -x .device/bin/guide_bench ]; then
+    echo "== guidance loop end to end (tracking + overlay + rendering, EGL)"
+    env -u DISPLAY .device/bin/guide_bench --backend egl --frames "${GUIDE_FRAMES:-150}" \
+      2>&1 | tee "$out/guide.jsonl"
+  fi
 }
 if [ "${ONLY:-}" = overlay ]; then
   overlay
