@@ -92,10 +92,19 @@ uniform sampler2D frame;
 uniform vec2 size;
 uniform float with_alpha;  // 0: opaque video frame; 1: image layer with its own alpha
 uniform ivec2 offset;      // image position (top-left pixel) in the frame
+uniform float packed_bgr;  // 1: the video frame, B, G, R bytes side by side in one channel
 out vec4 out_colour;
 void main() {
   ivec2 texel = ivec2(int(gl_FragCoord.x), int(size.y) - 1 - int(gl_FragCoord.y)) - offset;
-  vec4 c = texelFetch(frame, texel, 0);
+  vec4 c;
+  if (packed_bgr > 0.5) {
+    int x = 3 * texel.x;
+    c = vec4(texelFetch(frame, ivec2(x + 2, texel.y), 0).r,
+             texelFetch(frame, ivec2(x + 1, texel.y), 0).r,
+             texelFetch(frame, ivec2(x, texel.y), 0).r, 1.0);
+  } else {
+    c = texelFetch(frame, texel, 0);
+  }
   out_colour = vec4(c.rgb, with_alpha > 0.5 ? c.a : 1.0);
 }
 )";
@@ -529,11 +538,20 @@ void OverlayRenderer::create_gl_objects() {
     throw Error("overlay renderer: off-screen framebuffer incomplete");
   }
 
+  GLint max_texture = 0;
+  glGetIntegerv(GL_MAX_TEXTURE_SIZE, &max_texture);
+  if (3 * camera_.width > max_texture || camera_.height > max_texture) {
+    throw Error("overlay renderer: a " + std::to_string(camera_.width) + "x" +
+                std::to_string(camera_.height) + " video frame exceeds this OpenGL's texture limit (" +
+                std::to_string(max_texture) + " texels)");
+  }
   glGenTextures(1, &impl_->frame_texture);
   glBindTexture(GL_TEXTURE_2D, impl_->frame_texture);
   glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
   glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
-  glTexImage2D(GL_TEXTURE_2D, 0, GL_RGB8, camera_.width, camera_.height, 0, GL_BGR,
+  // The video frame's bytes as they are (B, G, R, B, ...), one byte per texel: no format conversion
+  // in the driver on upload (NVIDIA's converts 3-byte BGR on the CPU); the shader unpacks it.
+  glTexImage2D(GL_TEXTURE_2D, 0, GL_R8, 3 * camera_.width, camera_.height, 0, GL_RED,
                GL_UNSIGNED_BYTE, nullptr);
 
   impl_->shape_program = link(kShapeVertex, kShapeFragment);
@@ -592,8 +610,8 @@ void OverlayRenderer::set_frame(const cv::Mat& bgr) {
   impl_->make_current();
   glBindTexture(GL_TEXTURE_2D, impl_->frame_texture);
   glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
-  glTexSubImage2D(GL_TEXTURE_2D, 0, 0, 0, camera_.width, camera_.height, GL_BGR, GL_UNSIGNED_BYTE,
-                  contiguous.data);
+  glTexSubImage2D(GL_TEXTURE_2D, 0, 0, 0, 3 * camera_.width, camera_.height, GL_RED,
+                  GL_UNSIGNED_BYTE, contiguous.data);
   impl_->has_frame = true;
 }
 
@@ -749,6 +767,7 @@ void OverlayRenderer::draw() {
     glUniform1i(glGetUniformLocation(impl_->background_program, "frame"), 0);
     glUniform2f(glGetUniformLocation(impl_->background_program, "size"), w, h);
     glUniform1f(glGetUniformLocation(impl_->background_program, "with_alpha"), 0.0f);
+    glUniform1f(glGetUniformLocation(impl_->background_program, "packed_bgr"), 1.0f);
     glUniform2i(glGetUniformLocation(impl_->background_program, "offset"), 0, 0);
     glDrawArrays(GL_TRIANGLES, 0, 3);
   }
@@ -782,6 +801,7 @@ void OverlayRenderer::draw() {
       glUniform1i(glGetUniformLocation(impl_->background_program, "frame"), 0);
       glUniform2f(glGetUniformLocation(impl_->background_program, "size"), w, h);
       glUniform1f(glGetUniformLocation(impl_->background_program, "with_alpha"), 1.0f);
+      glUniform1f(glGetUniformLocation(impl_->background_program, "packed_bgr"), 0.0f);
       glEnable(GL_SCISSOR_TEST);
       for (size_t i = 0; i < l.image_count; ++i) {
         const auto& image = l.images[i];
