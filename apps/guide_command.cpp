@@ -30,6 +30,7 @@ struct GuideArgs {
   std::vector<std::string> snapshot_at;
   int snapshot_every = 0;
   std::string log;
+  std::string record;
   std::vector<std::string> hide, show;
   std::string palette = "default";
   std::string value;
@@ -70,6 +71,7 @@ void run(const GuideArgs& a) {
   }
   req.snapshot_every = a.snapshot_every;
   req.log = a.log;
+  req.record = a.record;
   if (req.log.empty() && !a.out.empty()) {
     req.log = std::filesystem::path(a.out).replace_extension(".csv").string();
   }
@@ -141,6 +143,9 @@ void add_guide_command(CLI::App& app) {
   cmd->add_option("--log", a->log,
                   "Per-frame CSV (tracking, needle safety, latency); default: the video's name "
                   "with .csv");
+  cmd->add_option("--record", a->record,
+                  "Also record the incoming frames to this recording folder (replay it later "
+                  "with --source recording:DIR)");
   cmd->add_option("--hide", a->hide, "Layers to start hidden: rays, volume, entry, tumor, needle, "
                                      "status (or 1-6)");
   cmd->add_option("--show", a->show, "Layers to start shown (the volume rendering starts hidden)");

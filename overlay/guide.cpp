@@ -17,6 +17,7 @@
 #include "calibration/calibration_files.hpp"
 #include "kernels/error.hpp"
 #include "planning/output_files.hpp"
+#include "tracking/board.hpp"
 #include "tracking/frame_source.hpp"
 
 namespace crepuscular::overlay {
@@ -211,6 +212,11 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
     }
   } log_closer{log, log_tmp};
 
+  std::unique_ptr<tracking::FrameRecorder> recorder;
+  tracking::RecordOptions record_options;
+  record_options.boards_json = tracking::boards_json_text(request.boards);
+  record_options.camera = setup.camera;
+
   std::vector<double> latencies, track_ms, overlay_ms, render_ms;
   const auto t0 = Clock::now();
   auto last_progress = t0;
@@ -230,6 +236,14 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
     if (!frame->note.empty()) spdlog::info("guide: frame {}: {}", frame->index, frame->note);
     GuideFrameResult r = loop.process(*frame, arrival, need_image);
     if (loop.window_closed()) quit = true;
+    if (!request.record.empty()) {
+      if (!recorder) {
+        recorder = std::make_unique<tracking::FrameRecorder>(
+            request.record, source->describe(), setup.camera, record_options,
+            !frame->truth.empty());
+      }
+      recorder->add(*frame);
+    }
     latencies.push_back(r.latency_ms);
     track_ms.push_back(r.track_ms);
     overlay_ms.push_back(r.overlay_ms);
@@ -310,6 +324,10 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
   if (video) {
     video->commit();
     summary.video = request.video;
+  }
+  if (recorder) {
+    const tracking::RecordSummary rs = recorder->finish();
+    spdlog::info("guide: {} frames recorded in {}", rs.frames, rs.path);
   }
   if (log) {
     std::fclose(log);

@@ -35,6 +35,9 @@ struct GuideRequest {
   std::vector<std::pair<int64_t, std::string>> snapshots;
   int snapshot_every = 0;               // also every N-th frame (0 = never)
   std::string log;                      // per-frame CSV log ("" = none)
+  // Also record the incoming frames, as received, to this recording folder ("" = none); written
+  // as FOLDER.partial while guiding (replayable at any moment), renamed at the end.
+  std::string record;
   int64_t max_frames = -1;
   GuidanceOptions options;
   tracking::TrackerOptions tracker;

@@ -179,23 +179,35 @@ std::unique_ptr<FrameSource> open_frame_source(const std::string& uri) {
               "', expected v4l2:, recording: or synthetic:");
 }
 
-RecordSummary record_to_folder(FrameSource& source, const std::string& out_dir,
-                               const RecordOptions& options) {
+struct FrameRecorder::Impl {
+  std::string final_dir, partial;
+  RecordOptions options;
+  std::unique_ptr<recordings::RecordingWriter> writer;
+  RecordSummary summary;
+  int64_t last_index = -1;
+  std::chrono::steady_clock::time_point t0 = std::chrono::steady_clock::now();
+  bool finished = false;
+};
+
+FrameRecorder::FrameRecorder(const std::string& out_dir, const std::string& source_description,
+                             const std::optional<calibration::CameraModel>& camera,
+                             const RecordOptions& options, bool with_truth)
+    : impl_(std::make_unique<Impl>()) {
   namespace fs = std::filesystem;
-  std::string final_dir = out_dir;
-  while (final_dir.size() > 1 && final_dir.back() == '/') final_dir.pop_back();
-  const std::string partial = final_dir + ".partial";
-  if (fs::exists(final_dir)) {
-    throw Error(final_dir + ": exists; choose another --out or remove it first");
+  Impl& m = *impl_;
+  m.options = options;
+  m.final_dir = out_dir;
+  while (m.final_dir.size() > 1 && m.final_dir.back() == '/') m.final_dir.pop_back();
+  m.partial = m.final_dir + ".partial";
+  if (fs::exists(m.final_dir)) {
+    throw Error(m.final_dir + ": exists; choose another --out or remove it first");
   }
-  if (fs::exists(partial)) {
-    throw Error(partial + ": exists (an interrupted recording, replayable as recording:" + partial +
-                "); move or remove it first");
+  if (fs::exists(m.partial)) {
+    throw Error(m.partial + ": exists (an interrupted recording, replayable as recording:" +
+                m.partial + "); move or remove it first");
   }
-  const auto t0 = std::chrono::steady_clock::now();
-  std::optional<Frame> frame = source.next();
   recordings::SessionInfo session;
-  session.source = source.describe();
+  session.source = source_description;
   session.plan = options.plan;
   if (!options.boards_json.empty()) {
     try {
@@ -204,20 +216,82 @@ RecordSummary record_to_folder(FrameSource& source, const std::string& out_dir,
       throw Error(std::string("boards for the recording are not valid JSON (") + e.what() + ")");
     }
   }
-  const bool with_truth = frame && !frame->truth.empty();
-  recordings::RecordingWriter writer(partial, session, options.image_format, options.jpeg_quality,
-                                     with_truth);
-  if (const std::optional<calibration::CameraModel> camera =
-          options.camera ? options.camera : source.camera()) {
-    camera->write_yaml((fs::path(partial) / "camera.yaml").string());
+  m.writer = std::make_unique<recordings::RecordingWriter>(
+      m.partial, session, options.image_format, options.jpeg_quality, with_truth);
+  if (const std::optional<calibration::CameraModel> c = options.camera ? options.camera : camera) {
+    c->write_yaml((fs::path(m.partial) / "camera.yaml").string());
   }
+  m.summary.path = m.final_dir;
   spdlog::info("record: {} -> {} (a recording in progress is {}: it replays as it is)",
-               source.describe(), final_dir, partial);
-  RecordSummary summary;
-  summary.path = final_dir;
+               source_description, m.final_dir, m.partial);
+}
+
+FrameRecorder::~FrameRecorder() = default;
+
+bool FrameRecorder::add(const Frame& frame) {
+  Impl& m = *impl_;
+  if (!frame.problem.empty()) ++m.summary.problems;
+  if (frame.index <= m.last_index) {
+    spdlog::warn("record: frame {} does not follow frame {}; skipped", frame.index, m.last_index);
+    ++m.summary.skipped;
+    return false;
+  }
+  std::vector<recordings::PoseRow> truth;
+  for (const TruePose& p : frame.truth) {
+    recordings::PoseRow r;
+    r.board = p.board;
+    r.state = "tracked";
+    const Eigen::Quaterniond q(p.T_cam_board.linear());
+    r.q[0] = q.w();
+    r.q[1] = q.x();
+    r.q[2] = q.y();
+    r.q[3] = q.z();
+    for (int k = 0; k < 3; ++k) r.t[k] = p.T_cam_board.translation()[k];
+    truth.push_back(r);
+  }
+  const bool passthrough = !frame.encoded.empty() && frame.encoded_format == "jpg" &&
+                           m.options.image_format == "jpg";
+  if (passthrough) {
+    m.writer->add_encoded(frame.index, frame.timestamp_ns, frame.encoded, "jpg", truth);
+  } else if (!frame.image.empty()) {
+    m.writer->add_frame(frame.index, frame.timestamp_ns, frame.image, truth);
+  } else {
+    ++m.summary.skipped;
+    return false;
+  }
+  m.last_index = frame.index;
+  ++m.summary.frames;
+  m.summary.truth_rows += int64_t(truth.size());
+  return true;
+}
+
+const RecordSummary& FrameRecorder::summary() const { return impl_->summary; }
+
+RecordSummary FrameRecorder::finish() {
+  namespace fs = std::filesystem;
+  Impl& m = *impl_;
+  if (m.finished) return m.summary;
+  m.finished = true;
+  m.writer->finish();
+  std::error_code ec;
+  fs::rename(m.partial, m.final_dir, ec);
+  if (ec) {
+    throw Error(m.partial + ": cannot rename to " + m.final_dir + " (" + ec.message() +
+                "); the recording is complete under the first name");
+  }
+  m.summary.seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - m.t0).count();
+  return m.summary;
+}
+
+RecordSummary record_to_folder(FrameSource& source, const std::string& out_dir,
+                               const RecordOptions& options) {
+  std::optional<Frame> frame = source.next();
+  FrameRecorder recorder(out_dir, source.describe(), source.camera(), options,
+                         frame && !frame->truth.empty());
+  const auto t0 = std::chrono::steady_clock::now();
   int64_t first_ns = 0;
   bool have_first = false;
-  int64_t last_index = -1;
   auto last_log = t0;
   for (; frame; frame = source.next()) {
     if (options.stop && options.stop->load()) {
@@ -233,59 +307,19 @@ RecordSummary record_to_folder(FrameSource& source, const std::string& out_dir,
       break;
     }
     if (!frame->note.empty()) spdlog::info("record: frame {}: {}", frame->index, frame->note);
-    if (!frame->problem.empty()) {
-      ++summary.problems;
-      spdlog::warn("record: frame {}: {}", frame->index, frame->problem);
-    }
-    if (frame->index <= last_index) {
-      spdlog::warn("record: frame {} does not follow frame {}; skipped", frame->index, last_index);
-      ++summary.skipped;
-      continue;
-    }
-    std::vector<recordings::PoseRow> truth;
-    for (const TruePose& p : frame->truth) {
-      recordings::PoseRow r;
-      r.board = p.board;
-      r.state = "tracked";
-      const Eigen::Quaterniond q(p.T_cam_board.linear());
-      r.q[0] = q.w();
-      r.q[1] = q.x();
-      r.q[2] = q.y();
-      r.q[3] = q.z();
-      for (int k = 0; k < 3; ++k) r.t[k] = p.T_cam_board.translation()[k];
-      truth.push_back(r);
-    }
-    const bool passthrough = !frame->encoded.empty() && frame->encoded_format == "jpg" &&
-                             options.image_format == "jpg";
-    if (passthrough) {
-      writer.add_encoded(frame->index, frame->timestamp_ns, frame->encoded, "jpg", truth);
-    } else if (!frame->image.empty()) {
-      writer.add_frame(frame->index, frame->timestamp_ns, frame->image, truth);
-    } else {
-      ++summary.skipped;
-      continue;
-    }
-    last_index = frame->index;
-    ++summary.frames;
-    summary.truth_rows += int64_t(truth.size());
-    if (options.max_frames >= 0 && summary.frames >= options.max_frames) break;
+    if (!frame->problem.empty()) spdlog::warn("record: frame {}: {}", frame->index, frame->problem);
+    if (!recorder.add(*frame)) continue;
+    const int64_t frames = recorder.summary().frames;
+    if (options.max_frames >= 0 && frames >= options.max_frames) break;
     const auto now = std::chrono::steady_clock::now();
     if (now - last_log > std::chrono::seconds(1)) {
       last_log = now;
       const double s = std::chrono::duration<double>(now - t0).count();
-      spdlog::info("record: {} frames in {:.1f} s ({:.1f} fps)", summary.frames, s,
-                   double(summary.frames) / std::max(s, 1e-9));
+      spdlog::info("record: {} frames in {:.1f} s ({:.1f} fps)", frames, s,
+                   double(frames) / std::max(s, 1e-9));
     }
   }
-  writer.finish();
-  std::error_code ec;
-  fs::rename(partial, final_dir, ec);
-  if (ec) {
-    throw Error(partial + ": cannot rename to " + final_dir + " (" + ec.message() +
-                "); the recording is complete under the first name");
-  }
-  summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  return summary;
+  return recorder.finish();
 }
 
 }  // namespace crepuscular::tracking

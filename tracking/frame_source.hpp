@@ -90,6 +90,30 @@ struct RecordSummary {
   double seconds = 0;           // wall time
 };
 
+// Records frames one at a time into a recording folder: written into out_dir + ".partial"
+// (replayable at any moment, also after a crash or kill) and renamed to out_dir by finish().
+// Without finish() the .partial folder stays, as after an interrupted recording. Throws Error
+// when out_dir or out_dir.partial already exist, or on a write failure.
+class FrameRecorder {
+ public:
+  // with_truth: store ground truth (ground_truth.csv) from the frames. camera: camera.yaml to
+  // store (options.camera overrides).
+  FrameRecorder(const std::string& out_dir, const std::string& source_description,
+                const std::optional<calibration::CameraModel>& camera,
+                const RecordOptions& options, bool with_truth);
+  ~FrameRecorder();
+  FrameRecorder(const FrameRecorder&) = delete;
+  FrameRecorder& operator=(const FrameRecorder&) = delete;
+  // Appends a frame; false when it was skipped (no image data, or not after the last frame).
+  bool add(const Frame& frame);
+  const RecordSummary& summary() const;
+  RecordSummary finish();
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
 // Records `source` into out_dir. The recording is written frame by frame into out_dir + ".partial"
 // (replayable at any moment, also after a crash or kill) and renamed to out_dir when it ends.
 // Throws Error when out_dir or out_dir.partial already exist, or on a write failure. Ground truth

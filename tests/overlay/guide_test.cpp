@@ -130,6 +130,7 @@ TEST_F(GuideTest, HeadlessRunShowsSafeThenDangerousAndWritesEveryOutput) {
   const int64_t safe_frame = int64_t(std::floor(scenario_->safe.end_s * 10));
   const int64_t dangerous_frame = int64_t(std::floor(scenario_->dangerous.end_s * 10));
   g.snapshots = {{safe_frame, "safe.png"}, {dangerous_frame, "dangerous.png"}};
+  g.record = out + "/session";
   GuideSummary s;
   try {
     s = run_guide(*plan_, g);
@@ -195,6 +196,14 @@ TEST_F(GuideTest, HeadlessRunShowsSafeThenDangerousAndWritesEveryOutput) {
   EXPECT_GT(dangerous_rows, 15);
   EXPECT_EQ(bad, 0);
   EXPECT_GT(vessel_rows, dangerous_rows / 2);
+  // The session's own recording replays the frames that came with an image, with the boards.
+  {
+    auto replay = tracking::open_recording_source(out + "/session");
+    int64_t n = 0;
+    while (auto f = replay->next()) n += f->image.empty() ? 0 : 1;
+    EXPECT_EQ(n, frames_ - 1);
+    EXPECT_EQ(tracking::read_boards(out + "/session/boards.json").size(), 2u);
+  }
   // No temporary file is left beside the outputs.
   for (const auto& e : fs::directory_iterator(out)) {
     EXPECT_EQ(e.path().filename().string().rfind(".tmp", 0), std::string::npos) << e.path();
