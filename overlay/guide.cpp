@@ -223,8 +223,9 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
   int manual_snapshots = 0;
   bool quit = false;
   auto snapshot = [&](const std::string& name, const cv::Mat& image) {
-    write_png(snapshot_dir + "/" + name, image);
-    summary.snapshots_written.push_back(snapshot_dir + "/" + name);
+    const std::string path = (fs::path(snapshot_dir) / name).string();  // absolute names stay
+    write_png(path, image);
+    summary.snapshots_written.push_back(path);
   };
 
   while (!quit) {

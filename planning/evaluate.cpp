@@ -66,11 +66,20 @@ ImageGeometry geometry_from_json(const nlohmann::json& j, const std::string& whe
   return g;
 }
 
-std::string input_path(const nlohmann::json& plan, const char* key) {
+// An input's path as plan.json records it; when that file is gone but the path relative to the
+// plan folder leads to one (the plan moved together with its inputs), that one.
+std::string input_path(const nlohmann::json& plan, const char* key, const std::string& plan_dir) {
   if (!plan.contains("inputs") || !plan["inputs"].is_object()) return {};
   const auto& in = plan["inputs"];
   if (!in.contains(key) || !in[key].is_object() || !in[key].contains("path")) return {};
-  return in[key]["path"].get<std::string>();
+  const std::string path = in[key]["path"].get<std::string>();
+  std::error_code ec;
+  if (!fs::exists(path, ec) && in[key].contains("relative_path") &&
+      in[key]["relative_path"].is_string()) {
+    const fs::path moved = fs::path(plan_dir) / in[key]["relative_path"].get<std::string>();
+    if (fs::exists(moved, ec)) return moved.lexically_normal().string();
+  }
+  return path;
 }
 
 // Trilinear weights of a continuous index; calls f(offset, weight) for the corners in the grid.
@@ -265,7 +274,7 @@ PlanData load_plan(const std::string& plan_dir, const PlanLoadOptions& options) 
   if (options.labels) {
     std::string path = options.labels_override;
     if (path.empty()) {
-      path = input_path(j, "labels");
+      path = input_path(j, "labels", plan_dir);
       std::error_code ec;
       if (!path.empty() && !fs::exists(path, ec)) {
         spdlog::warn(
@@ -281,7 +290,7 @@ PlanData load_plan(const std::string& plan_dir, const PlanLoadOptions& options) 
     }
   }
   if (options.tumor) {
-    const std::string path = input_path(j, "tumor");
+    const std::string path = input_path(j, "tumor", plan_dir);
     std::error_code ec;
     if (!path.empty() && fs::exists(path, ec)) {
       plan.tumor = read_mask(path);

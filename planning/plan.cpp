@@ -40,9 +40,14 @@ nlohmann::json geometry_json(const ImageGeometry& g) {
           {"direction", direction}};
 }
 
-nlohmann::json input_json(const std::string& path) {
+// An input file: its absolute path, its path relative to the plan folder (so a plan moved together
+// with its inputs, e.g. a whole demo folder, still finds them) and its checksum.
+nlohmann::json input_json(const std::string& path, const std::string& plan_dir) {
   if (path.empty()) return nullptr;
-  return {{"path", fs::absolute(path).string()}, {"md5", file_checksum(path)}};
+  const fs::path absolute = fs::absolute(path);
+  return {{"path", absolute.string()},
+          {"relative_path", fs::absolute(absolute).lexically_relative(fs::absolute(plan_dir)).string()},
+          {"md5", file_checksum(path)}};
 }
 
 std::string now_iso8601() {
@@ -259,12 +264,12 @@ nlohmann::json run_plan(const PlanRequest& req) {
   }
   timings["total_s"] = seconds_since(t_start);
 
-  plan["inputs"] = {{"labels", input_json(req.labels)},
-                    {"tumor", input_json(req.tumor)},
-                    {"vulnerability", input_json(req.vulnerability)},
+  plan["inputs"] = {{"labels", input_json(req.labels, req.out_dir)},
+                    {"tumor", input_json(req.tumor, req.out_dir)},
+                    {"vulnerability", input_json(req.vulnerability, req.out_dir)},
                     {"preset", req.preset.empty() ? nlohmann::json(nullptr) : nlohmann::json(req.preset)},
-                    {"ct", input_json(req.ct)},
-                    {"blocking", input_json(req.blocking)}};
+                    {"ct", input_json(req.ct, req.out_dir)},
+                    {"blocking", input_json(req.blocking, req.out_dir)}};
   plan["preprocessing"] = preprocessing;
   nlohmann::json values = nlohmann::json::array();
   for (int v = 0; v < kernels::kValueCount; ++v) {

@@ -300,3 +300,28 @@ TEST(NeedleGuidanceBench, PerCallTimeOnAPlanFolder) {
 
 }  // namespace
 }  // namespace crepuscular::planning
+
+namespace crepuscular::planning {
+namespace {
+
+// A plan folder moved together with its inputs still finds its label map and tumor mask (plan.json
+// records their paths relative to the plan folder too).
+TEST_F(NeedleGuidanceTest, PlanMovedWithItsInputsFindsThem) {
+  const fs::path moved = dir_->string() + "_moved";
+  fs::remove_all(moved);
+  fs::rename(*dir_, moved);
+  PlanData plan;
+  try {
+    plan = load_plan((moved / "plan").string());
+  } catch (...) {
+    fs::rename(moved, *dir_);
+    throw;
+  }
+  fs::rename(moved, *dir_);
+  EXPECT_FALSE(plan.labels.empty());
+  EXPECT_FALSE(plan.tumor.empty());
+  EXPECT_EQ(fs::path(plan.labels_path).lexically_normal(), (moved / "labels.nii.gz").lexically_normal());
+}
+
+}  // namespace
+}  // namespace crepuscular::planning
