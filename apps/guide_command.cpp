@@ -12,6 +12,7 @@
 #include "kernels/error.hpp"
 #include "overlay/guide.hpp"
 #include "planning/evaluate.hpp"
+#include "planning/slices.hpp"
 #include "tracking/board.hpp"
 #include "tracking/frame_source.hpp"
 
@@ -33,6 +34,7 @@ struct GuideArgs {
   std::string record;
   std::vector<std::string> hide, show;
   std::string palette = "default";
+  std::string volume_classes = "safe,medium";
   std::string value;
   double max_age_ms = 100;
   int64_t max_frames = -1;
@@ -78,6 +80,11 @@ void run(const GuideArgs& a) {
   req.max_frames = a.max_frames;
   req.options.value = a.value;
   req.options.palette = planning::parse_palette(a.palette);
+  {
+    // parse_hidden_classes takes the classes to hide; the option names those to show.
+    const auto shown = planning::parse_hidden_classes(a.volume_classes);
+    for (size_t c = 0; c < 3; ++c) req.options.volume_classes[c] = shown[c];
+  }
   req.options.ray_directions = a.rays;
   for (const auto& l : a.hide) req.options.visible[size_t(overlay::parse_guidance_layer(l))] = false;
   for (const auto& l : a.show) req.options.visible[size_t(overlay::parse_guidance_layer(l))] = true;
@@ -150,6 +157,9 @@ void add_guide_command(CLI::App& app) {
                                      "status (or 1-6)");
   cmd->add_option("--show", a->show, "Layers to start shown (the volume rendering starts hidden)");
   cmd->add_option("--palette", a->palette, "default or colorblind")->capture_default_str();
+  cmd->add_option("--volume-classes", a->volume_classes,
+                  "Classes the volume rendering shows: any of safe,medium,dangerous")
+      ->capture_default_str();
   cmd->add_option("--value", a->value,
                   "Path safety value of the ray bundles (svv, isbv, ivbv, bvv); default: the "
                   "plan's first");

@@ -1,6 +1,7 @@
 #include "overlay/guidance.hpp"
 
 #include <algorithm>
+#include <limits>
 #include <cmath>
 #include <map>
 #include <set>
@@ -323,8 +324,23 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
         vo.resolution_scale =
             renderer.gl_description().find("llvmpipe") != std::string::npos ? 0.25 : 1.0;
       }
-      volume_ = std::make_unique<SafetyVolumeRendering>(plan_.path_safety.at(value_),
-                                                        plan_.classes.at(value_), vo);
+      vo.show_safe = options_.volume_classes[0];
+      vo.show_medium = options_.volume_classes[1];
+      vo.show_dangerous = options_.volume_classes[2];
+      // Only inside the body: air in front of the patient has path safety values too.
+      planning::Volume<float> inside = plan_.path_safety.at(value_);
+      if (!plan_.labels.empty()) {
+        const auto d = inside.dims();
+        for (int64_t k = 0; k < d[2]; ++k)
+          for (int64_t j = 0; j < d[1]; ++j)
+            for (int64_t i = 0; i < d[0]; ++i) {
+              float& v = inside(i, j, k);
+              if (std::isfinite(v) && !inside_body(inside.index_to_physical(i, j, k))) {
+                v = std::numeric_limits<float>::quiet_NaN();
+              }
+            }
+      }
+      volume_ = std::make_unique<SafetyVolumeRendering>(inside, plan_.classes.at(value_), vo);
     }
     volume_->set_pose(T_cam_ct);
     SafetyVolumeRendering* volume = volume_.get();

@@ -69,6 +69,10 @@ struct GuidanceOptions {
   // Volume rendering resolution relative to the image (0 < s <= 1); 0: automatic, 1 on a GPU and
   // 0.25 on a software renderer (Mesa llvmpipe), where a full-size rendering takes ~0.5 s.
   double volume_resolution_scale = 0;
+  // Classes the volume rendering shows (safe, medium, dangerous): by default the safe and medium
+  // paths only, as the paper shows them, so the safe funnels stand out. Voxels outside the body
+  // (label 0) are never drawn.
+  std::array<bool, 3> volume_classes = {true, true, false};
 };
 
 // The needle part of one frame (present when both boards were tracked).
