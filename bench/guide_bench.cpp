@@ -118,7 +118,7 @@ int main(int argc, char** argv) {
                      : backend == "glfw" ? overlay::RendererBackend::kGlfw
                                          : overlay::RendererBackend::kAuto;
         overlay::GuideLoop loop(plan, setup, boards, go, to, ro);
-        std::vector<double> latency, track, over, render;
+        std::vector<double> latency, track, over, render, upload, anatomy, needle_ms, status;
         int64_t needle = 0;
         for (size_t i = 0; i < video.size(); ++i) {
           const auto arrival = std::chrono::steady_clock::now();
@@ -128,6 +128,10 @@ int main(int argc, char** argv) {
           track.push_back(r.track_ms);
           over.push_back(r.overlay_ms);
           render.push_back(r.render_ms);
+          upload.push_back(r.info.upload_ms);
+          anatomy.push_back(r.info.anatomy_ms);
+          needle_ms.push_back(r.info.needle_ms);
+          status.push_back(r.info.status_ms);
           needle += r.info.needle ? 1 : 0;
         }
         nlohmann::json j;
@@ -142,6 +146,10 @@ int main(int argc, char** argv) {
         j["track_median_ms"] = overlay::percentile(track, 50);
         j["overlay_median_ms"] = overlay::percentile(over, 50);
         j["render_median_ms"] = overlay::percentile(render, 50);
+        j["overlay_parts_median_ms"] = {{"upload", overlay::percentile(upload, 50)},
+                                        {"anatomy", overlay::percentile(anatomy, 50)},
+                                        {"needle", overlay::percentile(needle_ms, 50)},
+                                        {"status", overlay::percentile(status, 50)}};
         j["render_p95_ms"] = overlay::percentile(render, 95);
         j["gl"] = loop.renderer().gl_description();
         std::cout << j.dump() << std::endl;

@@ -1,6 +1,7 @@
 #include "overlay/guidance.hpp"
 
 #include <algorithm>
+#include <chrono>
 #include <limits>
 #include <cmath>
 #include <map>
@@ -556,6 +557,11 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
   if (info.patient_tracked) info.patient_age_ms = patient->age_ms;
   if (info.needle_tracked) info.needle_age_ms = needle->age_ms;
 
+  using Clock = std::chrono::steady_clock;
+  const auto ms_since = [](Clock::time_point t) {
+    return std::chrono::duration<double, std::milli>(Clock::now() - t).count();
+  };
+  auto t = Clock::now();
   if (info.image) {
     renderer.set_frame(frame.image);
   } else {
@@ -568,10 +574,14 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
     info.warnings.push_back(std::to_string(track.dropped) + " FRAME(S) DROPPED");
   }
 
+  info.upload_ms = ms_since(t);
   if (info.image && info.patient_tracked) {
+    t = Clock::now();
     const Eigen::Isometry3d T_cam_ct = patient->T_cam_board * setup_.T_ct_patient.inverse();
     info.anatomy_drawn = true;
     draw_anatomy(renderer, T_cam_ct);
+    info.anatomy_ms = ms_since(t);
+    t = Clock::now();
     if (info.needle_tracked) {
       NeedleReading reading;
       reading.T_ct_needle = setup_.T_ct_patient * patient->T_cam_board.inverse() * needle->T_cam_board;
@@ -582,6 +592,7 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
       }
       info.needle = std::move(reading);
     }
+    info.needle_ms = ms_since(t);
   }
   if (info.image && !info.patient_tracked) {
     info.warnings.push_back("PATIENT MARKER LOST: NO GUIDANCE SHOWN");
@@ -589,7 +600,9 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
     info.warnings.push_back("NEEDLE MARKER LOST");
   }
   // Warnings always show: hiding the status layer hides only its panel.
+  t = Clock::now();
   draw_status(renderer, info, timing);
+  info.status_ms = ms_since(t);
   renderer.set_layer_visible("status", true);
   return info;
 }
