@@ -532,7 +532,7 @@ void GuidanceOverlay::draw_status(OverlayRenderer& renderer, const GuidanceFrame
 
 GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const tracking::Frame& frame,
                                           const tracking::TrackResult& track,
-                                          const GuidanceTiming& timing) {
+                                          const GuidanceTiming& timing, bool frame_uploaded) {
   const calibration::CameraModel& cam = renderer.camera();
   GuidanceFrameInfo info;
   info.frame = frame.index;
@@ -563,7 +563,7 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
   };
   auto t = Clock::now();
   if (info.image) {
-    renderer.set_frame(frame.image);
+    if (!frame_uploaded) renderer.set_frame(frame.image);
   } else {
     // No picture: a dark frame, no overlay, and the reason.
     renderer.set_frame(cv::Mat(cam.height, cam.width, CV_8UC3, cv::Scalar(40, 40, 40)));

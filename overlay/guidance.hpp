@@ -118,8 +118,11 @@ class GuidanceOverlay {
 
   // Fills the renderer's layers for one frame: background, anatomy, needle, status. Returns what
   // was shown. The renderer's camera must be setup.camera's image size.
+  // frame_uploaded: the caller already gave the frame's image to renderer.set_frame() (e.g. while
+  // tracking ran on another thread).
   GuidanceFrameInfo update(OverlayRenderer& renderer, const tracking::Frame& frame,
-                           const tracking::TrackResult& track, const GuidanceTiming& timing);
+                           const tracking::TrackResult& track, const GuidanceTiming& timing,
+                           bool frame_uploaded = false);
 
   void set_visible(GuidanceLayer layer, bool visible);
   bool visible(GuidanceLayer layer) const;

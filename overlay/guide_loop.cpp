@@ -3,6 +3,7 @@
 #include <time.h>
 
 #include <algorithm>
+#include <future>
 
 #include "kernels/error.hpp"
 
@@ -59,11 +60,17 @@ GuideFrameResult GuideLoop::process(const tracking::Frame& frame, Clock::time_po
       monotonic_now_ns() - frame.timestamp_ns - int64_t(ms_between(arrival, Clock::now()) * 1e6);
   r.latency_from_capture = capture_offset_ns >= 0 && capture_offset_ns < 2000000000LL;
 
-  const tracking::TrackResult track = tracker_.process(frame);
+  // Tracking runs on another thread while this one uploads the video frame to the GPU (the
+  // upload needs no pose; the OpenGL context stays on this thread).
+  std::future<tracking::TrackResult> tracking =
+      std::async(std::launch::async, [this, &frame] { return tracker_.process(frame); });
+  const bool uploaded = !frame.image.empty();
+  if (uploaded) renderer_.set_frame(frame.image);
+  const tracking::TrackResult track = tracking.get();
   r.dropped = track.dropped;
   const auto tracked = Clock::now();
   timing_.track_ms = ms_between(arrival, tracked);
-  r.info = overlay_.update(renderer_, frame, track, timing_);
+  r.info = overlay_.update(renderer_, frame, track, timing_, uploaded);
   const auto overlaid = Clock::now();
   if (want_image) {
     r.image = renderer_.render();

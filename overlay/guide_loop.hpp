@@ -25,6 +25,7 @@ struct GuideFrameResult {
   // swapped to the window).
   double latency_ms = 0;
   bool latency_from_capture = false;
+  // track_ms: tracking, with the video frame's upload to the GPU done meanwhile on this thread.
   double track_ms = 0, overlay_ms = 0, render_ms = 0;
   int64_t dropped = 0;  // frames the source skipped before this one
 };

@@ -385,7 +385,8 @@ struct OverlayRenderer::Impl {
     std::function<void(const DrawContext&)> draw;
     struct Image {
       GLuint texture = 0;
-      int width = 0, height = 0;
+      int width = 0, height = 0;              // the image shown (top-left part of the texture)
+      int texture_width = 0, texture_height = 0;  // allocated; grows, never shrinks
       cv::Point origin;
     };
     std::vector<Image> images;  // textures are kept for reuse; the first image_count are shown
@@ -711,15 +712,18 @@ void OverlayRenderer::add_layer_image(const std::string& layer_name, const cv::M
   image.origin = origin;
   glBindTexture(GL_TEXTURE_2D, image.texture);
   glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
-  if (image.width != bgra.cols || image.height != bgra.rows) {
-    image.width = bgra.cols;
-    image.height = bgra.rows;
-    glTexImage2D(GL_TEXTURE_2D, 0, GL_RGBA8, image.width, image.height, 0, GL_BGRA,
-                 GL_UNSIGNED_BYTE, contiguous.data);
-  } else {
-    glTexSubImage2D(GL_TEXTURE_2D, 0, 0, 0, image.width, image.height, GL_BGRA, GL_UNSIGNED_BYTE,
-                    contiguous.data);
+  image.width = bgra.cols;
+  image.height = bgra.rows;
+  // Text panels change size from frame to frame: re-allocate only when one outgrows the texture
+  // (re-specifying a texture every frame costs drivers a synchronisation).
+  if (image.width > image.texture_width || image.height > image.texture_height) {
+    image.texture_width = std::max(image.width, image.texture_width);
+    image.texture_height = std::max(image.height, image.texture_height);
+    glTexImage2D(GL_TEXTURE_2D, 0, GL_RGBA8, image.texture_width, image.texture_height, 0, GL_BGRA,
+                 GL_UNSIGNED_BYTE, nullptr);
   }
+  glTexSubImage2D(GL_TEXTURE_2D, 0, 0, 0, image.width, image.height, GL_BGRA, GL_UNSIGNED_BYTE,
+                  contiguous.data);
 }
 
 void OverlayRenderer::set_layer_draw(const std::string& layer,
