@@ -20,6 +20,7 @@
 #include <spdlog/spdlog.h>
 
 #include "kernels/error.hpp"
+#include "overlay/gl_program.hpp"
 
 // Last: Xlib's macros (None, Success, Status, ...) must not reach the headers above.
 #include <X11/Xlib.h>
@@ -108,41 +109,6 @@ void main() {
   out_colour = vec4(c.rgb, with_alpha > 0.5 ? c.a : 1.0);
 }
 )";
-
-GLuint compile(GLenum type, const char* source) {
-  const GLuint shader = glCreateShader(type);
-  glShaderSource(shader, 1, &source, nullptr);
-  glCompileShader(shader);
-  GLint ok = 0;
-  glGetShaderiv(shader, GL_COMPILE_STATUS, &ok);
-  if (!ok) {
-    char log[2048];
-    glGetShaderInfoLog(shader, sizeof(log), nullptr, log);
-    glDeleteShader(shader);
-    throw Error(std::string("overlay renderer: shader compilation failed: ") + log);
-  }
-  return shader;
-}
-
-GLuint link(const char* vertex, const char* fragment) {
-  const GLuint vs = compile(GL_VERTEX_SHADER, vertex);
-  const GLuint fs = compile(GL_FRAGMENT_SHADER, fragment);
-  const GLuint program = glCreateProgram();
-  glAttachShader(program, vs);
-  glAttachShader(program, fs);
-  glLinkProgram(program);
-  glDeleteShader(vs);
-  glDeleteShader(fs);
-  GLint ok = 0;
-  glGetProgramiv(program, GL_LINK_STATUS, &ok);
-  if (!ok) {
-    char log[2048];
-    glGetProgramInfoLog(program, sizeof(log), nullptr, log);
-    glDeleteProgram(program);
-    throw Error(std::string("overlay renderer: shader link failed: ") + log);
-  }
-  return program;
-}
 
 std::mutex glfw_mutex;
 int glfw_users = 0;
@@ -555,8 +521,9 @@ void OverlayRenderer::create_gl_objects() {
   glTexImage2D(GL_TEXTURE_2D, 0, GL_R8, 3 * camera_.width, camera_.height, 0, GL_RED,
                GL_UNSIGNED_BYTE, nullptr);
 
-  impl_->shape_program = link(kShapeVertex, kShapeFragment);
-  impl_->background_program = link(kBackgroundVertex, kBackgroundFragment);
+  impl_->shape_program = link_gl_program(kShapeVertex, kShapeFragment, "overlay renderer");
+  impl_->background_program =
+      link_gl_program(kBackgroundVertex, kBackgroundFragment, "overlay renderer");
 
   glGenVertexArrays(1, &impl_->vao);
   glGenBuffers(1, &impl_->vbo);

@@ -11,6 +11,7 @@
 #include <spdlog/spdlog.h>
 
 #include "kernels/error.hpp"
+#include "overlay/gl_program.hpp"
 
 namespace crepuscular::overlay {
 
@@ -106,41 +107,6 @@ void main() {
   out_colour = texture(image, gl_FragCoord.xy / size);
 }
 )";
-
-GLuint compile_shader(GLenum type, const char* source) {
-  const GLuint shader = glCreateShader(type);
-  glShaderSource(shader, 1, &source, nullptr);
-  glCompileShader(shader);
-  GLint ok = 0;
-  glGetShaderiv(shader, GL_COMPILE_STATUS, &ok);
-  if (!ok) {
-    char log[2048];
-    glGetShaderInfoLog(shader, sizeof(log), nullptr, log);
-    glDeleteShader(shader);
-    throw Error(std::string("volume rendering: shader compilation failed: ") + log);
-  }
-  return shader;
-}
-
-GLuint link_program(const char* vertex, const char* fragment) {
-  const GLuint vs = compile_shader(GL_VERTEX_SHADER, vertex);
-  const GLuint fs = compile_shader(GL_FRAGMENT_SHADER, fragment);
-  const GLuint program = glCreateProgram();
-  glAttachShader(program, vs);
-  glAttachShader(program, fs);
-  glLinkProgram(program);
-  glDeleteShader(vs);
-  glDeleteShader(fs);
-  GLint ok = 0;
-  glGetProgramiv(program, GL_LINK_STATUS, &ok);
-  if (!ok) {
-    char log[2048];
-    glGetProgramInfoLog(program, sizeof(log), nullptr, log);
-    glDeleteProgram(program);
-    throw Error(std::string("volume rendering: shader link failed: ") + log);
-  }
-  return program;
-}
 
 bool same_camera(const calibration::CameraModel& a, const calibration::CameraModel& b) {
   return a.width == b.width && a.height == b.height && a.fx == b.fx && a.fy == b.fy &&
@@ -359,8 +325,9 @@ void SafetyVolumeRendering::draw(const DrawContext& context) {
                   std::to_string(dims[1]) + "x" + std::to_string(dims[2]) +
                   " exceeds the OpenGL 3D texture limit of " + std::to_string(max_size));
     }
-    gl->march_program = link_program(kFullScreenVertex, kMarchFragment);
-    gl->composite_program = link_program(kFullScreenVertex, kCompositeFragment);
+    gl->march_program = link_gl_program(kFullScreenVertex, kMarchFragment, "volume rendering");
+    gl->composite_program =
+        link_gl_program(kFullScreenVertex, kCompositeFragment, "volume rendering");
     glGenVertexArrays(1, &gl->vao);
     glGenTextures(1, &gl->class_texture);
     glBindTexture(GL_TEXTURE_3D, gl->class_texture);
