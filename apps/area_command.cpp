@@ -1,15 +1,12 @@
 // `crepuscular area`: the area safety geometry (§3.3) alone, as a fast preview from the blocking
 // volume or from an existing plan's path safety volume.
-#include <memory>
-#include <string>
-
 #include "apps/commands.hpp"
-#include "planning/area_safety.hpp"
+#include "pipelines/area.hpp"
 
 namespace crepuscular::apps {
 
 void add_area_command(CLI::App& app) {
-  auto req = std::make_shared<planning::AreaRequest>();
+  auto req = std::make_shared<pipelines::AreaRequest>();
   CLI::App* cmd = app.add_subcommand(
       "area",
       "Area safety: how much room each safe access region around the tumor leaves.\n"
@@ -82,7 +79,7 @@ void add_area_command(CLI::App& app) {
                   "Output folder for area_safety.vtk and area.json (replaced only when complete; "
                   "never a plan folder)")
       ->required();
-  cmd->callback([req] { planning::run_area(*req); });
+  cmd->callback([req] { pipelines::run_area(*req); });
 }
 
 }  // namespace crepuscular::apps

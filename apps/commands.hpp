@@ -1,8 +1,14 @@
-// Subcommands of the `crepuscular` command. Each adds itself to the app; its callback parses
-// nothing more and calls the libraries.
+// Subcommands of the `crepuscular` command. Each adds itself to the app and maps its flags to a
+// pipeline's options (pipelines/); its callback calls the pipeline and nothing more. Includes the
+// standard headers every command uses (<memory>, <string>, <vector>).
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <atomic>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
 
 namespace crepuscular::apps {
 
@@ -18,5 +24,19 @@ void add_calibrate_command(CLI::App& app);
 void add_register_command(CLI::App& app);
 void add_guide_command(CLI::App& app);
 void add_demo_command(CLI::App& app);
+
+// A flag that SIGINT and SIGTERM (Ctrl-C) set from now on, cleared here: for jobs that end
+// cleanly when asked to (guidance, recording).
+const std::atomic<bool>* stop_on_signals();
+
+// An enum option's names -> values (CLI::CheckedTransformer, any case, spaces ignored), shown in
+// --help as {name,...}.
+template <typename T>
+CLI::Validator enum_names(const std::map<std::string, T>& names) {
+  std::string list;
+  for (const auto& entry : names) list += (list.empty() ? "" : ",") + entry.first;
+  return CLI::CheckedTransformer(names, CLI::ignore_case, CLI::ignore_space)
+      .description("{" + list + "}");
+}
 
 }  // namespace crepuscular::apps

@@ -2,11 +2,28 @@
 #include <spdlog/spdlog.h>
 
 #include <CLI/CLI.hpp>
+#include <csignal>
 #include <cstdio>
 #include <exception>
 
 #include "apps/commands.hpp"
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+
+namespace crepuscular::apps {
+
+namespace {
+std::atomic<bool> g_stop{false};
+extern "C" void on_stop_signal(int) { g_stop.store(true); }
+}  // namespace
+
+const std::atomic<bool>* stop_on_signals() {
+  g_stop.store(false);
+  std::signal(SIGINT, on_stop_signal);
+  std::signal(SIGTERM, on_stop_signal);
+  return &g_stop;
+}
+
+}  // namespace crepuscular::apps
 
 int main(int argc, char** argv) {
   CLI::App app{

@@ -1,17 +1,13 @@
 // `crepuscular plan`: blocking volume and path safety volumes from a segmentation and a tumor.
-#include <memory>
-#include <string>
-
 #include "apps/commands.hpp"
-#include "planning/plan.hpp"
+#include "apps/enum_names.hpp"
+#include "pipelines/plan.hpp"
 
 namespace crepuscular::apps {
 
 void add_plan_command(CLI::App& app) {
-  auto req = std::make_shared<planning::PlanRequest>();
+  auto req = std::make_shared<pipelines::PlanRequest>();
   auto values = std::make_shared<std::string>("all");
-  auto device = std::make_shared<std::string>("auto");
-  auto mode = std::make_shared<std::string>("exact");
   CLI::App* cmd = app.add_subcommand(
       "plan",
       "Compute the path safety volume around a tumor.\n"
@@ -64,12 +60,15 @@ void add_plan_command(CLI::App& app) {
   cmd->add_option("--margin", req->margin.fwhm_mm,
                   "Safety margin: FWHM in mm of the Gaussian added around each structure (0: none)")
       ->capture_default_str();
-  cmd->add_option("--device", *device, "auto, cpu or cuda")->capture_default_str();
-  cmd->add_option("--mode", *mode,
+  cmd->add_option("--device", req->path_safety.device, "auto, cpu or cuda")
+      ->transform(enum_names(device_names()))
+      ->default_str("auto");
+  cmd->add_option("--mode", req->path_safety.mode,
                   "exact: every ray marched (the reference); fast: rays cast once from each "
                   "tumor surface point and looked up by direction and distance. Fast mode "
                   "recomputes 1000 random voxels exactly and reports the difference in plan.json")
-      ->capture_default_str();
+      ->transform(enum_names(mode_names()))
+      ->default_str("exact");
   cmd->add_option("--threads", req->path_safety.threads, "CPU threads (default: all cores)");
   // Area safety (§3.3), after path safety, for the first computed value.
   cmd->add_flag("!--no-area", req->area_safety.enabled,
@@ -89,11 +88,9 @@ void add_plan_command(CLI::App& app) {
                   "radius R)");
   cmd->add_option("--out", req->out_dir, "Output plan folder (replaced only when complete)")
       ->required();
-  cmd->callback([req, values, device, mode] {
+  cmd->callback([req, values] {
     req->path_safety.values = planning::parse_value_set(*values);
-    req->path_safety.device = planning::parse_device(*device);
-    req->path_safety.mode = planning::parse_mode(*mode);
-    planning::run_plan(*req);
+    pipelines::run_plan(*req);
   });
 }
 

@@ -1,18 +1,14 @@
 // `crepuscular slices`: 2D slice images of a plan for radiologists (PNG).
-#include <memory>
-#include <string>
-
 #include "apps/commands.hpp"
-#include "planning/evaluate.hpp"
-#include "planning/slices.hpp"
+#include "apps/enum_names.hpp"
+#include "pipelines/slices.hpp"
+#include "planning/trajectories/evaluate.hpp"
 
 namespace crepuscular::apps {
 
 void add_slices_command(CLI::App& app) {
-  auto req = std::make_shared<planning::SlicesRequest>();
+  auto req = std::make_shared<pipelines::SlicesRequest>();
   auto at = std::make_shared<std::string>();
-  auto planes = std::make_shared<std::string>("axial,coronal,sagittal");
-  auto palette = std::make_shared<std::string>("default");
   auto hide = std::make_shared<std::string>();
   CLI::App* cmd = app.add_subcommand(
       "slices",
@@ -44,11 +40,14 @@ void add_slices_command(CLI::App& app) {
   cmd->add_option("--region", req->region,
                   "Centre on safe area region K of the area safety geometry (0 = largest); the "
                   "oblique plane follows its main axis (default: none; oblique uses region 0)");
-  cmd->add_option("--planes", *planes, "Planes: any of axial,coronal,sagittal,oblique")
-      ->capture_default_str();
-  cmd->add_option("--palette", *palette,
+  cmd->add_option("--planes", req->planes, "Planes: any of axial,coronal,sagittal,oblique")
+      ->delimiter(',')
+      ->transform(enum_names(plane_names()))
+      ->default_str("axial,coronal,sagittal");
+  cmd->add_option("--palette", req->options.palette,
                   "default (green/yellow/red) or colorblind (blue to yellow)")
-      ->capture_default_str();
+      ->transform(enum_names(palette_names()))
+      ->default_str("default");
   cmd->add_option("--hide", *hide,
                   "Path safety classes not drawn: any of safe,medium,dangerous (default: none)");
   cmd->add_option("--pixel", req->options.pixel_mm,
@@ -62,15 +61,13 @@ void add_slices_command(CLI::App& app) {
                   "Opacity of the path safety colours over the CT, 0..1")
       ->capture_default_str();
   cmd->add_option("--out", req->out_dir, "Output folder (replaced only when complete)")->required();
-  cmd->callback([req, at, at_opt, planes, palette, hide] {
+  cmd->callback([req, at, at_opt, hide] {
     if (at_opt->count() > 0) {
       req->have_at = true;
       req->at = planning::parse_point(*at, "--at");
     }
-    req->planes = planning::parse_planes(*planes);
-    req->options.palette = planning::parse_palette(*palette);
     req->options.hidden = planning::parse_hidden_classes(*hide);
-    planning::run_slices(*req);
+    pipelines::run_slices(*req);
   });
 }
 

@@ -1,31 +1,12 @@
 // `crepuscular synth`: renders a synthetic recording with ground truth (a scene file, or the
 // built-in guidance scene).
-#include <spdlog/spdlog.h>
-
-#include <memory>
-#include <string>
-
 #include "apps/commands.hpp"
-#include "tracking/board.hpp"
-#include "tracking/frame_source.hpp"
-#include "tracking/synthetic.hpp"
+#include "pipelines/record.hpp"
 
 namespace crepuscular::apps {
 
-namespace {
-
-struct SynthArgs {
-  std::string scene;
-  std::string out;
-  std::string format = "jpg";
-  int quality = 95;
-  int64_t frames = -1;
-};
-
-}  // namespace
-
 void add_synth_command(CLI::App& app) {
-  auto args = std::make_shared<SynthArgs>();
+  auto args = std::make_shared<pipelines::SynthRequest>();
   CLI::App* cmd = app.add_subcommand(
       "synth",
       "Render synthetic camera frames of AprilTag marker boards with known poses, as a recording\n"
@@ -37,7 +18,8 @@ void add_synth_command(CLI::App& app) {
       "\n"
       "Without --scene it renders the built-in guidance scene: the patient board (2 x 3 tags of\n"
       "40 mm, tag36h11 ids 0-5, with 4 CT fiducials at its corners) 50 to 58 cm from a 1280 x 720\n"
-      "camera, and the needle board (2 x 2 tags of 20 mm, ids 10-13) whose needle tip moves toward\n"
+      "camera, and the needle board (2 x 2 tags of 20 mm, ids 10-13) whose needle tip moves "
+      "toward\n"
       "the phantom's tumor over 3 s at 30 fps.\n"
       "\n"
       "Writes the recording folder DIR (DESIGN.md section 8):\n"
@@ -48,7 +30,8 @@ void add_synth_command(CLI::App& app) {
       "  boards.json            the boards, for `crepuscular track --boards`\n"
       "  camera.yaml            the camera model (OpenCV FileStorage YAML)\n"
       "  session.json           source, date, boards, frame count\n"
-      "While it renders, the folder is DIR.partial (already replayable); it is renamed at the end.\n"
+      "While it renders, the folder is DIR.partial (already replayable); it is renamed at the "
+      "end.\n"
       "The scene file format is described in tracking/synthetic.hpp (read_scene). Next step:\n"
       "  crepuscular track --source recording:DIR --boards DIR/boards.json --out poses.csv");
   cmd->add_option("--scene", args->scene,
@@ -65,26 +48,7 @@ void add_synth_command(CLI::App& app) {
   cmd->add_option("--frames", args->frames,
                   "Render at most this many frames (default: all frames of the scene)")
       ->check(CLI::PositiveNumber);
-  cmd->callback([args] {
-    const tracking::SyntheticScene scene =
-        args->scene.empty() ? tracking::builtin_scene() : tracking::read_scene(args->scene);
-    const std::string description =
-        args->scene.empty() ? "synthetic:builtin" : "synthetic:" + args->scene;
-    std::vector<tracking::Board> boards;
-    for (const tracking::SceneBoard& b : scene.boards) boards.push_back(b.board);
-    spdlog::info("synth: {} frames of {}x{} at {} fps, {} boards, from {}", scene.frame_count,
-                 scene.camera.width, scene.camera.height, scene.fps, boards.size(), description);
-    auto source = tracking::make_synthetic_source(scene, description);
-    tracking::RecordOptions options;
-    options.image_format = args->format;
-    options.jpeg_quality = args->quality;
-    options.max_frames = args->frames;
-    options.boards_json = tracking::boards_json_text(boards);
-    const tracking::RecordSummary s = tracking::record_to_folder(*source, args->out, options);
-    spdlog::info("synth: wrote {} frames and {} ground-truth rows to {} in {:.1f} s{}", s.frames,
-                 s.truth_rows, s.path, s.seconds,
-                 s.problems > 0 ? " (" + std::to_string(s.problems) + " corrupt on purpose)" : "");
-  });
+  cmd->callback([args] { pipelines::run_synth(*args); });
 }
 
 }  // namespace crepuscular::apps

@@ -19,12 +19,12 @@
 #include <nlohmann/json.hpp>
 #include <spdlog/spdlog.h>
 
-#include "kernels/error.hpp"
-#include "overlay/guidance_scene.hpp"
-#include "overlay/guide_loop.hpp"
-#include "planning/evaluate.hpp"
-#include "planning/phantom.hpp"
-#include "planning/plan.hpp"
+#include "foundation/error.hpp"
+#include "pipelines/demo_scenario.hpp"
+#include "pipelines/guide_loop.hpp"
+#include "planning/trajectories/evaluate.hpp"
+#include "planning/simulation/phantom.hpp"
+#include "pipelines/plan.hpp"
 #include "tracking/synthetic.hpp"
 
 namespace fs = std::filesystem;
@@ -57,7 +57,7 @@ int main(int argc, char** argv) {
     planning::PhantomOptions po;
     po.spacing_mm = spacing;
     planning::write_phantom(planning::make_phantom(po), (dir / "phantom").string());
-    planning::PlanRequest req;
+    pipelines::PlanRequest req;
     req.labels = (dir / "phantom/labels.nii.gz").string();
     req.tumor = (dir / "phantom/tumor.nii.gz").string();
     req.vulnerability = (dir / "phantom/vulnerability.json").string();
@@ -66,11 +66,11 @@ int main(int argc, char** argv) {
     req.path_safety.radius_mm = 120;
     req.out_dir = (dir / "plan").string();
     const auto t_plan = std::chrono::steady_clock::now();
-    planning::run_plan(req);
+    pipelines::run_plan(req);
     std::cerr << "plan: " << std::chrono::duration<double>(std::chrono::steady_clock::now() - t_plan).count()
               << " s\n";
     const planning::PlanData plan = planning::load_plan(req.out_dir);
-    const overlay::GuidanceScenario scenario = overlay::make_guidance_scenario(plan);
+    const pipelines::GuidanceScenario scenario = pipelines::make_guidance_scenario(plan);
     std::vector<tracking::Board> boards;
     for (const auto& b : scenario.scene.boards) boards.push_back(b.board);
 
@@ -117,12 +117,12 @@ int main(int argc, char** argv) {
         ro.backend = backend == "egl"    ? overlay::RendererBackend::kEgl
                      : backend == "glfw" ? overlay::RendererBackend::kGlfw
                                          : overlay::RendererBackend::kAuto;
-        overlay::GuideLoop loop(plan, setup, boards, go, to, ro);
+        pipelines::GuideLoop loop(plan, setup, boards, go, to, ro);
         std::vector<double> latency, track, over, render, upload, anatomy, needle_ms, status;
         int64_t needle = 0;
         for (size_t i = 0; i < video.size(); ++i) {
           const auto arrival = std::chrono::steady_clock::now();
-          const overlay::GuideFrameResult r = loop.process(video[i], arrival, true);
+          const pipelines::GuideFrameResult r = loop.process(video[i], arrival, true);
           if (i < 5) continue;
           latency.push_back(r.latency_ms);
           track.push_back(r.track_ms);
@@ -140,17 +140,17 @@ int main(int argc, char** argv) {
         j["volume_layer"] = volume;
         j["frames"] = latency.size();
         j["needle_evaluated"] = needle;
-        j["latency_median_ms"] = overlay::percentile(latency, 50);
-        j["latency_p95_ms"] = overlay::percentile(latency, 95);
-        j["latency_max_ms"] = overlay::percentile(latency, 100);
-        j["track_median_ms"] = overlay::percentile(track, 50);
-        j["overlay_median_ms"] = overlay::percentile(over, 50);
-        j["render_median_ms"] = overlay::percentile(render, 50);
-        j["overlay_parts_median_ms"] = {{"upload", overlay::percentile(upload, 50)},
-                                        {"anatomy", overlay::percentile(anatomy, 50)},
-                                        {"needle", overlay::percentile(needle_ms, 50)},
-                                        {"status", overlay::percentile(status, 50)}};
-        j["render_p95_ms"] = overlay::percentile(render, 95);
+        j["latency_median_ms"] = pipelines::percentile(latency, 50);
+        j["latency_p95_ms"] = pipelines::percentile(latency, 95);
+        j["latency_max_ms"] = pipelines::percentile(latency, 100);
+        j["track_median_ms"] = pipelines::percentile(track, 50);
+        j["overlay_median_ms"] = pipelines::percentile(over, 50);
+        j["render_median_ms"] = pipelines::percentile(render, 50);
+        j["overlay_parts_median_ms"] = {{"upload", pipelines::percentile(upload, 50)},
+                                        {"anatomy", pipelines::percentile(anatomy, 50)},
+                                        {"needle", pipelines::percentile(needle_ms, 50)},
+                                        {"status", pipelines::percentile(status, 50)}};
+        j["render_p95_ms"] = pipelines::percentile(render, 95);
         j["gl"] = loop.renderer().gl_description();
         std::cout << j.dump() << std::endl;
       }

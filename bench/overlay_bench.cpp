@@ -24,7 +24,7 @@
 #include <opencv2/imgproc.hpp>
 #include <spdlog/spdlog.h>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 #include "overlay/renderer.hpp"
 
 namespace {

@@ -9,11 +9,11 @@
 #include <nlohmann/json.hpp>
 #include <random>
 
-#include "planning/blocking.hpp"
-#include "planning/path_safety.hpp"
-#include "planning/phantom.hpp"
-#include "planning/safety_classes.hpp"
-#include "planning/vulnerability.hpp"
+#include "planning/preprocessing/blocking.hpp"
+#include "planning/safety/path_safety.hpp"
+#include "planning/simulation/phantom.hpp"
+#include "planning/safety/safety_classes.hpp"
+#include "planning/preprocessing/vulnerability.hpp"
 
 using namespace crepuscular;
 using namespace crepuscular::planning;

@@ -2,53 +2,15 @@
 // calibration_files.hpp).
 #include "calibration/calibration_files.hpp"
 
-#include <unistd.h>
-
-#include <atomic>
 #include <cmath>
-#include <ctime>
-#include <filesystem>
-#include <functional>
-#include <system_error>
 
 #include <opencv2/core.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "foundation/text.hpp"
 
 namespace crepuscular::calibration {
 namespace {
-
-namespace fs = std::filesystem;
-
-// Writes through a temporary sibling whose name ends like `path` (FileStorage picks the format
-// from the extension), then renames it onto `path`.
-void write_atomically(const std::string& path, const std::function<void(cv::FileStorage&)>& body) {
-  static std::atomic<int> counter{0};
-  const fs::path final_path(path);
-  const fs::path tmp = final_path.parent_path() /
-                       (".tmp-" + std::to_string(getpid()) + "-" + std::to_string(counter++) +
-                        "-" + final_path.filename().string());
-  try {
-    cv::FileStorage out(tmp.string(), cv::FileStorage::WRITE);
-    if (!out.isOpened()) throw Error(path + ": cannot be written (folder missing or read-only?)");
-    body(out);
-    out.release();
-  } catch (const cv::Exception& e) {
-    std::error_code ec;
-    fs::remove(tmp, ec);
-    throw Error(path + ": cannot be written: " + std::string(e.what()));
-  } catch (...) {
-    std::error_code ec;
-    fs::remove(tmp, ec);
-    throw;
-  }
-  std::error_code ec;
-  fs::rename(tmp, final_path, ec);
-  if (ec) {
-    fs::remove(tmp, ec);
-    throw Error(path + ": cannot be written (" + ec.message() + ")");
-  }
-}
 
 void write_strings(cv::FileStorage& out, const std::string& key,
                    const std::vector<std::string>& values) {
@@ -151,19 +113,12 @@ class Reader {
 
 }  // namespace
 
-std::string utc_timestamp() {
-  const std::time_t now = std::time(nullptr);
-  std::tm tm{};
-  gmtime_r(&now, &tm);
-  char buffer[32];
-  std::strftime(buffer, sizeof buffer, "%Y-%m-%dT%H:%M:%SZ", &tm);
-  return buffer;
-}
+std::string utc_timestamp() { return utc_now_iso8601(); }
 
 void write_camera_calibration(const std::string& path, const IntrinsicsResult& result,
                               const std::string& board, const std::vector<std::string>& inputs) {
   const CameraModel& cam = result.camera;
-  write_atomically(path, [&](cv::FileStorage& out) {
+  write_file_storage(path, [&](cv::FileStorage& out) {
     out << "calibration_date" << utc_timestamp();
     out << "board" << board;
     write_strings(out, "inputs", inputs);
@@ -192,7 +147,7 @@ void write_camera_calibration(const std::string& path, const IntrinsicsResult& r
 }
 
 void write_needle_calibration(const std::string& path, const NeedleCalibration& n) {
-  write_atomically(path, [&](cv::FileStorage& out) {
+  write_file_storage(path, [&](cv::FileStorage& out) {
     out << "calibration_date" << n.date;
     out << "board" << n.board;
     write_strings(out, "inputs", n.inputs);
@@ -236,7 +191,7 @@ NeedleCalibration read_needle_calibration(const std::string& path) {
 }
 
 void write_registration(const std::string& path, const RegistrationRecord& r) {
-  write_atomically(path, [&](cv::FileStorage& out) {
+  write_file_storage(path, [&](cv::FileStorage& out) {
     out << "registration_date" << r.date;
     out << "board" << r.board;
     write_strings(out, "inputs", r.inputs);

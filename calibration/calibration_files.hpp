@@ -14,7 +14,7 @@
 
 namespace crepuscular::calibration {
 
-// Current UTC time as ISO 8601, e.g. "2026-11-23T10:38:10Z".
+// Current UTC time as ISO 8601, e.g. "2026-11-23T10:38:10Z" (foundation's utc_now_iso8601).
 std::string utc_timestamp();
 
 // camera.yaml: camera_matrix, distortion_coefficients, image_width, image_height (read by

@@ -1,15 +1,14 @@
 // Pinhole + Brown-Conrady camera model, OpenCV's definitions; OpenCV FileStorage YAML files.
 #include "calibration/camera_model.hpp"
 
-#include <unistd.h>
-
 #include <Eigen/LU>  // 2x2 inverse
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <sstream>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "foundation/output_files.hpp"
 
 namespace crepuscular::calibration {
 
@@ -218,29 +217,29 @@ CameraModel CameraModel::read_yaml(const std::string& path) {
 
 void CameraModel::write_yaml(const std::string& path) const {
   validate(path);
-  namespace fs = std::filesystem;
-  const fs::path target(path);
-  const fs::path temporary = target.parent_path() / (".tmp-" + std::to_string(::getpid()) + "-" +
-                                                     target.filename().string() + ".yaml");
-  try {
-    cv::FileStorage out(temporary.string(), cv::FileStorage::WRITE | cv::FileStorage::FORMAT_YAML);
-    if (!out.isOpened()) throw Error(path + ": cannot write camera file");
-    out << "image_width" << width;
-    out << "image_height" << height;
-    out << "camera_matrix" << camera_matrix();
-    out << "distortion_coefficients" << distortion_coefficients();
-    out.release();
-  } catch (const cv::Exception& e) {
-    std::error_code ignored;
-    fs::remove(temporary, ignored);
-    throw Error(path + ": cannot write camera file (" + e.err + ")");
-  }
-  std::error_code ec;
-  fs::rename(temporary, target, ec);
-  if (ec) {
-    fs::remove(temporary, ec);
-    throw Error(path + ": cannot write camera file (rename failed)");
-  }
+  write_file_storage(
+      path,
+      [&](cv::FileStorage& out) {
+        out << "image_width" << width;
+        out << "image_height" << height;
+        out << "camera_matrix" << camera_matrix();
+        out << "distortion_coefficients" << distortion_coefficients();
+      },
+      cv::FileStorage::FORMAT_YAML);
+}
+
+void write_file_storage(const std::string& path, const std::function<void(cv::FileStorage&)>& body,
+                        int format) {
+  write_file_atomically(path, [&](const std::string& temporary) {
+    try {
+      cv::FileStorage out(temporary, cv::FileStorage::WRITE | format);
+      if (!out.isOpened()) throw Error(path + ": cannot be written (folder missing or read-only?)");
+      body(out);
+      out.release();
+    } catch (const cv::Exception& e) {
+      throw Error(path + ": cannot be written (" + e.err + ")");
+    }
+  });
 }
 
 }  // namespace crepuscular::calibration

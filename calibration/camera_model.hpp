@@ -5,6 +5,7 @@
 
 #include <Eigen/Core>
 #include <array>
+#include <functional>
 #include <string>
 
 #include <opencv2/core.hpp>
@@ -63,5 +64,11 @@ struct CameraModel {
     pixel[1] = intrinsics[1] * yd + intrinsics[3];
   }
 };
+
+// Writes an OpenCV FileStorage file through a temporary sibling (foundation's atomic output):
+// `body` writes the fields. format: cv::FileStorage::FORMAT_AUTO (from the extension) or
+// FORMAT_YAML, ... Throws Error "PATH: cannot be written (reason)"; nothing is left behind then.
+void write_file_storage(const std::string& path, const std::function<void(cv::FileStorage&)>& body,
+                        int format = cv::FileStorage::FORMAT_AUTO);
 
 }  // namespace crepuscular::calibration

@@ -8,6 +8,7 @@
 
 #include <Eigen/SVD>
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <memory>
 #include <numeric>
@@ -16,7 +17,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 
 namespace crepuscular::calibration {
 namespace {
@@ -203,18 +204,19 @@ std::vector<size_t> select_views_for_coverage(const std::vector<CalibrationView>
   return picked;
 }
 
-IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views, int width,
-                                      int height, const IntrinsicsOptions& options) {
-  if (width <= 0 || height <= 0) {
-    throw Error("camera calibration: image size " + std::to_string(width) + " x " +
-                std::to_string(height) + " is not positive");
-  }
-  IntrinsicsResult result;
-  result.views.resize(views.size());
+namespace {
+
+using Pose = std::array<double, 6>;  // angle-axis (3) + translation (3), T_cam_target
+
+// Checks every view and names it in result->views; the indices of the usable ones (enough
+// points, not collinear), whose point counts result->views records.
+std::vector<size_t> usable_views(const std::vector<CalibrationView>& views,
+                                 const IntrinsicsOptions& options, IntrinsicsResult* result) {
+  result->views.resize(views.size());
   std::vector<size_t> usable;
   for (size_t i = 0; i < views.size(); ++i) {
     const CalibrationView& v = views[i];
-    result.views[i].name = v.name;
+    result->views[i].name = v.name;
     if (v.object_points.size() != v.image_points.size()) {
       throw Error("camera calibration: view " + v.name + " has " +
                   std::to_string(v.object_points.size()) + " target points but " +
@@ -232,133 +234,172 @@ IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views,
     if (int(v.object_points.size()) < options.min_points_per_view) continue;
     if (collinear(v.object_points)) continue;
     usable.push_back(i);
-    result.views[i].points = int(v.object_points.size());
+    result->views[i].points = int(v.object_points.size());
   }
-  const int n_usable = int(usable.size());
-  if (n_usable < options.min_views) {
-    std::ostringstream msg;
-    msg << "camera calibration: only " << n_usable << " usable view(s) of the target out of "
-        << views.size() << " (at least " << options.min_views
-        << " needed, 15-25 recommended). Capture " << (options.min_views - n_usable)
-        << " or more further views with the whole target visible, tilted by 20-45 degrees in "
-           "different directions and placed near every corner of the image.";
-    throw Error(msg.str());
-  }
-  std::vector<CalibrationView> used_views;
-  for (size_t i : usable) used_views.push_back(views[i]);
-  result.coverage = corner_coverage(used_views, width, height);
-  if (result.coverage < options.min_coverage) {
-    std::ostringstream msg;
-    msg.precision(0);
-    msg << std::fixed << "camera calibration: the target's corners cover only "
-        << 100.0 * result.coverage << "% of the image (of a 4 x 4 division; at least "
-        << 100.0 * options.min_coverage
-        << "% needed to determine the distortion). Capture views with the target near the "
-           "empty parts of the image: "
-        << empty_regions(used_views, width, height) << ".";
-    throw Error(msg.str());
-  }
+  return usable;
+}
 
-  // Zhang start: focal length from the homographies with the principal point at the centre, then
-  // every view's pose by planar PnP.
-  std::vector<std::vector<cv::Point3f>> object_cv;
-  std::vector<std::vector<cv::Point2f>> image_cv;
-  for (const auto& v : used_views) {
+// Refusals with advice on what to capture: too few usable views, corners covering too little of
+// the image, views all in nearly the same orientation.
+void check_view_count(int n_usable, size_t n_views, const IntrinsicsOptions& options) {
+  if (n_usable >= options.min_views) return;
+  std::ostringstream msg;
+  msg << "camera calibration: only " << n_usable << " usable view(s) of the target out of "
+      << n_views << " (at least " << options.min_views
+      << " needed, 15-25 recommended). Capture " << (options.min_views - n_usable)
+      << " or more further views with the whole target visible, tilted by 20-45 degrees in "
+         "different directions and placed near every corner of the image.";
+  throw Error(msg.str());
+}
+
+void check_coverage(double coverage, const std::vector<CalibrationView>& used_views, int width,
+                    int height, const IntrinsicsOptions& options) {
+  if (!(coverage < options.min_coverage)) return;
+  std::ostringstream msg;
+  msg.precision(0);
+  msg << std::fixed << "camera calibration: the target's corners cover only " << 100.0 * coverage
+      << "% of the image (of a 4 x 4 division; at least " << 100.0 * options.min_coverage
+      << "% needed to determine the distortion). Capture views with the target near the "
+         "empty parts of the image: "
+      << empty_regions(used_views, width, height) << ".";
+  throw Error(msg.str());
+}
+
+void check_tilt_spread(double spread_deg, size_t n_views, const IntrinsicsOptions& options) {
+  if (!(spread_deg < options.min_tilt_spread_deg)) return;
+  std::ostringstream msg;
+  msg.precision(1);
+  msg << std::fixed << "camera calibration: all " << n_views
+      << " views show the target in nearly the same orientation (largest angle between two "
+         "views "
+      << spread_deg << " degrees, at least " << options.min_tilt_spread_deg
+      << " needed; fronto-parallel views cannot separate the focal length from the distance). "
+         "Capture views with the target tilted by 20-45 degrees to the left, right, up and "
+         "down.";
+  throw Error(msg.str());
+}
+
+// The views' points as OpenCV takes them (float, target plane z = 0).
+struct OpenCvViews {
+  std::vector<std::vector<cv::Point3f>> object;
+  std::vector<std::vector<cv::Point2f>> image;
+};
+
+OpenCvViews opencv_views(const std::vector<CalibrationView>& views) {
+  OpenCvViews out;
+  for (const auto& v : views) {
     std::vector<cv::Point3f> o;
     std::vector<cv::Point2f> m;
     for (size_t k = 0; k < v.object_points.size(); ++k) {
       o.emplace_back(float(v.object_points[k].x()), float(v.object_points[k].y()), 0.f);
       m.emplace_back(float(v.image_points[k].x()), float(v.image_points[k].y()));
     }
-    object_cv.push_back(std::move(o));
-    image_cv.push_back(std::move(m));
+    out.object.push_back(std::move(o));
+    out.image.push_back(std::move(m));
   }
+  return out;
+}
+
+// Zhang start: the focal length from the homographies with the principal point at the centre
+// (the larger image side when that fails or gives an implausible value).
+double initial_focal_length(const OpenCvViews& cv_views, int width, int height) {
   double f0 = std::max(width, height);
   try {
-    const cv::Mat K = cv::initCameraMatrix2D(object_cv, image_cv, cv::Size(width, height), 1.0);
+    const cv::Mat K = cv::initCameraMatrix2D(cv_views.object, cv_views.image,
+                                             cv::Size(width, height), 1.0);
     const double f = K.at<double>(0, 0);
     if (std::isfinite(f) && f > 0.1 * f0 && f < 20.0 * f0) f0 = f;
   } catch (const cv::Exception& e) {
     spdlog::debug("camera calibration: initCameraMatrix2D failed ({}); starting from f = {}",
                   e.what(), f0);
   }
-  double intr[9] = {f0, f0, 0.5 * (width - 1), 0.5 * (height - 1), 0, 0, 0, 0, 0};
-  const cv::Matx33d K0(intr[0], 0, intr[2], 0, intr[1], intr[3], 0, 0, 1);
-  std::vector<std::array<double, 6>> poses(used_views.size());
-  for (size_t i = 0; i < used_views.size(); ++i) {
+  return f0;
+}
+
+// Every view's pose by planar PnP (IPPE; the iterative method where IPPE fails).
+std::vector<Pose> planar_poses(const OpenCvViews& cv_views, const cv::Matx33d& K) {
+  std::vector<Pose> poses(cv_views.object.size());
+  for (size_t i = 0; i < poses.size(); ++i) {
     cv::Vec3d rvec, tvec;
     bool ok = false;
     try {
-      ok = cv::solvePnP(object_cv[i], image_cv[i], K0, cv::noArray(), rvec, tvec, false,
+      ok = cv::solvePnP(cv_views.object[i], cv_views.image[i], K, cv::noArray(), rvec, tvec, false,
                         cv::SOLVEPNP_IPPE);
     } catch (const cv::Exception&) {
       ok = false;
     }
     if (!ok) {
-      cv::solvePnP(object_cv[i], image_cv[i], K0, cv::noArray(), rvec, tvec, false,
+      cv::solvePnP(cv_views.object[i], cv_views.image[i], K, cv::noArray(), rvec, tvec, false,
                    cv::SOLVEPNP_ITERATIVE);
     }
     poses[i] = {rvec[0], rvec[1], rvec[2], tvec[0], tvec[1], tvec[2]};
   }
-  auto tilt_spread = [&](const std::vector<size_t>& active) {
-    double spread = 0;
-    for (size_t a = 0; a < active.size(); ++a) {
-      for (size_t b = a + 1; b < active.size(); ++b) {
-        spread = std::max(spread, angle_deg(target_normal(poses[active[a]].data()),
-                                            target_normal(poses[active[b]].data())));
-      }
-    }
-    return spread;
-  };
-  std::vector<size_t> active(used_views.size());
-  std::iota(active.begin(), active.end(), 0);
-  {
-    // Orientation spread seen through a nominal camera (f = the larger image side): nearly
-    // parallel views stay nearly parallel for any focal length, whereas the homography start is
-    // meaningless for them.
-    const double nominal = std::max(width, height);
-    const cv::Matx33d Kn(nominal, 0, intr[2], 0, nominal, intr[3], 0, 0, 1);
-    std::vector<std::array<double, 6>> saved = poses;
-    for (size_t i = 0; i < used_views.size(); ++i) {
-      cv::Vec3d rvec, tvec;
-      cv::solvePnP(object_cv[i], image_cv[i], Kn, cv::noArray(), rvec, tvec, false,
-                   cv::SOLVEPNP_IPPE);
-      poses[i] = {rvec[0], rvec[1], rvec[2], tvec[0], tvec[1], tvec[2]};
-    }
-    result.tilt_spread_deg = tilt_spread(active);
-    poses = saved;
-  }
-  if (result.tilt_spread_deg < options.min_tilt_spread_deg) {
-    std::ostringstream msg;
-    msg.precision(1);
-    msg << std::fixed << "camera calibration: all " << used_views.size()
-        << " views show the target in nearly the same orientation (largest angle between two "
-           "views "
-        << result.tilt_spread_deg << " degrees, at least " << options.min_tilt_spread_deg
-        << " needed; fronto-parallel views cannot separate the focal length from the distance). "
-           "Capture views with the target tilted by 20-45 degrees to the left, right, up and "
-           "down.";
-    throw Error(msg.str());
-  }
+  return poses;
+}
 
-  // Bundle adjustment, with outlier views dropped and the problem solved again.
-  std::vector<char> rejected(used_views.size(), 0);
-  ceres::Solver::Summary summary;
+// Largest angle (degrees) between the target normals of two of the `active` views.
+double tilt_spread(const std::vector<Pose>& poses, const std::vector<size_t>& active) {
+  double spread = 0;
+  for (size_t a = 0; a < active.size(); ++a) {
+    for (size_t b = a + 1; b < active.size(); ++b) {
+      spread = std::max(spread, angle_deg(target_normal(poses[active[a]].data()),
+                                          target_normal(poses[active[b]].data())));
+    }
+  }
+  return spread;
+}
+
+// The orientation spread seen through a nominal camera (f = the larger image side, principal
+// point cx, cy): nearly parallel views stay nearly parallel for any focal length, whereas the
+// homography start is meaningless for them.
+double nominal_tilt_spread(const OpenCvViews& cv_views, int width, int height, double cx,
+                           double cy) {
+  const double nominal = std::max(width, height);
+  const cv::Matx33d Kn(nominal, 0, cx, 0, nominal, cy, 0, 0, 1);
+  std::vector<Pose> poses(cv_views.object.size());
+  for (size_t i = 0; i < poses.size(); ++i) {
+    cv::Vec3d rvec, tvec;
+    cv::solvePnP(cv_views.object[i], cv_views.image[i], Kn, cv::noArray(), rvec, tvec, false,
+                 cv::SOLVEPNP_IPPE);
+    poses[i] = {rvec[0], rvec[1], rvec[2], tvec[0], tvec[1], tvec[2]};
+  }
+  std::vector<size_t> all(poses.size());
+  std::iota(all.begin(), all.end(), 0);
+  return tilt_spread(poses, all);
+}
+
+// The bundle adjustment's outcome: the last problem solved (for the covariance), its summary,
+// the views kept and those rejected as outliers.
+struct Adjustment {
   std::unique_ptr<ceres::Problem> problem;
+  ceres::Solver::Summary summary;
+  std::vector<size_t> active;
+  std::vector<char> rejected;
+};
+
+// Bundle adjustment of intrinsics and poses with a Huber loss; views whose RMS is far above the
+// median are dropped and the problem is solved again (at most 6 rounds).
+Adjustment bundle_adjust(const std::vector<CalibrationView>& used_views, double* intr,
+                         std::vector<Pose>& poses, const IntrinsicsOptions& options) {
+  Adjustment out;
+  out.active.resize(used_views.size());
+  std::iota(out.active.begin(), out.active.end(), 0);
+  out.rejected.assign(used_views.size(), 0);
   for (int round = 0; round < 6; ++round) {
     ceres::Problem::Options problem_options;
-    problem = std::make_unique<ceres::Problem>(problem_options);
-    problem->AddParameterBlock(intr, 9);
-    for (size_t i : active) {
+    out.problem = std::make_unique<ceres::Problem>(problem_options);
+    out.problem->AddParameterBlock(intr, 9);
+    for (size_t i : out.active) {
       const auto& v = used_views[i];
       for (size_t k = 0; k < v.object_points.size(); ++k) {
-        problem->AddResidualBlock(ReprojectionCost::Create(v.object_points[k], v.image_points[k]),
-                                  new ceres::HuberLoss(options.huber_px), intr, poses[i].data());
+        out.problem->AddResidualBlock(
+            ReprojectionCost::Create(v.object_points[k], v.image_points[k]),
+            new ceres::HuberLoss(options.huber_px), intr, poses[i].data());
       }
     }
     if (options.fix_k3) {
       intr[8] = 0;
-      problem->SetManifold(intr, new ceres::SubsetManifold(9, {8}));
+      out.problem->SetManifold(intr, new ceres::SubsetManifold(9, {8}));
     }
     ceres::Solver::Options solver_options;
     solver_options.linear_solver_type = ceres::DENSE_SCHUR;
@@ -366,29 +407,30 @@ IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views,
     solver_options.function_tolerance = 1e-12;
     solver_options.parameter_tolerance = 1e-12;
     solver_options.num_threads = 2;
-    ceres::Solve(solver_options, problem.get(), &summary);
-    spdlog::debug("camera calibration, round {}: {}", round + 1, summary.BriefReport());
-    if (!summary.IsSolutionUsable()) {
-      throw Error("camera calibration: the bundle adjustment failed (" + summary.BriefReport() +
+    ceres::Solve(solver_options, out.problem.get(), &out.summary);
+    spdlog::debug("camera calibration, round {}: {}", round + 1, out.summary.BriefReport());
+    if (!out.summary.IsSolutionUsable()) {
+      throw Error("camera calibration: the bundle adjustment failed (" +
+                  out.summary.BriefReport() +
                   "). Capture more views with the target tilted in different directions.");
     }
     std::vector<double> rms;
-    for (size_t i : active) rms.push_back(view_rms(used_views[i], intr, poses[i].data()));
+    for (size_t i : out.active) rms.push_back(view_rms(used_views[i], intr, poses[i].data()));
     std::vector<double> sorted = rms;
     std::nth_element(sorted.begin(), sorted.begin() + long(sorted.size() / 2), sorted.end());
     const double median = sorted[sorted.size() / 2];
     const double limit = std::max(options.outlier_view_factor * median, options.outlier_view_min_px);
     std::vector<size_t> keep;
-    for (size_t a = 0; a < active.size(); ++a) {
+    for (size_t a = 0; a < out.active.size(); ++a) {
       if (rms[a] > limit) {
-        rejected[active[a]] = 1;
+        out.rejected[out.active[a]] = 1;
         spdlog::info("camera calibration: view {} rejected (RMS {:.3f} px > {:.3f} px)",
-                     used_views[active[a]].name, rms[a], limit);
+                     used_views[out.active[a]].name, rms[a], limit);
       } else {
-        keep.push_back(active[a]);
+        keep.push_back(out.active[a]);
       }
     }
-    if (keep.size() == active.size()) break;
+    if (keep.size() == out.active.size()) break;
     if (int(keep.size()) < options.min_views) {
       throw Error("camera calibration: after rejecting views with large reprojection errors only " +
                   std::to_string(keep.size()) + " remain (at least " +
@@ -396,27 +438,22 @@ IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views,
                   " needed). Check the target definition (size, spacing) and capture sharper "
                   "views without motion blur.");
     }
-    active = keep;
+    out.active = keep;
   }
+  return out;
+}
 
-  // Residual variance and covariance of the intrinsics.
-  double sum_sq = 0;
-  int n_points = 0;
-  for (size_t i : active) {
-    const double r = view_rms(used_views[i], intr, poses[i].data());
-    sum_sq += r * r * double(used_views[i].object_points.size());
-    n_points += int(used_views[i].object_points.size());
-  }
-  const int n_params = (options.fix_k3 ? 8 : 9) + 6 * int(active.size());
-  const int dof = 2 * n_points - n_params;
-  const double sigma2 = dof > 0 ? sum_sq / double(dof) : 0.0;
+// Standard deviations of the nine intrinsics: the covariance of the solved problem scaled by the
+// residual variance sigma2 (0 for a fixed k3).
+std::array<double, 9> intrinsic_stddev(ceres::Problem& problem, double* intr, double sigma2,
+                                       bool fix_k3) {
   ceres::Covariance::Options cov_options;
   cov_options.algorithm_type = ceres::DENSE_SVD;
   cov_options.null_space_rank = 0;
   cov_options.num_threads = 2;
   ceres::Covariance covariance(cov_options);
   std::vector<std::pair<const double*, const double*>> blocks = {{intr, intr}};
-  if (!covariance.Compute(blocks, problem.get())) {
+  if (!covariance.Compute(blocks, &problem)) {
     throw Error(
         "camera calibration: the views do not determine all camera parameters (the covariance is "
         "rank deficient): the target's orientation varies too little between views, or its "
@@ -426,30 +463,16 @@ IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views,
   double cov[81];
   covariance.GetCovarianceBlockInTangentSpace(intr, intr, cov);
   // In the tangent space of a SubsetManifold, the fixed k3 is left out.
-  const int dim = options.fix_k3 ? 8 : 9;
+  const int dim = fix_k3 ? 8 : 9;
+  std::array<double, 9> stddev{};
   for (int p = 0; p < 9; ++p) {
-    result.stddev[size_t(p)] = p < dim ? std::sqrt(std::max(0.0, cov[p * dim + p] * sigma2)) : 0.0;
+    stddev[size_t(p)] = p < dim ? std::sqrt(std::max(0.0, cov[p * dim + p] * sigma2)) : 0.0;
   }
+  return stddev;
+}
 
-  result.camera.width = width;
-  result.camera.height = height;
-  result.camera.fx = intr[0];
-  result.camera.fy = intr[1];
-  result.camera.cx = intr[2];
-  result.camera.cy = intr[3];
-  result.camera.distortion = {intr[4], intr[5], intr[6], intr[7], intr[8]};
-  result.rms_px = n_points > 0 ? std::sqrt(sum_sq / n_points) : 0.0;
-  result.views_used = int(active.size());
-  result.points_used = n_points;
-  result.tilt_spread_deg = tilt_spread(active);
-  result.solver_report = summary.BriefReport();
-  for (size_t u = 0; u < usable.size(); ++u) {
-    ViewReport& report = result.views[usable[u]];
-    report.rms_px = view_rms(used_views[u], intr, poses[u].data());
-    report.rejected = rejected[u] != 0;
-    report.T_cam_target = pose_to_isometry(poses[u].data());
-    report.tilt_deg = angle_deg(report.T_cam_target.linear().col(2), Eigen::Vector3d::UnitZ());
-  }
+// Refuses focal lengths determined to worse than 2 % (advice on what to capture).
+void check_focal_lengths(const IntrinsicsResult& result, const double* intr) {
   for (int p : {0, 1}) {
     const double rel = result.stddev[size_t(p)] / intr[p];
     if (!(rel < 0.02)) {
@@ -462,6 +485,69 @@ IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views,
       throw Error(msg.str());
     }
   }
+}
+
+}  // namespace
+
+IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views, int width,
+                                      int height, const IntrinsicsOptions& options) {
+  if (width <= 0 || height <= 0) {
+    throw Error("camera calibration: image size " + std::to_string(width) + " x " +
+                std::to_string(height) + " is not positive");
+  }
+  IntrinsicsResult result;
+  const std::vector<size_t> usable = usable_views(views, options, &result);
+  check_view_count(int(usable.size()), views.size(), options);
+  std::vector<CalibrationView> used_views;
+  for (size_t i : usable) used_views.push_back(views[i]);
+  result.coverage = corner_coverage(used_views, width, height);
+  check_coverage(result.coverage, used_views, width, height, options);
+
+  // Zhang start: focal length from the homographies, then every view's pose by planar PnP.
+  const OpenCvViews cv_views = opencv_views(used_views);
+  const double f0 = initial_focal_length(cv_views, width, height);
+  double intr[9] = {f0, f0, 0.5 * (width - 1), 0.5 * (height - 1), 0, 0, 0, 0, 0};
+  std::vector<Pose> poses =
+      planar_poses(cv_views, cv::Matx33d(intr[0], 0, intr[2], 0, intr[1], intr[3], 0, 0, 1));
+  result.tilt_spread_deg = nominal_tilt_spread(cv_views, width, height, intr[2], intr[3]);
+  check_tilt_spread(result.tilt_spread_deg, used_views.size(), options);
+
+  Adjustment adjusted = bundle_adjust(used_views, intr, poses, options);
+  const std::vector<size_t>& active = adjusted.active;
+
+  // Residual variance and covariance of the intrinsics.
+  double sum_sq = 0;
+  int n_points = 0;
+  for (size_t i : active) {
+    const double r = view_rms(used_views[i], intr, poses[i].data());
+    sum_sq += r * r * double(used_views[i].object_points.size());
+    n_points += int(used_views[i].object_points.size());
+  }
+  const int n_params = (options.fix_k3 ? 8 : 9) + 6 * int(active.size());
+  const int dof = 2 * n_points - n_params;
+  const double sigma2 = dof > 0 ? sum_sq / double(dof) : 0.0;
+  result.stddev = intrinsic_stddev(*adjusted.problem, intr, sigma2, options.fix_k3);
+
+  result.camera.width = width;
+  result.camera.height = height;
+  result.camera.fx = intr[0];
+  result.camera.fy = intr[1];
+  result.camera.cx = intr[2];
+  result.camera.cy = intr[3];
+  result.camera.distortion = {intr[4], intr[5], intr[6], intr[7], intr[8]};
+  result.rms_px = n_points > 0 ? std::sqrt(sum_sq / n_points) : 0.0;
+  result.views_used = int(active.size());
+  result.points_used = n_points;
+  result.tilt_spread_deg = tilt_spread(poses, active);
+  result.solver_report = adjusted.summary.BriefReport();
+  for (size_t u = 0; u < usable.size(); ++u) {
+    ViewReport& report = result.views[usable[u]];
+    report.rms_px = view_rms(used_views[u], intr, poses[u].data());
+    report.rejected = adjusted.rejected[u] != 0;
+    report.T_cam_target = pose_to_isometry(poses[u].data());
+    report.tilt_deg = angle_deg(report.T_cam_target.linear().col(2), Eigen::Vector3d::UnitZ());
+  }
+  check_focal_lengths(result, intr);
   spdlog::info("camera calibration: RMS {:.3f} px over {} views ({} points), fx {:.2f} +- {:.2f}, "
                "fy {:.2f} +- {:.2f}",
                result.rms_px, result.views_used, n_points, intr[0], result.stddev[0], intr[1],

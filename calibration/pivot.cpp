@@ -10,7 +10,7 @@
 #include <cmath>
 #include <sstream>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 
 namespace crepuscular::calibration {
 namespace {

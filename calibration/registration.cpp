@@ -13,7 +13,7 @@
 #include <map>
 #include <sstream>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 
 namespace crepuscular::calibration {
 namespace {

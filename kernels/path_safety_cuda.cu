@@ -15,7 +15,7 @@
 #include <thread>
 #include <vector>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 #include "kernels/path_safety_fast.hpp"
 #include "kernels/value_set.hpp"
 

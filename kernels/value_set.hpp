@@ -5,7 +5,7 @@
 #include <type_traits>
 #include <utility>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 #include "kernels/path_safety_math.hpp"
 
 namespace crepuscular::kernels {

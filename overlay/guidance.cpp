@@ -7,12 +7,15 @@
 #include <map>
 #include <set>
 
+#include <fmt/format.h>
 #include <opencv2/imgproc.hpp>
 #include <spdlog/spdlog.h>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 #include "overlay/renderer.hpp"
 #include "overlay/volume_rendering.hpp"
+#include "planning/imaging/ray_march.hpp"
+#include "planning/imaging/sampling.hpp"
 
 namespace crepuscular::overlay {
 
@@ -34,27 +37,6 @@ cv::Scalar safety_bgr(planning::Palette palette, planning::NeedleSafety s) {
     case planning::NeedleSafety::kDangerous: break;
   }
   return class_bgr(palette, planning::SafetyClass::kDangerous);
-}
-
-// Evenly spread unit directions (Fibonacci sphere).
-std::vector<Eigen::Vector3d> sphere_directions(int n) {
-  std::vector<Eigen::Vector3d> dirs;
-  dirs.reserve(size_t(n));
-  const double golden = M_PI * (3.0 - std::sqrt(5.0));
-  for (int i = 0; i < n; ++i) {
-    const double z = 1.0 - (2.0 * i + 1.0) / n;
-    const double r = std::sqrt(std::max(0.0, 1.0 - z * z));
-    dirs.emplace_back(r * std::cos(golden * i), r * std::sin(golden * i), z);
-  }
-  return dirs;
-}
-
-template <typename T>
-bool voxel_at(const planning::Volume<T>& v, const Eigen::Vector3d& p, T* out) {
-  const planning::Index3 i = v.geometry().nearest_index(p);
-  if (!v.geometry().contains(i[0], i[1], i[2])) return false;
-  *out = v(i[0], i[1], i[2]);
-  return true;
 }
 
 // Text panel helpers: lines of text on a translucent dark box, drawn into a BGRA image.
@@ -93,12 +75,6 @@ cv::Mat text_panel(const std::vector<TextLine>& lines, cv::Point at, bool anchor
   return panel;
 }
 
-std::string format(const char* fmt, double a) {
-  char buf[128];
-  std::snprintf(buf, sizeof(buf), fmt, a);
-  return buf;
-}
-
 }  // namespace
 
 const char* guidance_layer_name(GuidanceLayer layer) { return kLayerNames[size_t(layer)]; }
@@ -117,11 +93,9 @@ std::vector<std::string> needle_text(const planning::NeedleState& s) {
   std::vector<std::string> out;
   for (const auto& hit : s.evaluation.structures) {
     if (hit.blocking_per_mm <= 0) continue;
-    char buf[200];
-    std::snprintf(buf, sizeof(buf), "%s (%s) at %.0f mm, %.1f mm long", hit.name.c_str(),
-                  hit.level_name.empty() ? "?" : hit.level_name.c_str(), hit.depth_mm,
-                  hit.length_mm);
-    out.push_back(buf);
+    out.push_back(fmt::format("{} ({}) at {:.0f} mm, {:.1f} mm long", hit.name,
+                              hit.level_name.empty() ? "?" : hit.level_name, hit.depth_mm,
+                              hit.length_mm));
   }
   return out;
 }
@@ -167,8 +141,7 @@ void GuidanceOverlay::set_palette(planning::Palette palette) {
 }
 
 bool GuidanceOverlay::inside_body(const Eigen::Vector3d& p) const {
-  int32_t label = 0;
-  return voxel_at(plan_.labels, p, &label) && label > 0;
+  return planning::in_body(plan_.labels, p);
 }
 
 std::optional<Eigen::Vector3d> GuidanceOverlay::skin_exit(const Eigen::Vector3d& from,
@@ -176,18 +149,13 @@ std::optional<Eigen::Vector3d> GuidanceOverlay::skin_exit(const Eigen::Vector3d&
   const double step = 0.5 * plan_.grid.spacing.minCoeff();
   const double reach = plan_.radius_mm > 0 ? plan_.radius_mm : 200.0;
   if (plan_.labels.empty()) return from + dir * reach;  // no body outline: the region's edge
-  std::optional<Eigen::Vector3d> last_inside;
   const Eigen::Vector3d& centre = plan_.tumor_centre;
-  for (double t = 0; t <= 2 * reach; t += step) {
-    const Eigen::Vector3d p = from + t * dir;
-    if ((p - centre).norm() > reach) return std::nullopt;  // still inside at the region's edge
-    if (inside_body(p)) {
-      last_inside = p;
-    } else if (last_inside) {
-      return last_inside;
-    }
-  }
-  return std::nullopt;
+  // None when still inside the body at the region's edge.
+  const auto exit = planning::first_body_exit(
+      plan_.labels, from, dir, step, 2 * reach,
+      [&](const Eigen::Vector3d& p) { return (p - centre).norm() <= reach; });
+  if (!exit) return std::nullopt;
+  return exit->last_inside;
 }
 
 void GuidanceOverlay::build_tumor_surface() {
@@ -223,13 +191,12 @@ void GuidanceOverlay::build_rays() {
   const planning::SafetyClasses& classes = plan_.classes.at(value_);
   const Eigen::Vector3d& centre = plan_.tumor_centre;
   const double step = 0.5 * plan_.grid.spacing.minCoeff();
-  for (const Eigen::Vector3d& dir : sphere_directions(options_.ray_directions)) {
+  for (const Eigen::Vector3d& dir : planning::fibonacci_sphere(options_.ray_directions)) {
     // Leave the tumor (mask, else the centre itself).
     Eigen::Vector3d start = centre;
     if (!plan_.tumor.empty()) {
       for (double t = 0; t < 100.0; t += step) {
-        uint8_t v = 0;
-        if (!voxel_at(plan_.tumor, centre + t * dir, &v) || v == 0) {
+        if (planning::nearest_voxel_or<uint8_t>(plan_.tumor, centre + t * dir, 0) == 0) {
           start = centre + t * dir;
           break;
         }
@@ -465,17 +432,14 @@ void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isomet
   if (s.points_away) {
     lines.push_back({"needle points away from the tumor"});
   } else {
-    char buf[200];
-    std::snprintf(buf, sizeof(buf), "line integral %.2f (insignificant <= %.2f)",
-                  s.evaluation.line_integral, s.eps);
-    lines.push_back({buf});
+    lines.push_back({fmt::format("line integral {:.2f} (insignificant <= {:.2f})",
+                                 s.evaluation.line_integral, s.eps)});
     for (const auto& t : needle_text(s)) lines.push_back({"crosses " + t, colour, 0.5});
-    std::snprintf(buf, sizeof(buf), "tip to target %.1f mm, passes %.1f mm from the centre",
-                  s.tip_to_centroid_mm, s.miss_distance_mm);
-    lines.push_back({buf});
+    lines.push_back({fmt::format("tip to target {:.1f} mm, passes {:.1f} mm from the centre",
+                                 s.tip_to_centroid_mm, s.miss_distance_mm)});
   }
   if (std::isfinite(s.angle_to_safe_deg)) {
-    lines.push_back({format("nearest safe direction %.1f deg away", s.angle_to_safe_deg)});
+    lines.push_back({fmt::format("nearest safe direction {:.1f} deg away", s.angle_to_safe_deg)});
   }
   const cv::Size frame(renderer.camera().width, renderer.camera().height);
   cv::Point origin;
@@ -490,23 +454,17 @@ void GuidanceOverlay::draw_status(OverlayRenderer& renderer, const GuidanceFrame
   const cv::Scalar ok(120, 230, 120), bad(60, 60, 255);
   std::vector<TextLine> lines;
   auto board_line = [&](const char* name, bool tracked, double age) {
-    char buf[120];
-    if (tracked) {
-      std::snprintf(buf, sizeof(buf), "%s marker: tracked (%.0f ms)", name, age);
-    } else {
-      std::snprintf(buf, sizeof(buf), "%s marker: LOST", name);
-    }
-    lines.push_back({buf, tracked ? ok : bad});
+    lines.push_back({tracked ? fmt::format("{} marker: tracked ({:.0f} ms)", name, age)
+                             : fmt::format("{} marker: LOST", name),
+                     tracked ? ok : bad});
   };
   board_line("patient", info.patient_tracked, info.patient_age_ms);
   board_line("needle", info.needle_tracked, info.needle_age_ms);
-  char buf[160];
-  std::snprintf(buf, sizeof(buf), "%.1f fps, frame %lld", timing.fps, (long long)info.frame);
-  lines.push_back({buf});
+  lines.push_back({fmt::format("{:.1f} fps, frame {}", timing.fps, (long long)info.frame)});
   if (timing.latency_ms >= 0) {
-    std::snprintf(buf, sizeof(buf), "latency %.0f ms (%s)", timing.latency_ms,
-                  timing.latency_from_capture ? "from capture" : "from frame arrival");
-    lines.push_back({buf});
+    lines.push_back({fmt::format("latency {:.0f} ms ({})", timing.latency_ms,
+                                 timing.latency_from_capture ? "from capture"
+                                                             : "from frame arrival")});
   }
   if (visible(GuidanceLayer::kStatus)) {
     cv::Point origin;

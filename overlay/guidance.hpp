@@ -33,9 +33,9 @@
 #include <opencv2/core.hpp>
 
 #include "calibration/camera_model.hpp"
-#include "planning/evaluate.hpp"
-#include "planning/needle_guidance.hpp"
-#include "planning/palette.hpp"
+#include "planning/plan_folder/plan_folder.hpp"
+#include "planning/trajectories/needle_guidance.hpp"
+#include "planning/views/palette.hpp"
 #include "tracking/tracker.hpp"
 
 namespace crepuscular::overlay {

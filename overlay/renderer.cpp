@@ -19,7 +19,7 @@
 #include <opencv2/core.hpp>
 #include <spdlog/spdlog.h>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 #include "overlay/gl_program.hpp"
 
 // Last: Xlib's macros (None, Success, Status, ...) must not reach the headers above.

@@ -10,7 +10,7 @@
 
 #include <spdlog/spdlog.h>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 #include "overlay/gl_program.hpp"
 
 namespace crepuscular::overlay {

@@ -13,9 +13,9 @@
 
 #include "calibration/camera_model.hpp"
 #include "overlay/renderer.hpp"
-#include "planning/safety_classes.hpp"
-#include "planning/palette.hpp"
-#include "planning/volume.hpp"
+#include "planning/safety/safety_classes.hpp"
+#include "planning/views/palette.hpp"
+#include "planning/imaging/volume.hpp"
 
 namespace crepuscular::overlay {
 

@@ -13,49 +13,20 @@
 #include <fstream>
 #include <sstream>
 
+#include <fmt/format.h>
+
 #include <opencv2/imgcodecs.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/csv.hpp"
+#include "foundation/error.hpp"
+#include "foundation/output_files.hpp"
+#include "foundation/text.hpp"
 
 namespace crepuscular::recordings {
 
 namespace fs = std::filesystem;
 
 const char* const kPoseCsvHeader = "frame,timestamp_ns,board,state,tx,ty,tz,qw,qx,qy,qz,rms_px";
-
-std::vector<std::string> split_fields(const std::string& line, char sep) {
-  std::vector<std::string> out;
-  std::string cur;
-  for (char c : line) {
-    if (c == sep) {
-      out.push_back(cur);
-      cur.clear();
-    } else if (c != '\r') {
-      cur += c;
-    }
-  }
-  out.push_back(cur);
-  return out;
-}
-
-bool parse_int64(const std::string& s, int64_t* v) {
-  if (s.empty()) return false;
-  char* end = nullptr;
-  errno = 0;
-  const long long x = std::strtoll(s.c_str(), &end, 10);
-  if (errno != 0 || end != s.c_str() + s.size()) return false;
-  *v = int64_t(x);
-  return true;
-}
-
-bool parse_double(const std::string& s, double* v) {
-  if (s.empty()) return false;
-  char* end = nullptr;
-  const double x = std::strtod(s.c_str(), &end);
-  if (end != s.c_str() + s.size() || !std::isfinite(x)) return false;
-  *v = x;
-  return true;
-}
 
 namespace {
 
@@ -86,71 +57,55 @@ std::vector<std::string> read_lines(const std::string& path, bool* incomplete) {
   return lines;
 }
 
-void write_file_atomically(const fs::path& path, const void* data, size_t size) {
-  const fs::path tmp = path.parent_path() / (".tmp-" + path.filename().string());
-  std::FILE* f = std::fopen(tmp.c_str(), "wb");
-  if (!f) throw Error(path.string() + ": cannot write");
-  const bool ok = std::fwrite(data, 1, size, f) == size;
-  if (std::fclose(f) != 0 || !ok) {
-    std::error_code ignored;
-    fs::remove(tmp, ignored);
-    throw Error(path.string() + ": cannot write (disk full?)");
-  }
-  std::error_code ec;
-  fs::rename(tmp, path, ec);
-  if (ec) throw Error(path.string() + ": cannot rename into place (" + ec.message() + ")");
-}
-
 bool is_jpeg(const std::vector<uint8_t>& b) {
   return b.size() >= 3 && b[0] == 0xFF && b[1] == 0xD8 && b[2] == 0xFF;
 }
 
 }  // namespace
 
-std::string utc_now_iso8601() {
-  const std::time_t now = std::time(nullptr);
-  std::tm tm{};
-  gmtime_r(&now, &tm);
-  char buf[32];
-  std::strftime(buf, sizeof buf, "%Y-%m-%dT%H:%M:%SZ", &tm);
-  return buf;
+std::string format_pose_row(const PoseRow& r) {
+  return fmt::format("{},{},{},{},{:.6f},{:.6f},{:.6f},{:.12f},{:.12f},{:.12f},{:.12f},{:.4f}",
+                     r.frame, r.timestamp_ns, r.board, r.state, r.t[0], r.t[1], r.t[2], r.q[0],
+                     r.q[1], r.q[2], r.q[3], r.rms_px);
 }
 
-std::string format_pose_row(const PoseRow& r) {
-  char buf[512];
-  std::snprintf(buf, sizeof buf,
-                "%" PRId64 ",%" PRId64 ",%s,%s,%.6f,%.6f,%.6f,%.12f,%.12f,%.12f,%.12f,%.4f", r.frame,
-                r.timestamp_ns, r.board.c_str(), r.state.c_str(), r.t[0], r.t[1], r.t[2], r.q[0],
-                r.q[1], r.q[2], r.q[3], r.rms_px);
-  return buf;
+PoseRow parse_pose_row(const std::vector<std::string>& f, const CsvLocation& at) {
+  if (f.size() != 12) {
+    throw Error(at.describe() + ": " + std::to_string(f.size()) + " fields, expected 12 (" +
+                kPoseCsvHeader + ")");
+  }
+  PoseRow r;
+  r.frame = csv_int64(f[0], "frame", at);
+  r.timestamp_ns = csv_int64(f[1], "timestamp_ns", at);
+  r.board = f[2];
+  r.state = f[3];
+  const bool lost = r.state == "lost";
+  if (!lost && r.state != "tracked") {
+    throw Error(at.describe() + ": state '" + r.state + "', expected tracked or lost");
+  }
+  // Pose fields: numbers; a lost row may leave them empty (then they keep their defaults).
+  static const char* const kNames[8] = {"tx", "ty", "tz", "qw", "qx", "qy", "qz", "rms_px"};
+  double* const values[8] = {&r.t[0], &r.t[1], &r.t[2], &r.q[0],
+                             &r.q[1], &r.q[2], &r.q[3], &r.rms_px};
+  for (size_t k = 0; k < 8; ++k) {
+    if (lost && f[4 + k].empty()) continue;
+    *values[k] = csv_double(f[4 + k], kNames[k], at);
+  }
+  return r;
 }
 
 PoseCsv read_pose_csv(const std::string& path) {
   bool incomplete = false;
   const std::vector<std::string> lines = read_lines(path, &incomplete);
   PoseCsv out;
-  if (lines.empty() || lines[0] != kPoseCsvHeader) {
-    throw Error(path + ": header is '" + (lines.empty() ? std::string() : lines[0]) +
-                "', expected '" + kPoseCsvHeader + "'");
-  }
+  check_csv_header(path, lines.empty() ? std::string() : lines[0], kPoseCsvHeader);
   for (size_t i = 1; i < lines.size(); ++i) {
     if (lines[i].empty()) continue;
-    const std::vector<std::string> f = split_fields(lines[i], ',');
-    PoseRow r;
-    bool ok = f.size() == 12 && parse_int64(f[0], &r.frame) && parse_int64(f[1], &r.timestamp_ns);
-    if (ok) {
-      r.board = f[2];
-      r.state = f[3];
-      for (int k = 0; k < 3 && ok; ++k) ok = parse_double(f[size_t(4 + k)], &r.t[k]);
-      for (int k = 0; k < 4 && ok; ++k) ok = parse_double(f[size_t(7 + k)], &r.q[k]);
-      ok = ok && parse_double(f[11], &r.rms_px);
+    try {
+      out.rows.push_back(parse_pose_row(split_csv_line(lines[i]), {path, int64_t(i + 1)}));
+    } catch (const Error& e) {
+      out.problems.push_back(std::string(e.what()) + "; row skipped");
     }
-    if (!ok) {
-      out.problems.push_back(path + ": line " + std::to_string(i + 1) +
-                             " is malformed, skipped (expected 12 fields: " + kPoseCsvHeader + ")");
-      continue;
-    }
-    out.rows.push_back(r);
   }
   if (incomplete) {
     out.problems.push_back(path + ": last line is incomplete (interrupted writer), skipped");
@@ -183,8 +138,7 @@ RecordingWriter::RecordingWriter(const std::string& dir, const SessionInfo& sess
   if (ec) throw Error(dir_ + ": cannot create recording folder (" + ec.message() + ")");
   created_ = utc_now_iso8601();
   if (!session_.boards.is_null()) {
-    const std::string text = session_.boards.dump(2) + "\n";
-    write_file_atomically(fs::path(dir_) / "boards.json", text.data(), text.size());
+    write_text_file((fs::path(dir_) / "boards.json").string(), session_.boards.dump(2) + "\n");
   }
   write_session(false);
   const std::string frames_path = (fs::path(dir_) / "frames.csv").string();
@@ -219,8 +173,7 @@ void RecordingWriter::write_session(bool complete) {
   s["ground_truth"] = with_truth_ ? "ground_truth.csv" : "";
   s["frame_count"] = count_;
   s["complete"] = complete;
-  const std::string text = s.dump(2) + "\n";
-  write_file_atomically(fs::path(dir_) / "session.json", text.data(), text.size());
+  write_text_file((fs::path(dir_) / "session.json").string(), s.dump(2) + "\n");
 }
 
 void RecordingWriter::add_frame(int64_t frame, int64_t timestamp_ns, const cv::Mat& image,
@@ -246,9 +199,8 @@ void RecordingWriter::add_encoded(int64_t frame, int64_t timestamp_ns,
   if (ext != "jpg" && ext != "png") {
     throw Error(dir_ + ": frame extension '" + ext + "', expected jpg or png");
   }
-  char name[64];
-  std::snprintf(name, sizeof name, "frames/%06" PRId64 ".%s", frame, ext.c_str());
-  write_file_atomically(fs::path(dir_) / name, bytes.data(), bytes.size());
+  const std::string name = fmt::format("frames/{:06}.{}", frame, ext);
+  write_binary_file((fs::path(dir_) / name).string(), bytes.data(), bytes.size());
   append_row(frame, timestamp_ns, name, truth);
   last_frame_ = frame;
   ++count_;
@@ -290,13 +242,10 @@ RecordingReader::RecordingReader(const std::string& dir) : dir_(dir) {
   }
   bool incomplete = false;
   const std::vector<std::string> lines = read_lines(frames_path, &incomplete);
-  if (lines.empty() || lines[0] != kFramesHeader) {
-    throw Error(frames_path + ": header is '" + (lines.empty() ? std::string() : lines[0]) +
-                "', expected '" + kFramesHeader + "'");
-  }
+  check_csv_header(frames_path, lines.empty() ? std::string() : lines[0], kFramesHeader);
   for (size_t i = 1; i < lines.size(); ++i) {
     if (lines[i].empty()) continue;
-    const std::vector<std::string> f = split_fields(lines[i], ',');
+    const std::vector<std::string> f = split_csv_line(lines[i]);
     Entry e;
     if (f.size() != 3 || !parse_int64(f[0], &e.frame) || !parse_int64(f[1], &e.timestamp_ns) ||
         f[2].empty()) {

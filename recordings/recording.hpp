@@ -23,8 +23,11 @@
 #include <string>
 #include <vector>
 
+// The full json.hpp: SessionInfo and RecordingReader hold JSON values.
 #include <nlohmann/json.hpp>
 #include <opencv2/core.hpp>
+
+#include "foundation/csv.hpp"
 
 namespace crepuscular::recordings {
 
@@ -44,13 +47,10 @@ struct PoseRow {
 extern const char* const kPoseCsvHeader;
 // One CSV line without the newline (mm to 1e-6, quaternion to 1e-12).
 std::string format_pose_row(const PoseRow& row);
-
-// CSV fields of one line split at `sep` (carriage returns dropped), and whole-field numbers
-// (false when the field is empty, has trailing text, overflows or is not finite). Shared by the
-// frame, truth and pose files.
-std::vector<std::string> split_fields(const std::string& line, char sep = ',');
-bool parse_int64(const std::string& text, int64_t* value);
-bool parse_double(const std::string& text, double* value);
+// One row from its fields (split_csv_line): 12 fields, integer frame and timestamp, state
+// "tracked" with numbers in every pose field, or "lost" (pose fields empty or numbers).
+// Throws Error "PATH: line N: ..." naming the column.
+PoseRow parse_pose_row(const std::vector<std::string>& fields, const CsvLocation& at);
 
 struct PoseCsv {
   std::vector<PoseRow> rows;
@@ -161,8 +161,5 @@ class RecordingReader {
 // Decodes a JPEG or PNG image to 8-bit BGR. A truncated JPEG (no end-of-image marker), an empty
 // buffer or undecodable bytes give an empty Mat and set *problem; never throws.
 cv::Mat decode_image(const std::vector<uint8_t>& bytes, std::string* problem);
-
-// The current UTC time as ISO 8601 ("2026-11-23T10:47:36Z").
-std::string utc_now_iso8601();
 
 }  // namespace crepuscular::recordings

@@ -3,18 +3,17 @@
 #include "tracking/board.hpp"
 
 #include <apriltag.h>
-#include <unistd.h>
 
+#include <climits>
 #include <cmath>
-#include <filesystem>
-#include <fstream>
 #include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <set>
-#include <sstream>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "foundation/json_fields.hpp"
+#include "foundation/output_files.hpp"
 #include "tracking/tag_family.hpp"
 
 namespace crepuscular::tracking {
@@ -23,130 +22,96 @@ namespace {
 
 using nlohmann::json;
 
-std::string where(const std::string& path, const std::string& field) {
-  return path + ": " + field;
-}
-
-double number_at(const json& j, const std::string& path, const std::string& field) {
-  if (!j.is_number()) {
-    throw Error(where(path, field) + " is " + j.dump() + ", expected a number");
-  }
-  const double v = j.get<double>();
-  if (!std::isfinite(v)) throw Error(where(path, field) + " is not finite");
-  return v;
-}
-
-int int_at(const json& j, const std::string& path, const std::string& field) {
-  if (!j.is_number_integer()) {
-    throw Error(where(path, field) + " is " + j.dump() + ", expected an integer");
-  }
-  return j.get<int>();
-}
-
-Eigen::Vector3d point_at(const json& j, const std::string& path, const std::string& field) {
-  if (!j.is_array() || (j.size() != 3 && j.size() != 2)) {
-    throw Error(where(path, field) + " is " + j.dump() + ", expected [x, y, z] in mm");
-  }
-  Eigen::Vector3d p = Eigen::Vector3d::Zero();
-  for (size_t i = 0; i < j.size(); ++i) {
-    p[Eigen::Index(i)] = number_at(j[i], path, field + "[" + std::to_string(i) + "]");
-  }
-  return p;
+Eigen::Vector3d point_at(const json& j, const JsonPath& at) {
+  const std::vector<double> v = as_numbers(j, at, 2, 3, "[x, y, z] in mm");
+  return Eigen::Vector3d(v[0], v[1], v.size() == 3 ? v[2] : 0.0);
 }
 
 json point_json(const Eigen::Vector3d& p) { return json::array({p.x(), p.y(), p.z()}); }
 
-Board parse_board(const json& j, const std::string& path, const std::string& field) {
-  if (!j.is_object()) throw Error(where(path, field) + " is not an object");
+// The explicit "tags" of a board: ids and corners.
+void parse_tags(const json& tags, const JsonPath& at, Board& b) {
+  as_array(tags, at);
+  for (size_t t = 0; t < tags.size(); ++t) {
+    const JsonPath tf = at.index(t);
+    const json& tj = tags[t];
+    if (!tj.is_object() || !tj.contains("id") || !tj.contains("corners")) {
+      tf.fail("needs \"id\" and \"corners\" (4 points [x, y, z] in mm)");
+    }
+    BoardTag tag;
+    tag.id = int(as_integer(tj["id"], tf.key("id"), INT32_MIN, INT32_MAX));
+    const json& cj = tj["corners"];
+    if (!cj.is_array() || cj.size() != 4) {
+      tf.key("corners").fail("has " +
+                             (cj.is_array() ? std::to_string(cj.size()) : std::string("no")) +
+                             " points, expected 4 (apriltag_detection_t::p order)");
+    }
+    for (size_t c = 0; c < 4; ++c) {
+      tag.corners[c] = point_at(cj[c], tf.key("corners").index(c));
+    }
+    if (tag.side_mm() <= 0.0) tf.key("corners").fail("coincide");
+    b.tags.push_back(tag);
+  }
+}
+
+// A "grid" of tags, expanded into b.tags.
+void parse_grid(const json& g, const JsonPath& at, Board& b) {
+  as_object(g, at);
+  for (const char* key : {"rows", "cols", "tag_size_mm", "gap_mm"}) {
+    if (!g.contains(key)) {
+      at.key(key).fail("is missing (grid needs rows, cols, tag_size_mm, gap_mm; first_id optional)");
+    }
+  }
+  const int rows = int(required_integer(g, "rows", at, INT32_MIN, INT32_MAX));
+  const int cols = int(required_integer(g, "cols", at, INT32_MIN, INT32_MAX));
+  const double size = required_number(g, "tag_size_mm", at);
+  const double gap = required_number(g, "gap_mm", at);
+  const int first = int(optional_integer(g, "first_id", at, 0, INT32_MIN, INT32_MAX));
+  if (rows < 1 || cols < 1) {
+    at.fail("needs rows and cols >= 1 (found " + std::to_string(rows) + " x " +
+            std::to_string(cols) + ")");
+  }
+  if (!(size > 0) || gap < 0) at.fail("needs tag_size_mm > 0 and gap_mm >= 0");
+  Board grid = make_grid_board(b.name, rows, cols, size, gap, first);
+  if (g.contains("origin_mm")) {
+    const Eigen::Vector3d origin = point_at(g["origin_mm"], at.key("origin_mm"));
+    for (BoardTag& t : grid.tags) {
+      for (Eigen::Vector3d& c : t.corners) c += origin;
+    }
+  }
+  b.tags.insert(b.tags.end(), grid.tags.begin(), grid.tags.end());
+}
+
+Board parse_board(const json& j, const JsonPath& at) {
+  as_object(j, at);
   Board b;
   if (!j.contains("name") || !j["name"].is_string() || j["name"].get<std::string>().empty()) {
-    throw Error(where(path, field + ".name") + " is missing, expected a board name such as "
-                "\"patient\" or \"needle\"");
+    at.key("name").fail("is missing, expected a board name such as \"patient\" or \"needle\"");
   }
   b.name = j["name"].get<std::string>();
-  if (j.contains("family")) {
-    if (!j["family"].is_string()) throw Error(where(path, field + ".family") + " is not a string");
-    b.family = j["family"].get<std::string>();
-  }
+  b.family = optional_string(j, "family", at, b.family);
   const int codes = [&] {
     try {
       return tag_family_code_count(b.family);
     } catch (const Error& e) {
-      throw Error(where(path, field + ".family") + ": " + e.what());
+      throw Error(at.key("family").describe() + ": " + e.what());
     }
   }();
-  if (j.contains("tags")) {
-    const json& tags = j["tags"];
-    if (!tags.is_array()) throw Error(where(path, field + ".tags") + " is not an array");
-    for (size_t t = 0; t < tags.size(); ++t) {
-      const std::string tf = field + ".tags[" + std::to_string(t) + "]";
-      const json& tj = tags[t];
-      if (!tj.is_object() || !tj.contains("id") || !tj.contains("corners")) {
-        throw Error(where(path, tf) + " needs \"id\" and \"corners\" (4 points [x, y, z] in mm)");
-      }
-      BoardTag tag;
-      tag.id = int_at(tj["id"], path, tf + ".id");
-      const json& cj = tj["corners"];
-      if (!cj.is_array() || cj.size() != 4) {
-        throw Error(where(path, tf + ".corners") + " has " +
-                    (cj.is_array() ? std::to_string(cj.size()) : std::string("no")) +
-                    " points, expected 4 (apriltag_detection_t::p order)");
-      }
-      for (size_t c = 0; c < 4; ++c) {
-        tag.corners[c] = point_at(cj[c], path, tf + ".corners[" + std::to_string(c) + "]");
-      }
-      if (tag.side_mm() <= 0.0) throw Error(where(path, tf + ".corners") + " coincide");
-      b.tags.push_back(tag);
-    }
-  }
-  if (j.contains("grid")) {
-    const json& g = j["grid"];
-    const std::string gf = field + ".grid";
-    if (!g.is_object()) throw Error(where(path, gf) + " is not an object");
-    for (const char* key : {"rows", "cols", "tag_size_mm", "gap_mm"}) {
-      if (!g.contains(key)) {
-        throw Error(where(path, gf + "." + key) +
-                    " is missing (grid needs rows, cols, tag_size_mm, gap_mm; first_id optional)");
-      }
-    }
-    const int rows = int_at(g["rows"], path, gf + ".rows");
-    const int cols = int_at(g["cols"], path, gf + ".cols");
-    const double size = number_at(g["tag_size_mm"], path, gf + ".tag_size_mm");
-    const double gap = number_at(g["gap_mm"], path, gf + ".gap_mm");
-    const int first = g.contains("first_id") ? int_at(g["first_id"], path, gf + ".first_id") : 0;
-    if (rows < 1 || cols < 1) {
-      throw Error(where(path, gf) + ": rows and cols must be >= 1 (found " + std::to_string(rows) +
-                  " x " + std::to_string(cols) + ")");
-    }
-    if (!(size > 0) || gap < 0) {
-      throw Error(where(path, gf) + ": tag_size_mm must be > 0 and gap_mm >= 0");
-    }
-    Board grid = make_grid_board(b.name, rows, cols, size, gap, first);
-    if (g.contains("origin_mm")) {
-      const Eigen::Vector3d origin = point_at(g["origin_mm"], path, gf + ".origin_mm");
-      for (BoardTag& t : grid.tags) {
-        for (Eigen::Vector3d& c : t.corners) c += origin;
-      }
-    }
-    b.tags.insert(b.tags.end(), grid.tags.begin(), grid.tags.end());
-  }
+  if (j.contains("tags")) parse_tags(j["tags"], at.key("tags"), b);
+  if (j.contains("grid")) parse_grid(j["grid"], at.key("grid"), b);
   if (b.tags.empty()) {
-    throw Error(where(path, field) + " (board '" + b.name +
-                "') has no tags; expected \"tags\" or \"grid\"");
+    at.fail("(board '" + b.name + "') has no tags; expected \"tags\" or \"grid\"");
   }
   for (const BoardTag& t : b.tags) {
     if (t.id < 0 || t.id >= codes) {
-      throw Error(where(path, field) + ": tag id " + std::to_string(t.id) + " of board '" +
-                  b.name + "' is outside family " + b.family + " (0 to " +
-                  std::to_string(codes - 1) + ")");
+      at.fail("has tag id " + std::to_string(t.id) + " (board '" + b.name +
+              "'), outside family " + b.family + " (0 to " + std::to_string(codes - 1) + ")");
     }
   }
   if (j.contains("fiducials")) {
-    const json& fj = j["fiducials"];
-    if (!fj.is_array()) throw Error(where(path, field + ".fiducials") + " is not an array");
+    const json& fj = as_array(j["fiducials"], at.key("fiducials"));
     for (size_t i = 0; i < fj.size(); ++i) {
-      b.fiducials.push_back(
-          point_at(fj[i], path, field + ".fiducials[" + std::to_string(i) + "]"));
+      b.fiducials.push_back(point_at(fj[i], at.key("fiducials").index(i)));
     }
   }
   return b;
@@ -187,36 +152,30 @@ Board make_grid_board(const std::string& name, int rows, int cols, double tag_si
 }
 
 std::vector<Board> read_boards(const std::string& path) {
-  std::ifstream in(path);
-  if (!in) throw Error(path + ": cannot open boards file");
-  std::stringstream text;
-  text << in.rdbuf();
-  return read_boards_text(text.str(), path);
+  return read_boards_json(read_json_file(path, "boards file"), path);
 }
 
-std::vector<Board> read_boards_text(const std::string& json_text, const std::string& path) {
-  json j;
-  try {
-    j = json::parse(json_text);
-  } catch (const json::exception& e) {
-    throw Error(path + ": not valid JSON (" + e.what() + ")");
-  }
+std::vector<Board> read_boards_text(const std::string& json_text, const std::string& what) {
+  return read_boards_json(parse_json_text(json_text, what), what);
+}
+
+std::vector<Board> read_boards_json(const json& j, const std::string& what) {
   if (!j.is_object() || !j.contains("boards") || !j["boards"].is_array()) {
-    throw Error(path + ": field boards is missing, expected {\"boards\": [ ... ]}");
+    throw Error(what + ": field boards is missing, expected {\"boards\": [ ... ]}");
   }
   std::vector<Board> boards;
   std::map<std::string, std::map<int, std::string>> owner;  // family -> id -> board
   std::set<std::string> names;
   for (size_t i = 0; i < j["boards"].size(); ++i) {
-    Board b = parse_board(j["boards"][i], path, "boards[" + std::to_string(i) + "]");
+    Board b = parse_board(j["boards"][i], JsonPath(what, "boards").index(i));
     if (!names.insert(b.name).second) {
-      throw Error(path + ": board name '" + b.name + "' appears twice, expected unique names");
+      throw Error(what + ": board name '" + b.name + "' appears twice, expected unique names");
     }
     for (const BoardTag& t : b.tags) {
       auto& ids = owner[b.family];
       const auto it = ids.find(t.id);
       if (it != ids.end()) {
-        throw Error(path + ": tag id " + std::to_string(t.id) + " (" + b.family +
+        throw Error(what + ": tag id " + std::to_string(t.id) + " (" + b.family +
                     ") is used by board '" + it->second + "' and board '" + b.name +
                     "'; expected each id on one tag only");
       }
@@ -224,7 +183,7 @@ std::vector<Board> read_boards_text(const std::string& json_text, const std::str
     }
     boards.push_back(std::move(b));
   }
-  if (boards.empty()) throw Error(path + ": field boards is empty, expected at least one board");
+  if (boards.empty()) throw Error(what + ": field boards is empty, expected at least one board");
   return boards;
 }
 
@@ -251,22 +210,7 @@ std::string boards_json_text(const std::vector<Board>& boards) {
 }
 
 void write_boards(const std::string& path, const std::vector<Board>& boards) {
-  const std::string text = boards_json_text(boards);
-  namespace fs = std::filesystem;
-  const fs::path target(path);
-  const fs::path temporary =
-      target.parent_path() / (".tmp-" + std::to_string(::getpid()) + "-" + target.filename().string());
-  {
-    std::ofstream f(temporary);
-    f << text;
-    if (!f) throw Error(path + ": cannot write boards file");
-  }
-  std::error_code ec;
-  fs::rename(temporary, target, ec);
-  if (ec) {
-    fs::remove(temporary, ec);
-    throw Error(path + ": cannot write boards file (rename failed)");
-  }
+  write_text_file(path, boards_json_text(boards));
 }
 
 int tag_family_code_count(const std::string& family) {

@@ -17,6 +17,7 @@
 #include <string>
 #include <vector>
 
+#include <nlohmann/json_fwd.hpp>
 #include <opencv2/core.hpp>
 
 namespace crepuscular::tracking {
@@ -60,8 +61,9 @@ std::array<Eigen::Vector3d, 4> square_tag_corners(const Eigen::Vector2d& center,
 // "grid" is expanded into tags on reading (after any explicit "tags"); at least one tag; ids
 // unique within a family across all boards and within the family's code count.
 std::vector<Board> read_boards(const std::string& path);
-// The same from JSON text; `what` names the text's origin in errors.
+// The same from JSON text or a parsed document; `what` names its origin in errors.
 std::vector<Board> read_boards_text(const std::string& json_text, const std::string& what);
+std::vector<Board> read_boards_json(const nlohmann::json& document, const std::string& what);
 // boards.json text of these boards (as write_boards writes it).
 std::string boards_json_text(const std::vector<Board>& boards);
 // Writes every tag explicitly (grids expanded); through a temporary file and a rename.

@@ -7,7 +7,7 @@
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 #include "tracking/tag_family.hpp"
 
 namespace crepuscular::tracking {

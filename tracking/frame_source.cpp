@@ -7,9 +7,12 @@
 #include <cctype>
 #include <chrono>
 #include <filesystem>
+#include <optional>
 #include <thread>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "foundation/json_fields.hpp"
+#include "foundation/output_files.hpp"
 #include "recordings/recording.hpp"
 #include "tracking/synthetic.hpp"
 #include "tracking/v4l2_source.hpp"
@@ -181,6 +184,7 @@ std::unique_ptr<FrameSource> open_frame_source(const std::string& uri) {
 
 struct FrameRecorder::Impl {
   std::string final_dir, partial;
+  std::optional<StagedDirectory> staged;  // partial, kept when the recording is interrupted
   RecordOptions options;
   std::unique_ptr<recordings::RecordingWriter> writer;
   RecordSummary summary;
@@ -210,12 +214,9 @@ FrameRecorder::FrameRecorder(const std::string& out_dir, const std::string& sour
   session.source = source_description;
   session.plan = options.plan;
   if (!options.boards_json.empty()) {
-    try {
-      session.boards = nlohmann::json::parse(options.boards_json);
-    } catch (const nlohmann::json::exception& e) {
-      throw Error(std::string("boards for the recording are not valid JSON (") + e.what() + ")");
-    }
+    session.boards = parse_json_text(options.boards_json, "boards for the recording");
   }
+  m.staged.emplace(m.final_dir, StagedDirectory::OnFailure::kKeep);
   m.writer = std::make_unique<recordings::RecordingWriter>(
       m.partial, session, options.image_format, options.jpeg_quality, with_truth);
   if (const std::optional<calibration::CameraModel> c = options.camera ? options.camera : camera) {
@@ -268,17 +269,11 @@ bool FrameRecorder::add(const Frame& frame) {
 const RecordSummary& FrameRecorder::summary() const { return impl_->summary; }
 
 RecordSummary FrameRecorder::finish() {
-  namespace fs = std::filesystem;
   Impl& m = *impl_;
   if (m.finished) return m.summary;
   m.finished = true;
   m.writer->finish();
-  std::error_code ec;
-  fs::rename(m.partial, m.final_dir, ec);
-  if (ec) {
-    throw Error(m.partial + ": cannot rename to " + m.final_dir + " (" + ec.message() +
-                "); the recording is complete under the first name");
-  }
+  m.staged->commit();
   m.summary.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - m.t0).count();
   return m.summary;

@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include "foundation/output_files.hpp"
 #include "tracking/tracker.hpp"
 
 namespace crepuscular::tracking {
@@ -40,11 +41,10 @@ class PosesCsvWriter {
   void write(const PoseRecord& record);
   void write(const TrackResult& result);  // one row per board
   void finish();
-  const std::string& path() const { return path_; }
+  const std::string& path() const { return output_.path(); }
 
  private:
-  std::string path_;
-  std::string temporary_;
+  PendingFile output_;
   std::FILE* file_ = nullptr;
 };
 

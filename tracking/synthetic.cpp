@@ -8,17 +8,18 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
-#include <fstream>
+#include <functional>
 #include <limits>
 #include <map>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <random>
-#include <sstream>
 
 #include <opencv2/core/utility.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "foundation/json_fields.hpp"
 #include "recordings/recording.hpp"
 
 namespace crepuscular::tracking {
@@ -108,7 +109,10 @@ Eigen::Isometry3d pose_at(const SceneBoard& board, double time_s) {
 // ---------------------------------------------------------------------------------------------
 // Renderer
 
-struct SyntheticRenderer::Impl {
+namespace {
+
+// What every frame of a renderer shares: the camera's pixel rays, the background, the patterns.
+struct RenderTables {
   int w = 0, h = 0;
   // Undistorted normalised image coordinates of the pixel corners: node (i, j) is pixel
   // coordinate (i - 0.5, j - 0.5); (w + 1) x (h + 1) nodes.
@@ -118,6 +122,240 @@ struct SyntheticRenderer::Impl {
 
   const Eigen::Vector2d& node(int i, int j) const { return nodes[size_t(j) * size_t(w + 1) + i]; }
 };
+
+// The parallelogram O + u U + v V (board frame vectors o_b, u_b, v_b mapped by T into the camera
+// frame) with its pixel bounding box; nothing when it is degenerate or covers no pixel.
+std::optional<Surface> make_surface(const calibration::CameraModel& cam, const RenderTables& m,
+                                    const Eigen::Isometry3d& T, const Eigen::Vector3d& o_b,
+                                    const Eigen::Vector3d& u_b, const Eigen::Vector3d& v_b,
+                                    const TagPattern* pattern, double bias) {
+  Surface s;
+  s.O = T * o_b;
+  const Eigen::Vector3d U = T.linear() * u_b, V = T.linear() * v_b;
+  s.N = U.cross(V);
+  if (s.N.norm() < 1e-12) return std::nullopt;
+  const Eigen::Vector3d vn = V.cross(s.N), nu = s.N.cross(U);
+  s.a = vn / U.dot(vn);
+  s.b = nu / V.dot(nu);
+  s.n_dot_o = s.N.dot(s.O);
+  s.pattern = pattern;
+  s.depth_bias = bias;
+  // Bounding box from points along the boundary (edges curve under distortion).
+  double x0 = 1e300, y0 = 1e300, x1 = -1e300, y1 = -1e300;
+  bool behind = false;
+  constexpr int kSteps = 24;
+  for (int e = 0; e < 4 && !behind; ++e) {
+    for (int k = 0; k < kSteps; ++k) {
+      const double f = double(k) / kSteps;
+      const double uu = e == 0 ? f : e == 1 ? 1.0 : e == 2 ? 1.0 - f : 0.0;
+      const double vv = e == 0 ? 0.0 : e == 1 ? f : e == 2 ? 1.0 : 1.0 - f;
+      const Eigen::Vector3d p = s.O + uu * U + vv * V;
+      if (p.z() < 1.0) {
+        behind = true;
+        break;
+      }
+      const Eigen::Vector2d px = cam.project(p);
+      x0 = std::min(x0, px.x());
+      y0 = std::min(y0, px.y());
+      x1 = std::max(x1, px.x());
+      y1 = std::max(y1, px.y());
+    }
+  }
+  if (behind) {
+    s.x0 = 0;
+    s.y0 = 0;
+    s.x1 = m.w - 1;
+    s.y1 = m.h - 1;
+  } else {
+    s.x0 = std::max(0, int(std::floor(x0)) - 2);
+    s.y0 = std::max(0, int(std::floor(y0)) - 2);
+    s.x1 = std::min(m.w - 1, int(std::ceil(x1)) + 2);
+    s.y1 = std::min(m.h - 1, int(std::ceil(y1)) + 2);
+  }
+  if (s.x0 > s.x1 || s.y0 > s.y1) return std::nullopt;
+  return s;
+}
+
+// The surfaces of one board at pose T (camera frame): its plate, when it has one, and its tags.
+void add_board_surfaces(const SceneBoard& sb, const Eigen::Isometry3d& T,
+                        const calibration::CameraModel& cam, const RenderTables& m,
+                        std::vector<Surface>& surfaces) {
+  const auto add = [&](const Eigen::Vector3d& o_b, const Eigen::Vector3d& u_b,
+                       const Eigen::Vector3d& v_b, const TagPattern* pattern, double bias) {
+    if (auto s = make_surface(cam, m, T, o_b, u_b, v_b, pattern, bias)) surfaces.push_back(*s);
+  };
+  // The plate: the rectangle around the tags' outer (white ring) corners plus the margin.
+  bool planar = true;
+  double bx0 = 1e300, by0 = 1e300, bx1 = -1e300, by1 = -1e300;
+  for (const BoardTag& tag : sb.board.tags) {
+    const TagPattern& p = m.patterns.at({sb.board.family, tag.id});
+    const double grow = double(p.border_start()) / p.width_at_border;
+    for (const Eigen::Vector3d& c : tag.corners) {
+      planar = planar && std::abs(c.z()) < 1e-9;
+      const Eigen::Vector3d outer = c + grow * (c - tag.center());
+      bx0 = std::min(bx0, outer.x());
+      by0 = std::min(by0, outer.y());
+      bx1 = std::max(bx1, outer.x());
+      by1 = std::max(by1, outer.y());
+    }
+  }
+  if (sb.plate && planar) {
+    const double g = sb.plate_margin_mm;
+    add({bx0 - g, by0 - g, 0}, {bx1 - bx0 + 2 * g, 0, 0}, {0, by1 - by0 + 2 * g, 0}, nullptr, 0.0);
+  }
+  for (const BoardTag& tag : sb.board.tags) {
+    const TagPattern& p = m.patterns.at({sb.board.family, tag.id});
+    // Cell vectors: along the tag's top edge (top-left -> top-right) and down its left edge.
+    const Eigen::Vector3d ex = (tag.corners[2] - tag.corners[3]) / p.width_at_border;
+    const Eigen::Vector3d ey = (tag.corners[0] - tag.corners[3]) / p.width_at_border;
+    const Eigen::Vector3d origin = tag.corners[3] - p.border_start() * (ex + ey);
+    add(origin, ex * p.total_width, ey * p.total_width, &p, 1e-3);
+  }
+}
+
+// Sample positions (a, b) in [0, 1]^2 inside an edge pixel: a Fibonacci lattice (rank-1 lattice
+// of N points with generator the preceding Fibonacci number), N distinct positions along each
+// axis, well spread in 2D; one central sample without supersampling.
+std::vector<std::pair<double, double>> edge_lattice(int supersampling) {
+  int fib_a = 1, fib_b = 1;
+  while (fib_b < supersampling * supersampling) {
+    const int next = fib_a + fib_b;
+    fib_a = fib_b;
+    fib_b = next;
+  }
+  const int n_samples = supersampling <= 1 ? 1 : fib_b;
+  std::vector<std::pair<double, double>> lattice;
+  for (int k = 0; k < n_samples; ++k) {
+    const double a = (k + 0.5) / n_samples;
+    const double b = std::fmod((double(k) * fib_a + 0.5) / n_samples, 1.0);
+    lattice.emplace_back(a, n_samples == 1 ? 0.5 : b);
+  }
+  return lattice;
+}
+
+// The value seen along the camera ray d (camera frame) among the candidate surfaces: the nearest
+// one's ink or paper level; NaN = background.
+double shade_ray(const std::vector<const Surface*>& cands, const Eigen::Vector3d& d, double black,
+                 double white) {
+  double best = std::numeric_limits<double>::infinity();
+  double value = std::numeric_limits<double>::quiet_NaN();
+  for (const Surface* s : cands) {
+    const double nd = s->N.dot(d);
+    if (!(nd > 0)) continue;  // seen from behind, or edge-on
+    const double lambda = s->n_dot_o / nd;
+    if (!(lambda > 0)) continue;
+    const double z = lambda - s->depth_bias;
+    if (z >= best) continue;
+    const Eigen::Vector3d q = lambda * d - s->O;
+    const double u = s->a.dot(q), v = s->b.dot(q);
+    if (u < 0 || u >= 1 || v < 0 || v >= 1) continue;
+    best = z;
+    if (s->pattern) {
+      const int n = s->pattern->total_width;
+      const int col = std::min(n - 1, int(u * n));
+      const int row = std::min(n - 1, int(v * n));
+      value = s->pattern->cells.at<uint8_t>(row, col) ? white : black;
+    } else {
+      value = white;
+    }
+  }
+  return value;
+}
+
+// Traces every pixel that a surface may cover into img (CV_32F, holding the background): a 3 x 3
+// probe, and the whole lattice where the probe sees more than one value.
+void trace_surfaces(const RenderTables& m, const std::vector<Surface>& surfaces,
+                    const std::vector<std::pair<double, double>>& lattice, double black,
+                    double white, cv::Mat& img) {
+  cv::parallel_for_(cv::Range(0, m.h), [&](const cv::Range& rows) {
+    std::vector<const Surface*> cands, in_row;
+    for (int y = rows.start; y < rows.end; ++y) {
+      float* out = img.ptr<float>(y);
+      // Rows and columns that any surface may cover: the only pixels that need tracing.
+      in_row.clear();
+      int row_x0 = m.w, row_x1 = -1;
+      for (const Surface& s : surfaces) {
+        if (y < s.y0 || y > s.y1) continue;
+        in_row.push_back(&s);
+        row_x0 = std::min(row_x0, s.x0);
+        row_x1 = std::max(row_x1, s.x1);
+      }
+      for (int x = row_x0; x <= row_x1; ++x) {
+        cands.clear();
+        for (const Surface* s : in_row) {
+          if (x >= s->x0 && x <= s->x1) cands.push_back(s);
+        }
+        if (cands.empty()) continue;
+        const Eigen::Vector2d& g00 = m.node(x, y);
+        const Eigen::Vector2d& g10 = m.node(x + 1, y);
+        const Eigen::Vector2d& g01 = m.node(x, y + 1);
+        const Eigen::Vector2d& g11 = m.node(x + 1, y + 1);
+        // Value seen along the ray through (a, b) of this pixel (a, b in [0, 1] from its top-left
+        // corner); NaN = background.
+        const auto shade = [&](double a, double b) {
+          const Eigen::Vector2d xy =
+              (1 - a) * (1 - b) * g00 + a * (1 - b) * g10 + (1 - a) * b * g01 + a * b * g11;
+          return shade_ray(cands, Eigen::Vector3d(xy.x(), xy.y(), 1.0), black, white);
+        };
+        // Probe a 3 x 3 pattern; a pixel that sees one value everywhere needs no more samples.
+        constexpr double kProbe[3] = {1.0 / 64, 0.5, 63.0 / 64};
+        double first = shade(kProbe[0], kProbe[0]);
+        bool uniform = true;
+        for (int pj = 0; pj < 3 && uniform; ++pj) {
+          for (int pi = 0; pi < 3 && uniform; ++pi) {
+            const double v = shade(kProbe[pi], kProbe[pj]);
+            uniform = (std::isnan(v) && std::isnan(first)) || v == first;
+          }
+        }
+        const double bg = out[x];
+        if (uniform) {
+          if (!std::isnan(first)) out[x] = float(first);
+          continue;
+        }
+        double sum = 0;
+        for (const auto& [a, b] : lattice) {
+          const double v = shade(a, b);
+          sum += std::isnan(v) ? bg : v;
+        }
+        out[x] = float(sum / double(lattice.size()));
+      }
+    }
+  });
+}
+
+// What the camera adds to the traced grey levels of a frame: occlusions, lighting, blur and
+// noise; then 8-bit BGR.
+cv::Mat apply_camera_effects(const SyntheticScene& scene, int64_t frame, cv::Mat img) {
+  for (const OcclusionBox& o : scene.occlusions) {
+    if (frame < o.first_frame || frame > o.last_frame) continue;
+    const cv::Rect r = cv::Rect(cv::Point(int(std::floor(o.rect_px.x)), int(std::floor(o.rect_px.y))),
+                                cv::Point(int(std::ceil(o.rect_px.x + o.rect_px.width)),
+                                          int(std::ceil(o.rect_px.y + o.rect_px.height)))) &
+                       cv::Rect(0, 0, img.cols, img.rows);
+    if (r.area() > 0) img(r).setTo(cv::Scalar(o.grey));
+  }
+  if (scene.gain != 1.0 || scene.offset != 0.0) {
+    img.convertTo(img, CV_32F, scene.gain, scene.offset);
+  }
+  if (scene.blur_sigma > 0) {
+    cv::GaussianBlur(img, img, cv::Size(0, 0), scene.blur_sigma, scene.blur_sigma,
+                     cv::BORDER_REPLICATE);
+  }
+  if (scene.noise_sigma > 0) {
+    cv::Mat noise(img.size(), CV_32F);
+    cv::RNG rng(scene.seed * 1000003ULL + uint64_t(frame) * 7919ULL + 1ULL);
+    rng.fill(noise, cv::RNG::NORMAL, 0.0, scene.noise_sigma);
+    img += noise;
+  }
+  cv::Mat grey, bgr;
+  img.convertTo(grey, CV_8U);  // rounds and saturates
+  cv::cvtColor(grey, bgr, cv::COLOR_GRAY2BGR);
+  return bgr;
+}
+
+}  // namespace
+
+struct SyntheticRenderer::Impl : RenderTables {};
 
 SyntheticRenderer::SyntheticRenderer(SyntheticScene scene)
     : scene_(std::move(scene)), impl_(std::make_unique<Impl>()) {
@@ -195,215 +433,18 @@ int64_t SyntheticRenderer::timestamp_ns_of(int64_t frame) const {
 
 cv::Mat SyntheticRenderer::render(int64_t frame, std::vector<TruePose>* truth) const {
   const Impl& m = *impl_;
-  const calibration::CameraModel& cam = scene_.camera;
   const double t = time_of(frame);
-  const double black = scene_.black, white = scene_.white;
-
   // Surfaces in the camera frame, with their pixel bounding boxes.
   std::vector<Surface> surfaces;
-  const auto add_surface = [&](const Eigen::Isometry3d& T, const Eigen::Vector3d& o_b,
-                               const Eigen::Vector3d& u_b, const Eigen::Vector3d& v_b,
-                               const TagPattern* pattern, double bias) {
-    Surface s;
-    s.O = T * o_b;
-    const Eigen::Vector3d U = T.linear() * u_b, V = T.linear() * v_b;
-    s.N = U.cross(V);
-    if (s.N.norm() < 1e-12) return;
-    const Eigen::Vector3d vn = V.cross(s.N), nu = s.N.cross(U);
-    s.a = vn / U.dot(vn);
-    s.b = nu / V.dot(nu);
-    s.n_dot_o = s.N.dot(s.O);
-    s.pattern = pattern;
-    s.depth_bias = bias;
-    // Bounding box from points along the boundary (edges curve under distortion).
-    double x0 = 1e300, y0 = 1e300, x1 = -1e300, y1 = -1e300;
-    bool behind = false;
-    constexpr int kSteps = 24;
-    for (int e = 0; e < 4 && !behind; ++e) {
-      for (int k = 0; k < kSteps; ++k) {
-        const double f = double(k) / kSteps;
-        const double uu = e == 0 ? f : e == 1 ? 1.0 : e == 2 ? 1.0 - f : 0.0;
-        const double vv = e == 0 ? 0.0 : e == 1 ? f : e == 2 ? 1.0 : 1.0 - f;
-        const Eigen::Vector3d p = s.O + uu * U + vv * V;
-        if (p.z() < 1.0) {
-          behind = true;
-          break;
-        }
-        const Eigen::Vector2d px = cam.project(p);
-        x0 = std::min(x0, px.x());
-        y0 = std::min(y0, px.y());
-        x1 = std::max(x1, px.x());
-        y1 = std::max(y1, px.y());
-      }
-    }
-    if (behind) {
-      s.x0 = 0;
-      s.y0 = 0;
-      s.x1 = m.w - 1;
-      s.y1 = m.h - 1;
-    } else {
-      s.x0 = std::max(0, int(std::floor(x0)) - 2);
-      s.y0 = std::max(0, int(std::floor(y0)) - 2);
-      s.x1 = std::min(m.w - 1, int(std::ceil(x1)) + 2);
-      s.y1 = std::min(m.h - 1, int(std::ceil(y1)) + 2);
-    }
-    if (s.x0 > s.x1 || s.y0 > s.y1) return;
-    surfaces.push_back(s);
-  };
-
   if (truth) truth->clear();
   for (const SceneBoard& sb : scene_.boards) {
     const Eigen::Isometry3d T = pose_at(sb, t);
     if (truth) truth->push_back({sb.board.name, T});
-    // The plate: the rectangle around the tags' outer (white ring) corners plus the margin.
-    bool planar = true;
-    double bx0 = 1e300, by0 = 1e300, bx1 = -1e300, by1 = -1e300;
-    for (const BoardTag& tag : sb.board.tags) {
-      const TagPattern& p = m.patterns.at({sb.board.family, tag.id});
-      const double grow = double(p.border_start()) / p.width_at_border;
-      for (const Eigen::Vector3d& c : tag.corners) {
-        planar = planar && std::abs(c.z()) < 1e-9;
-        const Eigen::Vector3d outer = c + grow * (c - tag.center());
-        bx0 = std::min(bx0, outer.x());
-        by0 = std::min(by0, outer.y());
-        bx1 = std::max(bx1, outer.x());
-        by1 = std::max(by1, outer.y());
-      }
-    }
-    if (sb.plate && planar) {
-      const double g = sb.plate_margin_mm;
-      add_surface(T, {bx0 - g, by0 - g, 0}, {bx1 - bx0 + 2 * g, 0, 0}, {0, by1 - by0 + 2 * g, 0},
-                  nullptr, 0.0);
-    }
-    for (const BoardTag& tag : sb.board.tags) {
-      const TagPattern& p = m.patterns.at({sb.board.family, tag.id});
-      // Cell vectors: along the tag's top edge (top-left -> top-right) and down its left edge.
-      const Eigen::Vector3d ex = (tag.corners[2] - tag.corners[3]) / p.width_at_border;
-      const Eigen::Vector3d ey = (tag.corners[0] - tag.corners[3]) / p.width_at_border;
-      const Eigen::Vector3d origin = tag.corners[3] - p.border_start() * (ex + ey);
-      add_surface(T, origin, ex * p.total_width, ey * p.total_width, &p, 1e-3);
-    }
+    add_board_surfaces(sb, T, scene_.camera, m, surfaces);
   }
-
-  // Edge pixels are sampled on a Fibonacci lattice (rank-1 lattice of N points with generator the
-  // preceding Fibonacci number): N distinct positions along each axis, well spread in 2D.
-  int fib_a = 1, fib_b = 1;
-  while (fib_b < scene_.supersampling * scene_.supersampling) {
-    const int next = fib_a + fib_b;
-    fib_a = fib_b;
-    fib_b = next;
-  }
-  const int n_samples = scene_.supersampling <= 1 ? 1 : fib_b;
-  std::vector<std::pair<double, double>> lattice;
-  for (int k = 0; k < n_samples; ++k) {
-    const double a = (k + 0.5) / n_samples;
-    const double b = std::fmod((double(k) * fib_a + 0.5) / n_samples, 1.0);
-    lattice.emplace_back(a, n_samples == 1 ? 0.5 : b);
-  }
-  // Rows and columns that any surface may cover: the only pixels that need tracing.
   cv::Mat img = m.background.clone();
-  cv::parallel_for_(cv::Range(0, m.h), [&](const cv::Range& rows) {
-    std::vector<const Surface*> cands, in_row;
-    for (int y = rows.start; y < rows.end; ++y) {
-      float* out = img.ptr<float>(y);
-      in_row.clear();
-      int row_x0 = m.w, row_x1 = -1;
-      for (const Surface& s : surfaces) {
-        if (y < s.y0 || y > s.y1) continue;
-        in_row.push_back(&s);
-        row_x0 = std::min(row_x0, s.x0);
-        row_x1 = std::max(row_x1, s.x1);
-      }
-      for (int x = row_x0; x <= row_x1; ++x) {
-        cands.clear();
-        for (const Surface* s : in_row) {
-          if (x >= s->x0 && x <= s->x1) cands.push_back(s);
-        }
-        if (cands.empty()) continue;
-        const Eigen::Vector2d& g00 = m.node(x, y);
-        const Eigen::Vector2d& g10 = m.node(x + 1, y);
-        const Eigen::Vector2d& g01 = m.node(x, y + 1);
-        const Eigen::Vector2d& g11 = m.node(x + 1, y + 1);
-        // Value seen along the ray through (a, b) of this pixel (a, b in [0, 1] from its top-left
-        // corner); NaN = background.
-        const auto shade = [&](double a, double b) {
-          const Eigen::Vector2d xy =
-              (1 - a) * (1 - b) * g00 + a * (1 - b) * g10 + (1 - a) * b * g01 + a * b * g11;
-          const Eigen::Vector3d d(xy.x(), xy.y(), 1.0);
-          double best = std::numeric_limits<double>::infinity();
-          double value = std::numeric_limits<double>::quiet_NaN();
-          for (const Surface* s : cands) {
-            const double nd = s->N.dot(d);
-            if (!(nd > 0)) continue;  // seen from behind, or edge-on
-            const double lambda = s->n_dot_o / nd;
-            if (!(lambda > 0)) continue;
-            const double z = lambda - s->depth_bias;
-            if (z >= best) continue;
-            const Eigen::Vector3d q = lambda * d - s->O;
-            const double u = s->a.dot(q), v = s->b.dot(q);
-            if (u < 0 || u >= 1 || v < 0 || v >= 1) continue;
-            best = z;
-            if (s->pattern) {
-              const int n = s->pattern->total_width;
-              const int col = std::min(n - 1, int(u * n));
-              const int row = std::min(n - 1, int(v * n));
-              value = s->pattern->cells.at<uint8_t>(row, col) ? white : black;
-            } else {
-              value = white;
-            }
-          }
-          return value;
-        };
-        // Probe a 3 x 3 pattern; a pixel that sees one value everywhere needs no more samples.
-        constexpr double kProbe[3] = {1.0 / 64, 0.5, 63.0 / 64};
-        double first = shade(kProbe[0], kProbe[0]);
-        bool uniform = true;
-        for (int pj = 0; pj < 3 && uniform; ++pj) {
-          for (int pi = 0; pi < 3 && uniform; ++pi) {
-            const double v = shade(kProbe[pi], kProbe[pj]);
-            uniform = (std::isnan(v) && std::isnan(first)) || v == first;
-          }
-        }
-        const double bg = out[x];
-        if (uniform) {
-          if (!std::isnan(first)) out[x] = float(first);
-          continue;
-        }
-        double sum = 0;
-        for (const auto& [a, b] : lattice) {
-          const double v = shade(a, b);
-          sum += std::isnan(v) ? bg : v;
-        }
-        out[x] = float(sum / double(lattice.size()));
-      }
-    }
-  });
-
-  for (const OcclusionBox& o : scene_.occlusions) {
-    if (frame < o.first_frame || frame > o.last_frame) continue;
-    const cv::Rect r = cv::Rect(cv::Point(int(std::floor(o.rect_px.x)), int(std::floor(o.rect_px.y))),
-                                cv::Point(int(std::ceil(o.rect_px.x + o.rect_px.width)),
-                                          int(std::ceil(o.rect_px.y + o.rect_px.height)))) &
-                       cv::Rect(0, 0, m.w, m.h);
-    if (r.area() > 0) img(r).setTo(cv::Scalar(o.grey));
-  }
-  if (scene_.gain != 1.0 || scene_.offset != 0.0) {
-    img.convertTo(img, CV_32F, scene_.gain, scene_.offset);
-  }
-  if (scene_.blur_sigma > 0) {
-    cv::GaussianBlur(img, img, cv::Size(0, 0), scene_.blur_sigma, scene_.blur_sigma,
-                     cv::BORDER_REPLICATE);
-  }
-  if (scene_.noise_sigma > 0) {
-    cv::Mat noise(img.size(), CV_32F);
-    cv::RNG rng(scene_.seed * 1000003ULL + uint64_t(frame) * 7919ULL + 1ULL);
-    rng.fill(noise, cv::RNG::NORMAL, 0.0, scene_.noise_sigma);
-    img += noise;
-  }
-  cv::Mat grey, bgr;
-  img.convertTo(grey, CV_8U);  // rounds and saturates
-  cv::cvtColor(grey, bgr, cv::COLOR_GRAY2BGR);
-  return bgr;
+  trace_surfaces(m, surfaces, edge_lattice(scene_.supersampling), scene_.black, scene_.white, img);
+  return apply_camera_effects(scene_, frame, std::move(img));
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -411,31 +452,143 @@ cv::Mat SyntheticRenderer::render(int64_t frame, std::vector<TruePose>* truth) c
 
 namespace {
 
-double num(const json& j, const std::string& key, double fallback, const std::string& path) {
-  if (!j.contains(key)) return fallback;
-  if (!j[key].is_number()) {
-    throw Error(path + ": field " + key + " is " + j[key].dump() + ", expected a number");
-  }
-  return j[key].get<double>();
-}
-
-Eigen::Vector3d vec3(const json& j, const std::string& path, const std::string& field) {
-  if (!j.is_array() || j.size() != 3 || !j[0].is_number() || !j[1].is_number() ||
-      !j[2].is_number()) {
-    throw Error(path + ": field " + field + " is " + j.dump() + ", expected [x, y, z]");
-  }
-  return {j[0].get<double>(), j[1].get<double>(), j[2].get<double>()};
-}
-
-std::vector<int64_t> int_list(const json& j, const std::string& key, const std::string& path) {
+// Frame numbers listed under `key` (none when absent).
+std::vector<int64_t> frame_list(const json& j, const std::string& key, const JsonPath& at) {
   std::vector<int64_t> out;
-  if (!j.contains(key)) return out;
-  if (!j[key].is_array()) throw Error(path + ": field " + key + " is not an array of frames");
-  for (const json& v : j[key]) {
-    if (!v.is_number_integer()) {
-      throw Error(path + ": field " + key + " holds " + v.dump() + ", expected frame numbers");
+  if (!has_field(j, key)) return out;
+  const json& list = as_array(j[key], at.key(key));
+  for (size_t i = 0; i < list.size(); ++i) out.push_back(as_integer(list[i], at.key(key).index(i)));
+  return out;
+}
+
+Eigen::Vector3d vec3(const json& j, const JsonPath& at) {
+  const std::vector<double> v = as_numbers(j, at, 3, 3, "[x, y, z]");
+  return {v[0], v[1], v[2]};
+}
+
+// "camera": the path of a camera.yaml, or the model's numbers (defaults: s.camera's size,
+// f = 1000 px, centred principal point).
+void read_scene_camera(const json& c, const JsonPath& at,
+                       const std::function<std::string(const std::string&)>& relative,
+                       SyntheticScene& s) {
+  if (c.is_string()) {
+    s.camera = calibration::CameraModel::read_yaml(relative(c.get<std::string>()));
+    return;
+  }
+  if (!c.is_object()) at.fail("must be an object or the path of a camera.yaml");
+  s.camera.width = int(optional_number(c, "width", at, s.camera.width));
+  s.camera.height = int(optional_number(c, "height", at, s.camera.height));
+  s.camera.fx = optional_number(c, "fx", at, 1000.0);
+  s.camera.fy = optional_number(c, "fy", at, s.camera.fx);
+  s.camera.cx = optional_number(c, "cx", at, (s.camera.width - 1) / 2.0);
+  s.camera.cy = optional_number(c, "cy", at, (s.camera.height - 1) / 2.0);
+  if (c.contains("distortion")) {
+    const std::vector<double> d =
+        as_numbers(c["distortion"], at.key("distortion"), 4, 5, "[k1, k2, p1, p2, k3]");
+    for (size_t i = 0; i < d.size(); ++i) s.camera.distortion[i] = d[i];
+  }
+}
+
+// "background": a type name, or {"type", "grey", "contrast"}.
+void read_scene_background(const json& b, const JsonPath& at, SyntheticScene& s) {
+  if (b.is_string()) {
+    s.background = b.get<std::string>();
+    return;
+  }
+  if (!b.is_object()) at.fail("must be an object or a type name");
+  s.background = optional_string(b, "type", at, s.background);
+  s.background_grey = optional_number(b, "grey", at, s.background_grey);
+  s.background_contrast = optional_number(b, "contrast", at, s.background_contrast);
+}
+
+// One board's pose keyframes: {"t", "translation_mm", "quaternion" or "rotvec_deg"}.
+std::vector<PoseKeyframe> read_keyframes(const json& keys, const JsonPath& at) {
+  std::vector<PoseKeyframe> out;
+  for (size_t k = 0; k < keys.size(); ++k) {
+    const json& kj = keys[k];
+    const JsonPath kf = at.index(k);
+    if (!kj.is_object() || !kj.contains("translation_mm")) {
+      kf.key("translation_mm").fail("is missing");
     }
-    out.push_back(v.get<int64_t>());
+    PoseKeyframe key;
+    key.time_s = optional_number(kj, "t", kf, 0.0);
+    const Eigen::Vector3d tr = vec3(kj["translation_mm"], kf.key("translation_mm"));
+    Eigen::Quaterniond q = Eigen::Quaterniond::Identity();
+    if (kj.contains("quaternion")) {
+      const std::vector<double> v =
+          as_numbers(kj["quaternion"], kf.key("quaternion"), 4, 4, "[w, x, y, z]");
+      q = Eigen::Quaterniond(v[0], v[1], v[2], v[3]);
+      if (q.norm() < 1e-9) kf.key("quaternion").fail("is zero");
+    } else if (kj.contains("rotvec_deg")) {
+      q = rotvec_deg(vec3(kj["rotvec_deg"], kf.key("rotvec_deg")));
+    }
+    key.T_cam_board = make_pose(q, tr);
+    out.push_back(key);
+  }
+  return out;
+}
+
+// "boards" and "poses": every board of the scene with its keyframes; every pose names a board.
+std::vector<SceneBoard> read_scene_boards(
+    const json& j, const JsonPath& root,
+    const std::function<std::string(const std::string&)>& relative) {
+  std::vector<Board> boards;
+  const json& bj = required_field(j, "boards", root);
+  if (bj.is_string()) {
+    boards = read_boards(relative(bj.get<std::string>()));
+  } else if (bj.is_array()) {
+    boards = read_boards_json(json{{"boards", bj}}, root.source());
+  } else {
+    root.key("boards").fail("must be a boards.json path or an array of boards");
+  }
+  const JsonPath poses_at = root.key("poses");
+  if (!j.contains("poses") || !j["poses"].is_object()) {
+    poses_at.fail("is missing, expected {\"BOARD\": [keyframes], ...}");
+  }
+  const json& poses = j["poses"];
+  for (auto it = poses.begin(); it != poses.end(); ++it) {
+    const bool known = std::any_of(boards.begin(), boards.end(),
+                                   [&](const Board& b) { return b.name == it.key(); });
+    if (!known) poses_at.key(it.key()).fail("names no board of the scene");
+  }
+  const bool plate = optional_bool(j, "plate", root, true);
+  std::vector<SceneBoard> out;
+  for (const Board& b : boards) {
+    SceneBoard sb;
+    sb.board = b;
+    sb.plate = plate;
+    if (!poses.contains(b.name) || !poses[b.name].is_array()) {
+      poses_at.key(b.name).fail("is missing, expected keyframes of board '" + b.name + "'");
+    }
+    sb.keyframes = read_keyframes(poses[b.name], poses_at.key(b.name));
+    out.push_back(sb);
+  }
+  return out;
+}
+
+// "occlusions": [{"rect_px": [x, y, w, h], "frames": [first, last], "grey": 60}].
+std::vector<OcclusionBox> read_occlusions(const json& list, const JsonPath& at) {
+  as_array(list, at);
+  std::vector<OcclusionBox> out;
+  for (size_t k = 0; k < list.size(); ++k) {
+    const json& o = list[k];
+    const JsonPath of = at.index(k);
+    if (!o.is_object() || !o.contains("rect_px")) {
+      of.key("rect_px").fail("is missing, expected [x, y, w, h]");
+    }
+    OcclusionBox box;
+    const std::vector<double> r = as_numbers(o["rect_px"], of.key("rect_px"), 4, 4, "[x, y, w, h]");
+    box.rect_px = cv::Rect2d(r[0], r[1], r[2], r[3]);
+    box.first_frame = 0;
+    box.last_frame = std::numeric_limits<int64_t>::max();
+    if (o.contains("frames")) {
+      const std::vector<int64_t> f = frame_list(o, "frames", of);
+      if (f.size() != 2) of.key("frames").fail("must be [first, last]");
+      box.first_frame = f[0];
+      box.last_frame = f[1];
+    }
+    box.grey = optional_number(o, "grey", of, box.grey);
+    out.push_back(box);
   }
   return out;
 }
@@ -444,153 +597,32 @@ std::vector<int64_t> int_list(const json& j, const std::string& key, const std::
 
 SyntheticScene read_scene(const std::string& path) {
   namespace fs = std::filesystem;
-  std::ifstream in(path);
-  if (!in) throw Error(path + ": cannot open scene file");
-  json j;
-  try {
-    in >> j;
-  } catch (const json::exception& e) {
-    throw Error(path + ": not valid JSON (" + e.what() + ")");
-  }
+  const json j = read_json_file(path, "scene file");
   if (!j.is_object()) throw Error(path + ": expected a JSON object");
+  const JsonPath root(path);
   const fs::path base = fs::path(path).parent_path();
   const auto relative = [&](const std::string& p) {
     return fs::path(p).is_absolute() ? p : (base / p).string();
   };
   SyntheticScene s;
-  if (j.contains("camera")) {
-    const json& c = j["camera"];
-    if (c.is_string()) {
-      s.camera = calibration::CameraModel::read_yaml(relative(c.get<std::string>()));
-    } else if (c.is_object()) {
-      const std::string cp = path + ": camera";
-      s.camera.width = int(num(c, "width", s.camera.width, cp));
-      s.camera.height = int(num(c, "height", s.camera.height, cp));
-      s.camera.fx = num(c, "fx", 1000.0, cp);
-      s.camera.fy = num(c, "fy", s.camera.fx, cp);
-      s.camera.cx = num(c, "cx", (s.camera.width - 1) / 2.0, cp);
-      s.camera.cy = num(c, "cy", (s.camera.height - 1) / 2.0, cp);
-      if (c.contains("distortion")) {
-        const json& d = c["distortion"];
-        if (!d.is_array() || d.size() < 4 || d.size() > 5) {
-          throw Error(path + ": field camera.distortion is " + d.dump() +
-                      ", expected [k1, k2, p1, p2, k3]");
-        }
-        for (size_t i = 0; i < d.size(); ++i) {
-          if (!d[i].is_number()) throw Error(path + ": field camera.distortion is not numeric");
-          s.camera.distortion[i] = d[i].get<double>();
-        }
-      }
-    } else {
-      throw Error(path + ": field camera must be an object or the path of a camera.yaml");
-    }
-  }
+  if (j.contains("camera")) read_scene_camera(j["camera"], root.key("camera"), relative, s);
   if (j.contains("background")) {
-    const json& b = j["background"];
-    if (b.is_string()) {
-      s.background = b.get<std::string>();
-    } else if (b.is_object()) {
-      if (b.contains("type")) {
-        if (!b["type"].is_string()) throw Error(path + ": field background.type is not a string");
-        s.background = b["type"].get<std::string>();
-      }
-      s.background_grey = num(b, "grey", s.background_grey, path + ": background");
-      s.background_contrast = num(b, "contrast", s.background_contrast, path + ": background");
-    } else {
-      throw Error(path + ": field background must be an object or a type name");
-    }
+    read_scene_background(j["background"], root.key("background"), s);
   }
-  std::vector<Board> boards;
-  if (!j.contains("boards")) throw Error(path + ": field boards is missing");
-  if (j["boards"].is_string()) {
-    boards = read_boards(relative(j["boards"].get<std::string>()));
-  } else if (j["boards"].is_array()) {
-    boards = read_boards_text(json{{"boards", j["boards"]}}.dump(), path);
-  } else {
-    throw Error(path + ": field boards must be a boards.json path or an array of boards");
-  }
-  if (!j.contains("poses") || !j["poses"].is_object()) {
-    throw Error(path + ": field poses is missing, expected {\"BOARD\": [keyframes], ...}");
-  }
-  for (auto it = j["poses"].begin(); it != j["poses"].end(); ++it) {
-    const bool known = std::any_of(boards.begin(), boards.end(),
-                                   [&](const Board& b) { return b.name == it.key(); });
-    if (!known) throw Error(path + ": field poses." + it.key() + " names no board of the scene");
-  }
-  const bool plate = j.value("plate", true);
-  for (const Board& b : boards) {
-    SceneBoard sb;
-    sb.board = b;
-    sb.plate = plate;
-    const std::string field = "poses." + b.name;
-    if (!j["poses"].contains(b.name) || !j["poses"][b.name].is_array()) {
-      throw Error(path + ": field " + field + " is missing, expected keyframes of board '" +
-                  b.name + "'");
-    }
-    const json& keys = j["poses"][b.name];
-    for (size_t k = 0; k < keys.size(); ++k) {
-      const json& kj = keys[k];
-      const std::string kf = field + "[" + std::to_string(k) + "]";
-      if (!kj.is_object() || !kj.contains("translation_mm")) {
-        throw Error(path + ": field " + kf + ".translation_mm is missing");
-      }
-      PoseKeyframe key;
-      key.time_s = num(kj, "t", 0.0, path + ": " + kf);
-      const Eigen::Vector3d tr = vec3(kj["translation_mm"], path, kf + ".translation_mm");
-      Eigen::Quaterniond q = Eigen::Quaterniond::Identity();
-      if (kj.contains("quaternion")) {
-        const json& qj = kj["quaternion"];
-        if (!qj.is_array() || qj.size() != 4) {
-          throw Error(path + ": field " + kf + ".quaternion, expected [w, x, y, z]");
-        }
-        q = Eigen::Quaterniond(qj[0].get<double>(), qj[1].get<double>(), qj[2].get<double>(),
-                               qj[3].get<double>());
-        if (q.norm() < 1e-9) throw Error(path + ": field " + kf + ".quaternion is zero");
-      } else if (kj.contains("rotvec_deg")) {
-        q = rotvec_deg(vec3(kj["rotvec_deg"], path, kf + ".rotvec_deg"));
-      }
-      key.T_cam_board = make_pose(q, tr);
-      sb.keyframes.push_back(key);
-    }
-    s.boards.push_back(sb);
-  }
-  s.fps = num(j, "fps", s.fps, path);
-  s.frame_count = int64_t(num(j, "frames", double(s.frame_count), path));
-  s.noise_sigma = num(j, "noise_sigma", s.noise_sigma, path);
-  s.blur_sigma = num(j, "blur_sigma", s.blur_sigma, path);
-  s.gain = num(j, "gain", s.gain, path);
-  s.offset = num(j, "offset", s.offset, path);
-  s.black = num(j, "black", s.black, path);
-  s.white = num(j, "white", s.white, path);
-  s.seed = uint64_t(num(j, "seed", double(s.seed), path));
-  s.supersampling = int(num(j, "supersampling", s.supersampling, path));
-  s.dropped_frames = int_list(j, "dropped_frames", path);
-  s.corrupt_frames = int_list(j, "corrupt_frames", path);
-  if (j.contains("occlusions")) {
-    if (!j["occlusions"].is_array()) throw Error(path + ": field occlusions is not an array");
-    for (size_t k = 0; k < j["occlusions"].size(); ++k) {
-      const json& o = j["occlusions"][k];
-      const std::string of = "occlusions[" + std::to_string(k) + "]";
-      if (!o.is_object() || !o.contains("rect_px") || !o["rect_px"].is_array() ||
-          o["rect_px"].size() != 4) {
-        throw Error(path + ": field " + of + ".rect_px is missing, expected [x, y, w, h]");
-      }
-      OcclusionBox box;
-      const json& r = o["rect_px"];
-      box.rect_px = cv::Rect2d(r[0].get<double>(), r[1].get<double>(), r[2].get<double>(),
-                               r[3].get<double>());
-      box.first_frame = 0;
-      box.last_frame = std::numeric_limits<int64_t>::max();
-      if (o.contains("frames")) {
-        const std::vector<int64_t> f = int_list(o, "frames", path + ": " + of);
-        if (f.size() != 2) throw Error(path + ": field " + of + ".frames, expected [first, last]");
-        box.first_frame = f[0];
-        box.last_frame = f[1];
-      }
-      box.grey = num(o, "grey", box.grey, path + ": " + of);
-      s.occlusions.push_back(box);
-    }
-  }
+  s.boards = read_scene_boards(j, root, relative);
+  s.fps = optional_number(j, "fps", root, s.fps);
+  s.frame_count = int64_t(optional_number(j, "frames", root, double(s.frame_count)));
+  s.noise_sigma = optional_number(j, "noise_sigma", root, s.noise_sigma);
+  s.blur_sigma = optional_number(j, "blur_sigma", root, s.blur_sigma);
+  s.gain = optional_number(j, "gain", root, s.gain);
+  s.offset = optional_number(j, "offset", root, s.offset);
+  s.black = optional_number(j, "black", root, s.black);
+  s.white = optional_number(j, "white", root, s.white);
+  s.seed = uint64_t(optional_number(j, "seed", root, double(s.seed)));
+  s.supersampling = int(optional_number(j, "supersampling", root, s.supersampling));
+  s.dropped_frames = frame_list(j, "dropped_frames", root);
+  s.corrupt_frames = frame_list(j, "corrupt_frames", root);
+  if (j.contains("occlusions")) s.occlusions = read_occlusions(j["occlusions"], root.key("occlusions"));
   s.validate(path);
   return s;
 }

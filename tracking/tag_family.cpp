@@ -13,7 +13,7 @@
 
 #include <vector>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 #include "tracking/detector.hpp"
 
 namespace crepuscular::tracking {

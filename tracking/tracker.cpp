@@ -6,7 +6,7 @@
 #include <algorithm>
 #include <cmath>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 
 namespace crepuscular::tracking {
 

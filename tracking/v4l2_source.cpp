@@ -18,7 +18,7 @@
 
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 #include "recordings/recording.hpp"
 
 namespace crepuscular::tracking {

@@ -13,10 +13,14 @@
 
 #include <opencv2/calib3d.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace crepuscular::calibration {
 namespace {
+
+using test::expect_error_containing;
 
 namespace fs = std::filesystem;
 
@@ -40,26 +44,6 @@ const std::vector<std::array<double, 5>> kDistortions = {
     {-0.11, 0.04, 0.0012, -0.0009, 0.0},
     {0.05, -0.21, -0.0021, 0.0015, 0.34},
 };
-
-template <typename F>
-void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
-  try {
-    f();
-    ADD_FAILURE() << "expected crepuscular::Error";
-  } catch (const Error& e) {
-    for (const std::string& part : parts) {
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
-          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
-    }
-  }
-}
-
-fs::path temp_dir(const std::string& name) {
-  const fs::path dir = fs::temp_directory_path() / ("crepuscular_camera_model_test_" + name);
-  fs::remove_all(dir);
-  fs::create_directories(dir);
-  return dir;
-}
 
 TEST(CameraModel, ProjectAgreesWithOpenCvProjectPoints) {
   std::mt19937 rng(20261123);
@@ -127,7 +111,7 @@ TEST(CameraModel, ProjectOfPrincipalRayIsPrincipalPoint) {
 }
 
 TEST(CameraModel, YamlRoundTripIsReadableByOpenCv) {
-  const fs::path dir = temp_dir("roundtrip");
+  const test::TemporaryFolder dir;
   const CameraModel m = make_camera(kDistortions[4]);
   const std::string path = (dir / "camera.yaml").string();
   m.write_yaml(path);
@@ -161,7 +145,7 @@ TEST(CameraModel, YamlRoundTripIsReadableByOpenCv) {
 }
 
 TEST(CameraModel, ReadsFileWrittenByOpenCvWithFourCoefficients) {
-  const fs::path dir = temp_dir("opencv4");
+  const test::TemporaryFolder dir;
   const std::string path = (dir / "cam.yml").string();
   {
     cv::FileStorage out(path, cv::FileStorage::WRITE);
@@ -177,7 +161,7 @@ TEST(CameraModel, ReadsFileWrittenByOpenCvWithFourCoefficients) {
 }
 
 TEST(CameraModel, BadFilesNameTheFileAndTheField) {
-  const fs::path dir = temp_dir("bad");
+  const test::TemporaryFolder dir;
   const auto write = [&](const std::string& name, const std::string& text) {
     const std::string path = (dir / name).string();
     std::ofstream(path) << text;

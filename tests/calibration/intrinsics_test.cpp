@@ -5,7 +5,6 @@
 #include "calibration/intrinsics.hpp"
 
 #include <gtest/gtest.h>
-#include <unistd.h>
 
 #include <Eigen/Geometry>
 #include <chrono>
@@ -24,7 +23,9 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/temporary_folder.hpp"
 #include "tracking/board.hpp"
 #include "tracking/detector.hpp"
 #include "tracking/pose.hpp"
@@ -33,22 +34,11 @@
 namespace crepuscular::calibration {
 namespace {
 
+using test::expect_error_containing;
+
 constexpr double kPi = 3.14159265358979323846;
 constexpr int kWidth = 1280;
 constexpr int kHeight = 720;
-
-template <typename F>
-void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
-  try {
-    f();
-    ADD_FAILURE() << "expected crepuscular::Error";
-  } catch (const Error& e) {
-    for (const std::string& part : parts) {
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
-          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
-    }
-  }
-}
 
 // The camera the synthetic views are taken with.
 struct TrueCamera {
@@ -351,7 +341,7 @@ TEST(Intrinsics, DetectsRenderedChessboardCornersToSubPixel) {
 // written camera.yaml holds the rendering camera (no distortion) and the refusal exits non-zero.
 TEST(Intrinsics, CalibrateCameraCommandOnRenderedChessboards) {
   namespace fs = std::filesystem;
-  const fs::path dir = fs::temp_directory_path() / ("crepuscular-calib-cmd-" + std::to_string(getpid()));
+  const test::TemporaryFolder dir;
   fs::create_directories(dir / "shots");
   const ChessboardSpec spec{9, 6, 25.0};
   const cv::Matx33d K(900, 0, 640, 0, 905, 360, 0, 0, 1);
@@ -394,7 +384,6 @@ TEST(Intrinsics, CalibrateCameraCommandOnRenderedChessboards) {
   std::ifstream log(dir / "log2.txt");
   const std::string text((std::istreambuf_iterator<char>(log)), std::istreambuf_iterator<char>());
   EXPECT_NE(text.find("error: camera calibration: only 3 usable view"), std::string::npos) << text;
-  fs::remove_all(dir);
 }
 
 // AprilTag grid board rendered by tracking's synthetic camera (with lens distortion), detected by

@@ -4,7 +4,6 @@
 #include "calibration/pivot.hpp"
 
 #include <gtest/gtest.h>
-#include <unistd.h>
 
 #include <algorithm>
 #include <cmath>
@@ -19,26 +18,17 @@
 #include <vector>
 
 #include "calibration/calibration_files.hpp"
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace crepuscular::calibration {
 namespace {
 
+using test::expect_error_containing;
+
 constexpr double kPi = 3.14159265358979323846;
 constexpr double kDeg = kPi / 180.0;
-
-template <typename F>
-void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
-  try {
-    f();
-    ADD_FAILURE() << "expected crepuscular::Error";
-  } catch (const Error& e) {
-    for (const std::string& part : parts) {
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
-          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
-    }
-  }
-}
 
 const Eigen::Vector3d kTip(12.0, -5.0, 180.0);     // needle frame
 const Eigen::Vector3d kPivot(30.0, -20.0, 500.0);  // camera frame
@@ -223,8 +213,7 @@ void write_poses_csv(const std::string& path, const std::vector<Eigen::Isometry3
 // `crepuscular calibrate pivot --poses P.csv --spin-poses S.csv --out needle.yaml` end to end.
 TEST(Pivot, CalibratePivotCommandWritesNeedleFile) {
   namespace fs = std::filesystem;
-  const fs::path dir = fs::temp_directory_path() / ("crepuscular-pivot-cmd-" + std::to_string(getpid()));
-  fs::create_directories(dir);
+  const test::TemporaryFolder dir;
   write_poses_csv((dir / "pivot.csv").string(), pivot_poses(100, 30.0, true, true, 0.2, 0.2, 21));
   // Spin about the true tip axis: a needle along kTip from the origin.
   const Eigen::Vector3d axis = kTip.normalized();
@@ -260,7 +249,6 @@ TEST(Pivot, CalibratePivotCommandWritesNeedleFile) {
                            (dir / "log2.txt").string() + " 2>&1";
   EXPECT_NE(std::system(cmd2.c_str()), 0);
   EXPECT_FALSE(fs::exists(out2));
-  fs::remove_all(dir);
 }
 
 // The whole chain on rendered frames: `crepuscular synth` renders a needle board (2 x 2 tags of
@@ -268,8 +256,7 @@ TEST(Pivot, CalibratePivotCommandWritesNeedleFile) {
 // libapriltag and solves; the tip (0, 0, 150) mm comes back within 0.5 mm.
 TEST(Pivot, CalibratePivotCommandOnRenderedRecording) {
   namespace fs = std::filesystem;
-  const fs::path dir = fs::temp_directory_path() / ("crepuscular-pivot-rec-" + std::to_string(getpid()));
-  fs::create_directories(dir);
+  const test::TemporaryFolder dir;
   const Eigen::Vector3d tip(0, 0, 150), pivot(20, 30, 650);
   std::mt19937 rng(5);
   std::uniform_real_distribution<double> uni(-1.0, 1.0);
@@ -309,7 +296,6 @@ TEST(Pivot, CalibratePivotCommandOnRenderedRecording) {
   std::printf("rendered recording: tip (%.3f, %.3f, %.3f) mm, error %.3f mm, RMS %.3f mm\n",
               n.tip_needle.x(), n.tip_needle.y(), n.tip_needle.z(), (n.tip_needle - tip).norm(),
               n.pivot_rms_mm);
-  fs::remove_all(dir);
 }
 
 }  // namespace

@@ -5,7 +5,6 @@
 #include "calibration/registration.hpp"
 
 #include <gtest/gtest.h>
-#include <unistd.h>
 
 #include <Eigen/Geometry>
 #include <algorithm>
@@ -20,25 +19,16 @@
 #include <vector>
 
 #include "calibration/calibration_files.hpp"
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace crepuscular::calibration {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
+using test::expect_error_containing;
 
-template <typename F>
-void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
-  try {
-    f();
-    ADD_FAILURE() << "expected crepuscular::Error";
-  } catch (const Error& e) {
-    for (const std::string& part : parts) {
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
-          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
-    }
-  }
-}
+constexpr double kPi = 3.14159265358979323846;
 
 // An asymmetric layout of 6 beads on a board, some on posts (not coplanar), board frame mm.
 std::vector<Eigen::Vector3d> board_layout() {
@@ -192,8 +182,7 @@ TEST(Registration, ExpectedTreMatchesMonteCarlo) {
 // fiducials in RAS, shuffled, one missing and one extra; a mirrored set is refused.
 TEST(Registration, RegisterCommandWritesRegistrationFile) {
   namespace fs = std::filesystem;
-  const fs::path dir = fs::temp_directory_path() / ("crepuscular-register-cmd-" + std::to_string(getpid()));
-  fs::create_directories(dir);
+  const test::TemporaryFolder dir;
   const auto board = board_layout();
   std::ofstream(dir / "boards.json")
       << R"({"boards": [{"name": "patient", "grid": {"rows": 2, "cols": 3, "tag_size_mm": 40,
@@ -238,7 +227,6 @@ TEST(Registration, RegisterCommandWritesRegistrationFile) {
   const std::string out2 = (dir / "mirrored.yaml").string();
   EXPECT_NE(std::system(command("mirrored.mrk.json", out2).c_str()), 0);
   EXPECT_FALSE(fs::exists(out2));
-  fs::remove_all(dir);
 }
 
 }  // namespace

@@ -7,7 +7,7 @@
 #include <cstdio>
 #include <random>
 
-#include "planning/path_safety.hpp"
+#include "planning/safety/path_safety.hpp"
 
 namespace crepuscular::planning {
 namespace {

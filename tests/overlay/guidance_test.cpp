@@ -6,27 +6,28 @@
 #include "overlay/guidance.hpp"
 
 #include <gtest/gtest.h>
-#include <unistd.h>
 
 #include <cmath>
-#include <filesystem>
-#include <fstream>
 #include <memory>
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 #include "overlay/renderer.hpp"
-#include "planning/plan.hpp"
-#include "planning/volume_io.hpp"
+#include "pipelines/plan.hpp"
+#include "planning/imaging/ray_march.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "tests/support/plans.hpp"
+#include "tests/support/renderer.hpp"
+#include "tests/support/temporary_folder.hpp"
 #include "tracking/synthetic.hpp"
 #include "tracking/tracker.hpp"
 
-namespace fs = std::filesystem;
-
 namespace crepuscular::overlay {
 namespace {
+
+using test::make_renderer;
 
 constexpr double kBody = 40.0, kTumor = 5.0, kVesselX = 16.0, kVesselR = 4.0;
 
@@ -88,22 +89,10 @@ Eigen::Isometry3d T_ct_needle_for(const Eigen::Vector3d& tip, const Eigen::Vecto
   return T;
 }
 
-std::unique_ptr<OverlayRenderer> make_renderer(const calibration::CameraModel& cam) {
-  try {
-    return std::make_unique<OverlayRenderer>(cam);
-  } catch (const Error& e) {
-    std::cerr << "no OpenGL context: " << e.what() << "\n";
-    return nullptr;
-  }
-}
-
 class GuidanceTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
-    dir_ = new fs::path(fs::temp_directory_path() /
-                        ("crepuscular_guidance_" + std::to_string(::getpid())));
-    fs::remove_all(*dir_);
-    fs::create_directories(*dir_);
+    dir_ = new test::TemporaryFolder;
     planning::ImageGeometry g;
     g.dims = {44, 44, 44};
     g.spacing = Eigen::Vector3d::Constant(2.0);
@@ -120,14 +109,8 @@ class GuidanceTest : public ::testing::Test {
         }
     planning::write_volume(labels, (*dir_ / "labels.nii.gz").string());
     planning::write_volume(tumor, (*dir_ / "tumor.nii.gz").string());
-    std::ofstream(*dir_ / "table.json") << R"({"name": "t", "levels": [
-        {"level": 0, "name": "none", "blocking_per_mm": 0.0},
-        {"level": 1, "name": "low", "blocking_per_mm": 0.01},
-        {"level": 2, "name": "medium", "blocking_per_mm": 0.1},
-        {"level": 3, "name": "impassable", "blocking_per_mm": 10.0}],
-      "labels": [{"value": 1, "name": "fat", "level": 0},
-                 {"value": 2, "name": "vessel", "level": 3}]})";
-    planning::PlanRequest r;
+    test::write_fat_and_vessel_table((*dir_ / "table.json").string());
+    pipelines::PlanRequest r;
     r.labels = (*dir_ / "labels.nii.gz").string();
     r.tumor = (*dir_ / "tumor.nii.gz").string();
     r.vulnerability = (*dir_ / "table.json").string();
@@ -136,7 +119,7 @@ class GuidanceTest : public ::testing::Test {
     r.path_safety.device = planning::Device::kCpu;
     r.path_safety.mode = planning::Mode::kFast;
     r.out_dir = (*dir_ / "plan").string();
-    planning::run_plan(r);
+    pipelines::run_plan(r);
     plan_ = new planning::PlanData(planning::load_plan((*dir_ / "plan").string()));
     GuidanceSetup setup;
     setup.camera = test_camera();
@@ -148,7 +131,6 @@ class GuidanceTest : public ::testing::Test {
   static void TearDownTestSuite() {
     delete overlay_;
     delete plan_;
-    fs::remove_all(*dir_);
     delete dir_;
   }
 
@@ -171,11 +153,11 @@ class GuidanceTest : public ::testing::Test {
     return f;
   }
 
-  static fs::path* dir_;
+  static test::TemporaryFolder* dir_;
   static planning::PlanData* plan_;
   static GuidanceOverlay* overlay_;
 };
-fs::path* GuidanceTest::dir_ = nullptr;
+test::TemporaryFolder* GuidanceTest::dir_ = nullptr;
 planning::PlanData* GuidanceTest::plan_ = nullptr;
 GuidanceOverlay* GuidanceTest::overlay_ = nullptr;
 
@@ -195,12 +177,8 @@ TEST_F(GuidanceTest, RayBundlesEndOnTheSkinAndAvoidTheVessel) {
   EXPECT_EQ(through_vessel_core, 0);
   // Every direction well away from the vessel is drawn, as safe: the whole tumor is in view.
   int expected = 0;
-  const int n = 1500;
-  const double golden = M_PI * (3.0 - std::sqrt(5.0));
-  for (int i = 0; i < n; ++i) {
-    const double z = 1.0 - (2.0 * i + 1.0) / n, r = std::sqrt(1 - z * z);
-    if (std::abs(azimuth_deg({r * std::cos(golden * i), r * std::sin(golden * i), z})) > 40)
-      ++expected;
+  for (const Eigen::Vector3d& d : planning::fibonacci_sphere(1500)) {
+    if (std::abs(azimuth_deg(d)) > 40) ++expected;
   }
   EXPECT_EQ(far_from_vessel, expected);
   for (const auto& ray : rays) {

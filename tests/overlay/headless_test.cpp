@@ -13,7 +13,7 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 
 namespace crepuscular::overlay {
 namespace {

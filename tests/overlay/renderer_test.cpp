@@ -3,7 +3,6 @@
 
 #include <gtest/gtest.h>
 
-#include <chrono>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
@@ -15,11 +14,15 @@
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
-#include "tests/overlay/xvfb_environment.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/renderer.hpp"
+#include "tests/support/xvfb_environment.hpp"
 
 namespace crepuscular::overlay {
 namespace {
+
+using test::make_renderer;
+using test::noise_frame;
 
 calibration::CameraModel test_camera(int width = 640, int height = 480) {
   calibration::CameraModel cam;
@@ -31,23 +34,6 @@ calibration::CameraModel test_camera(int width = 640, int height = 480) {
   cam.cy = height / 2.0 - 4.1;
   cam.distortion = {-0.28, 0.09, 0.0012, -0.0009, -0.01};  // strong barrel distortion
   return cam;
-}
-
-// A renderer, or nullptr when this machine cannot make an OpenGL 3.3 core context.
-std::unique_ptr<OverlayRenderer> make_renderer(const calibration::CameraModel& cam) {
-  try {
-    return std::make_unique<OverlayRenderer>(cam);
-  } catch (const Error& e) {
-    std::cerr << "no OpenGL context: " << e.what() << "\n";
-    return nullptr;
-  }
-}
-
-cv::Mat noise_frame(int width, int height, unsigned seed) {
-  cv::Mat frame(height, width, CV_8UC3);
-  cv::RNG rng(seed);
-  rng.fill(frame, cv::RNG::UNIFORM, 0, 256);
-  return frame;
 }
 
 cv::Mat differing(const cv::Mat& a, const cv::Mat& b) {
@@ -257,42 +243,6 @@ TEST(OverlayRenderer, RejectsFrameOfWrongSize) {
   EXPECT_THROW(renderer->set_frame(cv::Mat::zeros(cam.height, cam.width, CV_8UC1)), Error);
 }
 
-// Frame time of upload + render + readback on this machine's OpenGL (reported, not asserted).
-TEST(OverlayRenderer, FrameTime) {
-  for (const auto& size : {cv::Size(1280, 720), cv::Size(1920, 1080)}) {
-    const auto cam = test_camera(size.width, size.height);
-    auto renderer = make_renderer(cam);
-    if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context";
-    const cv::Mat frame = noise_frame(size.width, size.height, 5);
-    for (int i = 0; i < 50; ++i) {  // 50 circles of 64 vertices
-      Polyline ring;
-      for (int k = 0; k < 64; ++k) {
-        const double ang = 2 * M_PI * k / 64;
-        ring.points_cam.emplace_back(-100 + 4 * i + 20 * std::cos(ang), 20 * std::sin(ang),
-                                     300 + i);
-      }
-      ring.closed = true;
-      ring.width_px = 3;
-      renderer->add_polyline(i % 2 ? "odd" : "even", ring);
-    }
-    renderer->set_frame(frame);
-    renderer->render();  // warm-up
-    const int n = 20;
-    const auto t0 = std::chrono::steady_clock::now();
-    for (int i = 0; i < n; ++i) {
-      renderer->set_frame(frame);
-      const cv::Mat image = renderer->render();
-      ASSERT_EQ(image.cols, size.width);
-    }
-    const double ms =
-        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / n;
-    std::cout << renderer->gl_description() << "\n";
-    std::cout << "frame time (upload + render + readback) " << size.width << "x" << size.height
-              << ": " << ms << " ms\n";
-    RecordProperty("frame_ms_" + std::to_string(size.width), std::to_string(ms));
-  }
-}
-
 // The same input for two renderers: noise frame, lines in 3D (opaque and translucent), dots,
 // a pixel-space outline and a text image layer.
 void draw_scene(OverlayRenderer& r, const cv::Mat& frame) {
@@ -327,13 +277,7 @@ std::unique_ptr<OverlayRenderer> make_renderer_with(const calibration::CameraMod
   RendererOptions options;
   options.visible = visible;
   options.backend = backend;
-  try {
-    return std::make_unique<OverlayRenderer>(cam, options);
-  } catch (const Error& e) {
-    std::cerr << "no OpenGL context (" << (visible ? "window" : "headless") << "): " << e.what()
-              << "\n";
-    return nullptr;
-  }
+  return test::make_renderer(cam, options);
 }
 
 // What the user sees in the live window (read back from the X server) is the headless frame.

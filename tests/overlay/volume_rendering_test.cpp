@@ -5,7 +5,6 @@
 
 #include <gtest/gtest.h>
 
-#include <chrono>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
@@ -13,18 +12,19 @@
 #include <memory>
 
 
-#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
-#include "tests/overlay/xvfb_environment.hpp"
-#include "planning/evaluate.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/renderer.hpp"
+#include "tests/support/xvfb_environment.hpp"
 
 namespace crepuscular::overlay {
 namespace {
 
 using planning::ImageGeometry;
 using planning::Volume;
+using test::make_renderer;
+using test::noise_frame;
 
 calibration::CameraModel camera_320(double k1 = 0.0) {
   calibration::CameraModel cam;
@@ -36,15 +36,6 @@ calibration::CameraModel camera_320(double k1 = 0.0) {
   cam.cy = 120;
   cam.distortion = {k1, 0, 0, 0, 0};
   return cam;
-}
-
-std::unique_ptr<OverlayRenderer> make_renderer(const calibration::CameraModel& cam) {
-  try {
-    return std::make_unique<OverlayRenderer>(cam);
-  } catch (const Error& e) {
-    std::cerr << "no OpenGL context: " << e.what() << "\n";
-    return nullptr;
-  }
 }
 
 // Classes: value <= 1 safe, > 2 dangerous, medium between.
@@ -108,13 +99,6 @@ double max_difference(const cv::Mat& image, const cv::Mat& reference, cv::Point*
   cv::minMaxLoc(diff.reshape(1), nullptr, &worst, nullptr, &at);
   if (where) *where = cv::Point(at.x / 3, at.y);
   return worst;
-}
-
-cv::Mat noise_frame(int width, int height, unsigned seed) {
-  cv::Mat frame(height, width, CV_8UC3);
-  cv::RNG rng(seed);
-  rng.fill(frame, cv::RNG::UNIFORM, 0, 256);
-  return frame;
 }
 
 // A rotated, anisotropic grid whose values change class every few voxels (many class borders),
@@ -416,64 +400,6 @@ TEST(SafetyVolumeRendering, RejectsBadInput) {
   EXPECT_EQ(rendering.voxel_classes()[size_t(volume.geometry().offset(46, 18, 34))], 2);
   EXPECT_EQ(rendering.voxel_classes()[size_t(volume.geometry().offset(32, 46, 28))], 3);
   EXPECT_EQ(rendering.voxel_classes()[0], 0);
-}
-
-// Draw time on a demo plan (crepuscular demo --mode fast): run with
-// CREPUSCULAR_VOLUME_BENCH_PLAN=DIR/plan and --gtest_also_run_disabled_tests.
-TEST(SafetyVolumeRendering, DISABLED_DrawTimeOnPlan) {
-  const char* dir = std::getenv("CREPUSCULAR_VOLUME_BENCH_PLAN");
-  if (!dir) GTEST_SKIP() << "set CREPUSCULAR_VOLUME_BENCH_PLAN";
-  planning::PlanLoadOptions load;
-  load.blocking = false;
-  load.labels = false;
-  load.tumor = false;
-  load.area_safety = false;
-  load.only_value = "svv";
-  const planning::PlanData plan = planning::load_plan(dir, load);
-  const auto& svv = plan.path_safety.at("svv");
-  // Camera 50 cm in front of the tumor (anterior, -P), looking at it, head up.
-  const Eigen::Isometry3d pose = look_at(plan.tumor_centre + Eigen::Vector3d(0, -500, 0),
-                                         plan.tumor_centre, Eigen::Vector3d(0, 0, 1));
-  for (const auto& size : {std::pair<int, int>(1280, 720), std::pair<int, int>(1920, 1080)}) {
-    calibration::CameraModel cam;
-    cam.width = size.first;
-    cam.height = size.second;
-    cam.fx = cam.fy = 0.9 * size.first;
-    cam.cx = size.first / 2.0 - 0.5;
-    cam.cy = size.second / 2.0 - 0.5;
-    cam.distortion = {-0.1, 0.02, 0, 0, 0};
-    auto renderer = make_renderer(cam);
-    if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context";
-    std::cout << renderer->gl_description() << "\n";
-    for (const double scale : {1.0, 0.5, 0.25}) {
-      VolumeRenderingOptions options;
-      options.resolution_scale = scale;
-      SafetyVolumeRendering rendering(svv, plan.classes.at("svv"), options);
-      rendering.set_pose(pose);
-      renderer->set_frame(noise_frame(cam.width, cam.height, 1));
-      renderer->set_layer_draw("volume", [&rendering](const DrawContext& c) { rendering.draw(c); });
-      const cv::Mat first = renderer->render();  // makes the GL objects and the rays
-      renderer->set_layer_visible("volume", false);
-      const int n = 5;
-      auto t0 = std::chrono::steady_clock::now();
-      for (int i = 0; i < n; ++i) renderer->render();
-      const double bare =
-          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / n;
-      renderer->set_layer_visible("volume", true);
-      t0 = std::chrono::steady_clock::now();
-      for (int i = 0; i < n; ++i) renderer->render();
-      const double with =
-          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() / n;
-      std::cout << cam.width << "x" << cam.height << " scale " << scale << ": frame " << with
-                << " ms with the volume layer, " << bare << " ms without: layer " << with - bare
-                << " ms\n";
-      if (const char* out = std::getenv("CREPUSCULAR_VOLUME_BENCH_PNG")) {
-        cv::imwrite(std::string(out) + "_" + std::to_string(cam.width) + "_" +
-                        std::to_string(int(scale * 100)) + ".png",
-                    first);
-      }
-    }
-  }
 }
 
 }  // namespace

@@ -2,14 +2,12 @@
 // bound and topology, extrusion against analytic ray-cylinder intersections, region counts of
 // scenes whose regions are known, divergence-theorem sizes against 4/3 pi r^3, the VTK file, and
 // the area safety section of a small plan.
-#include "planning/area_safety.hpp"
+#include "planning/safety/area_safety.hpp"
 
 #include <gtest/gtest.h>
 #include <sys/wait.h>
-#include <unistd.h>
 
 #include <Eigen/Geometry>
-#include <array>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -19,23 +17,27 @@
 #include <set>
 #include <sstream>
 
-#include "kernels/error.hpp"
-#include "planning/plan.hpp"
-#include "planning/volume_io.hpp"
+#include <nlohmann/json.hpp>
+
+#include "foundation/error.hpp"
+#include "pipelines/plan.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "tests/support/cli.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/grids.hpp"
+#include "tests/support/plans.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace fs = std::filesystem;
 
 namespace crepuscular::planning {
 namespace {
 
-// A cube grid of n^3 voxels of `spacing` mm centred on the origin, identity direction.
-ImageGeometry centred_grid(int n, double spacing) {
-  ImageGeometry g;
-  g.dims = {n, n, n};
-  g.spacing = Eigen::Vector3d::Constant(spacing);
-  g.origin = Eigen::Vector3d::Constant(-0.5 * (n - 1) * spacing);
-  return g;
-}
+using pipelines::PlanRequest;
+using pipelines::run_plan;
+using test::centred_cube_grid;
+using test::expect_error_containing;
+using test::run_cli;
 
 double angle_deg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
   return std::acos(std::min(1.0, std::abs(a.normalized().dot(b.normalized())))) * 180.0 / M_PI;
@@ -117,13 +119,8 @@ TEST(AreaSafetyEllipsoid, PcaOnARotatedGridWithThickSlices) {
 }
 
 TEST(AreaSafetyEllipsoid, EmptyMaskIsRefusedNamingTheSource) {
-  Volume<uint8_t> mask(centred_grid(5, 1.0), 0);
-  try {
-    fit_tumor_ellipsoid(mask, "tumor.nii.gz");
-    ADD_FAILURE() << "expected an error";
-  } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("tumor.nii.gz"), std::string::npos) << e.what();
-  }
+  Volume<uint8_t> mask(centred_cube_grid(5, 1.0), 0);
+  expect_error_containing([&] { fit_tumor_ellipsoid(mask, "tumor.nii.gz"); }, "tumor.nii.gz");
 }
 
 // --- Tessellation ------------------------------------------------------------------------------
@@ -237,7 +234,7 @@ double segment_axis_distance(const Eigen::Vector3d& b, const Eigen::Vector3d& n,
 
 TEST(AreaSafetyExtrusion, ExactlyTheRaysMeetingACylinderAreUnsafe) {
   // 1 mm blocking grid with a solid, slanted cylinder (radius 6 mm) beside a tilted ellipsoid.
-  Volume<float> blocking(centred_grid(101, 1.0), 0.0f);
+  Volume<float> blocking(centred_cube_grid(101, 1.0), 0.0f);
   const Eigen::Vector3d p0(24, 5, 0), a = Eigen::Vector3d(0.2, 0.1, 1.0).normalized();
   const double rc = 6.0;
   for (int64_t k = 0; k < 101; ++k)
@@ -308,7 +305,7 @@ TEST(AreaSafetyExtrusion, ExactlyTheRaysMeetingACylinderAreUnsafe) {
 // Blocking 1 inside rings |z - zc| <= hz, 15 mm <= hypot(x, y) <= 35 mm, around a sphere of
 // radius 10 mm at the origin, extruded 30 mm.
 AreaSafetyGeometry sphere_in_rings(const std::vector<std::pair<double, double>>& rings) {
-  Volume<float> blocking(centred_grid(91, 1.0), 0.0f);
+  Volume<float> blocking(centred_cube_grid(91, 1.0), 0.0f);
   for (int64_t k = 0; k < 91; ++k)
     for (int64_t j = 0; j < 91; ++j)
       for (int64_t i = 0; i < 91; ++i) {
@@ -397,7 +394,7 @@ TEST(AreaSafetyRegions, TwoSeparatedRingsLeaveThreeRegions) {
 
 TEST(AreaSafetyExtrusion, PathSafetyTestSkipsUncomputedVoxels) {
   // A path safety volume computed in a ball of radius 10 mm (NaN outside), value = x (mm).
-  Volume<float> ps(centred_grid(31, 1.0), std::nanf(""));
+  Volume<float> ps(centred_cube_grid(31, 1.0), std::nanf(""));
   for (int64_t k = 0; k < 31; ++k)
     for (int64_t j = 0; j < 31; ++j)
       for (int64_t i = 0; i < 31; ++i) {
@@ -442,15 +439,7 @@ TEST(AreaSafetyExtrusion, PathSafetyTestSkipsUncomputedVoxels) {
 
 class AreaSafetyFiles : public ::testing::Test {
  protected:
-  void SetUp() override {
-    dir_ = fs::temp_directory_path() /
-           ("crepuscular_area_test_" + std::to_string(::getpid()) + "_" +
-            ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(dir_);
-    fs::create_directories(dir_);
-  }
-  void TearDown() override { fs::remove_all(dir_); }
-  fs::path dir_;
+  test::TemporaryFolder dir_;
 };
 
 TEST_F(AreaSafetyFiles, VtkRoundTripAndHeader) {
@@ -573,63 +562,25 @@ TEST_F(AreaSafetyFiles, ReadingSomethingElseNamesTheFile) {
   const std::string path = (dir_ / "bad.vtk").string();
   std::ofstream(path) << "# vtk DataFile Version 3.0\nx\nASCII\nDATASET POLYDATA\nPOINTS 3 "
                          "float\n0 0 0 1 0\n";
-  try {
-    read_area_safety_vtk(path);
-    ADD_FAILURE() << "expected an error";
-  } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("bad.vtk"), std::string::npos) << e.what();
-  }
+  expect_error_containing([&] { read_area_safety_vtk(path); }, "bad.vtk");
   EXPECT_THROW(read_area_safety_vtk((dir_ / "missing.vtk").string()), Error);
 }
 
 // --- Plan and command --------------------------------------------------------------------------
 
-int run_cli(const std::string& args, std::string& err) {
-  const std::string cmd = std::string(CREPUSCULAR_BINARY) + " " + args + " 2>&1 >/dev/null";
-  FILE* pipe = ::popen(cmd.c_str(), "r");
-  std::array<char, 512> buf{};
-  err.clear();
-  while (std::fgets(buf.data(), int(buf.size()), pipe)) err += buf.data();
-  const int status = ::pclose(pipe);
-  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-}
-
 TEST_F(AreaSafetyFiles, PlanWritesAreaSafetyAndTheAreaCommandRuns) {
-  // The small plan of plan_test.cpp: 24^3 voxels of 2 mm, a 3-voxel tumor block, an impassable
-  // "vessel" sheet at i = 16 on one side.
-  ImageGeometry grid;
-  grid.dims = {24, 24, 24};
-  grid.spacing = Eigen::Vector3d(2.0, 2.0, 2.0);
-  grid.origin = Eigen::Vector3d(-20, 10, 5);
-  grid.direction = Eigen::AngleAxisd(0.3, Eigen::Vector3d(0, 0, 1)).toRotationMatrix();
-  Volume<int32_t> labels(grid, 1);
-  Volume<uint8_t> tumor(grid, 0);
-  for (int k = 10; k <= 12; ++k)
-    for (int j = 10; j <= 12; ++j)
-      for (int i = 10; i <= 12; ++i) tumor(i, j, k) = 1;
-  for (int k = 0; k < 24; ++k)
-    for (int j = 0; j < 24; ++j) labels(16, j, k) = 2;
-  const std::string labels_path = (dir_ / "labels.nii.gz").string();
-  const std::string tumor_path = (dir_ / "tumor.nii.gz").string();
-  const std::string table = (dir_ / "table.json").string();
-  write_volume(labels, labels_path);
-  write_volume(tumor, tumor_path);
-  std::ofstream(table) << R"({"name": "test", "levels": [
-      {"level": 0, "name": "none", "blocking_per_mm": 0.0},
-      {"level": 1, "name": "low", "blocking_per_mm": 0.01},
-      {"level": 2, "name": "medium", "blocking_per_mm": 0.1},
-      {"level": 3, "name": "impassable", "blocking_per_mm": 10.0}],
-    "labels": [{"value": 1, "name": "fat", "level": 0},
-               {"value": 2, "name": "vessel", "level": 3}]})";
-  PlanRequest req;
-  req.labels = labels_path;
-  req.tumor = tumor_path;
-  req.vulnerability = table;
+  // The mini plan with a rotated direction and an impassable "vessel" sheet at i = 16 on one side.
+  test::MiniPlanOptions o;
+  o.grid.direction = Eigen::AngleAxisd(0.3, Eigen::Vector3d(0, 0, 1)).toRotationMatrix();
+  o.vessel_sheet = true;
+  const test::MiniPlanInputs inputs = test::write_mini_plan_inputs(dir_, o);
+  const ImageGeometry& grid = inputs.grid;
+  const std::string& labels_path = inputs.labels;
+  const std::string& tumor_path = inputs.tumor;
+  const std::string& table = inputs.vulnerability;
+  PlanRequest req = inputs.request((dir_ / "plan").string());
   req.margin.fwhm_mm = 2.0;
-  req.path_safety.radius_mm = 16.0;
   req.path_safety.values = kernels::kSvv;
-  req.path_safety.device = Device::kCpu;
-  req.out_dir = (dir_ / "plan").string();
   const nlohmann::json plan = run_plan(req);
   ASSERT_TRUE(plan.contains("area_safety")) << plan.dump(2);
   const nlohmann::json& a = plan["area_safety"];
@@ -672,7 +623,7 @@ TEST_F(AreaSafetyFiles, PlanWritesAreaSafetyAndTheAreaCommandRuns) {
   const std::string preview = (dir_ / "preview").string();
   ASSERT_EQ(run_cli("area --labels " + labels_path + " --vulnerability " + table + " --tumor " +
                         tumor_path + " --preview --margin 2 --max-distance 16 --out " + preview,
-                    err),
+                    &err, test::Capture::kStderr),
             0)
       << err;
   std::ifstream area_json(preview + "/area.json");
@@ -683,7 +634,10 @@ TEST_F(AreaSafetyFiles, PlanWritesAreaSafetyAndTheAreaCommandRuns) {
   const AreaSafetyGeometry p = read_area_safety_vtk(preview + "/area_safety.vtk");
   EXPECT_EQ(pj["area_safety"]["vertex_count"].get<size_t>(), p.vertices.size());
   const std::string from_plan = (dir_ / "from_plan").string();
-  ASSERT_EQ(run_cli("area --plan " + req.out_dir + " --out " + from_plan, err), 0) << err;
+  ASSERT_EQ(
+      run_cli("area --plan " + req.out_dir + " --out " + from_plan, &err, test::Capture::kStderr),
+      0)
+      << err;
   const AreaSafetyGeometry q = read_area_safety_vtk(from_plan + "/area_safety.vtk");
   // The same criterion as inside the plan (the volume went through NIfTI: positions may move by
   // float rounding, so a sample on a class border may flip).
@@ -692,12 +646,14 @@ TEST_F(AreaSafetyFiles, PlanWritesAreaSafetyAndTheAreaCommandRuns) {
   for (size_t v = 0; v < g.safe.size(); ++v) differ += q.safe[v] != g.safe[v];
   EXPECT_LE(differ, int64_t(g.safe.size() / 100));
   // Bad input: an error naming the problem, nothing written; the plan folder is never replaced.
-  EXPECT_EQ(run_cli("area --plan " + req.out_dir + " --out " + req.out_dir, err), 1);
+  EXPECT_EQ(
+      run_cli("area --plan " + req.out_dir + " --out " + req.out_dir, &err, test::Capture::kStderr),
+      1);
   EXPECT_NE(err.find("plan folder"), std::string::npos) << err;
   EXPECT_TRUE(fs::exists(dir_ / "plan" / "path_safety_svv.nii.gz"));
   EXPECT_NE(
       run_cli("area --plan " + (dir_ / "nowhere").string() + " --out " + (dir_ / "x").string(),
-              err),
+              &err, test::Capture::kStderr),
       0);
   EXPECT_NE(err.find("nowhere"), std::string::npos) << err;
   EXPECT_FALSE(fs::exists(dir_ / "x"));

@@ -1,7 +1,7 @@
 // Tests of preprocessing (planning/blocking.hpp): blocking from labels with and without the
 // Gaussian safety margin (checked against the analytic edge response), level combination by
 // maximum, anisotropic spacing, CT thresholding, and validation of ready blocking volumes.
-#include "planning/blocking.hpp"
+#include "planning/preprocessing/blocking.hpp"
 
 #include <gtest/gtest.h>
 
@@ -11,24 +11,15 @@
 #include <limits>
 #include <string>
 
-#include "kernels/error.hpp"
+#include <nlohmann/json.hpp>
+
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
 
 namespace crepuscular::planning {
 namespace {
 
-// Expects `f` to throw Error whose message contains every one of `parts`.
-template <typename F>
-void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
-  try {
-    f();
-    ADD_FAILURE() << "expected crepuscular::Error";
-  } catch (const Error& e) {
-    for (const std::string& part : parts) {
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
-          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
-    }
-  }
-}
+using test::expect_error_containing;
 
 // Labels 1..4 at levels 1..4 (0.02, 0.1, 1, 100 per mm); label 5 at level 0 (no blocking).
 VulnerabilityTable test_table() {

@@ -1,11 +1,9 @@
 // Trajectory evaluation on analytic scenes: line integrals of uniform and slab blocking, the
 // structures a path crosses (depth and length within one sampling step), the rank of the entry's
 // path safety, the area safety region of the entry, the batch CSV, and the command end to end.
-#include "planning/evaluate.hpp"
+#include "planning/trajectories/evaluate.hpp"
 
 #include <gtest/gtest.h>
-#include <sys/wait.h>
-#include <unistd.h>
 
 #include <cmath>
 #include <cstdio>
@@ -13,24 +11,25 @@
 #include <fstream>
 #include <limits>
 
-#include "kernels/error.hpp"
-#include "planning/markups.hpp"
-#include "planning/plan.hpp"
-#include "planning/volume_io.hpp"
+#include "foundation/error.hpp"
+#include "planning/trajectories/markups.hpp"
+#include "pipelines/plan.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "tests/support/cli.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/grids.hpp"
+#include "tests/support/plans.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace fs = std::filesystem;
 
 namespace crepuscular::planning {
 namespace {
 
-ImageGeometry cube_grid(int n, double spacing,
-                        const Eigen::Vector3d& origin = Eigen::Vector3d::Zero()) {
-  ImageGeometry g;
-  g.dims = {n, n, n};
-  g.spacing = Eigen::Vector3d::Constant(spacing);
-  g.origin = origin;
-  return g;
-}
+using pipelines::PlanRequest;
+using pipelines::run_plan;
+using test::cube_grid;
+using test::run_cli;
 
 // A plan with only a blocking volume (and h = its spacing, gamma = h / 2).
 PlanData blocking_plan(const Volume<float>& blocking) {
@@ -239,9 +238,7 @@ TEST(EvaluateTest, EntryRegionIsThatOfTheNearestExtrusionRay) {
 }
 
 TEST(EvaluateTest, BatchCsvIsReadAndEveryRowHasTheHeadersColumns) {
-  const fs::path dir =
-      fs::temp_directory_path() / ("crepuscular_eval_csv_" + std::to_string(::getpid()));
-  fs::create_directories(dir);
+  const test::TemporaryFolder dir;
   const std::string csv = (dir / "paths.csv").string();
   std::ofstream(csv) << "name,entry_x,entry_y,entry_z,target_x,target_y,target_z\n"
                         "\"a, first\",5,7,9,61,44,70\n\n"
@@ -271,77 +268,33 @@ TEST(EvaluateTest, BatchCsvIsReadAndEveryRowHasTheHeadersColumns) {
   EXPECT_THROW(read_trajectories_csv(csv), Error);
   std::ofstream(csv)
       << "name,entry_x,entry_y,entry_z,target_x,target_y,target_z\nx,1,2,3,4,5,abc\n";
-  try {
-    read_trajectories_csv(csv);
-    ADD_FAILURE() << "accepted a bad number";
-  } catch (const Error& err) {
-    EXPECT_NE(std::string(err.what()).find("line 2"), std::string::npos) << err.what();
-    EXPECT_NE(std::string(err.what()).find("target_z"), std::string::npos) << err.what();
-  }
+  test::expect_error_containing([&] { read_trajectories_csv(csv); }, {"line 2", "target_z"});
   Trajectory same;
   EXPECT_THROW(ev.evaluate(same), Error);  // entry == target
-  fs::remove_all(dir);
-}
-
-int run(const std::string& command, std::string* output = nullptr) {
-  const std::string out_file =
-      (fs::temp_directory_path() / ("crepuscular_eval_out_" + std::to_string(::getpid()))).string();
-  const int rc = std::system((command + " > " + out_file + " 2>&1").c_str());
-  if (output) {
-    std::ifstream in(out_file);
-    *output = std::string(std::istreambuf_iterator<char>(in), {});
-  }
-  fs::remove(out_file);
-  return WEXITSTATUS(rc);
 }
 
 TEST(EvaluateTest, CommandEvaluatesPointsMarkupsAndBatchesOfARealPlan) {
-  // A small plan: a 3-voxel tumor block at voxels 10..12, a vessel column (label 2) at i = 16.
-  const fs::path dir =
-      fs::temp_directory_path() / ("crepuscular_eval_cmd_" + std::to_string(::getpid()));
-  fs::remove_all(dir);
-  fs::create_directories(dir);
-  ImageGeometry g = cube_grid(24, 2.0, Eigen::Vector3d(-20, 10, 5));
-  Volume<int32_t> labels(g, 1);
-  Volume<uint8_t> tumor(g, 0);
-  for (int k = 10; k <= 12; ++k)
-    for (int j = 10; j <= 12; ++j)
-      for (int i = 10; i <= 12; ++i) tumor(i, j, k) = 1;
-  for (int k = 0; k < 24; ++k)
-    for (int j = 9; j <= 13; ++j) labels(16, j, k) = 2;
-  write_volume(labels, (dir / "labels.nii.gz").string());
-  write_volume(tumor, (dir / "tumor.nii.gz").string());
-  std::ofstream(dir / "table.json") << R"({"name": "t", "levels": [
-        {"level": 0, "name": "none", "blocking_per_mm": 0.0},
-        {"level": 1, "name": "low", "blocking_per_mm": 0.01},
-        {"level": 2, "name": "medium", "blocking_per_mm": 0.1},
-        {"level": 3, "name": "impassable", "blocking_per_mm": 10.0}],
-      "labels": [{"value": 1, "name": "fat", "level": 0},
-                 {"value": 2, "name": "vessel", "level": 3}]})";
-  PlanRequest r;
-  r.labels = (dir / "labels.nii.gz").string();
-  r.tumor = (dir / "tumor.nii.gz").string();
-  r.vulnerability = (dir / "table.json").string();
+  // The mini plan: a 3-voxel tumor block at voxels 10..12, a vessel column (label 2) at i = 16.
+  const test::TemporaryFolder dir;
+  const test::MiniPlanInputs inputs = test::write_mini_plan_inputs(dir);
+  const ImageGeometry g = inputs.grid;
+  PlanRequest r = inputs.request((dir / "plan").string());
   r.margin.fwhm_mm = 0.0;
-  r.path_safety.radius_mm = 16.0;
-  r.path_safety.device = Device::kCpu;
-  r.out_dir = (dir / "plan").string();
   run_plan(r);
 
   // Through the vessel column (+i): from voxel (18, 11, 11), inside the 16 mm region of interest,
   // to the tumor centre (11, 11, 11).
   const Eigen::Vector3d entry = g.index_to_physical(18, 11, 11),
                         target = g.index_to_physical(11, 11, 11);
-  const std::string exe = CREPUSCULAR_BINARY;
   const auto pt = [](const Eigen::Vector3d& p) {
     char b[96];
     std::snprintf(b, sizeof(b), "%.4f,%.4f,%.4f", p.x(), p.y(), p.z());
     return std::string(b);
   };
   std::string out;
-  ASSERT_EQ(run(exe + " evaluate --plan " + (dir / "plan").string() + " --entry " + pt(entry) +
-                    " --target " + pt(target) + " --json",
-                &out),
+  ASSERT_EQ(run_cli("evaluate --plan " + (dir / "plan").string() + " --entry " + pt(entry) +
+                        " --target " + pt(target) + " --json",
+                    &out),
             0)
       << out;
   const auto j = nlohmann::json::parse(out.substr(out.find('{')));
@@ -378,9 +331,9 @@ TEST(EvaluateTest, CommandEvaluatesPointsMarkupsAndBatchesOfARealPlan) {
   line.first = target;
   line.second = entry;
   write_line_markup((dir / "line.mrk.json").string(), line, "RAS");
-  ASSERT_EQ(run(exe + " evaluate --plan " + (dir / "plan").string() + " --trajectory " +
-                    (dir / "line.mrk.json").string() + " --json",
-                &out),
+  ASSERT_EQ(run_cli("evaluate --plan " + (dir / "plan").string() + " --trajectory " +
+                        (dir / "line.mrk.json").string() + " --json",
+                    &out),
             0)
       << out;
   const auto jm = nlohmann::json::parse(out.substr(out.find('{')));
@@ -394,29 +347,28 @@ TEST(EvaluateTest, CommandEvaluatesPointsMarkupsAndBatchesOfARealPlan) {
       << "name,entry_x,entry_y,entry_z,target_x,target_y,target_z\n"
       << "through_vessel," << pt(entry) << "," << pt(target) << "\n"
       << "free_side," << pt(g.index_to_physical(4, 11, 11)) << "," << pt(target) << "\n";
-  ASSERT_EQ(run(exe + " evaluate --plan " + (dir / "plan").string() + " --batch " +
-                    (dir / "paths.csv").string(),
-                &out),
+  ASSERT_EQ(run_cli("evaluate --plan " + (dir / "plan").string() + " --batch " +
+                        (dir / "paths.csv").string(),
+                    &out),
             0)
       << out;
   EXPECT_NE(out.find("name,entry_x"), std::string::npos) << out;
   EXPECT_NE(out.find("\nthrough_vessel,"), std::string::npos) << out;
   EXPECT_NE(out.find("\nfree_side,"), std::string::npos) << out;
   std::string quiet;
-  ASSERT_EQ(run(exe + " evaluate --plan " + (dir / "plan").string() + " --batch " +
-                    (dir / "paths.csv").string() + " --out " + (dir / "results.csv").string(),
-                &quiet),
+  ASSERT_EQ(run_cli("evaluate --plan " + (dir / "plan").string() + " --batch " +
+                        (dir / "paths.csv").string() + " --out " + (dir / "results.csv").string(),
+                    &quiet),
             0)
       << quiet;
   std::ifstream results(dir / "results.csv");
   EXPECT_EQ(std::string(std::istreambuf_iterator<char>(results), {}), out);
 
   // Bad input: a clear error, non-zero exit.
-  EXPECT_NE(run(exe + " evaluate --plan " + (dir / "plan").string() + " --entry 1,2 --target 3,4,5",
-                &out),
-            0);
+  EXPECT_NE(
+      run_cli("evaluate --plan " + (dir / "plan").string() + " --entry 1,2 --target 3,4,5", &out),
+      0);
   EXPECT_NE(out.find("--entry"), std::string::npos) << out;
-  fs::remove_all(dir);
 }
 
 }  // namespace

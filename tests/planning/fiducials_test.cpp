@@ -3,10 +3,9 @@
 // found at their true centres to a fraction of a voxel; registering them to the board layout
 // recovers the known transform within 0.2 mm / 0.1 degree, also with a bead missing and an extra
 // one; Slicer markups in LPS and RAS read to the same LPS points.
-#include "planning/fiducials.hpp"
+#include "planning/imaging/fiducials.hpp"
 
 #include <gtest/gtest.h>
-#include <unistd.h>
 
 #include <Eigen/Geometry>
 #include <algorithm>
@@ -21,26 +20,17 @@
 
 #include "calibration/calibration_files.hpp"
 #include "calibration/registration.hpp"
-#include "kernels/error.hpp"
-#include "planning/volume_io.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/temporary_folder.hpp"
+#include "planning/imaging/volume_io.hpp"
 
 namespace crepuscular::planning {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
+using test::expect_error_containing;
 
-template <typename F>
-void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
-  try {
-    f();
-    ADD_FAILURE() << "expected crepuscular::Error";
-  } catch (const Error& e) {
-    for (const std::string& part : parts) {
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
-          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
-    }
-  }
-}
+constexpr double kPi = 3.14159265358979323846;
 
 // Board-frame bead layout (mm), asymmetric and not coplanar (some beads on posts).
 std::vector<Eigen::Vector3d> board_layout() {
@@ -169,8 +159,7 @@ TEST(Fiducials, SyntheticCtRegistrationRecoversTransform) {
 // (read as float), paired with the board definition's fiducials, registration.yaml written.
 TEST(Fiducials, RegisterCommandFindsBeadsInCtFile) {
   namespace fs = std::filesystem;
-  const fs::path dir = fs::temp_directory_path() / ("crepuscular-register-ct-" + std::to_string(getpid()));
-  fs::create_directories(dir);
+  const test::TemporaryFolder dir;
   Volume<int16_t> ct = empty_ct();
   add_distractors(ct);
   const auto layout = board_layout();
@@ -195,7 +184,6 @@ TEST(Fiducials, RegisterCommandFindsBeadsInCtFile) {
             0.1);
   EXPECT_EQ(r.fre_mm.size(), 6u);
   EXPECT_EQ(read_fiducial_markups((dir / "beads.mrk.json").string()).size(), 6u);
-  fs::remove_all(dir);
 }
 
 TEST(Fiducials, NothingAboveThresholdGivesNoBeads) {
@@ -205,18 +193,12 @@ TEST(Fiducials, NothingAboveThresholdGivesNoBeads) {
 
 class MarkupsFile : public ::testing::Test {
  protected:
-  void SetUp() override {
-    dir_ = std::filesystem::temp_directory_path() /
-           ("crepuscular-fiducials-" + std::to_string(getpid()));
-    std::filesystem::create_directories(dir_);
-  }
-  void TearDown() override { std::filesystem::remove_all(dir_); }
   std::string write(const std::string& name, const std::string& text) {
-    const std::string path = (dir_ / name).string();
+    const std::string path = dir_.file(name);
     std::ofstream(path) << text;
     return path;
   }
-  std::filesystem::path dir_;
+  test::TemporaryFolder dir_;
 };
 
 TEST_F(MarkupsFile, RasAndLpsFilesReadToTheSameLpsPoints) {

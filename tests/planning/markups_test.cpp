@@ -1,14 +1,16 @@
 // 3D Slicer line markups: LPS and RAS files of the same physical line give the same points;
 // files without a coordinate system are LPS (as Slicer reads them); malformed files are refused.
-#include "planning/markups.hpp"
+#include "planning/trajectories/markups.hpp"
 
 #include <gtest/gtest.h>
-#include <unistd.h>
 
 #include <filesystem>
 #include <fstream>
+#include <nlohmann/json.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace fs = std::filesystem;
 
@@ -69,9 +71,7 @@ TEST(MarkupsTest, WrittenRasFileHoldsNegatedXYAndReadsBackToTheSamePoints) {
   EXPECT_DOUBLE_EQ(p0[0].get<double>(), 12.25);
   EXPECT_DOUBLE_EQ(p0[1].get<double>(), -33.5);
   EXPECT_DOUBLE_EQ(p0[2].get<double>(), 101.0);
-  const fs::path dir =
-      fs::temp_directory_path() / ("crepuscular_markups_" + std::to_string(::getpid()));
-  fs::create_directories(dir);
+  const test::TemporaryFolder dir;
   for (const char* system : {"LPS", "RAS"}) {
     const std::string path = (dir / (std::string(system) + ".mrk.json")).string();
     write_line_markup(path, line, system);
@@ -81,19 +81,14 @@ TEST(MarkupsTest, WrittenRasFileHoldsNegatedXYAndReadsBackToTheSamePoints) {
     expect_same(back.first, line.first);
     expect_same(back.second, line.second);
   }
-  fs::remove_all(dir);
 }
 
 TEST(MarkupsTest, MalformedFilesAreRefusedWithTheFieldNamed) {
   const auto fails_with = [](const std::string& text, const std::string& expected) {
-    try {
-      parse_line_markup(nlohmann::json::parse(text), "bad.mrk.json");
-      ADD_FAILURE() << "accepted: " << text;
-    } catch (const Error& e) {
-      const std::string what = e.what();
-      EXPECT_NE(what.find("bad.mrk.json"), std::string::npos) << what;
-      EXPECT_NE(what.find(expected), std::string::npos) << what;
-    }
+    SCOPED_TRACE(text);
+    test::expect_error_containing(
+        [&] { parse_line_markup(nlohmann::json::parse(text), "bad.mrk.json"); },
+        {"bad.mrk.json", expected});
   };
   fails_with(R"({"markups": [{"type": "Fiducial", "controlPoints": []}]})", "Line");
   fails_with(R"({"markups": [{"type": "Line", "controlPoints": [{"position": [1, 2, 3]}]}]})",

@@ -3,37 +3,31 @@
 // vessel at its depth; the angle to the nearest safe direction is 0 along a safe vertex direction
 // and the rotation angle when turned away from it; a needle pointing away or beside the tumor
 // misses it by a known distance.
-#include "planning/needle_guidance.hpp"
+#include "planning/trajectories/needle_guidance.hpp"
 
 #include <gtest/gtest.h>
-#include <unistd.h>
 
-#include <chrono>
 #include <cmath>
-#include <cstdlib>
 #include <filesystem>
-#include <fstream>
 #include <random>
 
 #include <Eigen/Geometry>
 
-#include "kernels/error.hpp"
-#include "planning/plan.hpp"
-#include "planning/volume_io.hpp"
+#include "foundation/error.hpp"
+#include "pipelines/plan.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "tests/support/grids.hpp"
+#include "tests/support/plans.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace fs = std::filesystem;
 
 namespace crepuscular::planning {
 namespace {
 
-ImageGeometry cube_grid(int n, double spacing,
-                        const Eigen::Vector3d& origin = Eigen::Vector3d::Zero()) {
-  ImageGeometry g;
-  g.dims = {n, n, n};
-  g.spacing = Eigen::Vector3d::Constant(spacing);
-  g.origin = origin;
-  return g;
-}
+using pipelines::PlanRequest;
+using pipelines::run_plan;
+using test::cube_grid;
 
 // A needle frame that is not the CT frame: rotation about a skewed axis plus a translation.
 Eigen::Isometry3d needle_pose() {
@@ -55,48 +49,23 @@ NeedleState in_ct(const NeedleGuide& guide, const Eigen::Vector3d& tip, const Ei
 class NeedleGuidanceTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
-    dir_ = new fs::path(fs::temp_directory_path() /
-                        ("crepuscular_needle_" + std::to_string(::getpid())));
-    fs::remove_all(*dir_);
-    fs::create_directories(*dir_);
-    grid_ = cube_grid(24, 2.0, Eigen::Vector3d(-20, 10, 5));
-    Volume<int32_t> labels(grid_, 1);
-    Volume<uint8_t> tumor(grid_, 0);
-    for (int k = 10; k <= 12; ++k)
-      for (int j = 10; j <= 12; ++j)
-        for (int i = 10; i <= 12; ++i) tumor(i, j, k) = 1;
-    for (int k = 0; k < 24; ++k)
-      for (int j = 9; j <= 13; ++j) labels(16, j, k) = 2;
-    write_volume(labels, (*dir_ / "labels.nii.gz").string());
-    write_volume(tumor, (*dir_ / "tumor.nii.gz").string());
-    std::ofstream(*dir_ / "table.json") << R"({"name": "t", "levels": [
-        {"level": 0, "name": "none", "blocking_per_mm": 0.0},
-        {"level": 1, "name": "low", "blocking_per_mm": 0.01},
-        {"level": 2, "name": "medium", "blocking_per_mm": 0.1},
-        {"level": 3, "name": "impassable", "blocking_per_mm": 10.0}],
-      "labels": [{"value": 1, "name": "fat", "level": 0},
-                 {"value": 2, "name": "vessel", "level": 3}]})";
-    PlanRequest r;
-    r.labels = (*dir_ / "labels.nii.gz").string();
-    r.tumor = (*dir_ / "tumor.nii.gz").string();
-    r.vulnerability = (*dir_ / "table.json").string();
+    dir_ = new test::TemporaryFolder;
+    const test::MiniPlanInputs inputs = test::write_mini_plan_inputs(*dir_);
+    grid_ = inputs.grid;
+    PlanRequest r = inputs.request((*dir_ / "plan").string());
     r.margin.fwhm_mm = 0.0;
-    r.path_safety.radius_mm = 16.0;
-    r.path_safety.device = Device::kCpu;
-    r.out_dir = (*dir_ / "plan").string();
     run_plan(r);
     guide_ = new NeedleGuide((*dir_ / "plan").string());
   }
   static void TearDownTestSuite() {
     delete guide_;
-    fs::remove_all(*dir_);
     delete dir_;
   }
-  static fs::path* dir_;
+  static test::TemporaryFolder* dir_;
   static ImageGeometry grid_;
   static NeedleGuide* guide_;
 };
-fs::path* NeedleGuidanceTest::dir_ = nullptr;
+test::TemporaryFolder* NeedleGuidanceTest::dir_ = nullptr;
 ImageGeometry NeedleGuidanceTest::grid_;
 NeedleGuide* NeedleGuidanceTest::guide_ = nullptr;
 
@@ -268,34 +237,6 @@ TEST(NeedleGuidanceAngleTest, AngleToNearestSafeDirectionIsTheRotationAngle) {
                                        c + Eigen::Vector3d(-30, 12, 0), Eigen::Vector3d::UnitX());
   EXPECT_FALSE(m.hits_tumor);
   EXPECT_NEAR(m.miss_distance_mm, 12.0, 1e-9);
-}
-
-// Per-call time on a real plan: set CREPUSCULAR_NEEDLE_BENCH_PLAN to a plan folder.
-TEST(NeedleGuidanceBench, PerCallTimeOnAPlanFolder) {
-  const char* dir = std::getenv("CREPUSCULAR_NEEDLE_BENCH_PLAN");
-  if (!dir) GTEST_SKIP() << "CREPUSCULAR_NEEDLE_BENCH_PLAN not set";
-  const NeedleGuide guide(dir);
-  const Eigen::Vector3d c = guide.plan().tumor_centre;
-  std::mt19937 rng(3);
-  std::normal_distribution<double> normal;
-  const int calls = 2000;
-  std::vector<std::pair<Eigen::Vector3d, Eigen::Vector3d>> needles;
-  for (int n = 0; n < calls; ++n) {
-    const Eigen::Vector3d u = Eigen::Vector3d(normal(rng), normal(rng), normal(rng)).normalized();
-    needles.emplace_back(c + 80.0 * u + Eigen::Vector3d(normal(rng), normal(rng), 0), -u);
-  }
-  double integral = 0;
-  const auto t0 = std::chrono::steady_clock::now();
-  for (const auto& [tip, axis] : needles) {
-    integral += guide.evaluate(Eigen::Isometry3d::Identity(), tip, axis).evaluation.line_integral;
-  }
-  const double ms =
-      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count() /
-      calls;
-  std::printf("needle guidance: %.4f ms per call (%d calls, 80 mm needles, %zu safe vertices)\n",
-              ms, calls, guide.safe_directions().size());
-  EXPECT_GT(integral, 0.0);
-  EXPECT_LT(ms, 1.0);
 }
 
 }  // namespace

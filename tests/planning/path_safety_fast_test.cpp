@@ -1,11 +1,14 @@
-// Fast mode against exact mode on random vessel scenes: safety class agreement and relative L2.
+// Fast mode against exact mode on random vessel scenes: safety class agreement (the requirement:
+// the same class on at least 99.5 % of the region of interest, on every scene) and relative L2.
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <map>
 #include <random>
+#include <string>
 
-#include "planning/path_safety.hpp"
-#include "planning/safety_classes.hpp"
+#include "planning/safety/path_safety.hpp"
+#include "planning/safety/safety_classes.hpp"
 
 namespace crepuscular::planning {
 namespace {
@@ -49,33 +52,58 @@ Scene vessel_scene(uint32_t seed) {
   return scene;
 }
 
-TEST(PathSafetyFast, SafetyClassAgreesWithExactMode) {
-  for (uint32_t seed : {3u, 11u}) {
-    SCOPED_TRACE("seed " + std::to_string(seed));
-    const Scene s = vessel_scene(seed);
-    PathSafetyOptions o;
-    o.radius_mm = 50.0;
-    o.eps = 0.5;
-    o.device = Device::kCpu;
-    const PathSafetyResult exact = compute_path_safety(s.blocking, s.tumor, o);
-    o.mode = Mode::kFast;
-    o.fast_check_voxels = 300;
-    const PathSafetyResult fast = compute_path_safety(s.blocking, s.tumor, o);
-    const ModeDifference d = compare_volumes(exact.volumes, fast.volumes, kernels::kAllValues);
-    EXPECT_EQ(d.voxels, exact.grid.roi_voxels);
-    for (int v = 0; v < kernels::kValueCount; ++v) {
-      std::printf("seed %u %s: relative L2 %.3e, class agreement %.4f (check at %lld voxels: "
-                  "%.3e, %.4f)\n",
-                  seed, value_name(1u << v), d.relative_l2[size_t(v)],
-                  d.class_agreement[size_t(v)], (long long)fast.check_voxels,
-                  fast.check_relative_l2[size_t(v)], fast.check_class_agreement[size_t(v)]);
-      // The target is 99.5 % (met on the headline phantom case, bench/RESULTS.md); on these
-      // harsher scenes (impassable tubes close to the tumor) fast mode reaches 96-99 % today.
-      EXPECT_GE(d.class_agreement[size_t(v)], 0.95) << value_name(1u << v);
-      EXPECT_LE(d.relative_l2[size_t(v)], 0.1) << value_name(1u << v);
+// The requirement: fast mode gives exact mode's safety class on >= 99.5 % of the voxels.
+constexpr double kRequiredAgreement = 0.995;
+
+// Fast mode against exact mode on the scene of `seed`: relative L2 <= 0.1 for every value, and
+// class agreement >= kRequiredAgreement for every value but those in `known_gaps`, which must
+// stay at least at the agreement given there (what fast mode reached when the gap was recorded).
+void expect_fast_agrees_with_exact(uint32_t seed,
+                                   const std::map<std::string, double>& known_gaps = {}) {
+  const Scene s = vessel_scene(seed);
+  PathSafetyOptions o;
+  o.radius_mm = 50.0;
+  o.eps = 0.5;
+  o.device = Device::kCpu;
+  const PathSafetyResult exact = compute_path_safety(s.blocking, s.tumor, o);
+  o.mode = Mode::kFast;
+  o.fast_check_voxels = 300;
+  const PathSafetyResult fast = compute_path_safety(s.blocking, s.tumor, o);
+  const ModeDifference d = compare_volumes(exact.volumes, fast.volumes, kernels::kAllValues);
+  EXPECT_EQ(d.voxels, exact.grid.roi_voxels);
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    const std::string name = value_name(1u << v);
+    const double agreement = d.class_agreement[size_t(v)];
+    std::printf("seed %u %s: relative L2 %.3e, class agreement %.4f (check at %lld voxels: "
+                "%.3e, %.4f)\n",
+                seed, name.c_str(), d.relative_l2[size_t(v)], agreement,
+                (long long)fast.check_voxels, fast.check_relative_l2[size_t(v)],
+                fast.check_class_agreement[size_t(v)]);
+    EXPECT_LE(d.relative_l2[size_t(v)], 0.1) << name;
+    const auto gap = known_gaps.find(name);
+    if (gap == known_gaps.end()) {
+      EXPECT_GE(agreement, kRequiredAgreement) << name;
+    } else {
+      std::printf("KNOWN FAILURE seed %u %s: class agreement %.6f, required %.4f (issue 13)\n",
+                  seed, name.c_str(), agreement, kRequiredAgreement);
+      EXPECT_GE(agreement, gap->second) << name << " fell below its recorded level";
     }
-    EXPECT_EQ(fast.check_voxels, 300);
   }
+  EXPECT_EQ(fast.check_voxels, 300);
+}
+
+// KNOWN FAILURES, not a lower bar: on these harsh scenes (impassable tubes close to the tumor)
+// fast mode misses the 99.5 % requirement (met on the phantom, bench/RESULTS.md) for the values
+// listed. Each is held at the agreement measured when it was recorded (rounded down to 0.01 %) so
+// that it cannot get worse unseen; issue 13 (fast mode's method) makes every value meet 99.5 %,
+// then its entry goes and the case loses its _KnownFailure suffix.
+TEST(PathSafetyFast, SafetyClassAgreesWithExactModeOnScene3_KnownFailure) {
+  expect_fast_agrees_with_exact(3, {{"isbv", 0.9664}, {"ivbv", 0.9612}, {"bvv", 0.9720}});
+}
+
+TEST(PathSafetyFast, SafetyClassAgreesWithExactModeOnScene11_KnownFailure) {
+  expect_fast_agrees_with_exact(
+      11, {{"svv", 0.9857}, {"isbv", 0.9834}, {"ivbv", 0.9798}, {"bvv", 0.9834}});
 }
 
 }  // namespace

@@ -27,8 +27,8 @@
 #include <vector>
 
 #include "kernels/path_safety_math.hpp"  // kSvv, kIsbv, kIvbv, kBvv, kAllValues only
-#include "planning/path_safety.hpp"
-#include "planning/volume.hpp"
+#include "planning/safety/path_safety.hpp"
+#include "planning/imaging/volume.hpp"
 
 namespace {
 

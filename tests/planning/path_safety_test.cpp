@@ -1,29 +1,26 @@
 // Analytic cases of the path safety values (DESIGN.md §4) and the input checks of the planner.
-#include "planning/path_safety.hpp"
+#include "planning/safety/path_safety.hpp"
 
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <limits>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/grids.hpp"
 
 namespace crepuscular::planning {
 namespace {
+
+using test::centred_cube_grid;
+using test::expect_error_containing;
 
 using kernels::kAllValues;
 using kernels::kBvv;
 using kernels::kIsbv;
 using kernels::kIvbv;
 using kernels::kSvv;
-
-ImageGeometry cube_grid(int64_t n, double spacing) {
-  ImageGeometry g;
-  g.dims = {n, n, n};
-  g.spacing = Eigen::Vector3d::Constant(spacing);
-  g.origin = Eigen::Vector3d::Constant(-double(n - 1) / 2.0 * spacing);
-  return g;
-}
 
 // Iterates the region of interest of a result: f(i, j, k, p) for every voxel inside the ball.
 template <typename F>
@@ -44,8 +41,8 @@ void for_roi(const PathSafetyResult& r, F&& f) {
 TEST(PathSafety, NoBlockingMeansFullVisibilityAndZeroBlocking) {
   // Nothing blocks: every visible surface point is clear (SVV 100 %) and every sum of line
   // integrals is exactly 0.
-  Volume<float> blocking(cube_grid(21, 2.0), 0.0f);
-  Volume<uint8_t> tumor(cube_grid(21, 2.0), 0);
+  Volume<float> blocking(centred_cube_grid(21, 2.0), 0.0f);
+  Volume<uint8_t> tumor(centred_cube_grid(21, 2.0), 0);
   for (int k = 9; k <= 11; ++k)
     for (int j = 9; j <= 11; ++j)
       for (int i = 9; i <= 11; ++i) tumor(i, j, k) = 1;
@@ -67,8 +64,8 @@ TEST(PathSafety, NoBlockingMeansFullVisibilityAndZeroBlocking) {
 }
 
 TEST(PathSafety, NoBlockingWithoutRadiusIsRefused) {
-  Volume<float> blocking(cube_grid(11, 2.0), 0.0f);
-  Volume<uint8_t> tumor(cube_grid(11, 2.0), 0);
+  Volume<float> blocking(centred_cube_grid(11, 2.0), 0.0f);
+  Volume<uint8_t> tumor(centred_cube_grid(11, 2.0), 0);
   tumor(5, 5, 5) = 1;
   EXPECT_THROW(compute_path_safety(blocking, tumor, PathSafetyOptions{}), Error);
 }
@@ -77,8 +74,8 @@ TEST(PathSafety, UniformBlockingSingleVoxelTumorGivesDistanceTimesBeta) {
   // One tumor voxel t, uniform b = beta: L(p,t) = beta |p - t| (every sample is beta), the single
   // surface point is always front-facing, so ISBV(p) = beta |p - t| s_T^2.
   const double beta = 0.7, s = 1.5;
-  Volume<float> blocking(cube_grid(41, s), float(beta));
-  ImageGeometry tg = cube_grid(41, s);
+  Volume<float> blocking(centred_cube_grid(41, s), float(beta));
+  ImageGeometry tg = centred_cube_grid(41, s);
   Volume<uint8_t> tumor(tg, 0);
   tumor(20, 20, 20) = 1;
   const Eigen::Vector3d t = tg.index_to_physical(20, 20, 20);
@@ -113,7 +110,7 @@ TEST(PathSafety, SlabLineIntegralIsBetaTimesThicknessOverCos) {
   // the integral of the profile across the slab (ramps of one voxel at each face), and the sums
   // with step <= 0.25 mm err by far less than 0.3 %.
   const double beta = 2.0;
-  ImageGeometry g = cube_grid(61, 1.0);
+  ImageGeometry g = centred_cube_grid(61, 1.0);
   Volume<float> blocking(g, 0.0f);
   for (int k = 17; k <= 24; ++k)  // z = k - 30: -13 .. -6
     for (int j = 0; j < 61; ++j)
@@ -164,7 +161,7 @@ void facing_sets(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
 TEST(PathSafety, FrontFacingSetOfCubeIsNearFace) {
   // A 5x5x5 cube seen from 30 mm above its centre along +z: the front-facing set is exactly the
   // 25 voxels of the top face, the back-facing set exactly the 25 of the bottom face.
-  const ImageGeometry g = cube_grid(41, 1.0);
+  const ImageGeometry g = centred_cube_grid(41, 1.0);
   const Volume<float> blocking(g, 0.0f);
   const Volume<uint8_t> tumor = cube_tumor(g, 18, 22);
   std::vector<Index3> front, back;
@@ -187,7 +184,7 @@ TEST(PathSafety, MirroredSceneGivesMirroredVolume) {
   // Blocking symmetric under z -> -z about the cube tumor's centre (a blob above and its mirror
   // image below, plus an asymmetric blob in x so the test is not trivially symmetric in x): every
   // value at (i, j, k) equals the value at (i, j, n-1-k).
-  const ImageGeometry g = cube_grid(31, 1.0);
+  const ImageGeometry g = centred_cube_grid(31, 1.0);
   Volume<float> blocking(g, 0.0f);
   for (int k = 0; k < 31; ++k)
     for (int j = 0; j < 31; ++j)
@@ -222,19 +219,10 @@ TEST(PathSafety, MirroredSceneGivesMirroredVolume) {
 // --- Input checks ------------------------------------------------------------------------------
 
 struct SmallScene {
-  Volume<float> blocking{cube_grid(11, 2.0), 1.0f};
-  Volume<uint8_t> tumor{cube_grid(11, 2.0), 0};
+  Volume<float> blocking{centred_cube_grid(11, 2.0), 1.0f};
+  Volume<uint8_t> tumor{centred_cube_grid(11, 2.0), 0};
   SmallScene() { tumor(5, 5, 5) = 1; }
 };
-
-void expect_error_containing(const std::function<void()>& f, const std::string& needle) {
-  try {
-    f();
-    ADD_FAILURE() << "expected an error containing '" << needle << "'";
-  } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
-  }
-}
 
 TEST(PathSafetyInput, EmptyTumorMaskIsRefused) {
   SmallScene s;

@@ -1,9 +1,8 @@
 // Tests of the built-in phantom: determinism, grid geometry, anatomy where DESIGN.md's demo expects
 // it (LPS mm), tumor size and placement, and straight approaches that are safe and unsafe.
-#include "planning/phantom.hpp"
+#include "planning/simulation/phantom.hpp"
 
 #include <gtest/gtest.h>
-#include <unistd.h>
 
 #include <Eigen/Core>
 #include <array>
@@ -13,16 +12,17 @@
 #include <set>
 #include <string>
 
-#include "kernels/error.hpp"
-#include "planning/volume_io.hpp"
-#include "planning/vulnerability.hpp"
+#include "foundation/error.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "planning/preprocessing/vulnerability.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace crepuscular::planning {
 namespace {
 
 constexpr double kPi = 3.14159265358979323846;
 
-// Label values of the phantom (planning/phantom.cpp, presets/phantom.json).
+// Label values of the phantom (planning/simulation/phantom.cpp, planning/preprocessing/presets/phantom.json).
 enum : uint8_t {
   kAir = 0,
   kFat = 1,
@@ -363,9 +363,8 @@ TEST(Phantom, RejectsUnusableSpacing) {
 }
 
 TEST(Phantom, WritesFourFilesThatReadBack) {
-  const std::string dir = (std::filesystem::temp_directory_path() /
-                           ("crepuscular-phantom-test-" + std::to_string(::getpid())) / "out")
-                              .string();
+  const test::TemporaryFolder folder;
+  const std::string dir = folder.file("out");
   const Phantom ph = make_phantom(options(6.0, 3));
   write_phantom(ph, dir);  // creates the missing folders
   for (const char* name : {"ct.nii.gz", "labels.nii.gz", "tumor.nii.gz", "vulnerability.json"}) {
@@ -378,7 +377,6 @@ TEST(Phantom, WritesFourFilesThatReadBack) {
   EXPECT_TRUE(ct.values() == ph.ct.values());
   const Volume<uint8_t> tumor = read_mask(dir + "/tumor.nii.gz");
   EXPECT_TRUE(tumor.values() == ph.tumor.values());
-  std::filesystem::remove_all(std::filesystem::path(dir).parent_path());
 }
 
 }  // namespace

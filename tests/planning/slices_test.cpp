@@ -2,19 +2,23 @@
 // known place and width, the orientation of every plane against a phantom marked at L, P and S
 // (stored with a flipped direction matrix, so index order cannot stand in for anatomy), and the
 // command end to end.
-#include "planning/slices.hpp"
+#include "planning/views/slices.hpp"
 
 #include <gtest/gtest.h>
-#include <sys/wait.h>
-#include <unistd.h>
 
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 
-#include "kernels/error.hpp"
-#include "planning/plan.hpp"
-#include "planning/volume_io.hpp"
+#include <nlohmann/json.hpp>
+
+#include "foundation/error.hpp"
+#include "pipelines/plan.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "tests/support/cli.hpp"
+#include "tests/support/grids.hpp"
+#include "tests/support/plans.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace fs = std::filesystem;
 
@@ -22,14 +26,9 @@ namespace crepuscular::planning {
 namespace {
 
 using Rgb = std::array<uint8_t, 3>;
-
-ImageGeometry cube_grid(int n, double spacing, const Eigen::Vector3d& centre) {
-  ImageGeometry g;
-  g.dims = {n, n, n};
-  g.spacing = Eigen::Vector3d::Constant(spacing);
-  g.origin = centre - Eigen::Vector3d::Constant(0.5 * (n - 1) * spacing);
-  return g;
-}
+using pipelines::run_plan;
+using test::centred_cube_grid;
+using test::run_cli;
 
 void expect_colour(const Rgb& got, const std::array<double, 3>& want, double tol,
                    const std::string& what) {
@@ -59,9 +58,9 @@ TEST(SlicesTest, WindowMapsSoftTissueRange) {
 
 TEST(SlicesTest, VoxelOfKnownClassHasItsBlendedColour) {
   const Eigen::Vector3d c(10, -20, 30);
-  const Volume<float> ct(cube_grid(40, 2.0, c), 40.0f);  // grey 128 everywhere
+  const Volume<float> ct(centred_cube_grid(40, 2.0, c), 40.0f);  // grey 128 everywhere
   // Path safety grid of 4 mm voxels: svv 95 (safe) at one voxel, 70 (medium), 10 (dangerous).
-  const ImageGeometry pg = cube_grid(11, 4.0, c);
+  const ImageGeometry pg = centred_cube_grid(11, 4.0, c);
   Volume<float> svv(pg, std::numeric_limits<float>::quiet_NaN());
   svv(5, 5, 5) = 95;
   svv(7, 5, 5) = 70;
@@ -128,7 +127,7 @@ AreaSafetyGeometry box_area(const Eigen::Vector3d& c, float leeway) {
 
 TEST(SlicesTest, AreaSafetyContourLiesWhereThePlaneCutsTheMeshWithLeewayWidthAndColour) {
   const Eigen::Vector3d c(0, 0, 0);
-  const Volume<float> ct(cube_grid(50, 2.0, c), 40.0f);
+  const Volume<float> ct(centred_cube_grid(50, 2.0, c), 40.0f);
   SliceScene scene;
   scene.ct = &ct;
   SliceOptions o;
@@ -284,44 +283,16 @@ TEST(SlicesTest, ParsersRefuseUnknownNames) {
 }
 
 TEST(SlicesTest, CommandWritesOneImagePerPlaneAndRefusesBadInput) {
-  const fs::path dir =
-      fs::temp_directory_path() / ("crepuscular_slices_cmd_" + std::to_string(::getpid()));
-  fs::remove_all(dir);
-  fs::create_directories(dir);
-  const ImageGeometry g = cube_grid(24, 2.0, Eigen::Vector3d(3, -4, 5));
-  Volume<int32_t> labels(g, 1);
-  Volume<uint8_t> tumor(g, 0);
-  Volume<float> ct(g, 40.0f);
-  for (int k = 10; k <= 12; ++k)
-    for (int j = 10; j <= 12; ++j)
-      for (int i = 10; i <= 12; ++i) tumor(i, j, k) = 1;
-  for (int k = 0; k < 24; ++k)
-    for (int j = 9; j <= 13; ++j) labels(16, j, k) = 2;
-  write_volume(labels, (dir / "labels.nii.gz").string());
-  write_volume(tumor, (dir / "tumor.nii.gz").string());
-  write_volume(ct, (dir / "ct.nii.gz").string());
-  std::ofstream(dir / "table.json") << R"({"name": "t", "levels": [
-        {"level": 0, "name": "none", "blocking_per_mm": 0.0},
-        {"level": 1, "name": "low", "blocking_per_mm": 0.01},
-        {"level": 2, "name": "medium", "blocking_per_mm": 0.1},
-        {"level": 3, "name": "impassable", "blocking_per_mm": 10.0}],
-      "labels": [{"value": 1, "name": "fat", "level": 0},
-                 {"value": 2, "name": "vessel", "level": 3}]})";
-  PlanRequest r;
-  r.labels = (dir / "labels.nii.gz").string();
-  r.tumor = (dir / "tumor.nii.gz").string();
-  r.vulnerability = (dir / "table.json").string();
-  r.path_safety.radius_mm = 16.0;
-  r.path_safety.device = Device::kCpu;
-  r.out_dir = (dir / "plan").string();
-  run_plan(r);
+  // The mini plan centred on (3, -4, 5), with a CT of 40 HU.
+  const test::TemporaryFolder dir;
+  test::MiniPlanOptions o;
+  o.grid = centred_cube_grid(24, 2.0, Eigen::Vector3d(3, -4, 5));
+  o.ct = true;
+  const test::MiniPlanInputs inputs = test::write_mini_plan_inputs(dir, o);
+  run_plan(inputs.request((dir / "plan").string()));
 
-  const std::string exe = CREPUSCULAR_BINARY;
-  const std::string base =
-      exe + " slices --plan " + (dir / "plan").string() + " --ct " + (dir / "ct.nii.gz").string();
-  ASSERT_EQ(WEXITSTATUS(std::system(
-                (base + " --out " + (dir / "s").string() + " > /dev/null 2>&1").c_str())),
-            0);
+  const std::string base = "slices --plan " + (dir / "plan").string() + " --ct " + inputs.ct;
+  ASSERT_EQ(run_cli(base + " --out " + (dir / "s").string()), 0);
   for (const char* f : {"axial.png", "coronal.png", "sagittal.png", "slices.json"}) {
     EXPECT_TRUE(fs::exists(dir / "s" / f)) << f;
   }
@@ -339,16 +310,9 @@ TEST(SlicesTest, CommandWritesOneImagePerPlaneAndRefusesBadInput) {
   EXPECT_TRUE(vessel) << j["views"][0].dump();
 
   // Bad input leaves no output folder: an unknown plane, and oblique without area safety.
-  EXPECT_NE(WEXITSTATUS(std::system((base + " --planes axial,transverse --out " +
-                                     (dir / "bad").string() + " > /dev/null 2>&1")
-                                        .c_str())),
-            0);
-  EXPECT_NE(WEXITSTATUS(std::system((base + " --value isbv --region 7 --out " +
-                                     (dir / "bad").string() + " > /dev/null 2>&1")
-                                        .c_str())),
-            0);
+  EXPECT_NE(run_cli(base + " --planes axial,transverse --out " + (dir / "bad").string()), 0);
+  EXPECT_NE(run_cli(base + " --value isbv --region 7 --out " + (dir / "bad").string()), 0);
   EXPECT_FALSE(fs::exists(dir / "bad"));
-  fs::remove_all(dir);
 }
 
 }  // namespace

@@ -1,7 +1,7 @@
 // Tests of planning/volume_io: round trips through NIfTI, NRRD and MetaImage with an oblique,
 // anisotropic grid; DICOM series folders; agreement with nibabel's RAS world coordinates; and a
 // clean Error (naming the file) for every kind of bad input, with no partial output left behind.
-#include "planning/volume_io.hpp"
+#include "planning/imaging/volume_io.hpp"
 
 #include <gtest/gtest.h>
 #include <unistd.h>
@@ -19,26 +19,18 @@
 #include <string>
 #include <vector>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/grids.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace fs = std::filesystem;
 
 namespace crepuscular::planning {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
-
-// 7 x 5 x 4 voxels (distinct sizes catch swapped axes), anisotropic spacing, non-zero origin and a
-// rotation of 30 degrees about the oblique axis (1, 2, 3).
-ImageGeometry oblique_geometry() {
-  ImageGeometry g;
-  g.dims = {7, 5, 4};
-  g.origin = Eigen::Vector3d(-12.5, 40.25, 7.75);
-  g.spacing = Eigen::Vector3d(0.8, 1.3, 2.1);
-  g.direction = Eigen::AngleAxisd(30.0 * kPi / 180.0, Eigen::Vector3d(1, 2, 3).normalized())
-                    .toRotationMatrix();
-  return g;
-}
+using test::expect_error_containing;
+using test::oblique_geometry;
 
 // The same grid with the third axis reversed: determinant -1 (as in many NIfTI files from
 // radiological-convention scanners).
@@ -71,21 +63,7 @@ Volume<T> sample_volume(const ImageGeometry& g) {
 // Every test works in its own fresh folder, removed afterwards.
 class VolumeIoTest : public ::testing::Test {
  protected:
-  void SetUp() override {
-    const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
-    std::string name = std::string(info->test_suite_name()) + "-" + info->name();
-    std::replace(name.begin(), name.end(), '/', '-');
-    dir_ = fs::temp_directory_path() /
-           ("crepuscular-volume-io-" + std::to_string(::getpid()) + "-" + name);
-    fs::remove_all(dir_);
-    ASSERT_TRUE(fs::create_directories(dir_));
-  }
-  void TearDown() override {
-    std::error_code ec;
-    fs::remove_all(dir_, ec);
-  }
-
-  std::string file(const std::string& name) const { return (dir_ / name).string(); }
+  std::string file(const std::string& name) const { return dir_.file(name); }
 
   // Names of everything in the test folder (hidden temporaries included), sorted.
   std::vector<std::string> folder_entries() const {
@@ -103,24 +81,8 @@ class VolumeIoTest : public ::testing::Test {
     ASSERT_TRUE(out.good());
   }
 
-  fs::path dir_;
+  test::TemporaryFolder dir_;
 };
-
-// Expects `f` to throw Error whose message contains every one of `parts`.
-template <typename F>
-void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
-  try {
-    f();
-    ADD_FAILURE() << "expected crepuscular::Error";
-  } catch (const Error& e) {
-    for (const std::string& part : parts) {
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
-          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
-    }
-  } catch (const std::exception& e) {
-    ADD_FAILURE() << "expected crepuscular::Error, got another exception: " << e.what();
-  }
-}
 
 void expect_geometry_near(const ImageGeometry& actual, const ImageGeometry& expected, double tol) {
   EXPECT_EQ(actual.dims, expected.dims);

@@ -1,6 +1,6 @@
 // Tests of ImageGeometry (planning/volume.hpp): index <-> physical with a rotated, reflected and
 // anisotropic grid, nearest voxel lookup, validation messages, grid comparison.
-#include "planning/volume.hpp"
+#include "planning/imaging/volume.hpp"
 
 #include <gtest/gtest.h>
 
@@ -9,36 +9,14 @@
 #include <limits>
 #include <string>
 
+#include "tests/support/errors.hpp"
+#include "tests/support/grids.hpp"
+
 namespace crepuscular::planning {
 namespace {
 
-constexpr double kPi = 3.14159265358979323846;
-
-// 7 x 5 x 4 voxels (distinct sizes catch swapped axes), anisotropic spacing, non-zero origin and a
-// rotation of 30 degrees about the oblique axis (1, 2, 3).
-ImageGeometry oblique_geometry() {
-  ImageGeometry g;
-  g.dims = {7, 5, 4};
-  g.origin = Eigen::Vector3d(-12.5, 40.25, 7.75);
-  g.spacing = Eigen::Vector3d(0.8, 1.3, 2.1);
-  g.direction = Eigen::AngleAxisd(30.0 * kPi / 180.0, Eigen::Vector3d(1, 2, 3).normalized())
-                    .toRotationMatrix();
-  return g;
-}
-
-// Expects `f` to throw Error whose message contains every one of `parts`.
-template <typename F>
-void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
-  try {
-    f();
-    ADD_FAILURE() << "expected crepuscular::Error";
-  } catch (const Error& e) {
-    for (const std::string& part : parts) {
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
-          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
-    }
-  }
-}
+using test::expect_error_containing;
+using test::oblique_geometry;
 
 // Exact arithmetic up to rounding of a handful of products: 1e-12 mm on values below 100 mm.
 constexpr double kRoundingTol = 1e-12;

@@ -17,18 +17,13 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace crepuscular::recordings {
 namespace {
 
 namespace fs = std::filesystem;
-
-fs::path temp_dir(const std::string& name) {
-  const fs::path dir = fs::temp_directory_path() / ("crepuscular_recording_test_" + name);
-  fs::remove_all(dir);
-  return dir;
-}
 
 // A frame whose content identifies it: a gradient plus a bright square at a frame-dependent place.
 cv::Mat test_image(int64_t frame) {
@@ -63,7 +58,7 @@ size_t count_lines(const fs::path& p) {
 }
 
 TEST(Recording, WritesAndReadsFramesTimestampsTruthAndSession) {
-  const fs::path dir = temp_dir("roundtrip");
+  const fs::path dir = test::fresh_path("roundtrip");
   SessionInfo info;
   info.source = "synthetic:scene.json";
   info.plan = "plan/";
@@ -114,7 +109,7 @@ TEST(Recording, WritesAndReadsFramesTimestampsTruthAndSession) {
 }
 
 TEST(Recording, JpegFramesDecodeCloseToTheOriginal) {
-  const fs::path dir = temp_dir("jpeg");
+  const fs::path dir = test::fresh_path("jpeg");
   RecordingWriter w(dir.string(), SessionInfo{}, "jpg", 95);
   w.add_frame(0, 0, test_image(0));
   w.finish();
@@ -126,20 +121,20 @@ TEST(Recording, JpegFramesDecodeCloseToTheOriginal) {
 }
 
 TEST(Recording, WriterRefusesNonEmptyFolderAndDecreasingFrames) {
-  const fs::path dir = temp_dir("refuse");
+  const fs::path dir = test::fresh_path("refuse");
   fs::create_directories(dir);
   std::ofstream(dir / "something") << "x";
   EXPECT_THROW(RecordingWriter(dir.string(), SessionInfo{}), Error);
-  const fs::path dir2 = temp_dir("refuse2");
+  const fs::path dir2 = test::fresh_path("refuse2");
   RecordingWriter w(dir2.string(), SessionInfo{});
   w.add_frame(5, 0, test_image(0));
   EXPECT_THROW(w.add_frame(5, 1, test_image(0)), Error);
-  EXPECT_THROW(RecordingWriter(temp_dir("fmt").string(), SessionInfo{}, "bmp"), Error);
+  EXPECT_THROW(RecordingWriter(test::fresh_path("fmt").string(), SessionInfo{}, "bmp"), Error);
 }
 
 // The recorder is a child process killed with SIGKILL while it writes as fast as it can.
 TEST(Recording, KilledRecorderReplaysUpToItsLastCompleteFrame) {
-  const fs::path dir = temp_dir("killed");
+  const fs::path dir = test::fresh_path("killed");
   const pid_t pid = fork();
   ASSERT_GE(pid, 0);
   if (pid == 0) {
@@ -176,7 +171,7 @@ TEST(Recording, KilledRecorderReplaysUpToItsLastCompleteFrame) {
 }
 
 TEST(Recording, TruncatedRowsMissingAndCorruptFilesAreProblemsNotCrashes) {
-  const fs::path dir = temp_dir("damaged");
+  const fs::path dir = test::fresh_path("damaged");
   {
     RecordingWriter w(dir.string(), SessionInfo{}, "jpg", 90);
     for (int64_t f = 0; f < 6; ++f) w.add_frame(f, f * 1000, test_image(f));
@@ -238,7 +233,7 @@ TEST(Recording, DecodeImageReportsCorruptData) {
 }
 
 TEST(Recording, PoseCsvRejectsWrongHeaderAndSkipsBadRows) {
-  const fs::path dir = temp_dir("posecsv");
+  const fs::path dir = test::fresh_path("posecsv");
   fs::create_directories(dir);
   std::ofstream(dir / "bad.csv") << "frame,time\n1,2\n";
   EXPECT_THROW(read_pose_csv((dir / "bad.csv").string()), Error);

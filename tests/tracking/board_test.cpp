@@ -14,32 +14,16 @@
 
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace crepuscular::tracking {
 namespace {
 
+using test::expect_error_containing;
+
 namespace fs = std::filesystem;
-
-template <typename F>
-void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
-  try {
-    f();
-    ADD_FAILURE() << "expected crepuscular::Error";
-  } catch (const Error& e) {
-    for (const std::string& part : parts) {
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
-          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
-    }
-  }
-}
-
-fs::path temp_dir(const std::string& name) {
-  const fs::path dir = fs::temp_directory_path() / ("crepuscular_board_test_" + name);
-  fs::remove_all(dir);
-  fs::create_directories(dir);
-  return dir;
-}
 
 TEST(Board, GridTagsAreCentredRowMajorWithPitchSizePlusGap) {
   const Board b = make_grid_board("patient", 2, 3, 40.0, 10.0, 5);
@@ -61,7 +45,7 @@ TEST(Board, GridTagsAreCentredRowMajorWithPitchSizePlusGap) {
 }
 
 TEST(Board, JsonRoundTripAndGridExpansion) {
-  const fs::path dir = temp_dir("json");
+  const test::TemporaryFolder dir;
   const std::string grid_path = (dir / "grid.json").string();
   std::ofstream(grid_path) << R"({"boards": [
     {"name": "patient", "grid": {"rows": 2, "cols": 3, "tag_size_mm": 40, "gap_mm": 10},
@@ -105,7 +89,7 @@ TEST(Board, JsonRoundTripAndGridExpansion) {
 }
 
 TEST(Board, BadFilesNameTheFileAndTheField) {
-  const fs::path dir = temp_dir("bad");
+  const test::TemporaryFolder dir;
   const auto write = [&](const std::string& name, const std::string& text) {
     const std::string path = (dir / name).string();
     std::ofstream(path) << text;

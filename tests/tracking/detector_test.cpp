@@ -8,7 +8,7 @@
 #include <map>
 #include <opencv2/aruco.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
 #include "tests/tracking/tag_scene.hpp"
 #include "tracking/synthetic.hpp"
 

@@ -14,34 +14,18 @@
 
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/temporary_folder.hpp"
 #include "recordings/recording.hpp"
 #include "tracking/synthetic.hpp"
 
 namespace crepuscular::tracking {
 namespace {
 
+using test::expect_error_containing;
+
 namespace fs = std::filesystem;
-
-template <typename F>
-void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
-  try {
-    f();
-    ADD_FAILURE() << "expected crepuscular::Error";
-  } catch (const Error& e) {
-    for (const std::string& part : parts) {
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
-          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
-    }
-  }
-}
-
-fs::path temp_dir(const std::string& name) {
-  const fs::path dir = fs::temp_directory_path() / ("crepuscular_frame_source_test_" + name);
-  fs::remove_all(dir);
-  fs::remove_all(dir.string() + ".partial");
-  return dir;
-}
 
 TEST(FrameSource, UrisSplitIntoKindPathAndOptions) {
   const SourceUri u = parse_source_uri("v4l2:/dev/video0?width=1280&height=720&fps=60");
@@ -61,7 +45,7 @@ TEST(FrameSource, BadSourcesAreClearErrors) {
                           {"unknown kind 'camera'", "v4l2:"});
   expect_error_containing([] { open_frame_source("recording:/nonexistent/rec"); },
                           {"/nonexistent/rec", "not found"});
-  const fs::path dir = temp_dir("opts");
+  const fs::path dir = test::fresh_path("opts");
   fs::create_directories(dir);
   expect_error_containing([&] { open_frame_source("recording:" + dir.string() + "?speed=2"); },
                           {"unknown option 'speed'"});
@@ -77,7 +61,7 @@ TEST(FrameSource, BadSourcesAreClearErrors) {
 
 // A small recording: 4 frames 50 ms apart with a pose each, camera.yaml, frame 2 corrupt.
 fs::path write_recording(const std::string& name) {
-  const fs::path dir = temp_dir(name);
+  const fs::path dir = test::fresh_path(name);
   {
     recordings::RecordingWriter w(dir.string(), recordings::SessionInfo{}, "png", 95, true);
     for (int64_t f = 0; f < 4; ++f) {
@@ -170,7 +154,7 @@ TEST(FrameSource, SyntheticRecordingReplaysWithItsTruth) {
   s.dropped_frames = {3};
   s.corrupt_frames = {5};
   auto src = make_synthetic_source(s, "synthetic:test");
-  const fs::path out = temp_dir("synth");
+  const fs::path out = test::fresh_path("synth");
   RecordOptions o;
   o.boards_json = boards_json_text({b.board});
   const RecordSummary sum = record_to_folder(*src, out.string(), o);
@@ -211,13 +195,13 @@ TEST(FrameSource, RecordingStopsAtFrameAndTimeLimits) {
   auto src = open_frame_source("recording:" + dir.string() + "?loop=1");
   RecordOptions o;
   o.max_frames = 6;
-  const fs::path out = temp_dir("limits_frames");
+  const fs::path out = test::fresh_path("limits_frames");
   // Six frames over a loop and a half, the corrupt JPEG stored as received.
   EXPECT_EQ(record_to_folder(*src, out.string(), o).frames, 6);
   auto src2 = open_frame_source("recording:" + dir.string() + "?loop=1");
   RecordOptions t;
   t.max_seconds = 0.12;  // frames at 0, 50, 100 ms
-  const fs::path out2 = temp_dir("limits_seconds");
+  const fs::path out2 = test::fresh_path("limits_seconds");
   const RecordSummary s2 = record_to_folder(*src2, out2.string(), t);
   EXPECT_EQ(s2.frames + s2.skipped, 3);
 }
@@ -225,7 +209,7 @@ TEST(FrameSource, RecordingStopsAtFrameAndTimeLimits) {
 // The commands end to end: `synth` renders a scene file, `record` copies the result, and a
 // recorder killed mid-way (SIGKILL) leaves DIR.partial that replays.
 TEST(FrameSource, SynthAndRecordCommandsWriteReplayableRecordings) {
-  const fs::path dir = temp_dir("cli");
+  const fs::path dir = test::fresh_path("cli");
   fs::create_directories(dir);
   write_boards((dir / "boards.json").string(), {make_grid_board("patient", 1, 2, 40, 10, 0)});
   std::ofstream(dir / "scene.json") << R"({"camera": {"width": 320, "height": 240, "fx": 300},

@@ -7,7 +7,6 @@
 #include <tag36h11.h>
 #include <gtest/gtest.h>
 
-#include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -15,7 +14,8 @@
 
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/temporary_folder.hpp"
 
 namespace crepuscular::tracking {
 namespace {
@@ -239,9 +239,7 @@ TEST(Synthetic, SourceDropsAndCorruptsFramesAndCarriesTruth) {
 }
 
 TEST(Synthetic, SceneFileIsReadWithBoardsPosesAndOptions) {
-  const fs::path dir = fs::temp_directory_path() / "crepuscular_synthetic_test_scene";
-  fs::remove_all(dir);
-  fs::create_directories(dir);
+  const test::TemporaryFolder dir;
   write_boards((dir / "boards.json").string(),
                {make_grid_board("patient", 2, 3, 40, 10, 0), make_grid_board("needle", 1, 2, 20, 5, 10)});
   std::ofstream(dir / "scene.json") << R"({
@@ -315,12 +313,8 @@ TEST(Synthetic, BuiltinSceneKeepsBoardsInViewAndApproachesTarget) {
   EXPECT_LT(last_gap, 70.0);
 
   SyntheticRenderer renderer(s);
-  const auto t0 = std::chrono::steady_clock::now();
   std::vector<TruePose> truth;
   const cv::Mat img = renderer.render(45, &truth);
-  const double ms =
-      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-  std::printf("built-in scene frame rendered in %.1f ms\n", ms);
   std::map<int, int> seen;
   for (const Detected& d : detect(img)) ++seen[d.id];
   for (int id : {0, 1, 2, 3, 4, 5, 10, 11, 12, 13}) EXPECT_EQ(seen[id], 1) << "tag " << id;

@@ -11,7 +11,9 @@
 #include <map>
 #include <random>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/temporary_folder.hpp"
 #include "tests/tracking/tag_scene.hpp"
 #include "tracking/poses_csv.hpp"
 #include "tracking/synthetic.hpp"
@@ -305,9 +307,8 @@ TEST(Tracker, LossIsReportedAndStalePosesAreLost) {
   EXPECT_LT(distance_mm(res.boards[0].T_cam_board, T), 0.5);
 
   // Lost rows carry no pose in the CSV; tracked rows round-trip.
-  const std::string path =
-      (std::filesystem::temp_directory_path() / ("tracker_test_" + std::to_string(::getpid()) +
-                                                 ".csv")).string();
+  const test::TemporaryFolder dir;
+  const std::string path = dir.file("poses.csv");
   {
     PosesCsvWriter w(path);
     for (const TrackResult& t : results) w.write(t);
@@ -326,7 +327,6 @@ TEST(Tracker, LossIsReportedAndStalePosesAreLost) {
   std::ifstream in(path);
   std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   EXPECT_NE(text.find("\n8,133333336,patient,lost,,,,,,,,\n"), std::string::npos) << text;
-  std::filesystem::remove(path);
 }
 
 // The same requirements on frames of the other renderer (tracking/synthetic.hpp, ray traced through
@@ -425,10 +425,7 @@ TEST(Tracker, SyntheticSourceWithCorruptDroppedAndOccludedFramesKeepsGoing) {
 // disk: every row is tracked (the truncated frame holds the poses, 33 ms old) and the poses match
 // ground_truth.csv.
 TEST(TrackCommand, TracksASynthRecordingWithACorruptFrame) {
-  const std::filesystem::path dir = std::filesystem::temp_directory_path() /
-                                    ("track_cmd_" + std::to_string(::getpid()));
-  std::filesystem::remove_all(dir);
-  std::filesystem::create_directories(dir);
+  const test::TemporaryFolder dir;
   const std::string rec = (dir / "rec").string(), out = (dir / "poses.csv").string();
   const std::string bin = CREPUSCULAR_BINARY;
   ASSERT_EQ(std::system((bin + " synth --frames 12 --out " + rec + " > " + (dir / "synth.log").string() +
@@ -456,26 +453,18 @@ TEST(TrackCommand, TracksASynthRecordingWithACorruptFrame) {
   std::ifstream in(log);
   const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   EXPECT_NE(text.find("frame 5:"), std::string::npos) << text;  // the problem is reported
-  std::filesystem::remove_all(dir);
 }
 
 TEST(PosesCsv, MalformedRowsAreErrorsNamingTheLine) {
-  const std::string path =
-      (std::filesystem::temp_directory_path() / ("poses_bad_" + std::to_string(::getpid()) +
-                                                 ".csv")).string();
+  const test::TemporaryFolder dir;
+  const std::string path = dir.file("poses_bad.csv");
   {
     std::ofstream out(path);
     out << "frame,timestamp_ns,board,state,tx,ty,tz,qw,qx,qy,qz,rms_px\n"
         << "0,0,patient,tracked,1,2,3,1,0,0,0,0.1\n"
         << "1,16,patient,tracked,1,2,,1,0,0,0,0.1\n";
   }
-  try {
-    read_poses_csv(path);
-    FAIL() << "no error";
-  } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("line 3"), std::string::npos) << e.what();
-    EXPECT_NE(std::string(e.what()).find("tz"), std::string::npos) << e.what();
-  }
+  test::expect_error_containing([&] { read_poses_csv(path); }, {"line 3", "tz"});
   {
     std::ofstream out(path);
     out << "frame,board\n";

@@ -12,23 +12,13 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "kernels/error.hpp"
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
 
 namespace crepuscular::tracking {
 namespace {
 
-template <typename F>
-void expect_error_containing(F&& f, std::initializer_list<std::string> parts) {
-  try {
-    f();
-    ADD_FAILURE() << "expected crepuscular::Error";
-  } catch (const Error& e) {
-    for (const std::string& part : parts) {
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos)
-          << "message \"" << e.what() << "\" lacks \"" << part << "\"";
-    }
-  }
-}
+using test::expect_error_containing;
 
 // BT.601 with video range, as cameras send YUYV:
 //   R = 1.164 (Y - 16) + 1.596 (V - 128)

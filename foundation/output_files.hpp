@@ -1,0 +1,92 @@
+// Outputs that appear complete or not at all (DESIGN.md §3): files are written under a temporary
+// name in the same folder and renamed; whole output folders are staged beside their final place.
+// Every module writes its outputs through these; errors name the final path.
+#pragma once
+
+#include <cstddef>
+#include <functional>
+#include <string>
+#include <string_view>
+
+namespace crepuscular {
+
+// A temporary path in the folder of `path` whose name ends with the file name of `path` (so
+// format detection by extension still works), e.g. "dir/.tmp-1234-1-plan.json".
+std::string temporary_sibling(const std::string& path);
+
+// Renames `temporary` onto `path` (atomic within one file system); on failure removes
+// `temporary` and throws Error naming `path`.
+void commit_file(const std::string& temporary, const std::string& path);
+
+// Writes `path` through a temporary sibling: `write(temporary)` creates the file at the path it
+// is given (a temporary_sibling of `path`, same extension), which then takes the name `path`.
+// For files written by other libraries (OpenCV FileStorage, imwrite, ITK writers). If `write`
+// throws, the temporary is removed and the exception passes on: its message should name `path`.
+void write_file_atomically(const std::string& path,
+                           const std::function<void(const std::string& temporary)>& write);
+
+// Writes text or bytes to `path` through a temporary sibling; throws Error naming the path on
+// failure (nothing is left behind then).
+void write_text_file(const std::string& path, std::string_view text);
+void write_binary_file(const std::string& path, const void* data, std::size_t size);
+
+// A file written piece by piece (a CSV log, a video) under a temporary sibling name; commit()
+// gives it its final name. If commit() is never called (a failed run), the destructor removes
+// the temporary file.
+class PendingFile {
+ public:
+  explicit PendingFile(std::string path);
+  ~PendingFile();
+  PendingFile(const PendingFile&) = delete;
+  PendingFile& operator=(const PendingFile&) = delete;
+
+  // Where to write until commit().
+  const std::string& temporary() const { return temporary_; }
+  const std::string& path() const { return path_; }
+  bool committed() const { return committed_; }
+  // Renames the temporary onto path() (the writer must have closed it); throws Error naming
+  // path() on failure, after removing the temporary.
+  void commit();
+
+ private:
+  std::string path_;
+  std::string temporary_;
+  bool committed_ = false;
+};
+
+// A folder written in full before it takes its final name.
+class StagedDirectory {
+ public:
+  // What becomes of a staged folder that is never committed.
+  enum class OnFailure {
+    // Staged as the hidden ".NAME.partial-PID" beside the final path and removed by the
+    // destructor; commit() replaces an earlier folder of the final name.
+    kRemove,
+    // Staged as "FINAL.partial", which stays where it is (usable as it is, e.g. an interrupted
+    // recording that replays). Neither FINAL nor FINAL.partial may exist beforehand (Error);
+    // commit() renames FINAL.partial to FINAL.
+    kKeep,
+  };
+
+  explicit StagedDirectory(std::string final_path, OnFailure on_failure = OnFailure::kRemove);
+  ~StagedDirectory();
+  StagedDirectory(const StagedDirectory&) = delete;
+  StagedDirectory& operator=(const StagedDirectory&) = delete;
+
+  // The staging folder: where outputs go until commit().
+  const std::string& path() const { return staging_; }
+  std::string file(const std::string& name) const { return staging_ + "/" + name; }
+  const std::string& final_path() const { return final_; }
+  bool committed() const { return committed_; }
+  // Moves the staging folder to the final name; throws Error on failure (kKeep: the complete
+  // output then stays under the staging name, which the message says).
+  void commit();
+
+ private:
+  std::string final_;
+  std::string staging_;
+  OnFailure on_failure_;
+  bool committed_ = false;
+};
+
+}  // namespace crepuscular

@@ -1,0 +1,157 @@
+// The demo's report.md: the plan's class shares and safe regions, the needle along the
+// recording, the files.
+#include "pipelines/demo_report.hpp"
+
+#include <array>
+#include <cmath>
+#include <fmt/format.h>
+#include <sstream>
+
+#include "overlay/guidance.hpp"
+
+namespace crepuscular::pipelines {
+
+namespace {
+
+std::string fmt3(const Eigen::Vector3d& v) {
+  return fmt::format("({:.1f}, {:.1f}, {:.1f})", v.x(), v.y(), v.z());
+}
+
+// Share of region-of-interest voxels in each class (%).
+std::array<double, 3> class_shares(const planning::Volume<float>& v,
+                                   const planning::SafetyClasses& c) {
+  std::array<double, 3> n{0, 0, 0};
+  double total = 0;
+  for (float x : v.values()) {
+    if (!std::isfinite(x)) continue;
+    n[size_t(c.classify(x))] += 1;
+    total += 1;
+  }
+  for (double& s : n) s = total > 0 ? 100.0 * s / total : 0.0;
+  return n;
+}
+
+std::string approach_text(const GuidanceApproach& a) {
+  std::ostringstream o;
+  const auto& s = a.state;
+  o << fmt::format(
+      "- **{} path**: entry {} mm (LPS), {:.0f} deg from straight anterior; line integral "
+      "{:.2f} (insignificant <= {:.2f}), path safety at the entry: {}; tip to target {:.1f} mm.\n",
+      a.name, fmt3(a.entry_ct), a.angle_from_anterior_deg, s.evaluation.line_integral, s.eps,
+      s.tip_class, s.tip_to_centroid_mm);
+  const auto lines = overlay::needle_text(s);
+  if (lines.empty()) {
+    o << "  It crosses no structure that carries risk.\n";
+  } else {
+    o << "  It crosses:";
+    for (const auto& l : lines) o << " " << l << ";";
+    o << "\n";
+  }
+  return o.str();
+}
+
+// Needle safety over the frames of one approach.
+struct Phase {
+  const GuidanceApproach* approach;
+  int64_t safe = 0, medium = 0, dangerous = 0, lost = 0;
+  double first_dangerous_s = -1;
+};
+
+void count_phase(Phase& p, const overlay::GuidanceFrameInfo& info, double time_s) {
+  if (time_s < p.approach->start_s || time_s > p.approach->end_s) return;
+  if (!info.needle) {
+    ++p.lost;
+    return;
+  }
+  switch (info.needle->state.safety) {
+    case planning::NeedleSafety::kSafe:
+      ++p.safe;
+      break;
+    case planning::NeedleSafety::kMedium:
+      ++p.medium;
+      break;
+    case planning::NeedleSafety::kDangerous:
+      ++p.dangerous;
+      if (p.first_dangerous_s < 0) p.first_dangerous_s = time_s;
+      break;
+  }
+}
+
+}  // namespace
+
+std::string demo_plan_report(const planning::PlanData& plan, double spacing_mm,
+                             const std::string& mode, double plan_s) {
+  std::ostringstream report;
+  report << "# Crepuscular demo report\n\n"
+         << "Built-in phantom abdomen (" << spacing_mm << " mm voxels) with a liver tumor.\n\n";
+  report << "## Plan\n\n"
+         << "Tumor centre " << fmt3(plan.tumor_centre) << " mm (LPS); region of interest "
+         << plan.radius_mm << " mm around it; " << mode << " mode, computed in " << plan_s
+         << " s.\n\n"
+         << "| value | safe | medium | dangerous | (share of the region's voxels) |\n"
+         << "|---|---|---|---|---|\n";
+  for (const auto& v : plan.values) {
+    const auto s = class_shares(plan.path_safety.at(v), plan.classes.at(v));
+    report << fmt::format("| {} | {:.1f} % | {:.1f} % | {:.1f} % | |\n", v, s[0], s[1], s[2]);
+  }
+  if (plan.area) {
+    report << "\nArea safety: " << plan.area->regions.size() << " safe region(s)";
+    if (!plan.area->regions.empty()) {
+      report << fmt::format("; the largest is {:.1f} cm3 around {} mm",
+                            plan.area->regions[0].size_mm3 / 1000.0,
+                            fmt3(plan.area->regions[0].centre));
+    }
+    report << ".\n";
+  }
+  return report.str();
+}
+
+std::string demo_guidance_report(const GuidanceScenario& scenario, const GuideSummary& g) {
+  Phase phases[2] = {{&scenario.safe}, {&scenario.dangerous}};
+  for (const auto& info : g.frame_infos) {
+    const double time_s = double(info.frame) / scenario.scene.fps;
+    for (Phase& p : phases) count_phase(p, info, time_s);
+  }
+  std::ostringstream report;
+  report << "\n## The needle along the recording\n\n"
+         << "A synthetic camera recording (" << g.frames << " frames at " << scenario.scene.fps
+         << " fps, 1280x720) of the patient board on the skin and a tracked needle, guided "
+            "headless with the calibration files in setup/.\n\n";
+  report << approach_text(scenario.safe) << approach_text(scenario.dangerous) << "\n";
+  report << "| approach | time | frames safe | medium | dangerous | needle not tracked |\n"
+         << "|---|---|---|---|---|---|\n";
+  for (const Phase& p : phases) {
+    report << fmt::format("| {} | {:.1f}-{:.1f} s | {} | {} | {} | {} |\n", p.approach->name,
+                          p.approach->start_s, p.approach->end_s, p.safe, p.medium, p.dangerous,
+                          p.lost);
+  }
+  report << fmt::format(
+      "\nAnatomy shown in {} of {} frames (patient board tracked); needle evaluated in {}. "
+      "Latency from frame arrival to finished overlay: median {:.1f} ms, p95 {:.1f} ms (tracking "
+      "{:.1f} ms, overlay {:.1f} ms, rendering {:.1f} ms; {}).\n",
+      g.patient_tracked, g.frames, g.needle_evaluated, g.latency_median_ms, g.latency_p95_ms,
+      g.track_median_ms, g.overlay_median_ms, g.render_median_ms, g.gl);
+  report << "\nSnapshots: snapshots/safe_path.png and snapshots/dangerous_path.png (end of each "
+            "approach), and midway through each.\n";
+  return report.str();
+}
+
+std::string demo_files_report(bool guidance, double total_s) {
+  std::ostringstream report;
+  report << "\n## Files\n\n"
+         << "- phantom/: ct.nii.gz, labels.nii.gz, tumor.nii.gz, vulnerability.json\n"
+         << "- plan/: path_safety_*.nii.gz (NaN outside the region), blocking.nii.gz, "
+            "area_safety.vtk, plan.json: open with the CT in 3D Slicer\n"
+         << "- slices/: axial, coronal, sagittal and oblique views through the largest safe "
+            "region\n";
+  if (guidance) {
+    report << "- setup/: camera.yaml, registration.yaml, needle.yaml, boards.json, scene.json\n"
+           << "- recording/: the synthetic camera recording with its ground truth\n"
+           << "- overlay.mp4, overlay.csv (per frame: tracking, needle safety, latency), "
+              "snapshots/\n";
+  }
+  report << fmt::format("\nThe demo took {:.0f} s.\n", total_s);
+  return report.str();
+}
+
+}  // namespace crepuscular::pipelines

@@ -1,0 +1,19 @@
+// The phantom job: the built-in phantom abdomen written to a folder, with a summary of what it
+// holds (grid, tumor size and centroid, voxels per label) in the log.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "planning/simulation/phantom.hpp"
+
+namespace crepuscular::pipelines {
+
+// Builds the phantom, writes it into `out_dir` (planning::write_phantom) and logs its summary.
+void run_phantom(const planning::PhantomOptions& options, const std::string& out_dir);
+
+// One-line summaries of the phantom: grid; tumor voxels, volume, equivalent diameter, centroid;
+// voxels per label.
+std::vector<std::string> phantom_summary(const planning::Phantom& phantom);
+
+}  // namespace crepuscular::pipelines

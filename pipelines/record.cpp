@@ -1,0 +1,61 @@
+// Recording a frame source, and rendering a synthetic scene, into a recording folder.
+#include "pipelines/record.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <vector>
+
+#include "calibration/camera_model.hpp"
+#include "tracking/board.hpp"
+#include "tracking/synthetic.hpp"
+
+namespace crepuscular::pipelines {
+
+tracking::RecordSummary run_record(const RecordRequest& r) {
+  tracking::RecordOptions options;
+  options.max_frames = r.frames;
+  options.max_seconds = r.seconds;
+  options.image_format = r.format;
+  options.jpeg_quality = r.quality;
+  options.plan = r.plan;
+  options.stop = r.stop;
+  if (!r.boards.empty()) {
+    // Checked and normalised: grids expanded, as tracking reads them.
+    options.boards_json = tracking::boards_json_text(tracking::read_boards(r.boards));
+  }
+  if (!r.camera.empty()) options.camera = calibration::CameraModel::read_yaml(r.camera);
+  auto source = tracking::open_frame_source(r.source);
+  if (r.frames < 0 && r.seconds < 0 && r.source.rfind("v4l2:", 0) == 0) {
+    spdlog::info("record: no frame or time limit: recording until Ctrl-C");
+  }
+  const tracking::RecordSummary s = tracking::record_to_folder(*source, r.out, options);
+  spdlog::info(
+      "record: wrote {} frames to {} in {:.1f} s ({} without image data skipped, {} "
+      "with a problem{})",
+      s.frames, s.path, s.seconds, s.skipped, s.problems,
+      s.truth_rows > 0 ? ", " + std::to_string(s.truth_rows) + " ground-truth rows" : "");
+  return s;
+}
+
+tracking::RecordSummary run_synth(const SynthRequest& r) {
+  const tracking::SyntheticScene scene =
+      r.scene.empty() ? tracking::builtin_scene() : tracking::read_scene(r.scene);
+  const std::string description = r.scene.empty() ? "synthetic:builtin" : "synthetic:" + r.scene;
+  std::vector<tracking::Board> boards;
+  for (const tracking::SceneBoard& b : scene.boards) boards.push_back(b.board);
+  spdlog::info("synth: {} frames of {}x{} at {} fps, {} boards, from {}", scene.frame_count,
+               scene.camera.width, scene.camera.height, scene.fps, boards.size(), description);
+  auto source = tracking::make_synthetic_source(scene, description);
+  tracking::RecordOptions options;
+  options.image_format = r.format;
+  options.jpeg_quality = r.quality;
+  options.max_frames = r.frames;
+  options.boards_json = tracking::boards_json_text(boards);
+  const tracking::RecordSummary s = tracking::record_to_folder(*source, r.out, options);
+  spdlog::info("synth: wrote {} frames and {} ground-truth rows to {} in {:.1f} s{}", s.frames,
+               s.truth_rows, s.path, s.seconds,
+               s.problems > 0 ? " (" + std::to_string(s.problems) + " corrupt on purpose)" : "");
+  return s;
+}
+
+}  // namespace crepuscular::pipelines

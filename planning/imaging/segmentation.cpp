@@ -1,0 +1,437 @@
+// 3D Slicer segmentations (.seg.nrrd) through ITK's NrrdImageIO: header keys Segment<N>_* from the
+// MetaDataDictionary, voxels as stored (one component per layer), converted to label maps.
+#include "planning/imaging/segmentation.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <Eigen/Core>
+#include <algorithm>
+#include <cctype>
+#include <cmath>
+#include <cstdint>
+#include <filesystem>
+#include <limits>
+#include <map>
+#include <optional>
+#include <sstream>
+#include <string>
+#include <type_traits>
+#include <vector>
+
+#include "foundation/error.hpp"
+
+// ITK headers after ours: one Eigen (the system's) in this unit, as in volume_io.cpp.
+#ifndef ITK_USE_SYSTEM_EIGEN
+#define ITK_USE_SYSTEM_EIGEN
+#endif
+#include <itkImageIOBase.h>
+#include <itkMetaDataObject.h>
+#include <itkNrrdImageIO.h>
+
+namespace fs = std::filesystem;
+
+namespace crepuscular::planning {
+
+namespace {
+
+constexpr int kMaxLabelValue = 65535;
+
+std::string trimmed(const std::string& s) {
+  const auto first = s.find_first_not_of(" \t\r\n");
+  if (first == std::string::npos) return {};
+  return s.substr(first, s.find_last_not_of(" \t\r\n") - first + 1);
+}
+
+std::string one_line(const itk::ExceptionObject& e) {
+  std::string text = e.GetDescription();
+  std::replace(text.begin(), text.end(), '\n', ' ');
+  const auto innermost = text.rfind("[nrrd] ");  // teem nests its messages; the last says why
+  if (innermost != std::string::npos) text = text.substr(innermost + 7);
+  // Without ITK's "ITK ERROR: NrrdImageIO(0x...): " prefix.
+  const auto itk_error = text.find("ITK ERROR: ");
+  const auto after_class = text.find("): ", itk_error);
+  if (itk_error != std::string::npos && after_class != std::string::npos) {
+    text = text.substr(after_class + 3);
+  }
+  return trimmed(text);
+}
+
+std::string segment_key(int n, const char* field) {
+  return "Segment" + std::to_string(n) + "_" + field;
+}
+
+std::optional<std::string> header_value(const itk::MetaDataDictionary& dict,
+                                        const std::string& key) {
+  std::string value;
+  if (!dict.HasKey(key) || !itk::ExposeMetaData<std::string>(dict, key, value)) {
+    return std::nullopt;
+  }
+  return trimmed(value);
+}
+
+// An integer header value in [lo, hi]; Error naming the file and the key otherwise.
+int header_integer(const std::string& path, const std::string& key, const std::string& text, int lo,
+                   int hi, const std::string& expected_extra = {}) {
+  long long value = 0;
+  size_t used = 0;
+  bool ok = !text.empty();
+  try {
+    value = std::stoll(text, &used);
+  } catch (const std::exception&) {
+    ok = false;
+  }
+  if (!ok || used != text.size() || value < lo || value > hi) {
+    throw Error(path + ": " + key + " is '" + text + "' (expected an integer " +
+                std::to_string(lo) + " to " + std::to_string(hi) + expected_extra + ")");
+  }
+  return int(value);
+}
+
+// Segment<N>_Extent: "i0 i1 j0 j1 k0 k1" in file index coordinates (empty when i0 > i1 ...).
+struct Extent {
+  int64_t lo[3];
+  int64_t hi[3];
+  bool contains(const Index3& ijk) const {
+    for (int a = 0; a < 3; ++a) {
+      if (ijk[a] < lo[a] || ijk[a] > hi[a]) return false;
+    }
+    return true;
+  }
+};
+
+Extent parse_extent(const std::string& path, const std::string& key, const std::string& text) {
+  std::istringstream in(text);
+  Extent e{};
+  long long v[6];
+  for (long long& x : v) {
+    if (!(in >> x)) {
+      throw Error(path + ": " + key + " is '" + text +
+                  "' (expected six integers: i0 i1 j0 j1 k0 k1)");
+    }
+  }
+  std::string rest;
+  if (in >> rest) {
+    throw Error(path + ": " + key + " is '" + text +
+                "' (expected six integers: i0 i1 j0 j1 k0 k1)");
+  }
+  for (int a = 0; a < 3; ++a) {
+    e.lo[a] = v[2 * a];
+    e.hi[a] = v[2 * a + 1];
+  }
+  return e;
+}
+
+// Reads every stored value (component fastest, as ITK orders them) into `raw`.
+void read_raw(itk::NrrdImageIO& io, const std::string& path, std::vector<char>& raw) {
+  const unsigned n = io.GetNumberOfDimensions();
+  itk::ImageIORegion region(n);
+  for (unsigned a = 0; a < n; ++a) {
+    region.SetIndex(a, 0);
+    region.SetSize(a, io.GetDimensions(a));
+  }
+  io.SetIORegion(region);
+  raw.assign(size_t(io.GetImageSizeInBytes()), 0);
+  try {
+    io.Read(raw.data());
+  } catch (const itk::ExceptionObject& e) {
+    throw Error(path + ": cannot read the voxels (" + one_line(e) + ")");
+  }
+}
+
+// Calls f(const S* values) with S the stored component type.
+template <typename F>
+void with_stored_values(const itk::NrrdImageIO& io, const std::vector<char>& raw,
+                        const std::string& path, F&& f) {
+  using C = itk::IOComponentEnum;
+  const char* p = raw.data();
+  switch (io.GetComponentType()) {
+    case C::UCHAR:
+      return f(reinterpret_cast<const uint8_t*>(p));
+    case C::CHAR:
+      return f(reinterpret_cast<const int8_t*>(p));
+    case C::USHORT:
+      return f(reinterpret_cast<const uint16_t*>(p));
+    case C::SHORT:
+      return f(reinterpret_cast<const int16_t*>(p));
+    case C::UINT:
+      return f(reinterpret_cast<const uint32_t*>(p));
+    case C::INT:
+      return f(reinterpret_cast<const int32_t*>(p));
+    case C::ULONG:
+    case C::ULONGLONG:
+      return f(reinterpret_cast<const uint64_t*>(p));
+    case C::LONG:
+    case C::LONGLONG:
+      return f(reinterpret_cast<const int64_t*>(p));
+    case C::FLOAT:
+      return f(reinterpret_cast<const float*>(p));
+    case C::DOUBLE:
+      return f(reinterpret_cast<const double*>(p));
+    default:
+      throw Error(path + ": voxel component type " +
+                  itk::ImageIOBase::GetComponentTypeAsString(io.GetComponentType()) +
+                  " is not supported (expected an integer type)");
+  }
+}
+
+// A stored value as an integer; Error for a non-integral floating-point value.
+template <typename S>
+int64_t integer_value(S x, int64_t element, const std::string& path) {
+  if constexpr (std::is_floating_point_v<S>) {
+    if (!std::isfinite(x) || double(x) != std::round(double(x)) || std::abs(double(x)) > 1e9) {
+      std::ostringstream m;
+      m << path << ": voxel value " << x << " at element " << element
+        << " is not an integer (expected label values 0 to " << kMaxLabelValue << ")";
+      throw Error(m.str());
+    }
+  }
+  return int64_t(x);
+}
+
+std::string list_segments(const std::vector<Segment>& segments) {
+  std::string s;
+  for (const Segment& seg : segments) {
+    if (!s.empty()) s += ", ";
+    s += "'" + seg.name + "' (ID " + seg.id + ", layer " + std::to_string(seg.layer) + ", value " +
+         std::to_string(seg.label_value) + ")";
+  }
+  return s.empty() ? "none" : s;
+}
+
+}  // namespace
+
+std::string normalized_structure_name(const std::string& name) {
+  const std::string t = trimmed(name);
+  std::string out;
+  out.reserve(t.size());
+  for (const unsigned char c : t) {
+    if (c == ' ' || c == '_' || c == '\t') {
+      if (out.empty() || out.back() != '_') out.push_back('_');
+    } else {
+      out.push_back(char(std::tolower(c)));
+    }
+  }
+  return out;
+}
+
+bool structure_names_match(const std::string& a, const std::string& b) {
+  return normalized_structure_name(a) == normalized_structure_name(b);
+}
+
+bool is_segmentation_file(const std::string& path) {
+  std::string lower(path);
+  std::transform(lower.begin(), lower.end(), lower.begin(),
+                 [](unsigned char c) { return char(std::tolower(c)); });
+  for (const std::string ext : {".seg.nrrd", ".seg.nhdr"}) {
+    if (lower.size() > ext.size() && lower.compare(lower.size() - ext.size(), ext.size(), ext) == 0)
+      return true;
+  }
+  return false;
+}
+
+std::vector<Segment> Segmentation::segments_in_layer(int layer) const {
+  std::vector<Segment> out;
+  for (const Segment& s : segments) {
+    if (s.layer == layer) out.push_back(s);
+  }
+  return out;
+}
+
+const Segment& Segmentation::find_segment(const std::string& name_or_id) const {
+  for (const Segment& s : segments) {
+    if (s.id == name_or_id) return s;
+  }
+  const Segment* found = nullptr;
+  int count = 0;
+  for (const Segment& s : segments) {
+    if (structure_names_match(s.name, name_or_id)) {
+      found = &s;
+      ++count;
+    }
+  }
+  if (count == 1) return *found;
+  throw Error(source + ": " +
+              (count == 0 ? "no segment named '" + name_or_id + "'"
+                          : std::to_string(count) + " segments named '" + name_or_id + "'") +
+              " (segments: " + list_segments(segments) + ")");
+}
+
+Volume<uint8_t> Segmentation::segment_mask(const Segment& segment) const {
+  if (segment.layer < 0 || size_t(segment.layer) >= layers.size()) {
+    throw Error(source + ": segment '" + segment.name + "' is in layer " +
+                std::to_string(segment.layer) + ", but the file holds " +
+                std::to_string(layers.size()) + " layers");
+  }
+  const Volume<int32_t>& layer = layers[size_t(segment.layer)];
+  Volume<uint8_t> mask(layer.geometry(), 0);
+  const int64_t n = layer.voxel_count();
+  for (int64_t v = 0; v < n; ++v) mask[v] = layer[v] == segment.label_value ? 1 : 0;
+  return mask;
+}
+
+Segmentation read_segmentation(const std::string& path) {
+  std::error_code ec;
+  if (!fs::is_regular_file(path, ec)) {
+    throw Error(path + ": " + (fs::exists(path, ec) ? "not a file" : "no such file") +
+                " (expected a 3D Slicer segmentation, .seg.nrrd)");
+  }
+  auto io = itk::NrrdImageIO::New();
+  if (!io->CanReadFile(path.c_str())) {
+    throw Error(path + ": not a NRRD file (expected a 3D Slicer segmentation, .seg.nrrd)");
+  }
+  io->SetFileName(path);
+  try {
+    io->ReadImageInformation();
+  } catch (const itk::ExceptionObject& e) {
+    throw Error(path + ": cannot read the NRRD header (" + one_line(e) + ")");
+  }
+
+  // Layout: 3D with one component per layer, or the obsolete 4D (4th axis = segment).
+  const unsigned dims = io->GetNumberOfDimensions();
+  const unsigned components = io->GetNumberOfComponents();
+  bool legacy_4d = false;
+  int layer_count = int(components);
+  if (dims == 4 && io->GetDimensions(3) > 1) {
+    if (components != 1) {
+      throw Error(path + ": 4D image with " + std::to_string(components) +
+                  " components per voxel (expected 3D with one component per layer, or the "
+                  "obsolete 4D layout with one segment per 4th-axis index)");
+    }
+    legacy_4d = true;
+    layer_count = int(io->GetDimensions(3));
+  } else if (dims < 3 || dims > 4) {
+    throw Error(path + ": image is " + std::to_string(dims) +
+                "D (expected 3D, one component per layer)");
+  }
+
+  ImageGeometry g;
+  for (unsigned a = 0; a < 3; ++a) {
+    g.dims[a] = int64_t(io->GetDimensions(a));
+    g.spacing[a] = io->GetSpacing(a);
+    g.origin[a] = io->GetOrigin(a);
+    const std::vector<double> axis = io->GetDirection(a);
+    for (unsigned r = 0; r < 3; ++r) g.direction(r, a) = r < axis.size() ? axis[r] : 0.0;
+  }
+  g.validate(path);
+  const double deviation =
+      (g.direction.transpose() * g.direction - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
+  if (deviation > 1e-3) {
+    std::ostringstream m;
+    m << path << ": direction cosines are not orthonormal (|D^T D - I| = " << deviation
+      << ", expected < 0.001)";
+    throw Error(m.str());
+  }
+
+  // Segments: N = 0, 1, ... while any Segment<N>_ key exists (Slicer itself counts Segment<N>_ID).
+  const itk::MetaDataDictionary& dict = io->GetMetaDataDictionary();
+  Segmentation seg;
+  seg.source = path;
+  std::vector<std::optional<Extent>> extents;
+  for (int n = 0;; ++n) {
+    const auto id = header_value(dict, segment_key(n, "ID"));
+    const auto name = header_value(dict, segment_key(n, "Name"));
+    const auto value = header_value(dict, segment_key(n, "LabelValue"));
+    const auto layer = header_value(dict, segment_key(n, "Layer"));
+    if (!id && !name && !value && !layer) break;
+    Segment s;
+    s.index = n;
+    s.id = id.value_or("");
+    s.name = name && !name->empty() ? *name : s.id;
+    if (s.name.empty()) s.name = "Segment" + std::to_string(n);
+    if (value) {
+      s.label_value = header_integer(path, segment_key(n, "LabelValue"), *value, 1, kMaxLabelValue);
+    }
+    if (legacy_4d) {
+      s.layer = n;
+      if (n >= layer_count) {
+        throw Error(path + ": segment " + std::to_string(n) + " '" + s.name + "' has no volume (" +
+                    std::to_string(layer_count) + " along the 4th axis)");
+      }
+    } else if (layer) {
+      s.layer = header_integer(path, segment_key(n, "Layer"), *layer, 0, layer_count - 1,
+                               " for a file of " + std::to_string(layer_count) + " layer" +
+                                   (layer_count == 1 ? "" : "s"));
+    } else {
+      s.layer = n;  // Slicer's default: each segment in a layer of its own
+      if (n >= layer_count) {
+        throw Error(path + ": " + segment_key(n, "Layer") + " is missing and the file holds " +
+                    std::to_string(layer_count) + " layer" + (layer_count == 1 ? "" : "s") +
+                    " (expected a layer for every segment)");
+      }
+    }
+    const auto extent = header_value(dict, segment_key(n, "Extent"));
+    extents.push_back(extent && !legacy_4d ? std::optional<Extent>(parse_extent(
+                                                 path, segment_key(n, "Extent"), *extent))
+                                           : std::nullopt);
+    for (const Segment& other : seg.segments) {
+      if (other.layer == s.layer && other.label_value == s.label_value) {
+        throw Error(path + ": " + segment_key(n, "LabelValue") + " is " +
+                    std::to_string(s.label_value) + ", as for segment " +
+                    std::to_string(other.index) + " '" + other.name + "' in the same layer " +
+                    std::to_string(s.layer) + " (expected unique values within a layer)");
+      }
+    }
+    seg.segments.push_back(s);
+  }
+  if (seg.segments.empty()) {
+    throw Error(path +
+                ": no segments in the header (no key Segment0_ID, Segment0_Name, "
+                "Segment0_LabelValue or Segment0_Layer; expected a 3D Slicer segmentation; a plain "
+                "label map needs a vulnerability table by label value)");
+  }
+
+  std::vector<char> raw;
+  read_raw(*io, path, raw);
+  const int64_t voxels = g.voxel_count();
+  const size_t component_bytes = io->GetComponentSize();
+  if (component_bytes == 0 || raw.size() != size_t(voxels * layer_count) * component_bytes) {
+    throw Error(path + ": holds " + std::to_string(raw.size()) + " bytes of voxels for " +
+                std::to_string(voxels) + " voxels x " + std::to_string(layer_count) + " layers");
+  }
+
+  // Per layer: value -> segment (position in seg.segments), then the label map.
+  for (int l = 0; l < layer_count; ++l) {
+    std::vector<int> segment_of_value(size_t(kMaxLabelValue) + 1, -1);
+    for (size_t i = 0; i < seg.segments.size(); ++i) {
+      if (seg.segments[i].layer != l) continue;
+      // The obsolete 4D layout stores each segment as a binary volume: any value > 0 is inside.
+      segment_of_value[size_t(legacy_4d ? 1 : seg.segments[i].label_value)] = int(i);
+    }
+    Volume<int32_t> labels(g, 0);
+    std::map<int64_t, int64_t> undeclared;  // value -> voxels
+    int64_t outside_extent = 0;
+    with_stored_values(*io, raw, path, [&](const auto* stored) {
+      for (int64_t v = 0; v < voxels; ++v) {
+        const int64_t element = legacy_4d ? v + voxels * l : v * layer_count + l;
+        int64_t x = integer_value(stored[element], element, path);
+        if (x == 0) continue;
+        if (legacy_4d) x = x > 0 ? 1 : x;
+        const int i = x > 0 && x <= kMaxLabelValue ? segment_of_value[size_t(x)] : -1;
+        if (i < 0) {
+          ++undeclared[x];
+          continue;
+        }
+        const auto& extent = extents[size_t(i)];
+        if (extent && !extent->contains(g.index_of_offset(v))) {
+          ++outside_extent;
+          continue;
+        }
+        labels[v] = int32_t(seg.segments[size_t(i)].label_value);
+      }
+    });
+    for (const auto& [x, count] : undeclared) {
+      spdlog::warn("{}: layer {} holds value {} in {} voxels, which no segment declares; ignored",
+                   path, l, x, count);
+    }
+    if (outside_extent > 0) {
+      spdlog::warn("{}: layer {}: {} labelled voxels outside their segment's extent; ignored", path,
+                   l, outside_extent);
+    }
+    seg.layers.push_back(std::move(labels));
+  }
+  spdlog::debug("{}: {} segments in {} layers, {} x {} x {} voxels", path, seg.segments.size(),
+                layer_count, g.dims[0], g.dims[1], g.dims[2]);
+  return seg;
+}
+
+}  // namespace crepuscular::planning

@@ -1,0 +1,612 @@
+// Volume IO through ITK: NIfTI, NRRD, MetaImage files and DICOM series folders to Volume<T> and
+// back. ITK is LPS like Volume, so the geometry is copied as is; every ITK error becomes an Error.
+#include "planning/imaging/volume_io.hpp"
+#include "planning/imaging/itk_image.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <Eigen/Core>
+#include <algorithm>
+#include <array>
+#include <cctype>
+#include <cmath>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <regex>
+#include <sstream>
+#include <string>
+#include <system_error>
+#include <type_traits>
+#include <utility>
+#include <vector>
+
+#include "foundation/error.hpp"
+#include "foundation/output_files.hpp"
+
+// ITK headers after ours: they are large and only this file sees them. ITK 5.2 bundles its own
+// Eigen 3.3 (same include guards and namespace as the system Eigen 3.4 that volume.hpp already
+// pulled in); telling ITK to use the system Eigen keeps one Eigen in this translation unit.
+#ifndef ITK_USE_SYSTEM_EIGEN
+#define ITK_USE_SYSTEM_EIGEN
+#endif
+#include <itkGDCMImageIO.h>
+#include <itkGDCMImageIOFactory.h>
+#include <itkGDCMSeriesFileNames.h>
+#include <itkImage.h>
+#include <itkImageFileReader.h>
+#include <itkImageFileWriter.h>
+#include <itkImageIOBase.h>
+#include <itkImageIOFactory.h>
+#include <itkImageSeriesReader.h>
+#include <itkMetaImageIOFactory.h>
+#include <itkNiftiImageIOFactory.h>
+#include <itkNrrdImageIOFactory.h>
+#include <itk_zlib.h>
+
+namespace fs = std::filesystem;
+
+namespace crepuscular::planning {
+
+namespace {
+
+using Component = itk::IOComponentEnum;
+
+// The project does not use ITK_USE_FILE, so nothing registers the IO factories for us.
+void register_io_factories() {
+  static std::once_flag once;
+  std::call_once(once, [] {
+    itk::NiftiImageIOFactory::RegisterOneFactory();
+    itk::NrrdImageIOFactory::RegisterOneFactory();
+    itk::MetaImageIOFactory::RegisterOneFactory();
+    itk::GDCMImageIOFactory::RegisterOneFactory();
+  });
+}
+
+// ITK's description on one line, without the "ITK ERROR: Class(0x...): " prefix; for NRRD only
+// the innermost of teem's nested messages ("[nrrd] fn: ... [nrrd] fn: what went wrong").
+std::string describe(const itk::ExceptionObject& e) {
+  std::string text = e.GetDescription();
+  std::replace(text.begin(), text.end(), '\n', ' ');
+  static const std::regex kItkPrefix(R"(^\s*(ITK ERROR|itk::ERROR):\s*\w+\(0x[0-9a-fA-F]+\):\s*)");
+  text = std::regex_replace(text, kItkPrefix, "");
+  const auto innermost = text.rfind("[nrrd] ");
+  if (innermost != std::string::npos) {
+    static const std::regex kFunction(R"(^\w+:\s*)");
+    text = std::regex_replace(text.substr(innermost + 7), kFunction, "");
+  }
+  const auto first = text.find_first_not_of(" \t");
+  const auto last = text.find_last_not_of(" \t");
+  return first == std::string::npos ? std::string("unknown ITK error")
+                                    : text.substr(first, last - first + 1);
+}
+
+std::string voxel_text(const ImageGeometry& g, int64_t offset) {
+  const Index3 ijk = g.index_of_offset(offset);
+  std::ostringstream s;
+  s << "voxel (" << ijk[0] << ", " << ijk[1] << ", " << ijk[2] << ")";
+  return s.str();
+}
+
+std::string value_text(double value) {
+  std::ostringstream s;
+  s.precision(10);
+  s << value;
+  return s.str();
+}
+
+template <typename T>
+const char* type_name() {
+  if constexpr (std::is_same_v<T, uint8_t>) return "uint8";
+  if constexpr (std::is_same_v<T, int16_t>) return "int16";
+  if constexpr (std::is_same_v<T, int32_t>) return "int32";
+  if constexpr (std::is_same_v<T, float>) return "float32";
+  if constexpr (std::is_same_v<T, double>) return "float64";
+  return "?";
+}
+
+// Geometry checks beyond ImageGeometry::validate: the direction must be orthonormal (validate only
+// looks at the determinant). Tolerance 1e-3 because NIfTI stores the direction in float32.
+void check_geometry(const ImageGeometry& g, const std::string& path) {
+  g.validate(path);
+  const double deviation =
+      (g.direction.transpose() * g.direction - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
+  if (deviation > 1e-3) {
+    throw Error(path + ": direction cosines are not orthonormal (|D^T D - I| = " +
+                value_text(deviation) + ", expected < 0.001)");
+  }
+}
+
+// Geometry and pixel layout of a file as its ImageIO reports them; throws Error when the file is
+// not a scalar 3D volume (a 4D file whose extra axes have size 1 counts as 3D).
+ImageGeometry geometry_of_file(itk::ImageIOBase& io, const std::string& path) {
+  const unsigned n = io.GetNumberOfDimensions();
+  if (n < 3) {
+    throw Error(path + ": image is " + std::to_string(n) + "D (expected a 3D volume)");
+  }
+  for (unsigned a = 3; a < n; ++a) {
+    if (io.GetDimensions(a) != 1) {
+      throw Error(path + ": image is " + std::to_string(n) + "D with " +
+                  std::to_string(io.GetDimensions(a)) + " samples along axis " + std::to_string(a) +
+                  " (expected a 3D volume)");
+    }
+  }
+  if (io.GetNumberOfComponents() != 1) {
+    throw Error(path + ": voxels have " + std::to_string(io.GetNumberOfComponents()) +
+                " components (pixel type " +
+                itk::ImageIOBase::GetPixelTypeAsString(io.GetPixelType()) +
+                "; expected scalar values)");
+  }
+  ImageGeometry g;
+  for (unsigned a = 0; a < 3; ++a) {
+    g.dims[a] = int64_t(io.GetDimensions(a));
+    g.spacing[a] = io.GetSpacing(a);
+    g.origin[a] = io.GetOrigin(a);
+    // Read the direction from the IO ourselves: for files with more than 3 axes ImageFileReader
+    // replaces it with the identity.
+    const std::vector<double> axis = io.GetDirection(a);
+    for (unsigned r = 0; r < 3; ++r) g.direction(r, a) = r < axis.size() ? axis[r] : 0.0;
+  }
+  check_geometry(g, path);
+  return g;
+}
+
+// niftilib inside ITK 5.2 fills the missing part of a short data read with zeros and reports
+// nothing, so a truncated .nii or .nii.gz would load as a partly empty volume. This checks the
+// stored length against vox_offset + dims x bitpix from the header itself (ImageIO's size may be
+// that of rescaled float values, not of the stored ones).
+std::string nifti_length_problem(const std::string& path) {
+  const std::unique_ptr<gzFile_s, int (*)(gzFile)> file(gzopen(path.c_str(), "rb"), &gzclose);
+  if (!file) return "cannot open the file";
+  unsigned char header[540];
+  const int header_read = gzread(file.get(), header, sizeof header);
+  if (header_read < 348) return "file ends inside the NIfTI header";
+  // Header fields in the file's byte order: sizeof_hdr (348 or 540) tells which order that is.
+  int32_t stored_size;
+  std::memcpy(&stored_size, header, 4);
+  const bool swapped = stored_size != 348 && stored_size != 540;
+  const auto field = [&](int at, auto value) {
+    unsigned char bytes[sizeof value];
+    std::memcpy(bytes, header + at, sizeof value);
+    if (swapped) std::reverse(bytes, bytes + sizeof value);
+    std::memcpy(&value, bytes, sizeof value);
+    return value;
+  };
+  const int32_t sizeof_hdr = field(0, int32_t{});
+  double vox_offset = 0.0;
+  int64_t bitpix = 0;
+  std::array<int64_t, 8> dim{};
+  if (sizeof_hdr == 348 && std::memcmp(header + 344, "n+1", 4) == 0) {
+    vox_offset = field(108, float{});
+    bitpix = field(72, int16_t{});
+    for (int d = 0; d < 8; ++d) dim[d] = field(40 + 2 * d, int16_t{});
+  } else if (sizeof_hdr == 540 && header_read == 540 && std::memcmp(header + 4, "n+2", 4) == 0) {
+    vox_offset = double(field(168, int64_t{}));
+    bitpix = field(14, int16_t{});
+    for (int d = 0; d < 8; ++d) dim[d] = field(16 + 8 * d, int64_t{});
+  } else {
+    return {};  // header and data in separate files (.hdr/.img), or Analyze: not checked here
+  }
+  uint64_t data_bytes = uint64_t(std::max<int64_t>(bitpix, 0) / 8);
+  for (int d = 1; d <= std::clamp<int64_t>(dim[0], 0, 7); ++d) {
+    data_bytes *= uint64_t(std::max<int64_t>(dim[d], 1));
+  }
+  if (!(vox_offset >= double(sizeof_hdr) && vox_offset < 1e15)) {
+    return "NIfTI vox_offset is " + value_text(vox_offset) + ", expected at least " +
+           std::to_string(sizeof_hdr);
+  }
+  const uint64_t needed = uint64_t(vox_offset) + data_bytes;
+
+  std::ifstream raw(path, std::ios::binary);
+  unsigned char magic[2] = {0, 0};
+  raw.read(reinterpret_cast<char*>(magic), 2);
+  if (magic[0] != 0x1f || magic[1] != 0x8b) {  // not gzip-compressed
+    std::error_code ec;
+    const uintmax_t size = fs::file_size(path, ec);
+    if (!ec && size >= needed) return {};
+  } else {
+    // Fast path: a gzip stream ends with its uncompressed length modulo 2^32.
+    unsigned char trailer[4];
+    raw.seekg(-4, std::ios::end);
+    if (raw.read(reinterpret_cast<char*>(trailer), 4)) {
+      const uint32_t isize = uint32_t(trailer[0]) | uint32_t(trailer[1]) << 8 |
+                             uint32_t(trailer[2]) << 16 | uint32_t(trailer[3]) << 24;
+      if (isize == uint32_t(needed & 0xffffffffu)) return {};
+    }
+  }
+  // Slow path (several gzip members, trailing bytes, or a damaged file): count what is there.
+  uint64_t total = uint64_t(header_read);
+  std::vector<char> buffer(1 << 20);
+  int got = 0;
+  while (total < needed && (got = gzread(file.get(), buffer.data(), unsigned(buffer.size()))) > 0) {
+    total += uint64_t(got);
+  }
+  if (total < needed) {
+    return "file is truncated: " + std::to_string(total) + " bytes of header and data, expected " +
+           std::to_string(needed);
+  }
+  return {};
+}
+
+std::string trimmed(const std::string& text) {
+  const auto first = text.find_first_not_of(" \t\r");
+  if (first == std::string::npos) return {};
+  return text.substr(first, text.find_last_not_of(" \t\r") - first + 1);
+}
+
+// MetaIO (ITK 5.2) only prints "data not read completely" for short data, raw or compressed, and
+// ITK returns the volume padded with zeros. This checks the stored data length from the header:
+// the image size, or CompressedDataSize for compressed data.
+std::string metaimage_length_problem(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::map<std::string, std::string> fields;
+  std::string line;
+  while (std::getline(in, line)) {
+    const auto eq = line.find('=');
+    if (eq == std::string::npos) continue;
+    const std::string key = trimmed(line.substr(0, eq));
+    fields[key] = trimmed(line.substr(eq + 1));
+    if (key == "ElementDataFile") break;  // the last header field; data follow
+  }
+  if (fields.count("ElementDataFile") == 0 || fields["BinaryData"] == "False") return {};
+  uint64_t needed = 0;
+  if (fields["CompressedData"] == "True") {
+    if (fields.count("CompressedDataSize") == 0) return {};  // optional field; nothing to compare
+    needed = std::stoull(fields["CompressedDataSize"]);
+  } else {
+    static const std::map<std::string, uint64_t> kElementSize = {
+        {"MET_CHAR", 1},  {"MET_UCHAR", 1},     {"MET_SHORT", 2},      {"MET_USHORT", 2},
+        {"MET_INT", 4},   {"MET_UINT", 4},      {"MET_LONG", 4},       {"MET_ULONG", 4},
+        {"MET_FLOAT", 4}, {"MET_LONG_LONG", 8}, {"MET_ULONG_LONG", 8}, {"MET_DOUBLE", 8}};
+    const auto size = kElementSize.find(fields["ElementType"]);
+    if (size == kElementSize.end()) return {};
+    needed = size->second;
+    if (fields.count("ElementNumberOfChannels")) {
+      needed *= std::stoull(fields["ElementNumberOfChannels"]);
+    }
+    std::istringstream dims(fields["DimSize"]);
+    for (uint64_t d = 0; dims >> d;) needed *= d;
+  }
+  std::error_code ec;
+  uint64_t available = 0;
+  const std::string& data_file = fields["ElementDataFile"];
+  if (data_file == "LOCAL") {
+    const auto data_start = in.tellg();
+    const uintmax_t size = fs::file_size(path, ec);
+    if (ec || data_start < 0) return {};
+    available = size > uintmax_t(data_start) ? size - uintmax_t(data_start) : 0;
+  } else if (data_file.find_first_of(" %") == std::string::npos && data_file != "LIST") {
+    const uintmax_t size = fs::file_size(fs::path(path).parent_path() / data_file, ec);
+    if (ec) return {};  // ITK reports a missing data file itself
+    const int64_t skip = fields.count("HeaderSize") ? std::stoll(fields["HeaderSize"]) : 0;
+    available = size - std::min<uintmax_t>(size, uintmax_t(std::max<int64_t>(skip, 0)));
+  } else {
+    return {};  // slice lists: not checked here
+  }
+  if (available < needed) {
+    return "file is truncated: " + std::to_string(available) + " bytes of data, expected " +
+           std::to_string(needed);
+  }
+  return {};
+}
+
+// Checks for short data that the format's library would pass over in silence (see above).
+std::string length_problem(const std::string& path, const char* io_class) {
+  if (std::strcmp(io_class, "NiftiImageIO") == 0) return nifti_length_problem(path);
+  if (std::strcmp(io_class, "MetaImageIO") == 0) return metaimage_length_problem(path);
+  return {};
+}
+
+ImageGeometry geometry_of_image(const itk::ImageBase<3>& image) {
+  ImageGeometry g;
+  const auto region = image.GetLargestPossibleRegion();
+  itk::Point<double, 3> origin;
+  image.TransformIndexToPhysicalPoint(region.GetIndex(), origin);
+  for (unsigned a = 0; a < 3; ++a) {
+    g.dims[a] = int64_t(region.GetSize()[a]);
+    g.spacing[a] = image.GetSpacing()[a];
+    g.origin[a] = origin[a];
+    for (unsigned r = 0; r < 3; ++r) g.direction(r, a) = image.GetDirection()[r][a];
+  }
+  return g;
+}
+
+template <typename S>
+Volume<S> copy_pixels(const itk::Image<S, 3>& image, const ImageGeometry& geometry,
+                      const std::string& path) {
+  const auto size = image.GetLargestPossibleRegion().GetSize();
+  for (unsigned a = 0; a < 3; ++a) {
+    if (int64_t(size[a]) != geometry.dims[a]) {
+      throw Error(path + ": cannot read (image size changed while reading)");
+    }
+  }
+  Volume<S> out(geometry);
+  std::copy_n(image.GetBufferPointer(), out.voxel_count(), out.data());
+  return out;
+}
+
+template <typename S>
+Volume<S> read_file_pixels(const std::string& path, itk::ImageIOBase* io,
+                           const ImageGeometry& geometry) {
+  using Image = itk::Image<S, 3>;
+  auto reader = itk::ImageFileReader<Image>::New();
+  reader->SetImageIO(io);
+  reader->SetFileName(path);
+  reader->Update();
+  return copy_pixels<S>(*reader->GetOutput(), geometry, path);
+}
+
+template <typename S>
+Volume<S> read_series_pixels(const std::string& path, const std::vector<std::string>& files) {
+  using Image = itk::Image<S, 3>;
+  auto reader = itk::ImageSeriesReader<Image>::New();
+  reader->SetImageIO(itk::GDCMImageIO::New());
+  reader->SetFileNames(files);
+  reader->Update();
+  const ImageGeometry geometry = geometry_of_image(*reader->GetOutput());
+  check_geometry(geometry, path);
+  return copy_pixels<S>(*reader->GetOutput(), geometry, path);
+}
+
+template <typename S>
+struct Tag {
+  using type = S;
+};
+
+// Calls f(Tag<S>{}) with S the C++ type that holds the file's component type without loss.
+template <typename F>
+auto with_component_type(Component c, const std::string& path, F&& f) {
+  switch (c) {
+    case Component::UCHAR:
+      return f(Tag<uint8_t>{});
+    case Component::CHAR:
+      return f(Tag<int8_t>{});
+    case Component::USHORT:
+      return f(Tag<uint16_t>{});
+    case Component::SHORT:
+      return f(Tag<int16_t>{});
+    case Component::UINT:
+      return f(Tag<uint32_t>{});
+    case Component::INT:
+      return f(Tag<int32_t>{});
+    case Component::ULONG:
+    case Component::ULONGLONG:
+      return f(Tag<uint64_t>{});
+    case Component::LONG:
+    case Component::LONGLONG:
+      return f(Tag<int64_t>{});
+    case Component::FLOAT:
+      return f(Tag<float>{});
+    case Component::DOUBLE:
+    case Component::LDOUBLE:
+      return f(Tag<double>{});
+    default:
+      throw Error(path + ": cannot read (unknown voxel component type " +
+                  itk::ImageIOBase::GetComponentTypeAsString(c) + ")");
+  }
+}
+
+// Opens `path` (file or DICOM folder), reads its voxels in their stored type S and returns
+// convert(Volume<S>&&). Every failure is an Error naming `path`.
+template <typename Convert>
+auto read_native(const std::string& path, Convert&& convert) {
+  register_io_factories();
+  std::error_code ec;
+  const fs::file_status status = fs::status(path, ec);
+  if (ec || !fs::exists(status)) {
+    throw Error(path + ": cannot read (file does not exist)");
+  }
+  try {
+    if (fs::is_directory(status)) {
+      auto names = itk::GDCMSeriesFileNames::New();
+      names->SetUseSeriesDetails(true);
+      names->SetDirectory(path);
+      std::vector<std::string> files;
+      for (const std::string& uid : names->GetSeriesUIDs()) {
+        std::vector<std::string> series = names->GetFileNames(uid);
+        if (series.size() > files.size()) files = std::move(series);
+      }
+      if (files.empty()) {
+        throw Error(path + ": cannot read (folder holds no DICOM series)");
+      }
+      auto io = itk::GDCMImageIO::New();
+      io->SetFileName(files.front());
+      io->ReadImageInformation();
+      if (io->GetNumberOfComponents() != 1) {
+        throw Error(path + ": DICOM voxels have " + std::to_string(io->GetNumberOfComponents()) +
+                    " components (expected scalar values, e.g. CT or MR)");
+      }
+      spdlog::debug("{}: reading DICOM series of {} files", path, files.size());
+      return with_component_type(io->GetComponentType(), path, [&](auto tag) {
+        using S = typename decltype(tag)::type;
+        return convert(read_series_pixels<S>(path, files));
+      });
+    }
+    if (!std::ifstream(path, std::ios::binary)) {
+      throw Error(path + ": cannot read (no permission to open the file)");
+    }
+    itk::ImageIOBase::Pointer io =
+        itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::IOFileModeEnum::ReadMode);
+    if (!io) {
+      throw Error(path +
+                  ": cannot read (not a NIfTI, NRRD, MetaImage or DICOM file, or a damaged one)");
+    }
+    io->SetFileName(path);
+    io->ReadImageInformation();
+    const ImageGeometry geometry = geometry_of_file(*io, path);
+    const std::string short_data = length_problem(path, io->GetNameOfClass());
+    if (!short_data.empty()) throw Error(path + ": cannot read (" + short_data + ")");
+    spdlog::debug("{}: reading {} x {} x {} voxels ({})", path, geometry.dims[0], geometry.dims[1],
+                  geometry.dims[2],
+                  itk::ImageIOBase::GetComponentTypeAsString(io->GetComponentType()));
+    return with_component_type(io->GetComponentType(), path, [&](auto tag) {
+      using S = typename decltype(tag)::type;
+      return convert(read_file_pixels<S>(path, io.GetPointer(), geometry));
+    });
+  } catch (const Error&) {
+    throw;
+  } catch (const itk::ExceptionObject& e) {
+    throw Error(path + ": cannot read (" + describe(e) + ")");
+  } catch (const std::bad_alloc&) {
+    throw Error(path + ": cannot read (out of memory)");
+  } catch (const std::exception& e) {
+    throw Error(path + ": cannot read (" + e.what() + ")");
+  }
+}
+
+// True when every value of S is a value of T (both integer types).
+template <typename S, typename T>
+constexpr bool integer_range_fits() {
+  if constexpr (!std::is_integral_v<S> || !std::is_integral_v<T>) {
+    return false;
+  } else if constexpr (std::is_signed_v<S> && !std::is_signed_v<T>) {
+    return false;
+  } else {
+    return std::numeric_limits<S>::digits <= std::numeric_limits<T>::digits;
+  }
+}
+
+// Values of S to T: exact when T holds every S; floating targets take the nearest value; integer
+// targets take the nearest integer and reject values outside their range (naming the voxel).
+template <typename T, typename S>
+Volume<T> convert_values(Volume<S>&& in, const std::string& path) {
+  if constexpr (std::is_same_v<S, T>) {
+    return std::move(in);
+  } else {
+    Volume<T> out(in.geometry());
+    const int64_t n = in.voxel_count();
+    if constexpr (std::is_floating_point_v<T> || integer_range_fits<S, T>()) {
+      for (int64_t i = 0; i < n; ++i) out[i] = static_cast<T>(in[i]);
+    } else {
+      constexpr double lo = double(std::numeric_limits<T>::lowest());
+      constexpr double hi = double(std::numeric_limits<T>::max());
+      for (int64_t i = 0; i < n; ++i) {
+        const double v = std::is_floating_point_v<S> ? std::round(double(in[i])) : double(in[i]);
+        if (!(v >= lo && v <= hi)) {
+          throw Error(path + ": " + voxel_text(in.geometry(), i) + " has value " +
+                      value_text(double(in[i])) + ", which does not fit in " + type_name<T>() +
+                      " [" + value_text(lo) + ", " + value_text(hi) + "]");
+        }
+        out[i] = static_cast<T>(v);
+      }
+    }
+    return out;
+  }
+}
+
+bool ends_with(const std::string& text, const std::string& suffix) {
+  return text.size() >= suffix.size() &&
+         text.compare(text.size() - suffix.size(), suffix.size(), suffix) == 0;
+}
+
+}  // namespace
+
+template <typename T>
+Volume<T> read_volume(const std::string& path) {
+  return read_native(path, [&](auto&& native) {
+    return convert_values<T>(std::forward<decltype(native)>(native), path);
+  });
+}
+
+Volume<int32_t> read_label_map(const std::string& path) {
+  return read_native(path, [&](auto&& native) {
+    const int64_t n = native.voxel_count();
+    for (int64_t i = 0; i < n; ++i) {
+      const double v = double(native[i]);
+      if (!(v >= 0.0 && v <= 65535.0 && v == std::floor(v))) {
+        throw Error(path + ": " + voxel_text(native.geometry(), i) + " has value " + value_text(v) +
+                    " (expected an integer label in [0, 65535])");
+      }
+    }
+    return convert_values<int32_t>(std::forward<decltype(native)>(native), path);
+  });
+}
+
+Volume<uint8_t> read_mask(const std::string& path) {
+  return read_native(path, [&](auto&& native) {
+    Volume<uint8_t> mask(native.geometry());
+    const int64_t n = native.voxel_count();
+    for (int64_t i = 0; i < n; ++i) mask[i] = double(native[i]) > 0.5 ? 1 : 0;
+    return mask;
+  });
+}
+
+template <typename T>
+void write_volume(const Volume<T>& volume, const std::string& path) {
+  register_io_factories();
+  const ImageGeometry& g = volume.geometry();
+  check_geometry(g, path);
+  if (int64_t(volume.values().size()) != g.voxel_count()) {
+    throw Error(path + ": cannot write (volume holds " + std::to_string(volume.values().size()) +
+                " values for " + std::to_string(g.voxel_count()) + " voxels)");
+  }
+  std::string lower = fs::path(path).filename().string();
+  std::transform(lower.begin(), lower.end(), lower.begin(),
+                 [](unsigned char c) { return char(std::tolower(c)); });
+  if (!ends_with(lower, ".nii.gz") && !ends_with(lower, ".nii") && !ends_with(lower, ".nrrd") &&
+      !ends_with(lower, ".mha")) {
+    // .nhdr and .mhd are left out on purpose: their header names a separate data file, which
+    // the write-then-rename scheme would leave pointing at the temporary name.
+    throw Error(path +
+                ": cannot write (unsupported extension; expected .nii.gz, .nii, .nrrd or "
+                ".mha)");
+  }
+  const fs::path parent = fs::path(path).has_parent_path() ? fs::path(path).parent_path() : ".";
+  std::error_code ec;
+  if (!fs::is_directory(parent, ec)) {
+    throw Error(path + ": cannot write (folder " + parent.string() + " does not exist)");
+  }
+
+  using Image = itk::Image<T, 3>;
+  auto image = Image::New();
+  set_image_geometry(*image, g);
+  // The writer only reads the buffer; the container does not own it.
+  image->GetPixelContainer()->SetImportPointer(const_cast<T*>(volume.data()),
+                                               itk::SizeValueType(g.voxel_count()), false);
+
+  write_file_atomically(path, [&](const std::string& temporary) {
+    std::string problem;
+    try {
+      auto writer = itk::ImageFileWriter<Image>::New();
+      writer->SetFileName(temporary);
+      writer->SetInput(image);
+      // .nii stays uncompressed by definition; NRRD and MetaImage compress their data
+      // (gzip/zlib), which 3D Slicer and ITK read back.
+      writer->SetUseCompression(!ends_with(lower, ".nii"));
+      writer->Update();
+      // niftilib cannot report a failed or short write to ITK (nifti_image_write returns
+      // nothing), and MetaIO may only print it: check what reached the disk before it takes the
+      // final name.
+      problem = fs::is_regular_file(temporary, ec)
+                    ? length_problem(temporary, writer->GetImageIO()->GetNameOfClass())
+                    : "the " + std::string(writer->GetImageIO()->GetNameOfClass()) +
+                          " writer produced no file";
+    } catch (const itk::ExceptionObject& e) {
+      problem = describe(e);
+    } catch (const std::bad_alloc&) {
+      problem = "out of memory (or the ITK writer failed without saying why)";
+    } catch (const std::exception& e) {
+      problem = e.what();
+    }
+    if (!problem.empty()) throw Error(path + ": cannot write (" + problem + ")");
+  });
+  spdlog::debug("{}: wrote {} x {} x {} voxels ({})", path, g.dims[0], g.dims[1], g.dims[2],
+                type_name<T>());
+}
+
+template Volume<uint8_t> read_volume<uint8_t>(const std::string&);
+template Volume<int16_t> read_volume<int16_t>(const std::string&);
+template Volume<int32_t> read_volume<int32_t>(const std::string&);
+template Volume<float> read_volume<float>(const std::string&);
+template Volume<double> read_volume<double>(const std::string&);
+
+template void write_volume<uint8_t>(const Volume<uint8_t>&, const std::string&);
+template void write_volume<int16_t>(const Volume<int16_t>&, const std::string&);
+template void write_volume<int32_t>(const Volume<int32_t>&, const std::string&);
+template void write_volume<float>(const Volume<float>&, const std::string&);
+
+}  // namespace crepuscular::planning

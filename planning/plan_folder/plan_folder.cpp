@@ -1,0 +1,327 @@
+// The plan folder's format: plan.json's pieces as the plan pipeline writes them, and load_plan.
+#include "planning/plan_folder/plan_folder.hpp"
+
+#include <itksys/MD5.h>
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <climits>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+
+#include "foundation/error.hpp"
+#include "foundation/json_fields.hpp"
+#include "planning/imaging/volume_io.hpp"
+
+namespace fs = std::filesystem;
+
+namespace crepuscular::planning {
+
+// --- Writing ------------------------------------------------------------------------------------
+
+nlohmann::json geometry_json(const ImageGeometry& g) {
+  nlohmann::json direction = nlohmann::json::array();
+  for (int r = 0; r < 3; ++r) {
+    direction.push_back({g.direction(r, 0), g.direction(r, 1), g.direction(r, 2)});
+  }
+  return {{"dims", {g.dims[0], g.dims[1], g.dims[2]}},
+          {"origin_lps_mm", {g.origin.x(), g.origin.y(), g.origin.z()}},
+          {"spacing_mm", {g.spacing.x(), g.spacing.y(), g.spacing.z()}},
+          {"direction", direction}};
+}
+
+nlohmann::json input_json(const std::string& path, const std::string& plan_dir) {
+  if (path.empty()) return nullptr;
+  const fs::path absolute = fs::absolute(path);
+  return {
+      {"path", absolute.string()},
+      {"relative_path", fs::absolute(absolute).lexically_relative(fs::absolute(plan_dir)).string()},
+      {"md5", file_checksum(path)}};
+}
+
+std::string file_checksum(const std::string& path) {
+  itksysMD5* md5 = itksysMD5_New();
+  itksysMD5_Initialize(md5);
+  std::vector<fs::path> files;
+  std::error_code ec;
+  if (fs::is_directory(path, ec)) {
+    for (const auto& e : fs::directory_iterator(path)) {
+      if (e.is_regular_file()) files.push_back(e.path());
+    }
+    std::sort(files.begin(), files.end());
+  } else {
+    files.push_back(path);
+  }
+  std::vector<char> buf(1 << 20);
+  for (const auto& f : files) {
+    if (files.size() > 1 || f.string() != path) {
+      const std::string name = f.filename().string();
+      itksysMD5_Append(md5, reinterpret_cast<const unsigned char*>(name.data()), int(name.size()));
+    }
+    std::ifstream in(f, std::ios::binary);
+    if (!in) {
+      itksysMD5_Delete(md5);
+      throw Error(f.string() + ": cannot read file");
+    }
+    while (in) {
+      in.read(buf.data(), std::streamsize(buf.size()));
+      const auto got = in.gcount();
+      if (got > 0) {
+        itksysMD5_Append(md5, reinterpret_cast<const unsigned char*>(buf.data()), int(got));
+      }
+    }
+  }
+  char hex[33] = {0};
+  itksysMD5_FinalizeHex(md5, hex);
+  itksysMD5_Delete(md5);
+  return std::string(hex, 32);
+}
+
+nlohmann::json classes_json(unsigned value_bit, const Volume<float>& volume) {
+  const SafetyClasses c = default_classes(value_bit, volume);
+  return {
+      {"higher_is_safer", c.higher_is_safer},
+      {"safe", c.safe},
+      {"dangerous", c.dangerous},
+      {"rule", c.higher_is_safer
+                   ? "safe: value >= safe; dangerous: value < dangerous; medium in between (%)"
+                   : "safe: value <= safe (20th percentile of the non-zero values of the region "
+                     "of interest); dangerous: value > dangerous (60th percentile of them); "
+                     "medium in between"}};
+}
+
+// --- Reading ------------------------------------------------------------------------------------
+
+namespace {
+
+Eigen::Vector3d vector_at(const nlohmann::json& object, const std::string& key,
+                          const JsonPath& at) {
+  const std::vector<double> v =
+      as_numbers(required_field(object, key, at), at.key(key), 3, 3, "[x, y, z]");
+  return {v[0], v[1], v[2]};
+}
+
+ImageGeometry geometry_at(const nlohmann::json& j, const JsonPath& at) {
+  ImageGeometry g;
+  const JsonPath dims_at = at.key("dims");
+  const nlohmann::json& dims = as_array(required_field(j, "dims", at), dims_at);
+  if (dims.size() != 3) dims_at.fail("has " + std::to_string(dims.size()) + " sizes, expected 3");
+  for (size_t a = 0; a < 3; ++a) g.dims[int(a)] = as_integer(dims[a], dims_at.index(a));
+  g.origin = vector_at(j, "origin_lps_mm", at);
+  g.spacing = vector_at(j, "spacing_mm", at);
+  const JsonPath direction_at = at.key("direction");
+  const nlohmann::json& d = as_array(required_field(j, "direction", at), direction_at);
+  if (d.size() != 3) direction_at.fail("has " + std::to_string(d.size()) + " rows, expected 3x3");
+  for (size_t r = 0; r < 3; ++r) {
+    const std::vector<double> row = as_numbers(d[r], direction_at.index(r), 3, 3, "3 numbers");
+    for (int c = 0; c < 3; ++c) g.direction(int(r), c) = row[size_t(c)];
+  }
+  g.validate(at.describe());
+  return g;
+}
+
+// An input's path as plan.json records it; when that file is gone but the path relative to the
+// plan folder leads to one (the plan moved together with its inputs), that one.
+std::string input_path(const nlohmann::json& plan, const char* key, const std::string& plan_dir,
+                       const JsonPath& root) {
+  if (!plan.contains("inputs") || !plan["inputs"].is_object()) return {};
+  const auto& in = plan["inputs"];
+  if (!in.contains(key) || !in[key].is_object() || !in[key].contains("path")) return {};
+  const JsonPath at = root.key("inputs").key(key);
+  const std::string path = required_string(in[key], "path", at);
+  const std::string relative = optional_string(in[key], "relative_path", at, "");
+  std::error_code ec;
+  if (!fs::exists(path, ec) && !relative.empty()) {
+    const fs::path moved = fs::path(plan_dir) / relative;
+    if (fs::exists(moved, ec)) return moved.lexically_normal().string();
+  }
+  return path;
+}
+
+std::string in_plan(const std::string& plan_dir, const std::string& name) {
+  return (fs::path(plan_dir) / name).string();
+}
+
+nlohmann::json read_plan_json(const std::string& plan_dir, const std::string& json_path) {
+  std::error_code ec;
+  if (!fs::is_regular_file(json_path, ec)) {
+    throw Error(json_path + ": cannot open (is " + plan_dir +
+                " a plan folder written by `crepuscular plan`?)");
+  }
+  return read_json_file(json_path, "the plan");
+}
+
+// plan.json's grid, parameters, tumor centroid and computed values.
+void read_parameters(PlanData& plan, const std::string& json_path) {
+  const nlohmann::json& j = plan.json;
+  const JsonPath root(json_path);
+  plan.grid = geometry_at(required_field(j, "grid", root), root.key("grid"));
+  const JsonPath parameters_at = root.key("parameters");
+  const auto& parameters = required_field(j, "parameters", root);
+  plan.gamma_mm = required_number(parameters, "gamma_mm", parameters_at);
+  plan.radius_mm = required_number(parameters, "radius_mm", parameters_at);
+  if (!(plan.gamma_mm > 0)) parameters_at.key("gamma_mm").fail("must be > 0");
+  plan.tumor_centre =
+      vector_at(required_field(j, "tumor", root), "centroid_lps_mm", root.key("tumor"));
+  const JsonPath values_at = parameters_at.key("values");
+  const auto& values = as_array(required_field(parameters, "values", parameters_at), values_at);
+  for (size_t i = 0; i < values.size(); ++i) {
+    plan.values.push_back(as_string(values[i], values_at.index(i)));
+  }
+}
+
+// NaN marks voxels outside the region of interest, but NIfTI readers may hand them back as 0:
+// the ROI mask beside the volumes (or the ball of radius R around the grid centre) decides.
+void mark_outside_roi(PlanData& plan, const nlohmann::json& outputs) {
+  Volume<uint8_t> roi;
+  if (outputs.contains("roi") && outputs["roi"].is_string()) {
+    const std::string path = in_plan(plan.dir, outputs["roi"].get<std::string>());
+    std::error_code ec;
+    if (fs::exists(path, ec)) roi = read_mask(path);
+    if (!roi.empty() && !roi.geometry().same_grid(plan.grid, 1e-4)) {
+      throw Error(path + ": not on the plan's grid (plan.json \"grid\")");
+    }
+  }
+  const ImageGeometry& g = plan.grid;
+  const Eigen::Vector3d centre = g.index_to_physical(Eigen::Vector3d(
+      0.5 * double(g.dims[0] - 1), 0.5 * double(g.dims[1] - 1), 0.5 * double(g.dims[2] - 1)));
+  for (auto& [name, volume] : plan.path_safety) {
+    if (!volume.geometry().same_grid(g, 1e-4)) {
+      throw Error(in_plan(plan.dir, outputs[name].get<std::string>()) +
+                  ": not on the plan's grid (plan.json \"grid\")");
+    }
+    const float nan = std::numeric_limits<float>::quiet_NaN();
+    for (int64_t o = 0; o < volume.voxel_count(); ++o) {
+      bool inside;
+      if (!roi.empty()) {
+        inside = roi[o] != 0;
+      } else {
+        const Index3 idx = g.index_of_offset(o);
+        inside =
+            (g.index_to_physical(idx[0], idx[1], idx[2]) - centre).norm() <= plan.radius_mm + 1e-6;
+      }
+      if (!inside) volume[o] = nan;
+    }
+  }
+}
+
+// The blocking volume, the classes of every value and the path safety volumes asked for.
+void read_volumes(PlanData& plan, const PlanLoadOptions& options, const std::string& json_path) {
+  const JsonPath outputs_at = JsonPath(json_path).key("outputs");
+  const auto& outputs = required_field(plan.json, "outputs", JsonPath(json_path));
+  if (options.blocking) {
+    const std::string name = required_string(outputs, "blocking", outputs_at);
+    plan.blocking = read_volume<float>(in_plan(plan.dir, name));
+  }
+  if (!options.only_value.empty() &&
+      std::find(plan.values.begin(), plan.values.end(), options.only_value) == plan.values.end()) {
+    std::string list;
+    for (const auto& v : plan.values) list += (list.empty() ? "" : ", ") + v;
+    throw Error(json_path + ": value \"" + options.only_value +
+                "\" was not computed in this plan (it has: " + list + ")");
+  }
+  for (const auto& v : plan.values) {
+    plan.classes[v] = classes_from_json(plan.json, v, json_path);
+    if (!options.path_safety) continue;
+    if (!options.only_value.empty() && v != options.only_value) continue;
+    const std::string name = required_string(outputs, v, outputs_at);
+    plan.path_safety[v] = read_volume<float>(in_plan(plan.dir, name));
+  }
+  if (!plan.path_safety.empty()) mark_outside_roi(plan, outputs);
+}
+
+// The label map and the tumor mask of plan.json's inputs (or the label map given instead).
+void read_inputs(PlanData& plan, const PlanLoadOptions& options, const std::string& json_path) {
+  const nlohmann::json& j = plan.json;
+  if (j.contains("preprocessing") && j["preprocessing"].contains("vulnerability") &&
+      j["preprocessing"]["vulnerability"].is_object()) {
+    plan.table = VulnerabilityTable::from_json(j["preprocessing"]["vulnerability"],
+                                               json_path + ": preprocessing.vulnerability");
+  }
+  std::error_code ec;
+  if (options.labels) {
+    std::string path = options.labels_override;
+    if (path.empty()) {
+      path = input_path(j, "labels", plan.dir, JsonPath(json_path));
+      if (!path.empty() && !fs::exists(path, ec)) {
+        spdlog::warn(
+            "{}: the plan's label map {} no longer exists; structures are not shown "
+            "(give the label map explicitly)",
+            json_path, path);
+        path.clear();
+      }
+    }
+    if (!path.empty()) {
+      plan.labels = read_label_map(path);
+      plan.labels_path = path;
+    }
+  }
+  if (options.tumor) {
+    const std::string path = input_path(j, "tumor", plan.dir, JsonPath(json_path));
+    if (!path.empty() && fs::exists(path, ec)) {
+      plan.tumor = read_mask(path);
+    } else if (!path.empty()) {
+      spdlog::warn("{}: the plan's tumor mask {} no longer exists", json_path, path);
+    }
+  }
+}
+
+// area_safety.vtk; its regions from plan.json when the mesh file carries only per-vertex data.
+void read_area(PlanData& plan, const std::string& json_path) {
+  const std::string path = in_plan(plan.dir, "area_safety.vtk");
+  std::error_code ec;
+  if (!fs::exists(path, ec)) return;
+  plan.area = read_area_safety_vtk(path);
+  const nlohmann::json& j = plan.json;
+  if (!plan.area->regions.empty() || !j.contains("area_safety") ||
+      !j["area_safety"].contains("regions")) {
+    return;
+  }
+  const JsonPath regions_at = JsonPath(json_path).key("area_safety").key("regions");
+  const auto& regions = as_array(j["area_safety"]["regions"], regions_at);
+  for (size_t i = 0; i < regions.size(); ++i) {
+    const nlohmann::json& r = regions[i];
+    const JsonPath at = regions_at.index(i);
+    AreaRegion region;
+    region.id = int(required_integer(r, "id", at, INT_MIN, INT_MAX));
+    region.size_mm3 = required_number(r, "size_mm3", at);
+    region.centre = vector_at(r, has_field(r, "centre_lps_mm") ? "centre_lps_mm" : "centre", at);
+    region.main_axis = vector_at(r, "main_axis", at);
+    region.leeway = required_number(r, "leeway", at);
+    region.vertex_count = int(optional_integer(r, "vertex_count", at, 0, INT_MIN, INT_MAX));
+    plan.area->regions.push_back(region);
+  }
+}
+
+}  // namespace
+
+ImageGeometry geometry_from_json(const nlohmann::json& j, const std::string& where) {
+  return geometry_at(j, JsonPath(where));
+}
+
+SafetyClasses classes_from_json(const nlohmann::json& plan, const std::string& value,
+                                const std::string& source) {
+  const JsonPath at = JsonPath(source).key("classes").key(value);
+  if (!plan.contains("classes") || !plan["classes"].contains(value)) at.fail("is missing");
+  const nlohmann::json& c = plan["classes"][value];
+  SafetyClasses s;
+  s.higher_is_safer = required_bool(c, "higher_is_safer", at);
+  s.safe = required_number(c, "safe", at);
+  s.dangerous = required_number(c, "dangerous", at);
+  return s;
+}
+
+PlanData load_plan(const std::string& plan_dir, const PlanLoadOptions& options) {
+  PlanData plan;
+  plan.dir = plan_dir;
+  const std::string json_path = in_plan(plan_dir, "plan.json");
+  plan.json = read_plan_json(plan_dir, json_path);
+  read_parameters(plan, json_path);
+  read_volumes(plan, options, json_path);
+  read_inputs(plan, options, json_path);
+  if (options.area_safety) read_area(plan, json_path);
+  return plan;
+}
+
+}  // namespace crepuscular::planning

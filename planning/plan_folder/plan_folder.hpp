@@ -1,0 +1,83 @@
+// The plan folder (PLAN_DIR), written by the plan pipeline and read by every later step: its
+// format in one place. Files: blocking.nii.gz, roi.nii.gz, path_safety_<value>.nii.gz (NaN
+// outside the region of interest), area_safety.vtk (optional) and plan.json, whose pieces are made
+// here (geometry, inputs, classes) and read back by load_plan.
+#pragma once
+
+#include <Eigen/Core>
+#include <map>
+// The full json.hpp: PlanData holds plan.json as a JSON value.
+#include <nlohmann/json.hpp>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "planning/imaging/volume.hpp"
+#include "planning/preprocessing/vulnerability.hpp"
+#include "planning/safety/area_safety.hpp"
+#include "planning/safety/safety_classes.hpp"
+
+namespace crepuscular::planning {
+
+// --- Writing plan.json
+// ----------------------------------------------------------------------------
+
+// Hex MD5 of a file's bytes (a folder: of its files' names and bytes, in name order).
+std::string file_checksum(const std::string& path);
+
+// The class thresholds of one value as written in plan.json.
+nlohmann::json classes_json(unsigned value_bit, const Volume<float>& volume);
+
+// A grid as plan.json writes it: dims, origin_lps_mm, spacing_mm, direction (rows).
+nlohmann::json geometry_json(const ImageGeometry& geometry);
+
+// An input file of the plan: its absolute path, its path relative to the plan folder (so a plan
+// moved together with its inputs, e.g. a whole demo folder, still finds them) and its checksum.
+// null when `path` is empty.
+nlohmann::json input_json(const std::string& path, const std::string& plan_dir);
+
+// --- Reading a plan folder
+// ------------------------------------------------------------------------
+
+struct PlanLoadOptions {
+  bool blocking = true;     // PLAN_DIR/blocking.nii.gz (required when true)
+  bool path_safety = true;  // every path_safety_<value>.nii.gz listed in plan.json
+  std::string only_value;   // when set: load only this path safety value ("svv", ...)
+  bool labels = true;       // the label map: labels_override, else plan.json inputs.labels
+  std::string labels_override;
+  bool tumor = true;        // the tumor mask of plan.json inputs.tumor (skipped if missing)
+  bool area_safety = true;  // PLAN_DIR/area_safety.vtk when present
+};
+
+// A plan folder as the plan pipeline wrote it. Optional parts are empty when absent.
+struct PlanData {
+  std::string dir;
+  nlohmann::json json;  // plan.json
+  ImageGeometry grid;   // path safety grid (plan.json "grid")
+  double gamma_mm = 0;  // sampling step bound of the plan (h / 2)
+  Eigen::Vector3d tumor_centre = Eigen::Vector3d::Zero();  // plan.json tumor centroid, LPS mm
+  double radius_mm = 0;                                    // region of interest radius R
+  Volume<float> blocking;
+  std::vector<std::string> values;  // computed values, plan.json order ("svv", "isbv", ...)
+  std::map<std::string, Volume<float>> path_safety;  // NaN outside the region of interest
+  std::map<std::string, SafetyClasses> classes;      // plan.json "classes"
+  Volume<int32_t> labels;                            // empty when the plan has no label map
+  std::string labels_path;
+  std::optional<VulnerabilityTable> table;  // plan.json preprocessing.vulnerability
+  Volume<uint8_t> tumor;                    // empty when the mask is not found
+  std::optional<AreaSafetyGeometry> area;   // area_safety.vtk, when the plan has one
+};
+
+// Reads plan.json and the files asked for. Throws Error naming the file and the field when
+// plan.json is missing or malformed or a required volume cannot be read. A label map or tumor
+// mask that moved since planning is skipped with a warning (give labels_override instead).
+PlanData load_plan(const std::string& plan_dir, const PlanLoadOptions& options = {});
+
+// A grid as geometry_json wrote it; throws Error naming `where` and the field.
+ImageGeometry geometry_from_json(const nlohmann::json& j, const std::string& where);
+
+// Classes of a value as plan.json states them ("classes"); throws Error when absent.
+SafetyClasses classes_from_json(const nlohmann::json& plan, const std::string& value,
+                                const std::string& source);
+
+}  // namespace crepuscular::planning

@@ -1,0 +1,296 @@
+// Preprocessing (§3.1, DESIGN.md §5): the blocking volume b (risk per mm) from a label map and a
+// vulnerability table, or from CT thresholds, with the Gaussian safety margin done by ITK.
+#include "planning/preprocessing/blocking.hpp"
+#include "planning/imaging/itk_image.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <set>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "foundation/error.hpp"
+
+// ITK headers after ours (see volume_io.cpp): keep one Eigen (the system one) in this unit.
+#ifndef ITK_USE_SYSTEM_EIGEN
+#define ITK_USE_SYSTEM_EIGEN
+#endif
+#include <itkConnectedComponentImageFilter.h>
+#include <itkDiscreteGaussianImageFilter.h>
+#include <itkImage.h>
+
+namespace crepuscular::planning {
+
+namespace {
+
+using FloatImage = itk::Image<float, 3>;
+using MaskImage = itk::Image<uint8_t, 3>;
+using ComponentImage = itk::Image<uint32_t, 3>;
+
+constexpr int kMaxLabelValue = 65535;  // vulnerability tables hold values 1..65535
+
+// sigma = FWHM / (2 sqrt(2 ln 2)).
+double sigma_of_fwhm(double fwhm_mm) { return fwhm_mm / (2.0 * std::sqrt(2.0 * std::log(2.0))); }
+
+void check_margin(const MarginOptions& margin) {
+  if (!std::isfinite(margin.fwhm_mm) || margin.fwhm_mm < 0.0) {
+    std::ostringstream m;
+    m << "safety margin: FWHM is " << margin.fwhm_mm << " mm (expected a finite value >= 0)";
+    throw Error(m.str());
+  }
+}
+
+// An empty ITK image with the grid of `g` (same origin, spacing, direction; LPS as ITK).
+template <typename Image>
+typename Image::Pointer make_image(const ImageGeometry& g) {
+  auto image = Image::New();
+  set_image_geometry(*image, g);
+  image->Allocate();
+  return image;
+}
+
+// b = max(b, coeff * max(mask, G_sigma * mask)) with mask(v) = in_mask(v) (0 or 1) on the grid `g`
+// (§3.1: the safety margin never lowers a structure). G is in physical units (mm), so anisotropic
+// spacing gets the same profile in mm. The volume is extended by its border values (zero flux), so
+// a structure cut by the field of view is smoothed as if it went on.
+template <typename InMask>
+void add_level(std::vector<float>& b, const ImageGeometry& g, double coeff, double fwhm_mm,
+               InMask in_mask) {
+  const int64_t n = g.voxel_count();
+  FloatImage::Pointer mask = make_image<FloatImage>(g);
+  float* m = mask->GetBufferPointer();
+#pragma omp parallel for schedule(static)
+  for (int64_t v = 0; v < n; ++v) m[v] = in_mask(v) ? 1.0f : 0.0f;
+
+  const float c = float(coeff);
+  if (fwhm_mm <= 0.0) {
+#pragma omp parallel for schedule(static)
+    for (int64_t v = 0; v < n; ++v) b[size_t(v)] = std::max(b[size_t(v)], c * m[v]);
+    return;
+  }
+
+  // Discrete Gaussian (Lindeberg's Bessel kernel) rather than the recursive one: it never goes
+  // negative nor overshoots 1, keeps the exact variance when sigma is below a voxel (thick slices),
+  // and has no minimum image size. MaximumError, not MaximumKernelWidth, sets the kernel size.
+  const double sigma_mm = sigma_of_fwhm(fwhm_mm);
+  double max_sigma_voxels = 0.0;
+  for (int a = 0; a < 3; ++a)
+    max_sigma_voxels = std::max(max_sigma_voxels, sigma_mm / g.spacing[a]);
+  const unsigned max_width = unsigned(2.0 * std::ceil(6.0 * max_sigma_voxels) + 3.0);
+  using Gaussian = itk::DiscreteGaussianImageFilter<FloatImage, FloatImage>;
+  auto filter = Gaussian::New();
+  filter->SetInput(mask);
+  filter->SetUseImageSpacing(true);  // variance in mm^2
+  filter->SetVariance(sigma_mm * sigma_mm);
+  filter->SetMaximumError(1e-3);
+  filter->SetMaximumKernelWidth(std::max(32u, max_width));
+  try {
+    filter->Update();
+  } catch (const itk::ExceptionObject& e) {
+    throw Error(std::string("safety margin: Gaussian smoothing failed: ") + e.GetDescription());
+  }
+  const float* smoothed = filter->GetOutput()->GetBufferPointer();
+#pragma omp parallel for schedule(static)
+  for (int64_t v = 0; v < n; ++v) {
+    b[size_t(v)] = std::max(b[size_t(v)], c * std::max(m[v], smoothed[v]));
+  }
+}
+
+// Distinct label values present in the map, sorted (one fast pass).
+std::vector<int32_t> distinct_labels(const Volume<int32_t>& labels) {
+  std::vector<uint8_t> seen(size_t(kMaxLabelValue) + 1, 0);
+  std::set<int32_t> others;  // outside 0..65535: never in a table, reported as unknown
+  const int32_t* p = labels.data();
+  const int64_t n = labels.voxel_count();
+  for (int64_t v = 0; v < n; ++v) {
+    const int32_t x = p[v];
+    if (x >= 0 && x <= kMaxLabelValue) {
+      seen[size_t(x)] = 1;
+    } else {
+      others.insert(x);
+    }
+  }
+  std::vector<int32_t> out(others.begin(), others.end());
+  for (int32_t x = 0; x <= kMaxLabelValue; ++x) {
+    if (seen[size_t(x)]) out.push_back(x);
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+}  // namespace
+
+Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const VulnerabilityTable& table,
+                                   const MarginOptions& margin, const std::string& labels_source) {
+  labels.geometry().validate(labels_source);
+  if (labels.values().size() != size_t(labels.voxel_count())) {
+    throw Error(labels_source + ": label map holds " + std::to_string(labels.values().size()) +
+                " values for " + std::to_string(labels.voxel_count()) + " voxels");
+  }
+  check_margin(margin);
+
+  // Fast pass first: an unknown label fails before any smoothing.
+  const std::vector<int32_t> present = distinct_labels(labels);
+  std::vector<int> level_of_value(size_t(kMaxLabelValue) + 1, -1);  // index into table.levels
+  std::vector<int64_t> voxels_per_level(table.levels.size(), 0);
+  for (const int32_t value : present) {
+    table.blocking_of_label(value, labels_source);  // throws for a value missing from the table
+    if (value == 0) continue;
+    const LabelClass* label = table.find_label(value);
+    for (size_t l = 0; l < table.levels.size(); ++l) {
+      if (table.levels[l].level == label->level) level_of_value[size_t(value)] = int(l);
+    }
+  }
+  const int64_t n = labels.voxel_count();
+  const int32_t* lab = labels.data();
+  for (int64_t v = 0; v < n; ++v) {
+    const int l = lab[v] > 0 ? level_of_value[size_t(lab[v])] : -1;
+    if (l >= 0) ++voxels_per_level[size_t(l)];
+  }
+
+  Volume<float> b(labels.geometry(), 0.0f);
+  for (size_t l = 0; l < table.levels.size(); ++l) {
+    const VulnerabilityLevel& level = table.levels[l];
+    if (level.blocking_per_mm <= 0.0 || voxels_per_level[l] == 0) {
+      spdlog::debug("blocking: level {} '{}' skipped ({} voxels, {} per mm)", level.level,
+                    level.name, voxels_per_level[l], level.blocking_per_mm);
+      continue;
+    }
+    spdlog::info("blocking: level {} '{}' ({} per mm), {} voxels, margin FWHM {} mm", level.level,
+                 level.name, level.blocking_per_mm, voxels_per_level[l], margin.fwhm_mm);
+    add_level(b.values(), labels.geometry(), level.blocking_per_mm, margin.fwhm_mm,
+              [&](int64_t v) { return lab[v] > 0 && level_of_value[size_t(lab[v])] == int(l); });
+  }
+  return b;
+}
+
+Volume<float> blocking_from_ct(const Volume<float>& ct_hu, const CtThresholds& thresholds,
+                               const MarginOptions& margin) {
+  const std::string source = "CT";
+  ct_hu.geometry().validate(source);
+  if (ct_hu.values().size() != size_t(ct_hu.voxel_count())) {
+    throw Error(source + ": volume holds " + std::to_string(ct_hu.values().size()) +
+                " values for " + std::to_string(ct_hu.voxel_count()) + " voxels");
+  }
+  check_margin(margin);
+  if (!std::isfinite(thresholds.bone_hu) || !std::isfinite(thresholds.air_hu) ||
+      thresholds.air_hu >= thresholds.bone_hu) {
+    std::ostringstream m;
+    m << "CT thresholds: air " << thresholds.air_hu << " HU, bone " << thresholds.bone_hu
+      << " HU (expected finite, air below bone)";
+    throw Error(m.str());
+  }
+  if (!std::isfinite(thresholds.impassable_per_mm) || thresholds.impassable_per_mm <= 0.0) {
+    std::ostringstream m;
+    m << "CT thresholds: impassable_per_mm is " << thresholds.impassable_per_mm
+      << " (expected a finite value > 0)";
+    throw Error(m.str());
+  }
+
+  const ImageGeometry& g = ct_hu.geometry();
+  const int64_t n = ct_hu.voxel_count();
+  const float* hu = ct_hu.data();
+
+  // Air mask; a NaN is bad input, not tissue.
+  MaskImage::Pointer air = make_image<MaskImage>(g);
+  uint8_t* air_p = air->GetBufferPointer();
+  int64_t air_voxels = 0;
+  for (int64_t v = 0; v < n; ++v) {
+    if (std::isnan(hu[v])) {
+      const Index3 ijk = g.index_of_offset(v);
+      std::ostringstream m;
+      m << source << ": voxel (" << ijk[0] << ", " << ijk[1] << ", " << ijk[2]
+        << ") is NaN (expected Hounsfield units)";
+      throw Error(m.str());
+    }
+    air_p[v] = hu[v] <= thresholds.air_hu ? 1 : 0;
+    air_voxels += air_p[v];
+  }
+
+  // Air components (6-connected) touching the volume's side faces are outside the body; the others
+  // (lungs, bowel gas, pockets) are inside it and impassable. The side faces are those parallel to
+  // the table (cranio-caudal) axis, the index axis closest to LPS S: the two faces across that axis
+  // usually cut through the body (lungs and trachea reach the first slice of an abdominal CT), and
+  // air touching only them is still inside. Outside air always reaches a side face.
+  std::vector<uint8_t> inside_air(static_cast<size_t>(n), 0);
+  if (air_voxels > 0) {
+    using Components = itk::ConnectedComponentImageFilter<MaskImage, ComponentImage>;
+    auto cc = Components::New();
+    cc->SetInput(air);
+    cc->SetFullyConnected(false);
+    try {
+      cc->Update();
+    } catch (const itk::ExceptionObject& e) {
+      throw Error(source + ": connected components of air failed: " + e.GetDescription());
+    }
+    const uint32_t* comp = cc->GetOutput()->GetBufferPointer();
+    const size_t count = size_t(cc->GetObjectCount());
+    int table_axis = 0;
+    for (int a = 1; a < 3; ++a) {
+      if (std::abs(g.direction(2, a)) > std::abs(g.direction(2, table_axis))) table_axis = a;
+    }
+    std::vector<uint8_t> outside(count + 1, 0);
+    const Index3& d = g.dims;
+    for (int64_t k = 0; k < d[2]; ++k) {
+      for (int64_t j = 0; j < d[1]; ++j) {
+        const bool whole_row = (table_axis != 1 && (j == 0 || j == d[1] - 1)) ||
+                               (table_axis != 2 && (k == 0 || k == d[2] - 1));
+        if (!whole_row && table_axis == 0) continue;
+        const int64_t step = whole_row ? 1 : std::max<int64_t>(d[0] - 1, 1);
+        for (int64_t i = 0; i < d[0]; i += step) {
+          const uint32_t c = comp[g.offset(i, j, k)];
+          if (c != 0 && c <= count) outside[c] = 1;
+        }
+      }
+    }
+    int64_t inside = 0;
+    for (int64_t v = 0; v < n; ++v) {
+      const uint32_t c = comp[v];
+      inside_air[size_t(v)] = (c != 0 && c <= count && !outside[c]) ? 1 : 0;
+      inside += inside_air[size_t(v)];
+    }
+    spdlog::info("blocking from CT: {} air voxels (<= {} HU), {} of them inside the body",
+                 air_voxels, thresholds.air_hu, inside);
+  }
+
+  const auto blocked = [&](int64_t v) {
+    return hu[v] >= thresholds.bone_hu || inside_air[size_t(v)] != 0;
+  };
+  int64_t impassable = 0;
+  for (int64_t v = 0; v < n; ++v) impassable += blocked(v) ? 1 : 0;
+  spdlog::info(
+      "blocking from CT: {} impassable voxels (bone >= {} HU or inside air), {} per mm, "
+      "margin FWHM {} mm",
+      impassable, thresholds.bone_hu, thresholds.impassable_per_mm, margin.fwhm_mm);
+
+  Volume<float> b(g, 0.0f);
+  if (impassable > 0) {
+    add_level(b.values(), g, thresholds.impassable_per_mm, margin.fwhm_mm, blocked);
+  }
+  return b;
+}
+
+void validate_blocking(const Volume<float>& blocking, const std::string& source) {
+  blocking.geometry().validate(source);
+  if (blocking.values().size() != size_t(blocking.voxel_count())) {
+    throw Error(source + ": blocking volume holds " + std::to_string(blocking.values().size()) +
+                " values for " + std::to_string(blocking.voxel_count()) + " voxels");
+  }
+  const float* p = blocking.data();
+  const int64_t n = blocking.voxel_count();
+  for (int64_t v = 0; v < n; ++v) {
+    if (!std::isfinite(p[v]) || p[v] < 0.0f) {
+      const Index3 ijk = blocking.geometry().index_of_offset(v);
+      std::ostringstream m;
+      m << source << ": blocking value at voxel (" << ijk[0] << ", " << ijk[1] << ", " << ijk[2]
+        << ") is " << p[v] << " (expected a finite risk per mm >= 0)";
+      throw Error(m.str());
+    }
+  }
+}
+
+}  // namespace crepuscular::planning

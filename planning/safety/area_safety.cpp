@@ -1,0 +1,800 @@
+// Area safety geometry (§3.3, DESIGN.md §6): PCA ellipsoid of the tumor, spherical tessellation,
+// extrusion along the normals, connected safe regions and their sizes, the VTK mesh file, and the
+// plan's area safety step (the `area` job itself is pipelines/area.cpp).
+#include "planning/safety/area_safety.hpp"
+
+#include <fmt/format.h>
+#include <omp.h>
+#include <spdlog/spdlog.h>
+
+#include <Eigen/Eigenvalues>
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <atomic>
+#include <cctype>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <exception>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
+#include <mutex>
+#include <numeric>
+#include <sstream>
+
+#include <nlohmann/json.hpp>
+
+#include "foundation/error.hpp"
+#include "kernels/path_safety_math.hpp"
+#include "planning/preprocessing/blocking.hpp"
+#include "foundation/output_files.hpp"
+#include "planning/safety/safety_classes.hpp"
+#include "planning/imaging/sampling.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "planning/preprocessing/vulnerability.hpp"
+
+namespace fs = std::filesystem;
+
+namespace crepuscular::planning {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double seconds_since(Clock::time_point t) {
+  return std::chrono::duration<double>(Clock::now() - t).count();
+}
+
+std::string number(double x) { return fmt::format("{:g}", x); }
+
+int64_t grid_vertex_count(int64_t rings) { return 2 + (rings - 1) * 2 * rings; }
+
+nlohmann::json vec_json(const Eigen::Vector3d& v) { return {v.x(), v.y(), v.z()}; }
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// Ellipsoid
+
+Ellipsoid fit_tumor_ellipsoid(const Volume<uint8_t>& tumor, const std::string& source) {
+  const ImageGeometry& g = tumor.geometry();
+  const auto& d = g.dims;
+  // Two passes in index space (mean, then scatter) keep the sums well conditioned.
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  int64_t n = 0;
+  for (int64_t k = 0; k < d[2]; ++k)
+    for (int64_t j = 0; j < d[1]; ++j)
+      for (int64_t i = 0; i < d[0]; ++i) {
+        if (!tumor(i, j, k)) continue;
+        sum += Eigen::Vector3d(double(i), double(j), double(k));
+        ++n;
+      }
+  if (n == 0) throw Error(source + ": tumor mask is empty (0 voxels > 0)");
+  const Eigen::Vector3d mean = sum / double(n);
+  Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
+  for (int64_t k = 0; k < d[2]; ++k)
+    for (int64_t j = 0; j < d[1]; ++j)
+      for (int64_t i = 0; i < d[0]; ++i) {
+        if (!tumor(i, j, k)) continue;
+        const Eigen::Vector3d q = Eigen::Vector3d(double(i), double(j), double(k)) - mean;
+        scatter += q * q.transpose();
+      }
+  const Eigen::Matrix3d m = g.index_to_physical_matrix();
+  const Eigen::Matrix3d cov = m * (scatter / double(n)) * m.transpose();
+  // Covariance of one voxel's cube (uniform over [-1/2, 1/2]^3 in index space): the part of the
+  // solid's variance that the voxel centres do not carry.
+  const Eigen::Matrix3d cube = m * m.transpose() / 12.0;
+
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es(cov);  // ascending eigenvalues
+  Ellipsoid e;
+  e.centre = g.index_to_physical(mean);
+  for (int c = 0; c < 3; ++c) {
+    Eigen::Vector3d u = es.eigenvectors().col(2 - c);
+    // Deterministic sign: the largest component positive.
+    Eigen::Index big = 0;
+    u.cwiseAbs().maxCoeff(&big);
+    if (u[big] < 0) u = -u;
+    e.axes.col(c) = u;
+    const double var = std::max(0.0, es.eigenvalues()[2 - c]) + u.dot(cube * u);
+    e.radii[c] = std::sqrt(5.0 * var);
+  }
+  e.axes.col(2) = e.axes.col(0).cross(e.axes.col(1)).normalized();  // right-handed
+  return e;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Tessellation
+
+AreaSafetyGeometry tessellate_ellipsoid(const Ellipsoid& e, int rings) {
+  if (rings < 2) throw Error("area safety: the spherical grid needs at least 2 rings");
+  if (!(e.radii.minCoeff() > 0.0) || !e.radii.allFinite()) {
+    throw Error("area safety: ellipsoid radii must be finite and > 0");
+  }
+  const int n = rings, m = 2 * rings;
+  AreaSafetyGeometry g;
+  g.ellipsoid = e;
+  g.rings = n;
+  g.segments = m;
+  const size_t vcount = size_t(grid_vertex_count(n));
+  g.base.reserve(vcount);
+  g.normals.reserve(vcount);
+  const auto add = [&](double theta, double phi) {
+    // Pole on the first (largest) axis.
+    const Eigen::Vector3d u(std::cos(theta), std::sin(theta) * std::cos(phi),
+                            std::sin(theta) * std::sin(phi));
+    g.base.push_back(e.centre + e.axes * e.radii.cwiseProduct(u));
+    g.normals.push_back((e.axes * u.cwiseQuotient(e.radii)).normalized());
+  };
+  const double step = M_PI / double(n);
+  add(0.0, 0.0);
+  for (int i = 1; i < n; ++i)
+    for (int j = 0; j < m; ++j) add(step * i, step * j);
+  add(M_PI, 0.0);
+  const int north = 0, south = int(vcount) - 1;
+  const auto at = [m](int i, int j) { return 1 + (i - 1) * m + (j % m); };
+  // Outward: with theta growing southward and phi eastward, (d theta) x (d phi) points outward,
+  // so a quad a=(i,j) b=(i,j+1) c=(i+1,j) d=(i+1,j+1) gives (a, c, b) and (b, c, d).
+  g.triangles.reserve(size_t(4 * n * (n - 1)));
+  for (int j = 0; j < m; ++j) g.triangles.push_back({north, at(1, j), at(1, j + 1)});
+  for (int i = 1; i + 1 < n; ++i)
+    for (int j = 0; j < m; ++j) {
+      const int a = at(i, j), b = at(i, j + 1), c = at(i + 1, j), d = at(i + 1, j + 1);
+      g.triangles.push_back({a, c, b});
+      g.triangles.push_back({b, c, d});
+    }
+  for (int j = 0; j < m; ++j) g.triangles.push_back({at(n - 1, j), south, at(n - 1, j + 1)});
+  g.vertices = g.base;
+  g.extrusion.assign(vcount, 0.0f);
+  g.safe.assign(vcount, 1);
+  g.region.assign(vcount, -1);
+  g.leeway.assign(vcount, 0.0f);
+  return g;
+}
+
+namespace {
+double max_edge(const std::vector<Eigen::Vector3d>& p, const std::vector<std::array<int, 3>>& t) {
+  double best = 0.0;
+  for (const auto& tri : t)
+    for (int e = 0; e < 3; ++e) {
+      best = std::max(
+          best, (p[size_t(tri[size_t(e)])] - p[size_t(tri[size_t((e + 1) % 3)])]).squaredNorm());
+    }
+  return std::sqrt(best);
+}
+}  // namespace
+
+double max_edge_length(const AreaSafetyGeometry& g, double distance_mm) {
+  std::vector<Eigen::Vector3d> p(g.base.size());
+  for (size_t i = 0; i < p.size(); ++i) p[i] = g.base[i] + distance_mm * g.normals[i];
+  return max_edge(p, g.triangles);
+}
+
+double max_edge_length(const AreaSafetyGeometry& g) { return max_edge(g.vertices, g.triangles); }
+
+int rings_for_edge_bound(const Ellipsoid& e, double max_distance_mm, double spacing_mm,
+                         int64_t max_vertices) {
+  if (!(spacing_mm > 0.0) || !std::isfinite(spacing_mm)) {
+    throw Error("area safety: spacing h must be > 0 mm (got " + number(spacing_mm) + ")");
+  }
+  const auto fits = [&](int rings) {
+    return max_edge_length(tessellate_ellipsoid(e, rings), max_distance_mm) <= spacing_mm;
+  };
+  int rings_max = 2;
+  while (grid_vertex_count(rings_max + 1) <= max_vertices) ++rings_max;
+  const auto too_fine = [&] {
+    return Error("area safety: a mesh whose edges stay within h = " + number(spacing_mm) +
+                 " mm at the maximum distance " + number(max_distance_mm) + " mm needs more than " +
+                 std::to_string(max_vertices) +
+                 " vertices; give a larger spacing or a smaller maximum distance");
+  };
+  // Doubling, then bisection: hi always fits, lo never does (1 stands for "none").
+  int lo = 1, hi = 2;
+  while (!fits(hi)) {
+    if (hi >= rings_max) throw too_fine();
+    lo = hi;
+    hi = std::min(2 * hi, rings_max);
+  }
+  while (hi - lo > 1) {
+    const int mid = (lo + hi) / 2;
+    (fits(mid) ? hi : lo) = mid;
+  }
+  return hi;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Unsafe criteria
+
+SafetyTest blocking_safety_test(const Volume<float>& blocking, double threshold) {
+  const kernels::BlockingGrid<double> grid = blocking_grid(blocking);
+  // The same trilinear sampling as the path safety rays (kernels::sample_blocking).
+  return [grid, threshold](const Eigen::Vector3d& p) {
+    const kernels::Vec3<double> q = grid.physical_to_index.apply({p.x(), p.y(), p.z()});
+    return kernels::sample_blocking(grid, q) >= threshold ? PointSafety::kUnsafe
+                                                          : PointSafety::kSafe;
+  };
+}
+
+SafetyTest path_safety_test(const Volume<float>& volume, bool higher_is_safer, double threshold) {
+  const float* values = volume.data();
+  const ImageGeometry geometry = volume.geometry();
+  const kernels::Affine<double> to_index = physical_to_index_affine(geometry);
+  // Trilinear over the computed (finite) voxels around p; none (weight <= 1e-9): outside.
+  return [=](const Eigen::Vector3d& p) {
+    const kernels::Vec3<double> q = to_index.apply({p.x(), p.y(), p.z()});
+    const double value = trilinear_finite(geometry, values, Eigen::Vector3d(q.x, q.y, q.z), 1e-9);
+    if (std::isnan(value)) return PointSafety::kOutside;
+    const bool unsafe = higher_is_safer ? value < threshold : value > threshold;
+    return unsafe ? PointSafety::kUnsafe : PointSafety::kSafe;
+  };
+}
+
+// ---------------------------------------------------------------------------------------------
+// Extrusion and regions
+
+AreaSafetyGeometry compute_area_safety(const Ellipsoid& e, const SafetyTest& test,
+                                       const AreaSafetyOptions& o) {
+  const auto t0 = Clock::now();
+  const double h = o.spacing_mm, dmax = o.max_distance_mm;
+  if (!(h > 0.0) || !std::isfinite(h)) {
+    throw Error("area safety: spacing must be > 0 mm (got " + number(h) + ")");
+  }
+  if (!(dmax > 0.0) || !std::isfinite(dmax)) {
+    throw Error("area safety: maximum distance must be > 0 mm (got " + number(dmax) + ")");
+  }
+  if (!test) throw Error("area safety: no unsafe criterion given");
+  double step = o.step_mm;
+  if (!(step > 0.0) || step > h / 2.0) step = h / 2.0;
+
+  const int rings = rings_for_edge_bound(e, dmax, h, o.max_vertices);
+  AreaSafetyGeometry g = tessellate_ellipsoid(e, rings);
+  g.max_distance_mm = dmax;
+  g.spacing_mm = h;
+  const int64_t samples = int64_t(std::ceil(dmax / step - 1e-9));
+  g.step_mm = dmax / double(samples);
+  const int64_t nv = int64_t(g.base.size());
+  spdlog::info(
+      "area safety: {} vertices ({} rings of latitude), extruded up to {} mm in steps "
+      "of {:.3g} mm",
+      nv, rings - 1, dmax, g.step_mm);
+
+  const int threads = o.threads > 0 ? o.threads : omp_get_max_threads();
+  std::exception_ptr failure;
+  std::mutex failure_mutex;
+  std::atomic<int64_t> done{0};
+  int last_decile = 0;
+#pragma omp parallel for schedule(dynamic, 64) num_threads(threads)
+  for (int64_t v = 0; v < nv; ++v) {
+    try {
+      const Eigen::Vector3d& b = g.base[size_t(v)];
+      const Eigen::Vector3d& n = g.normals[size_t(v)];
+      double length = dmax;
+      uint8_t safe = 1;
+      for (int64_t k = 0; k <= samples; ++k) {
+        const double d = k == samples ? dmax : double(k) * g.step_mm;
+        const PointSafety s = test(b + d * n);
+        if (s == PointSafety::kUnsafe) {
+          length = d;
+          safe = 0;
+          break;
+        }
+        if (s == PointSafety::kOutside) {
+          length = k == 0 ? 0.0 : double(k - 1) * g.step_mm;
+          break;
+        }
+      }
+      g.extrusion[size_t(v)] = float(length);
+      g.safe[size_t(v)] = safe;
+      g.vertices[size_t(v)] = b + length * n;
+    } catch (...) {
+      std::lock_guard<std::mutex> lock(failure_mutex);
+      if (!failure) failure = std::current_exception();
+    }
+    const int64_t count = ++done;
+    if (omp_get_thread_num() == 0 && nv > 200000) {
+      const int decile = int(10 * count / nv);
+      if (decile > last_decile) {
+        last_decile = decile;
+        spdlog::info("area safety: {:3d} %", decile * 10);
+      }
+    }
+  }
+  if (failure) std::rethrow_exception(failure);
+  measure_regions(g);
+  int64_t safe_count = 0;
+  for (uint8_t s : g.safe) safe_count += s;
+  spdlog::info("area safety: {} of {} vertices safe, {} region(s), {:.2f} s", safe_count, nv,
+               g.regions.size(), seconds_since(t0));
+  return g;
+}
+
+namespace {
+int find_root(std::vector<int>& parent, int x) {
+  while (parent[size_t(x)] != x) {
+    parent[size_t(x)] = parent[size_t(parent[size_t(x)])];
+    x = parent[size_t(x)];
+  }
+  return x;
+}
+}  // namespace
+
+double enclosed_volume(const AreaSafetyGeometry& g) {
+  const Eigen::Vector3d c = g.ellipsoid.centre;
+  double sum = 0.0;
+  for (const auto& t : g.triangles) {
+    const Eigen::Vector3d a = g.vertices[size_t(t[0])] - c, b = g.vertices[size_t(t[1])] - c,
+                          d = g.vertices[size_t(t[2])] - c;
+    sum += a.dot(b.cross(d));
+  }
+  return sum / 6.0;
+}
+
+void measure_regions(AreaSafetyGeometry& g) {
+  const size_t nv = g.vertices.size();
+  if (g.safe.size() != nv) {
+    throw Error("area safety: " + std::to_string(g.safe.size()) + " safe flags for " +
+                std::to_string(nv) + " vertices");
+  }
+  for (const auto& t : g.triangles)
+    for (int v : t)
+      if (v < 0 || size_t(v) >= nv) {
+        throw Error("area safety: triangle vertex " + std::to_string(v) + " out of range (" +
+                    std::to_string(nv) + " vertices)");
+      }
+  // Connected safe regions over the mesh edges (union-find).
+  std::vector<int> parent(nv);
+  std::iota(parent.begin(), parent.end(), 0);
+  for (const auto& t : g.triangles)
+    for (int e = 0; e < 3; ++e) {
+      const int a = t[size_t(e)], b = t[size_t((e + 1) % 3)];
+      if (!g.safe[size_t(a)] || !g.safe[size_t(b)]) continue;
+      const int ra = find_root(parent, a), rb = find_root(parent, b);
+      if (ra != rb) parent[size_t(std::max(ra, rb))] = std::min(ra, rb);
+    }
+  std::vector<int> provisional(nv, -1);
+  int count = 0;
+  std::vector<int> first_vertex;
+  for (size_t v = 0; v < nv; ++v) {
+    if (!g.safe[v]) continue;
+    const int r = find_root(parent, int(v));
+    if (provisional[size_t(r)] < 0) {
+      provisional[size_t(r)] = count++;
+      first_vertex.push_back(int(v));
+    }
+    provisional[v] = provisional[size_t(r)];
+  }
+
+  // Per-vertex shares: a third of each adjacent signed tetrahedron (mass), a third of each
+  // adjacent base triangle's area (weight of centre and axis).
+  const Eigen::Vector3d c = g.ellipsoid.centre;
+  const bool have_base = g.base.size() == nv;
+  const bool have_normals = g.normals.size() == nv;
+  std::vector<double> mass(nv, 0.0), weight(nv, 0.0);
+  for (const auto& t : g.triangles) {
+    const Eigen::Vector3d a = g.vertices[size_t(t[0])] - c, b = g.vertices[size_t(t[1])] - c,
+                          d = g.vertices[size_t(t[2])] - c;
+    const double vol = a.dot(b.cross(d)) / 6.0;
+    const auto& p = have_base ? g.base : g.vertices;
+    const double area =
+        0.5 * (p[size_t(t[1])] - p[size_t(t[0])]).cross(p[size_t(t[2])] - p[size_t(t[0])]).norm();
+    for (int v : t) {
+      mass[size_t(v)] += vol / 3.0;
+      weight[size_t(v)] += area / 3.0;
+    }
+  }
+  struct Acc {
+    double size = 0, wsum = 0;
+    Eigen::Vector3d centre = Eigen::Vector3d::Zero(), axis = Eigen::Vector3d::Zero();
+    int vertices = 0, first = 0;
+  };
+  std::vector<Acc> acc(static_cast<size_t>(count));
+  for (int r = 0; r < count; ++r) acc[size_t(r)].first = first_vertex[size_t(r)];
+  for (size_t v = 0; v < nv; ++v) {
+    if (provisional[v] < 0) continue;
+    Acc& a = acc[size_t(provisional[v])];
+    a.size += mass[v];
+    a.wsum += weight[v];
+    a.centre += weight[v] * g.vertices[v];
+    const Eigen::Vector3d dir = have_normals ? g.normals[v] : (g.vertices[v] - c).normalized();
+    a.axis += weight[v] * dir;
+    ++a.vertices;
+  }
+  std::vector<int> order(static_cast<size_t>(count));
+  std::iota(order.begin(), order.end(), 0);
+  std::sort(order.begin(), order.end(), [&](int x, int y) {
+    const Acc &a = acc[size_t(x)], &b = acc[size_t(y)];
+    if (a.size != b.size) return a.size > b.size;
+    return a.first < b.first;
+  });
+  std::vector<int> id_of(static_cast<size_t>(count));
+  g.regions.clear();
+  const double largest = count > 0 ? acc[size_t(order[0])].size : 0.0;
+  for (int k = 0; k < count; ++k) {
+    const Acc& a = acc[size_t(order[size_t(k)])];
+    id_of[size_t(order[size_t(k)])] = k;
+    AreaRegion r;
+    r.id = k;
+    r.size_mm3 = a.size;
+    r.centre = a.wsum > 0 ? Eigen::Vector3d(a.centre / a.wsum)
+                          : Eigen::Vector3d(g.vertices[size_t(a.first)]);
+    // A region around the whole tumor has no preferred direction: its mean normal vanishes; then
+    // the ellipsoid's shortest axis (the shortest way out of the tumor) stands for it.
+    r.main_axis = a.axis.norm() > 1e-3 * std::max(a.wsum, 1e-12)
+                      ? Eigen::Vector3d(a.axis.normalized())
+                      : Eigen::Vector3d(g.ellipsoid.axes.col(2));
+    r.leeway = largest > 0 ? std::max(0.0, a.size / largest) : 0.0;
+    r.vertex_count = a.vertices;
+    g.regions.push_back(r);
+  }
+  g.region.assign(nv, -1);
+  g.leeway.assign(nv, 0.0f);
+  for (size_t v = 0; v < nv; ++v) {
+    if (provisional[v] < 0) continue;
+    const int id = id_of[size_t(provisional[v])];
+    g.region[v] = id;
+    g.leeway[v] = float(g.regions[size_t(id)].leeway);
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// VTK legacy PolyData
+
+namespace {
+
+void append3(std::string& s, const Eigen::Vector3d& v) {
+  fmt::format_to(std::back_inserter(s), "{:.9g} {:.9g} {:.9g}\n", v.x(), v.y(), v.z());
+}
+
+}  // namespace
+
+void write_area_safety_vtk(const std::string& path, const AreaSafetyGeometry& g) {
+  const size_t nv = g.vertices.size();
+  if (g.safe.size() != nv || g.region.size() != nv || g.leeway.size() != nv) {
+    throw Error(path + ": area safety geometry has per-vertex arrays of the wrong length");
+  }
+  std::string s;
+  s.reserve(nv * 120 + g.triangles.size() * 24 + 4096);
+  s += "# vtk DataFile Version 3.0\n";
+  // The title line is the header that 3D Slicer searches for "SPACE=": without it Slicer takes
+  // legacy VTK models as RAS and would mirror this LPS mesh (x and y negated).
+  s += "Crepuscular area safety geometry SPACE=LPS (mm)\n";
+  s += "ASCII\nDATASET POLYDATA\n";
+  // Dataset field data: the ellipsoid, the settings and the regions (one tuple per region).
+  const size_t nr = g.regions.size();
+  s += "FIELD FieldData " + std::to_string(nr > 0 ? 7 : 2) + "\n";
+  s += "ellipsoid 15 1 double\n";
+  append3(s, g.ellipsoid.centre);
+  for (int c = 0; c < 3; ++c) append3(s, g.ellipsoid.axes.col(c));
+  append3(s, g.ellipsoid.radii);
+  s += "area_settings 5 1 double\n";
+  for (double x : {g.max_distance_mm, g.step_mm, g.spacing_mm, g.threshold, double(g.rings)}) {
+    fmt::format_to(std::back_inserter(s), "{:.9g} ", x);
+  }
+  s += "\n";
+  if (nr > 0) {
+    const auto scalar_array = [&](const char* name, const char* type, auto get) {
+      s += std::string(name) + " 1 " + std::to_string(nr) + " " + type + "\n";
+      for (const auto& r : g.regions) fmt::format_to(std::back_inserter(s), "{:.9g}\n", double(get(r)));
+    };
+    const auto vector_array = [&](const char* name, auto get) {
+      s += std::string(name) + " 3 " + std::to_string(nr) + " double\n";
+      for (const auto& r : g.regions) append3(s, get(r));
+    };
+    scalar_array("region_size_mm3", "double", [](const AreaRegion& r) { return r.size_mm3; });
+    scalar_array("region_leeway", "double", [](const AreaRegion& r) { return r.leeway; });
+    scalar_array("region_vertex_count", "int", [](const AreaRegion& r) { return r.vertex_count; });
+    vector_array("region_centre", [](const AreaRegion& r) { return r.centre; });
+    vector_array("region_main_axis", [](const AreaRegion& r) { return r.main_axis; });
+  }
+  s += "POINTS " + std::to_string(nv) + " double\n";
+  for (const auto& v : g.vertices) append3(s, v);
+  s += "POLYGONS " + std::to_string(g.triangles.size()) + " " +
+       std::to_string(4 * g.triangles.size()) + "\n";
+  for (const auto& t : g.triangles) {
+    s += "3 " + std::to_string(t[0]) + " " + std::to_string(t[1]) + " " + std::to_string(t[2]) +
+         "\n";
+  }
+  s += "POINT_DATA " + std::to_string(nv) + "\n";
+  if (g.normals.size() == nv) {
+    s += "NORMALS normals double\n";
+    for (const auto& n : g.normals) append3(s, n);
+  }
+  s += "SCALARS safe unsigned_char 1\nLOOKUP_TABLE default\n";
+  for (uint8_t x : g.safe) s += x ? "1\n" : "0\n";
+  s += "SCALARS region int 1\nLOOKUP_TABLE default\n";
+  for (int x : g.region) s += std::to_string(x) + "\n";
+  s += "SCALARS leeway float 1\nLOOKUP_TABLE default\n";
+  for (float x : g.leeway) fmt::format_to(std::back_inserter(s), "{:.7g}\n", double(x));
+  if (g.extrusion.size() == nv) {
+    s += "SCALARS extrusion_mm float 1\nLOOKUP_TABLE default\n";
+    for (float x : g.extrusion) fmt::format_to(std::back_inserter(s), "{:.7g}\n", double(x));
+  }
+  write_text_file(path, s);
+}
+
+namespace {
+
+// Whitespace tokens of a text buffer, with the line number for messages.
+class Tokens {
+ public:
+  Tokens(const std::string& path, std::string text) : path_(path), text_(std::move(text)) {}
+
+  std::string line() {  // the rest of the current line
+    const size_t end = text_.find('\n', pos_);
+    std::string l = text_.substr(pos_, end == std::string::npos ? std::string::npos : end - pos_);
+    pos_ = end == std::string::npos ? text_.size() : end + 1;
+    ++line_;
+    if (!l.empty() && l.back() == '\r') l.pop_back();
+    return l;
+  }
+  bool next(std::string& word) {
+    skip();
+    if (pos_ >= text_.size()) return false;
+    const size_t start = pos_;
+    while (pos_ < text_.size() && !std::isspace(static_cast<unsigned char>(text_[pos_]))) ++pos_;
+    word.assign(text_, start, pos_ - start);
+    return true;
+  }
+  std::string word(const char* what) {
+    std::string w;
+    if (!next(w)) fail(std::string("file ends where ") + what + " was expected");
+    return w;
+  }
+  double number(const char* what) {
+    skip();
+    if (pos_ >= text_.size()) fail(std::string("file ends where ") + what + " was expected");
+    const char* begin = text_.c_str() + pos_;
+    char* end = nullptr;
+    const double x = std::strtod(begin, &end);
+    if (end == begin) {
+      fail(std::string("expected a number for ") + what + ", found '" +
+           std::string(begin, std::min<size_t>(20, std::strcspn(begin, " \t\r\n"))) + "'");
+    }
+    pos_ += size_t(end - begin);
+    return x;
+  }
+  int64_t integer(const char* what) {
+    const double x = number(what);
+    if (x != std::floor(x)) fail(std::string("expected an integer for ") + what);
+    return int64_t(x);
+  }
+  [[noreturn]] void fail(const std::string& message) const {
+    throw Error(path_ + ": line " + std::to_string(line_) + ": " + message);
+  }
+
+ private:
+  void skip() {
+    while (pos_ < text_.size() && std::isspace(static_cast<unsigned char>(text_[pos_]))) {
+      if (text_[pos_] == '\n') ++line_;
+      ++pos_;
+    }
+  }
+  std::string path_, text_;
+  size_t pos_ = 0;
+  int line_ = 1;
+};
+
+}  // namespace
+
+AreaSafetyGeometry read_area_safety_vtk(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw Error(path + ": cannot read file");
+  std::stringstream buf;
+  buf << in.rdbuf();
+  Tokens tok(path, buf.str());
+  if (tok.line().rfind("# vtk DataFile", 0) != 0) {
+    tok.fail("not a VTK legacy file (expected '# vtk DataFile Version ...' on line 1)");
+  }
+  tok.line();  // title
+  if (tok.line().rfind("ASCII", 0) != 0) tok.fail("expected ASCII (binary VTK is not read)");
+  if (tok.word("DATASET") != "DATASET" || tok.word("POLYDATA") != "POLYDATA") {
+    tok.fail("expected 'DATASET POLYDATA'");
+  }
+  AreaSafetyGeometry g;
+  int64_t nv = -1;
+  std::vector<double> ellipsoid, settings, sizes, leeways, counts, centres, axes;
+  std::string w;
+  while (tok.next(w)) {
+    if (w == "FIELD") {
+      tok.word("field name");
+      const int64_t arrays = tok.integer("array count");
+      for (int64_t a = 0; a < arrays; ++a) {
+        const std::string name = tok.word("array name");
+        const int64_t comps = tok.integer("components"), tuples = tok.integer("tuples");
+        tok.word("data type");
+        std::vector<double> values(size_t(std::max<int64_t>(0, comps * tuples)));
+        for (double& x : values) x = tok.number(name.c_str());
+        if (name == "ellipsoid")
+          ellipsoid = values;
+        else if (name == "area_settings")
+          settings = values;
+        else if (name == "region_size_mm3")
+          sizes = values;
+        else if (name == "region_leeway")
+          leeways = values;
+        else if (name == "region_vertex_count")
+          counts = values;
+        else if (name == "region_centre")
+          centres = values;
+        else if (name == "region_main_axis")
+          axes = values;
+      }
+    } else if (w == "POINTS") {
+      nv = tok.integer("point count");
+      tok.word("point type");
+      g.vertices.resize(size_t(nv));
+      for (auto& v : g.vertices)
+        for (int c = 0; c < 3; ++c) v[c] = tok.number("point coordinate");
+    } else if (w == "POLYGONS") {
+      const int64_t n = tok.integer("polygon count");
+      tok.integer("polygon list size");
+      g.triangles.resize(size_t(n));
+      for (auto& t : g.triangles) {
+        if (tok.integer("polygon size") != 3) tok.fail("POLYGONS: only triangles are read");
+        for (int c = 0; c < 3; ++c) {
+          const int64_t v = tok.integer("vertex index");
+          if (v < 0 || v >= nv) tok.fail("POLYGONS: vertex index out of range");
+          t[size_t(c)] = int(v);
+        }
+      }
+    } else if (w == "POINT_DATA") {
+      if (tok.integer("point data count") != nv) tok.fail("POINT_DATA count differs from POINTS");
+    } else if (w == "NORMALS") {
+      tok.word("normals name");
+      tok.word("normals type");
+      g.normals.resize(size_t(nv));
+      for (auto& n : g.normals)
+        for (int c = 0; c < 3; ++c) n[c] = tok.number("normal component");
+    } else if (w == "SCALARS") {
+      const std::string name = tok.word("scalars name");
+      tok.word("scalars type");
+      std::string lut = tok.word("LOOKUP_TABLE");
+      if (lut != "LOOKUP_TABLE") {  // optional component count
+        lut = tok.word("LOOKUP_TABLE");
+      }
+      tok.word("lookup table name");
+      std::vector<double> values(static_cast<size_t>(nv));
+      for (double& x : values) x = tok.number(name.c_str());
+      if (name == "safe") {
+        g.safe.assign(values.begin(), values.end());
+      } else if (name == "region") {
+        g.region.assign(values.begin(), values.end());
+      } else if (name == "leeway") {
+        g.leeway.assign(values.begin(), values.end());
+      } else if (name == "extrusion_mm") {
+        g.extrusion.assign(values.begin(), values.end());
+      }
+    } else {
+      tok.fail("unexpected keyword '" + w + "'");
+    }
+  }
+  if (nv < 0) tok.fail("no POINTS section");
+  if (g.triangles.empty()) tok.fail("no POLYGONS section");
+  if (g.safe.size() != size_t(nv) || g.region.size() != size_t(nv) ||
+      g.leeway.size() != size_t(nv)) {
+    tok.fail("POINT_DATA must hold the scalars safe, region and leeway");
+  }
+  if (ellipsoid.size() == 15) {
+    g.ellipsoid.centre = Eigen::Vector3d(ellipsoid[0], ellipsoid[1], ellipsoid[2]);
+    for (int c = 0; c < 3; ++c)
+      g.ellipsoid.axes.col(c) = Eigen::Vector3d(
+          ellipsoid[size_t(3 + 3 * c)], ellipsoid[size_t(4 + 3 * c)], ellipsoid[size_t(5 + 3 * c)]);
+    g.ellipsoid.radii = Eigen::Vector3d(ellipsoid[12], ellipsoid[13], ellipsoid[14]);
+  }
+  if (settings.size() == 5) {
+    g.max_distance_mm = settings[0];
+    g.step_mm = settings[1];
+    g.spacing_mm = settings[2];
+    g.threshold = settings[3];
+    g.rings = int(settings[4]);
+    g.segments = 2 * g.rings;
+  }
+  const size_t nr = sizes.size();
+  if (leeways.size() == nr && counts.size() == nr && centres.size() == 3 * nr &&
+      axes.size() == 3 * nr) {
+    for (size_t r = 0; r < nr; ++r) {
+      AreaRegion region;
+      region.id = int(r);
+      region.size_mm3 = sizes[r];
+      region.leeway = leeways[r];
+      region.vertex_count = int(counts[r]);
+      region.centre = Eigen::Vector3d(centres[3 * r], centres[3 * r + 1], centres[3 * r + 2]);
+      region.main_axis = Eigen::Vector3d(axes[3 * r], axes[3 * r + 1], axes[3 * r + 2]);
+      g.regions.push_back(region);
+    }
+  }
+  if (g.extrusion.size() == size_t(nv) && g.normals.size() == size_t(nv)) {
+    g.base.resize(size_t(nv));
+    for (size_t v = 0; v < size_t(nv); ++v) {
+      g.base[v] = g.vertices[v] - double(g.extrusion[v]) * g.normals[v];
+    }
+  }
+  return g;
+}
+
+nlohmann::json area_safety_json(const AreaSafetyGeometry& g) {
+  int64_t safe = 0;
+  for (uint8_t s : g.safe) safe += s;
+  nlohmann::json regions = nlohmann::json::array();
+  for (const auto& r : g.regions) {
+    regions.push_back({{"id", r.id},
+                       {"size_mm3", r.size_mm3},
+                       {"centre_lps_mm", vec_json(r.centre)},
+                       {"main_axis", vec_json(r.main_axis)},
+                       {"leeway", r.leeway},
+                       {"vertex_count", r.vertex_count}});
+  }
+  nlohmann::json axes = nlohmann::json::array();
+  for (int c = 0; c < 3; ++c) axes.push_back(vec_json(g.ellipsoid.axes.col(c)));
+  return {{"criterion", g.criterion},
+          {"threshold", g.threshold},
+          {"max_distance_mm", g.max_distance_mm},
+          {"step_mm", g.step_mm},
+          {"spacing_mm", g.spacing_mm},
+          {"rings", g.rings},
+          {"segments", g.segments},
+          {"vertex_count", g.vertices.size()},
+          {"triangle_count", g.triangles.size()},
+          {"safe_vertex_count", safe},
+          {"max_edge_full_extrusion_mm",
+           g.base.empty() ? nlohmann::json(nullptr)
+                          : nlohmann::json(max_edge_length(g, g.max_distance_mm))},
+          {"enclosed_volume_mm3", enclosed_volume(g)},
+          {"size_rule",
+           "divergence theorem on the closed extruded surface, tetrahedra from the ellipsoid "
+           "centre; a triangle counts one third for each of its vertices in the region"},
+          {"ellipsoid",
+           {{"centre_lps_mm", vec_json(g.ellipsoid.centre)},
+            {"axes", axes},
+            {"radii_mm", vec_json(g.ellipsoid.radii)}}},
+          {"regions", regions}};
+}
+
+// ---------------------------------------------------------------------------------------------
+// The plan's area safety step
+
+nlohmann::json plan_area_safety(const Volume<uint8_t>& tumor, const PathSafetyResult& result,
+                                const AreaSafetyPlanOptions& options, const std::string& vtk_path) {
+  const auto t0 = Clock::now();
+  int slot = -1;
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (result.values & (1u << v)) {
+      slot = v;
+      break;
+    }
+  }
+  if (slot < 0) throw Error("area safety: the plan computed no path safety value");
+  const unsigned bit = 1u << slot;
+  const Volume<float>& volume = result.volumes[size_t(slot)];
+  const SafetyClasses classes = default_classes(bit, volume);
+  if (options.unsafe_class != "dangerous" && options.unsafe_class != "medium") {
+    throw Error("area safety: unsafe class: expected 'dangerous' or 'medium', got '" +
+                options.unsafe_class + "'");
+  }
+  double threshold = options.threshold;
+  if (std::isnan(threshold)) {
+    threshold = options.unsafe_class == "dangerous" ? classes.dangerous : classes.safe;
+  }
+  AreaSafetyOptions o;
+  o.spacing_mm = result.grid.geometry.spacing[0];
+  o.max_distance_mm = options.max_distance_mm > 0 ? options.max_distance_mm : result.grid.radius_mm;
+  const Ellipsoid e = fit_tumor_ellipsoid(tumor);
+  AreaSafetyGeometry g =
+      compute_area_safety(e, path_safety_test(volume, classes.higher_is_safer, threshold), o);
+  g.criterion = std::string("path safety ") + value_name(bit) +
+                (classes.higher_is_safer ? " < " : " > ") + number(threshold) + " (" +
+                options.unsafe_class + (options.unsafe_class == "medium" ? " or dangerous" : "") +
+                " is unsafe)";
+  g.threshold = threshold;
+  write_area_safety_vtk(vtk_path, g);
+  nlohmann::json j = area_safety_json(g);
+  j["value"] = value_name(bit);
+  j["unsafe_class"] = options.unsafe_class;
+  j["file"] = fs::path(vtk_path).filename().string();
+  j["seconds"] = seconds_since(t0);
+  return j;
+}
+
+}  // namespace crepuscular::planning

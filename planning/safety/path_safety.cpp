@@ -1,0 +1,830 @@
+// Path safety volume: input checks, tumor surface, output grid, CPU backend and device dispatch.
+#include "planning/safety/path_safety.hpp"
+
+#include <omp.h>
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <array>
+#include <future>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <fstream>
+#include <limits>
+#include <optional>
+#include <sstream>
+
+#include "foundation/csv.hpp"
+#include "kernels/path_safety_fast.hpp"
+#include "kernels/value_set.hpp"
+#include "planning/imaging/sampling.hpp"
+#include "planning/preprocessing/blocking.hpp"
+#include "planning/safety/safety_classes.hpp"
+#include <random>
+
+#if defined(CREPUSCULAR_HAVE_CUDA)
+#include "kernels/path_safety_cuda.hpp"
+#endif
+
+namespace crepuscular::planning {
+
+namespace {
+
+std::string format_bytes(double bytes) {
+  std::ostringstream s;
+  s.precision(3);
+  if (bytes >= 1e9) {
+    s << bytes / 1e9 << " GB";
+  } else {
+    s << bytes / 1e6 << " MB";
+  }
+  return s.str();
+}
+
+// Separable Gaussian (sigma = 1 voxel, truncated at 4 sigma) of a 0/1 mask over a padded box.
+std::vector<float> smooth_mask_box(const Volume<uint8_t>& tumor, const int lo[3], const int hi[3],
+                                   int pad, int box[3]) {
+  for (int a = 0; a < 3; ++a) box[a] = hi[a] - lo[a] + 1 + 2 * pad;
+  const int64_t n = int64_t(box[0]) * box[1] * box[2];
+  std::vector<float> a(size_t(n), 0.0f), b(size_t(n), 0.0f);
+  const auto at = [&](int x, int y, int z) { return (int64_t(z) * box[1] + y) * box[0] + x; };
+  const auto& dims = tumor.dims();
+  for (int z = 0; z < box[2]; ++z) {
+    for (int y = 0; y < box[1]; ++y) {
+      for (int x = 0; x < box[0]; ++x) {
+        const int64_t i = lo[0] - pad + x, j = lo[1] - pad + y, k = lo[2] - pad + z;
+        if (i >= 0 && j >= 0 && k >= 0 && i < dims[0] && j < dims[1] && k < dims[2]) {
+          a[size_t(at(x, y, z))] = tumor(i, j, k) ? 1.0f : 0.0f;
+        }
+      }
+    }
+  }
+  constexpr int kRadius = 4;
+  float w[2 * kRadius + 1];
+  float sum = 0.0f;
+  for (int t = -kRadius; t <= kRadius; ++t) sum += (w[t + kRadius] = std::exp(-0.5f * t * t));
+  for (float& v : w) v /= sum;
+  const int64_t stride[3] = {1, box[0], int64_t(box[0]) * box[1]};
+  for (int axis = 0; axis < 3; ++axis) {
+    for (int z = 0; z < box[2]; ++z) {
+      for (int y = 0; y < box[1]; ++y) {
+        for (int x = 0; x < box[0]; ++x) {
+          const int c[3] = {x, y, z};
+          float acc = 0.0f;
+          for (int t = -kRadius; t <= kRadius; ++t) {
+            const int q = c[axis] + t;
+            if (q < 0 || q >= box[axis]) continue;
+            acc += w[t + kRadius] * a[size_t(at(x, y, z) + t * stride[axis])];
+          }
+          b[size_t(at(x, y, z))] = acc;
+        }
+      }
+    }
+    std::swap(a, b);
+  }
+  return a;
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+
+unsigned parse_value_set(const std::string& text) {
+  unsigned values = 0;
+  for (std::string item : split_csv_line(text)) {
+    item.erase(std::remove_if(item.begin(), item.end(), ::isspace), item.end());
+    std::transform(item.begin(), item.end(), item.begin(), ::tolower);
+    if (item == "svv") {
+      values |= kernels::kSvv;
+    } else if (item == "isbv") {
+      values |= kernels::kIsbv;
+    } else if (item == "ivbv") {
+      values |= kernels::kIvbv;
+    } else if (item == "bvv") {
+      values |= kernels::kBvv;
+    } else if (item == "all") {
+      values |= kernels::kAllValues;
+    } else if (!item.empty()) {
+      throw Error("--value: unknown path safety value '" + item +
+                  "' (expected svv, isbv, ivbv, bvv or all, comma-separated)");
+    }
+  }
+  if (values == 0) throw Error("--value: no path safety value given (expected e.g. svv,bvv)");
+  return values;
+}
+
+const char* value_name(unsigned bit) {
+  switch (bit) {
+    case kernels::kSvv:
+      return "svv";
+    case kernels::kIsbv:
+      return "isbv";
+    case kernels::kIvbv:
+      return "ivbv";
+    case kernels::kBvv:
+      return "bvv";
+    default:
+      return "?";
+  }
+}
+
+Device parse_device(const std::string& text) {
+  if (text == "auto") return Device::kAuto;
+  if (text == "cpu") return Device::kCpu;
+  if (text == "cuda") return Device::kCuda;
+  throw Error("--device: unknown device '" + text + "' (expected auto, cpu or cuda)");
+}
+
+Mode parse_mode(const std::string& text) {
+  if (text == "exact") return Mode::kExact;
+  if (text == "fast") return Mode::kFast;
+  throw Error("--mode: unknown mode '" + text + "' (expected exact or fast)");
+}
+
+const char* mode_name(Mode mode) { return mode == Mode::kFast ? "fast" : "exact"; }
+
+const char* device_name(Device device) {
+  switch (device) {
+    case Device::kAuto:
+      return "auto";
+    case Device::kCpu:
+      return "cpu";
+    case Device::kCuda:
+      return "cuda";
+  }
+  return "?";
+}
+
+uint64_t available_memory_bytes() {
+  std::ifstream in("/proc/meminfo");
+  std::string key;
+  uint64_t value = 0;
+  std::string unit;
+  while (in >> key >> value >> unit) {
+    if (key == "MemAvailable:") return value * 1024;
+  }
+  return 0;
+}
+
+// ---------------------------------------------------------------------------------------------
+
+TumorSurface extract_tumor_surface(const Volume<uint8_t>& tumor, const std::string& source) {
+  tumor.geometry().validate(source);
+  const auto& g = tumor.geometry();
+  const auto& d = g.dims;
+  if (g.voxel_count() >= int64_t(std::numeric_limits<int>::max())) {
+    throw Error(source + ": tumor mask has " + std::to_string(g.voxel_count()) +
+                " voxels; at most 2^31 are supported (crop it around the tumor)");
+  }
+  TumorSurface s;
+  s.lo[0] = s.lo[1] = s.lo[2] = std::numeric_limits<int>::max();
+  s.hi[0] = s.hi[1] = s.hi[2] = -1;
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  for (int64_t k = 0; k < d[2]; ++k) {
+    for (int64_t j = 0; j < d[1]; ++j) {
+      for (int64_t i = 0; i < d[0]; ++i) {
+        if (!tumor(i, j, k)) continue;
+        ++s.tumor_voxels;
+        sum += Eigen::Vector3d(double(i), double(j), double(k));
+        const int64_t idx[3] = {i, j, k};
+        for (int a = 0; a < 3; ++a) {
+          s.lo[a] = std::min(s.lo[a], int(idx[a]));
+          s.hi[a] = std::max(s.hi[a], int(idx[a]));
+        }
+      }
+    }
+  }
+  if (s.tumor_voxels == 0) {
+    throw Error(source + ": tumor mask is empty (0 voxels > 0); expected a 0/1 mask of the tumor");
+  }
+  s.centroid = g.index_to_physical(Eigen::Vector3d(sum / double(s.tumor_voxels)));
+  s.s2_mm2 = std::pow(g.voxel_volume_mm3(), 2.0 / 3.0);
+
+  constexpr int kPad = 5;
+  int box[3];
+  const std::vector<float> smooth = smooth_mask_box(tumor, s.lo, s.hi, kPad, box);
+  const auto sm = [&](int64_t i, int64_t j, int64_t k) {
+    const int64_t x = i - (s.lo[0] - kPad), y = j - (s.lo[1] - kPad), z = k - (s.lo[2] - kPad);
+    return smooth[size_t((z * box[1] + y) * box[0] + x)];
+  };
+  // Gradient in index space -> physical space: grad_phys = D diag(1/s) grad_index.
+  const Eigen::Matrix3d to_physical = g.direction * g.spacing.cwiseInverse().asDiagonal();
+  const auto inside = [&](int64_t i, int64_t j, int64_t k) {
+    return g.contains(i, j, k) && tumor(i, j, k) != 0;
+  };
+  for (int64_t k = s.lo[2]; k <= s.hi[2]; ++k) {
+    for (int64_t j = s.lo[1]; j <= s.hi[1]; ++j) {
+      for (int64_t i = s.lo[0]; i <= s.hi[0]; ++i) {
+        if (!tumor(i, j, k)) continue;
+        const bool surface = !inside(i - 1, j, k) || !inside(i + 1, j, k) ||
+                             !inside(i, j - 1, k) || !inside(i, j + 1, k) ||
+                             !inside(i, j, k - 1) || !inside(i, j, k + 1);
+        if (!surface) continue;
+        const Eigen::Vector3d grad_index(0.5 * (sm(i + 1, j, k) - sm(i - 1, j, k)),
+                                         0.5 * (sm(i, j + 1, k) - sm(i, j - 1, k)),
+                                         0.5 * (sm(i, j, k + 1) - sm(i, j, k - 1)));
+        Eigen::Vector3d normal = -(to_physical * grad_index);
+        const double norm = normal.norm();
+        // A symmetric blob (one voxel) has no gradient at its centre: no preferred direction,
+        // encoded as a zero normal (|cos alpha| = 1 in the kernels).
+        normal = norm > 1e-9 ? Eigen::Vector3d(normal / norm) : Eigen::Vector3d::Zero();
+        const Eigen::Vector3d p = g.index_to_physical(i, j, k);
+        kernels::SurfacePoint<double> sp{};
+        sp.position = {p.x(), p.y(), p.z()};
+        sp.normal = {normal.x(), normal.y(), normal.z()};
+        sp.offset = int(g.offset(i, j, k));
+        s.points.push_back(sp);
+      }
+    }
+  }
+  return s;
+}
+
+OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
+                            const TumorSurface& surface, const PathSafetyOptions& options) {
+  const auto& bg = blocking.geometry();
+  OutputGrid out;
+  out.centre = surface.centroid;
+  double h = options.spacing_mm;
+  if (h == 0.0) h = std::min(bg.spacing.minCoeff(), tumor.geometry().spacing.minCoeff());
+  if (!(h > 0.0) || !std::isfinite(h)) {
+    throw Error("--spacing: output spacing must be > 0 mm (got " + std::to_string(h) + ")");
+  }
+  double r = options.radius_mm;
+  if (!(r >= 0.0) || !std::isfinite(r)) {
+    throw Error("--radius: radius must be >= 0 mm (got " + std::to_string(r) + ")");
+  }
+  if (r == 0.0) {
+    const auto& d = bg.dims;
+    double r2 = 0.0;
+    for (int64_t k = 0; k < d[2]; ++k) {
+      for (int64_t j = 0; j < d[1]; ++j) {
+        for (int64_t i = 0; i < d[0]; ++i) {
+          if (blocking(i, j, k) > 0.0f) {
+            r2 = std::max(r2, (bg.index_to_physical(i, j, k) - out.centre).squaredNorm());
+          }
+        }
+      }
+    }
+    r = std::sqrt(r2);
+    if (r == 0.0) {
+      throw Error(
+          "blocking volume has no voxel with b > 0, so the region of interest (the ball "
+          "reaching the farthest blocking voxel) is empty; give --radius MM");
+    }
+  }
+  out.radius_mm = r;
+  const int64_t half = int64_t(std::ceil(r / h - 1e-9));
+  const int64_t n = 2 * half + 1;
+  if (n > 4097) {
+    throw Error("region of interest too large: " + std::to_string(n) + " voxels per axis (radius " +
+                std::to_string(r) + " mm at spacing " + std::to_string(h) +
+                " mm); use a larger --spacing or a smaller --radius");
+  }
+  out.geometry.dims = {n, n, n};
+  out.geometry.spacing = Eigen::Vector3d::Constant(h);
+  out.geometry.direction = bg.direction;
+  out.geometry.origin = out.centre - bg.direction * Eigen::Vector3d::Constant(double(half) * h);
+  // Voxels inside the ball, by the integer test both backends use.
+  const double rh = r / h;
+  out.half = half;
+  out.max_sq = int64_t(std::floor(rh * rh + 1e-9));
+  int64_t count = 0;
+  for (int64_t k = 0; k < n; ++k) {
+    for (int64_t j = 0; j < n; ++j) {
+      const int64_t rest = out.max_sq - (j - half) * (j - half) - (k - half) * (k - half);
+      if (rest < 0) continue;
+      const int64_t w = std::min<int64_t>(int64_t(std::floor(std::sqrt(double(rest)))), half);
+      count += 2 * w + 1;
+    }
+  }
+  out.roi_voxels = count;
+  return out;
+}
+
+std::vector<uint8_t> blocking_bricks(const Volume<float>& blocking) {
+  const auto& d = blocking.dims();
+  const int bx = kernels::bricks_along(int(d[0])), by = kernels::bricks_along(int(d[1])),
+            bz = kernels::bricks_along(int(d[2]));
+  std::vector<uint8_t> bricks(size_t(bx) * by * bz, 0);
+  constexpr int64_t kSide = int64_t(1) << kernels::kBrickShift;
+  // A brick is marked when a voxel it covers, or the next voxel along an axis (the trilinear
+  // support of its samples), is > 0.
+#pragma omp parallel for collapse(2) schedule(dynamic, 4)
+  for (int z = 0; z < bz; ++z) {
+    for (int y = 0; y < by; ++y) {
+      for (int x = 0; x < bx; ++x) {
+        bool any = false;
+        for (int64_t k = z * kSide; !any && k <= std::min<int64_t>(z * kSide + kSide, d[2] - 1); ++k)
+          for (int64_t j = y * kSide; !any && j <= std::min<int64_t>(y * kSide + kSide, d[1] - 1); ++j)
+            for (int64_t i = x * kSide; i <= std::min<int64_t>(x * kSide + kSide, d[0] - 1); ++i)
+              if (blocking(i, j, k) != 0.0f) {
+                any = true;
+                break;
+              }
+        bricks[size_t((int64_t(z) * by + y) * bx + x)] = any ? 1 : 0;
+      }
+    }
+  }
+  return bricks;
+}
+
+kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
+                                            const Volume<uint8_t>& tumor,
+                                            const TumorSurface& surface, double gamma_mm,
+                                            double eps, const std::vector<uint8_t>& bricks) {
+  kernels::PathSafetyScene<double> s{};
+  s.blocking = blocking_grid(blocking);
+  if (!bricks.empty()) {
+    const auto& bd = blocking.dims();
+    s.blocking.bricks = bricks.data();
+    s.blocking.bx = kernels::bricks_along(int(bd[0]));
+    s.blocking.by = kernels::bricks_along(int(bd[1]));
+    s.blocking.bz = kernels::bricks_along(int(bd[2]));
+  }
+  const auto& td = tumor.dims();
+  s.tumor.mask = tumor.data();
+  s.tumor.nx = int(td[0]);
+  s.tumor.ny = int(td[1]);
+  s.tumor.nz = int(td[2]);
+  s.tumor.physical_to_index = physical_to_index_affine(tumor.geometry());
+  for (int a = 0; a < 3; ++a) {
+    s.tumor.lo[a] = surface.lo[a];
+    s.tumor.hi[a] = surface.hi[a];
+  }
+  s.surface = surface.points.data();
+  s.surface_count = int(surface.points.size());
+  s.gamma = gamma_mm;
+  s.eps = eps;
+  s.s2 = surface.s2_mm2;
+  return s;
+}
+
+// ---------------------------------------------------------------------------------------------
+
+namespace {
+
+void check_tumor_inside_blocking(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
+                                 const TumorSurface& surface, const std::string& blocking_source,
+                                 const std::string& tumor_source) {
+  const auto& bg = blocking.geometry();
+  const auto& tg = tumor.geometry();
+  int64_t outside = 0;
+  for (int64_t k = surface.lo[2]; k <= surface.hi[2]; ++k) {
+    for (int64_t j = surface.lo[1]; j <= surface.hi[1]; ++j) {
+      for (int64_t i = surface.lo[0]; i <= surface.hi[0]; ++i) {
+        if (!tumor(i, j, k)) continue;
+        if (!within_extent(bg, bg.physical_to_index(tg.index_to_physical(i, j, k)))) ++outside;
+      }
+    }
+  }
+  if (outside > 0) {
+    std::ostringstream m;
+    m << tumor_source << ": " << outside << " of " << surface.tumor_voxels
+      << " tumor voxels lie outside the blocking volume (" << blocking_source
+      << "); the tumor must lie inside the segmented region";
+    throw Error(m.str());
+  }
+}
+
+// Output voxel centres through kernels::grid_point, the definition the CUDA kernels use, so that
+// both backends cast their rays from the same double-precision points.
+struct VoxelCentres {
+  double origin[3];
+  double axes[3][3];
+  explicit VoxelCentres(const ImageGeometry& g) {
+    const Eigen::Matrix3d m = g.index_to_physical_matrix();
+    for (int a = 0; a < 3; ++a) {
+      origin[a] = g.origin[a];
+      for (int b = 0; b < 3; ++b) axes[a][b] = m(b, a);
+    }
+  }
+  kernels::Vec3<double> operator()(int64_t i, int64_t j, int64_t k) const {
+    return kernels::grid_point(origin, axes, int(i), int(j), int(k));
+  }
+};
+
+void run_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
+             unsigned values, int threads, PathSafetyResult& result,
+             const std::function<void(double)>& progress) {
+  const auto& g = grid.geometry;
+  const VoxelCentres centre(g);
+  const int64_t n = g.dims[0];
+  float* out[kernels::kValueCount] = {};
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
+  }
+  std::atomic<int64_t> done{0};
+  const int64_t total = std::max<int64_t>(grid.roi_voxels, 1);
+  double next_report = 0.02;
+  kernels::with_value_set(values, [&](auto tag) {
+    constexpr unsigned kValues = decltype(tag)::value;
+#pragma omp parallel for collapse(2) schedule(dynamic, 1) num_threads(threads)
+    for (int64_t k = 0; k < n; ++k) {
+      for (int64_t j = 0; j < n; ++j) {
+        int64_t row_done = 0;
+        for (int64_t i = 0; i < n; ++i) {
+          if (!grid.in_roi(i, j, k)) continue;
+          float res[kernels::kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
+          kernels::path_safety_at<double, kValues>(scene, centre(i, j, k), res);
+          const int64_t off = g.offset(i, j, k);
+          for (int v = 0; v < kernels::kValueCount; ++v) {
+            if (out[v]) out[v][off] = res[v];
+          }
+          ++row_done;
+        }
+        const int64_t now = done.fetch_add(row_done) + row_done;
+        if (progress && omp_get_thread_num() == 0) {
+          const double f = double(now) / double(total);
+          if (f >= next_report) {
+            progress(std::min(f, 1.0));
+            next_report = f + 0.02;
+          }
+        }
+      }
+    }
+  });
+  if (progress) progress(1.0);
+}
+
+// Largest distance from a surface point to a voxel of the region of interest, mm.
+double max_ray_length(const OutputGrid& grid, const kernels::PathSafetyScene<double>& scene) {
+  double far = 0.0;
+  for (int t = 0; t < scene.surface_count; ++t) {
+    const auto& q = scene.surface[t].position;
+    far = std::max(far, (Eigen::Vector3d(q.x, q.y, q.z) - grid.centre).norm());
+  }
+  return grid.radius_mm + far + grid.geometry.spacing[0];
+}
+
+void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
+                  unsigned values, int threads, double angular, PathSafetyResult& result,
+                  const std::function<void(double)>& progress) {
+  const auto& g = grid.geometry;
+  const VoxelCentres centre(g);
+  const double h = g.spacing[0];
+  int m = 0, radial = 0;
+  kernels::direction_table_size(max_ray_length(grid, scene), h, m, radial, angular);
+  result.direction_cells = m;
+  const size_t cells = size_t(m) * size_t(m);
+  const bool moments = (values & kernels::kBvv) != 0;
+  std::vector<float> c0(cells * size_t(radial)), c1, c2;
+  if (moments) {
+    c1.resize(c0.size());
+    c2.resize(c0.size());
+  }
+  std::vector<kernels::DirectionCrossing> crossing(cells);
+  kernels::DirectionTable<double> table{};
+  table.m = m;
+  table.radial = radial;
+  table.cells = int64_t(cells);
+  table.dr = h;
+  table.gamma = 0.5 * h;
+  table.c0 = c0.data();
+  table.c1 = moments ? c1.data() : nullptr;
+  table.c2 = moments ? c2.data() : nullptr;
+  table.crossing = crossing.data();
+  // The ROI voxels, compact.
+  std::vector<int64_t> roi;
+  roi.reserve(size_t(grid.roi_voxels));
+  for (int64_t k = 0; k < g.dims[2]; ++k)
+    for (int64_t j = 0; j < g.dims[1]; ++j)
+      for (int64_t i = 0; i < g.dims[0]; ++i)
+        if (grid.in_roi(i, j, k)) roi.push_back(g.offset(i, j, k));
+  std::vector<kernels::VoxelState<double>> states(roi.size());
+  const kernels::GridSampler<double> sampler{scene.blocking};
+  kernels::with_value_set(values, [&](auto tag) {
+    constexpr unsigned kValues = decltype(tag)::value;
+    for (int t = 0; t < scene.surface_count; ++t) {
+      const auto& target = scene.surface[t];
+#pragma omp parallel for schedule(dynamic, 16) num_threads(threads)
+      for (int64_t c = 0; c < int64_t(cells); ++c) {
+        kernels::cast_direction(scene, target, table, int(c % m), int(c / m), sampler);
+      }
+#pragma omp parallel for schedule(static) num_threads(threads)
+      for (int64_t v = 0; v < int64_t(roi.size()); ++v) {
+        const Index3 idx = g.index_of_offset(roi[size_t(v)]);
+        kernels::combine_from_table<double, kValues>(states[size_t(v)], scene, target, table,
+                                                     centre(idx[0], idx[1], idx[2]));
+      }
+      if (progress) progress(double(t + 1) / double(scene.surface_count));
+    }
+  });
+  float* out[kernels::kValueCount] = {};
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
+  }
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int64_t v = 0; v < int64_t(roi.size()); ++v) {
+    float res[kernels::kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
+    kernels::finalize_values(states[size_t(v)], values, scene.s2, res);
+    for (int s = 0; s < kernels::kValueCount; ++s) {
+      if (out[s]) out[s][roi[size_t(v)]] = res[s];
+    }
+  }
+}
+
+// Recomputes `count` random ROI voxels exactly and compares them with the fast result.
+void check_fast_against_exact(const kernels::PathSafetyScene<double>& scene,
+                              const OutputGrid& grid, unsigned values, int count, int threads,
+                              PathSafetyResult& result) {
+  const VoxelCentres centre(grid.geometry);
+  std::mt19937_64 rng(20111);
+  const int64_t n = grid.geometry.dims[0];
+  std::uniform_int_distribution<int64_t> u(0, n - 1);
+  std::vector<int64_t> offsets;
+  while (int64_t(offsets.size()) < std::min<int64_t>(count, grid.roi_voxels)) {
+    const int64_t i = u(rng), j = u(rng), k = u(rng);
+    if (grid.in_roi(i, j, k)) offsets.push_back(grid.geometry.offset(i, j, k));
+  }
+  std::vector<std::array<float, kernels::kValueCount>> exact(offsets.size());
+  kernels::with_value_set(values, [&](auto tag) {
+    constexpr unsigned kValues = decltype(tag)::value;
+#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
+    for (int64_t s = 0; s < int64_t(offsets.size()); ++s) {
+      const Index3 idx = grid.geometry.index_of_offset(offsets[size_t(s)]);
+      exact[size_t(s)].fill(0.0f);
+      kernels::path_safety_at<double, kValues>(scene, centre(idx[0], idx[1], idx[2]),
+                                               exact[size_t(s)].data());
+    }
+  });
+  result.check_voxels = int64_t(offsets.size());
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    const unsigned bit = 1u << v;
+    if (!(values & bit)) continue;
+    const SafetyClasses classes = default_classes(bit, result.volumes[size_t(v)]);
+    double diff2 = 0.0, ref2 = 0.0;
+    int64_t same = 0;
+    for (size_t s = 0; s < offsets.size(); ++s) {
+      const double a = exact[s][size_t(v)], b = result.volumes[size_t(v)][offsets[s]];
+      diff2 += (a - b) * (a - b);
+      ref2 += a * a;
+      same += classes.classify(a) == classes.classify(b);
+    }
+    result.check_relative_l2[size_t(v)] = ref2 > 0.0 ? std::sqrt(diff2 / ref2) : std::sqrt(diff2);
+    result.check_class_agreement[size_t(v)] =
+        offsets.empty() ? 1.0 : double(same) / double(offsets.size());
+  }
+}
+
+// Throws Error when an input's geometry or an option is unusable.
+void check_inputs(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
+                  const PathSafetyOptions& options, const std::string& blocking_source,
+                  const std::string& tumor_source) {
+  blocking.geometry().validate(blocking_source);
+  tumor.geometry().validate(tumor_source);
+  if (options.values == 0 || (options.values & ~kernels::kAllValues) != 0) {
+    throw Error("path safety: no valid value requested (expected svv, isbv, ivbv, bvv)");
+  }
+  if (!(options.eps >= 0.0) || !std::isfinite(options.eps)) {
+    throw Error("--eps: insignificant blocking must be a finite number >= 0 (got " +
+                std::to_string(options.eps) + ")");
+  }
+  if (options.spacing_mm < 0.0 || !std::isfinite(options.spacing_mm)) {
+    throw Error("--spacing: output spacing must be > 0 mm (got " +
+                std::to_string(options.spacing_mm) + ")");
+  }
+}
+
+// Throws Error when the output volumes would not fit the memory limit (options, else 80 % of the
+// memory available).
+void check_memory(const OutputGrid& grid, const PathSafetyOptions& options) {
+  int value_count = 0;
+  for (int v = 0; v < kernels::kValueCount; ++v) value_count += (options.values >> v) & 1u;
+  const double need = double(grid.geometry.voxel_count()) * 4.0 * value_count;
+  const double limit = options.memory_limit_bytes > 0
+                           ? double(options.memory_limit_bytes)
+                           : 0.8 * double(available_memory_bytes());
+  if (limit > 0.0 && need > limit) {
+    const auto& d = grid.geometry.dims;
+    std::ostringstream m;
+    m << "region of interest too large for memory: output grid " << d[0] << "x" << d[1] << "x"
+      << d[2] << " voxels (radius " << grid.radius_mm << " mm, spacing "
+      << grid.geometry.spacing[0] << " mm) x " << value_count << " values needs "
+      << format_bytes(need) << ", " << format_bytes(limit)
+      << " may be used; give a larger --spacing, a smaller --radius or fewer --value";
+    throw Error(m.str());
+  }
+}
+
+// Durations of the host's phases of a run, each from the end of the previous one.
+class PhaseClock {
+ public:
+  void done(const char* name) {
+    const auto now = std::chrono::steady_clock::now();
+    phases.emplace_back(name, std::chrono::duration<double>(now - last_).count());
+    last_ = now;
+  }
+  std::vector<std::pair<std::string, double>> phases;
+
+ private:
+  std::chrono::steady_clock::time_point last_ = std::chrono::steady_clock::now();
+};
+
+// The output volumes (NaN = not computed), allocated one thread each: touching a few GB of fresh
+// memory takes a good fraction of a second, which overlaps the GPU's work where there is one.
+class PendingVolumes {
+ public:
+  PendingVolumes(const ImageGeometry& geometry, unsigned values) {
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      if (values & (1u << v)) {
+        pending_[size_t(v)] = std::async(std::launch::async, [&geometry] {
+          return Volume<float>(geometry, std::numeric_limits<float>::quiet_NaN());
+        });
+      }
+    }
+  }
+  // Waits for the volumes and moves them into result.volumes; later calls do nothing.
+  void collect(PathSafetyResult& result) {
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      if (pending_[size_t(v)].valid()) result.volumes[size_t(v)] = pending_[size_t(v)].get();
+    }
+  }
+
+ private:
+  std::array<std::future<Volume<float>>, kernels::kValueCount> pending_;
+};
+
+// The run's path safety table and sizes, before any value is computed.
+PathSafetyResult start_result(const OutputGrid& grid, const TumorSurface& surface,
+                              const PathSafetyOptions& options) {
+  PathSafetyResult result;
+  result.grid = grid;
+  result.values = options.values;
+  result.mode = options.mode;
+  result.tumor_voxels = surface.tumor_voxels;
+  result.surface_points = int64_t(surface.points.size());
+  result.s2_mm2 = surface.s2_mm2;
+  result.gamma_mm = 0.5 * grid.geometry.spacing[0];
+  result.eps = options.eps;
+  result.rays = uint64_t(grid.roi_voxels) * uint64_t(surface.points.size());
+  return result;
+}
+
+// The CUDA backend, the one place that knows whether this build has one: it starts CUDA early,
+// counts the devices and runs a pass. Without CUDA it has no devices and never runs.
+#if defined(CREPUSCULAR_HAVE_CUDA)
+class CudaBackend {
+ public:
+  static constexpr const char* kNoDevice =
+      "--device cuda: no CUDA device found (use --device cpu or auto)";
+
+  // Starting CUDA takes a good part of a second; it overlaps the preparation on the host (not
+  // started when the CPU is asked for).
+  explicit CudaBackend(Device device)
+      : device_(device),
+        warm_up_(std::async(device == Device::kCpu ? std::launch::deferred : std::launch::async,
+                            [] { return kernels::cuda_warm_up(); })) {}
+
+  int device_count() {
+    if (device_ == Device::kCpu) return 0;
+    if (!count_) count_ = warm_up_.get();
+    return *count_;
+  }
+
+  void run(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
+           const PathSafetyOptions& options, PhaseClock& clock, PendingVolumes& volumes,
+           PathSafetyResult& result) {
+    kernels::OutputGridDesc desc{};
+    const Eigen::Matrix3d axes = grid.geometry.index_to_physical_matrix();
+    for (int a = 0; a < 3; ++a) {
+      desc.origin[a] = grid.geometry.origin[a];
+      for (int b = 0; b < 3; ++b) desc.axes[a][b] = axes(b, a);
+    }
+    desc.n = int(grid.geometry.dims[0]);
+    desc.half = int(grid.half);
+    desc.max_sq = grid.max_sq;
+    float* out[kernels::kValueCount] = {};
+    kernels::CudaRunOptions cuda;
+    cuda.wait_for_outputs = [&] {
+      const auto t = std::chrono::steady_clock::now();
+      volumes.collect(result);
+      for (int v = 0; v < kernels::kValueCount; ++v) {
+        if (options.values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
+      }
+      clock.phases.emplace_back(
+          "allocate_wait",
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count());
+    };
+    cuda.storage = options.cuda_texture ? kernels::BlockingStorage::kTexture
+                                        : kernels::BlockingStorage::kGlobal;
+    cuda.max_devices = options.max_gpus;
+    cuda.progress = options.progress;
+    if (options.mode == Mode::kFast) {
+      int m = 0, radial = 0;
+      kernels::direction_table_size(max_ray_length(grid, scene), grid.geometry.spacing[0], m,
+                                    radial, options.fast_angular);
+      cuda.fast_cells = m;
+      cuda.fast_radial = radial;
+      cuda.fast_slots = options.cuda_fast_slots;
+      result.direction_cells = m;
+    }
+    const kernels::CudaRunReport report =
+        kernels::run_path_safety_cuda(scene, desc, options.values, out, cuda);
+    volumes.collect(result);  // when the backend failed before asking for them
+    result.device = report.devices + (options.cuda_texture ? " (texture)" : "");
+    result.phases = clock.phases;
+    result.phases.insert(result.phases.end(), report.phases.begin(), report.phases.end());
+  }
+
+ private:
+  Device device_;
+  std::future<int> warm_up_;
+  std::optional<int> count_;
+};
+#else
+class CudaBackend {
+ public:
+  static constexpr const char* kNoDevice =
+      "--device cuda: this build has no CUDA backend (rebuild with nvcc available)";
+  explicit CudaBackend(Device) {}
+  int device_count() { return 0; }
+  void run(const kernels::PathSafetyScene<double>&, const OutputGrid&, const PathSafetyOptions&,
+           PhaseClock&, PendingVolumes&, PathSafetyResult&) {
+    throw Error("path safety: this build has no CUDA backend");
+  }
+};
+#endif
+
+// The device of a run: options.device, auto resolved to CUDA where a GPU is found.
+Device choose_device(Device requested, CudaBackend& cuda) {
+  const int gpus = requested == Device::kCpu ? 0 : cuda.device_count();
+  if (requested == Device::kCuda && gpus == 0) throw Error(CudaBackend::kNoDevice);
+  if (requested == Device::kAuto) return gpus > 0 ? Device::kCuda : Device::kCpu;
+  return requested;
+}
+
+int thread_count(const PathSafetyOptions& options) {
+  return options.threads > 0 ? options.threads : omp_get_max_threads();
+}
+
+void run_on_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
+                const PathSafetyOptions& options, PathSafetyResult& result) {
+  result.threads = thread_count(options);
+  result.device = "cpu";
+  if (options.mode == Mode::kFast) {
+    run_cpu_fast(scene, grid, options.values, result.threads, options.fast_angular, result,
+                 options.progress);
+  } else {
+    run_cpu(scene, grid, options.values, result.threads, result, options.progress);
+  }
+}
+
+// Fast mode's self-check (options.fast_check_voxels voxels recomputed exactly), logged.
+void check_fast_mode(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
+                     const PathSafetyOptions& options, PathSafetyResult& result) {
+  check_fast_against_exact(scene, grid, options.values, options.fast_check_voxels,
+                           thread_count(options), result);
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (options.values & (1u << v)) {
+      spdlog::info("fast mode vs exact at {} voxels: {} relative L2 {:.2e}, same class {:.2f} %",
+                   result.check_voxels, value_name(1u << v), result.check_relative_l2[size_t(v)],
+                   100.0 * result.check_class_agreement[size_t(v)]);
+    }
+  }
+}
+
+}  // namespace
+
+PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
+                                     const PathSafetyOptions& options,
+                                     const std::string& blocking_source,
+                                     const std::string& tumor_source) {
+  const auto t0 = std::chrono::steady_clock::now();
+  check_inputs(blocking, tumor, options, blocking_source, tumor_source);
+  CudaBackend cuda(options.device);
+  PhaseClock clock;
+  validate_blocking(blocking, blocking_source);
+  const TumorSurface surface = extract_tumor_surface(tumor, tumor_source);
+  check_tumor_inside_blocking(blocking, tumor, surface, blocking_source, tumor_source);
+  const OutputGrid grid = make_output_grid(blocking, tumor, surface, options);
+  clock.done("prepare");
+  check_memory(grid, options);
+
+  PathSafetyResult result = start_result(grid, surface, options);
+  PendingVolumes volumes(grid.geometry, options.values);
+  const Device device = choose_device(options.device, cuda);
+  spdlog::info("path safety ({}): {} ROI voxels x {} surface points = {:.3g} rays (R = {:.1f} "
+               "mm, h = {:.2f} mm) on {}",
+               mode_name(options.mode), grid.roi_voxels, surface.points.size(),
+               double(result.rays), grid.radius_mm, grid.geometry.spacing[0],
+               device == Device::kCuda ? "cuda" : "cpu");
+  const std::vector<uint8_t> bricks = blocking_bricks(blocking);
+  const auto scene = make_scene(blocking, tumor, surface, result.gamma_mm, options.eps, bricks);
+  clock.done("bricks");
+  if (device == Device::kCuda) {
+    cuda.run(scene, grid, options, clock, volumes, result);
+  } else {
+    volumes.collect(result);
+    run_on_cpu(scene, grid, options, result);
+  }
+  result.seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  if (options.mode == Mode::kFast && options.fast_check_voxels > 0) {
+    check_fast_mode(scene, grid, options, result);
+  }
+  return result;
+}
+
+}  // namespace crepuscular::planning

@@ -1,0 +1,139 @@
+// Path safety volume (§3.2, DESIGN.md §4): for every point of a ball around the tumor, the four
+// values summarising all straight paths from that point to the tumor. CPU backend here; the CUDA
+// backend (kernels/) runs the same host/device math.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "kernels/path_safety_math.hpp"
+#include "planning/imaging/volume.hpp"
+
+namespace crepuscular::planning {
+
+enum class Device { kAuto, kCpu, kCuda };
+// exact: every ray marched (DESIGN.md §4, the reference); fast: rays cast once per surface point
+// and looked up by direction and distance (kernels/path_safety_fast.hpp).
+enum class Mode { kExact, kFast };
+
+// Parses "svv,isbv,ivbv,bvv" (any subset, any order, or "all") into PathSafetyValue bits; throws
+// Error on an unknown name.
+unsigned parse_value_set(const std::string& text);
+// "svv", "isbv", "ivbv", "bvv" for one bit.
+const char* value_name(unsigned bit);
+Device parse_device(const std::string& text);
+const char* device_name(Device device);
+Mode parse_mode(const std::string& text);
+const char* mode_name(Mode mode);
+
+struct PathSafetyOptions {
+  unsigned values = kernels::kAllValues;
+  // Insignificant blocking for SVV: a path whose line integral of b is <= eps counts as clear.
+  // 0.5 lets a path cross the abdominal wall (25 mm of muscle at 0.02 per mm) but not 5 mm of an
+  // organ at 0.1 per mm nor more than 0.5 mm of a high-risk vessel at 1 per mm.
+  double eps = 0.5;
+  double spacing_mm = 0.0;  // output spacing h; 0: the smallest spacing of the inputs
+  double radius_mm = 0.0;   // region of interest R; 0: distance to the farthest voxel with b > 0
+  Device device = Device::kAuto;
+  Mode mode = Mode::kExact;
+  int threads = 0;  // CPU threads; 0: all cores
+  int max_gpus = 0;  // CUDA devices to use; 0: all visible
+  // CUDA only: sample the blocking volume through a 3D texture with hardware trilinear filtering
+  // (9-bit weights) instead of float filtering in global memory (the exact definition).
+  bool cuda_texture = false;
+  // Fast mode: octahedral direction cells per (distance / spacing), i.e. the angular sampling of
+  // the rays cast from each surface point; larger is closer to exact and slower (cost ~ square).
+  double fast_angular = 5.0;
+  // Fast mode: ROI voxels recomputed exactly afterwards to report the difference (0: none).
+  int fast_check_voxels = 1000;
+  // Fast mode on CUDA: direction tables cast per batch (0: as many as fit, at most 16).
+  int cuda_fast_slots = 0;
+  // Memory the output may take, bytes; 0: 80 % of the memory available now.
+  uint64_t memory_limit_bytes = 0;
+  // Called from the computing thread with the fraction done (0..1), about every 2 % of the work.
+  std::function<void(double)> progress;
+};
+
+// Tumor surface for the rays: surface voxels with centres and outward normals.
+struct TumorSurface {
+  std::vector<kernels::SurfacePoint<double>> points;
+  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();  // mean of tumor voxel centres, LPS mm
+  int64_t tumor_voxels = 0;
+  double s2_mm2 = 0.0;  // (voxel volume)^(2/3)
+  int lo[3] = {0, 0, 0}, hi[3] = {0, 0, 0};  // index bounding box of the tumor voxels
+};
+
+// Extracts surface voxels (6-neighbourhood) and their normals: the negative gradient of the mask
+// smoothed with a Gaussian of sigma = 1 voxel. Throws Error when the mask is empty.
+TumorSurface extract_tumor_surface(const Volume<uint8_t>& tumor, const std::string& source);
+
+// Output grid Θ of DESIGN.md §4: isotropic spacing h, axes of the blocking volume, centre voxel on
+// the tumor centroid, 2 ceil(R/h) + 1 voxels per axis.
+struct OutputGrid {
+  ImageGeometry geometry;
+  Eigen::Vector3d centre = Eigen::Vector3d::Zero();
+  double radius_mm = 0.0;
+  int64_t half = 0;        // index of the centre voxel along each axis
+  int64_t max_sq = 0;      // ROI: (i-half)^2 + (j-half)^2 + (k-half)^2 <= max_sq
+  int64_t roi_voxels = 0;  // voxels inside the ball
+
+  bool in_roi(int64_t i, int64_t j, int64_t k) const {
+    const int64_t di = i - half, dj = j - half, dk = k - half;
+    return di * di + dj * dj + dk * dk <= max_sq;
+  }
+};
+OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
+                            const TumorSurface& surface, const PathSafetyOptions& options);
+
+struct PathSafetyResult {
+  OutputGrid grid;
+  unsigned values = 0;
+  Mode mode = Mode::kExact;
+  int direction_cells = 0;  // fast mode: octahedral map side
+  // One volume per value slot (svv, isbv, ivbv, bvv); only requested ones are filled. Voxels
+  // outside the region of interest are NaN (not computed).
+  std::array<Volume<float>, kernels::kValueCount> volumes;
+  int64_t tumor_voxels = 0;
+  int64_t surface_points = 0;
+  double s2_mm2 = 0.0;
+  double gamma_mm = 0.0;
+  double eps = 0.0;
+  std::string device;  // "cpu" or "cuda:<name>"
+  int threads = 0;
+  double seconds = 0.0;
+  // Where the time went (seconds), when the backend says: e.g. fast mode on CUDA.
+  std::vector<std::pair<std::string, double>> phases;
+  uint64_t rays = 0;  // output voxels in the ROI x surface points
+  // Fast mode: its difference from exact mode at `check_voxels` random ROI voxels (classes by
+  // default_classes of the fast volume); empty in exact mode.
+  int64_t check_voxels = 0;
+  std::array<double, kernels::kValueCount> check_relative_l2{};
+  std::array<double, kernels::kValueCount> check_class_agreement{};
+};
+
+// Computes the requested values. Checks every input first (geometry, negative or NaN blocking,
+// empty tumor, tumor outside the blocking volume, memory) and throws Error before allocating.
+PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
+                                     const PathSafetyOptions& options,
+                                     const std::string& blocking_source = "blocking volume",
+                                     const std::string& tumor_source = "tumor mask");
+
+// Occupancy of the blocking volume's bricks (kernels::kBrickShift): 1 where a sample may be > 0.
+std::vector<uint8_t> blocking_bricks(const Volume<float>& blocking);
+
+// Builds the scene the kernels read. The returned views point into `blocking`, `tumor`,
+// `surface` and `bricks` (may be empty: no empty-space skipping), which must outlive them.
+kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
+                                            const Volume<uint8_t>& tumor,
+                                            const TumorSurface& surface, double gamma_mm,
+                                            double eps,
+                                            const std::vector<uint8_t>& bricks = {});
+
+// Bytes of memory available to this process now (MemAvailable), 0 when unknown.
+uint64_t available_memory_bytes();
+
+}  // namespace crepuscular::planning

@@ -1,0 +1,47 @@
+// Safety classes of a path safety value (DESIGN.md §4): safe, medium, dangerous, with thresholds
+// per value, and the comparison of two path safety results (fast mode against exact).
+#pragma once
+
+#include <array>
+#include <cstdint>
+
+#include "kernels/path_safety_math.hpp"
+#include "planning/imaging/volume.hpp"
+
+namespace crepuscular::planning {
+
+enum class SafetyClass { kSafe = 0, kMedium = 1, kDangerous = 2 };
+
+struct SafetyClasses {
+  bool higher_is_safer = false;
+  double safe = 0.0;       // safe: value <= safe (or >= safe when higher is safer)
+  double dangerous = 0.0;  // dangerous: value > dangerous (or < dangerous when higher is safer)
+
+  SafetyClass classify(double value) const {
+    if (higher_is_safer) {
+      return value >= safe ? SafetyClass::kSafe
+                           : value < dangerous ? SafetyClass::kDangerous : SafetyClass::kMedium;
+    }
+    return value <= safe ? SafetyClass::kSafe
+                         : value > dangerous ? SafetyClass::kDangerous : SafetyClass::kMedium;
+  }
+};
+
+// Defaults: SVV is a percentage (safe >= 90 %, dangerous < 50 %). The blocking values have no
+// absolute scale, so they are relative to the region of interest: a voxel with no blocking on any
+// path (value 0) is safe; among the voxels with some blocking, the lowest 20 % are safe too (the
+// paper's "safest 20 % of the paths") and those above the 60th percentile are dangerous.
+SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume);
+
+// Difference of `other` from `reference` over the voxels both computed, per value slot.
+struct ModeDifference {
+  std::array<double, kernels::kValueCount> relative_l2{};      // |other - ref|_2 / |ref|_2
+  std::array<double, kernels::kValueCount> class_agreement{};  // fraction with the same class
+  int64_t voxels = 0;
+};
+// Classes are taken from the reference (default_classes) for both volumes.
+ModeDifference compare_volumes(const std::array<Volume<float>, kernels::kValueCount>& reference,
+                               const std::array<Volume<float>, kernels::kValueCount>& other,
+                               unsigned values);
+
+}  // namespace crepuscular::planning

@@ -1,0 +1,165 @@
+// Live needle safety: the tracked needle's line extended to the tumor, evaluated against a plan.
+#include "planning/trajectories/needle_guidance.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <optional>
+
+#include "foundation/error.hpp"
+#include "planning/imaging/ray_march.hpp"
+#include "planning/imaging/sampling.hpp"
+
+namespace crepuscular::planning {
+
+namespace {
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+}  // namespace
+
+const char* needle_safety_name(NeedleSafety s) {
+  return s == NeedleSafety::kSafe ? "safe" : s == NeedleSafety::kMedium ? "medium" : "dangerous";
+}
+
+NeedleGuide::NeedleGuide(const std::string& plan_dir)
+    : owned_(std::make_unique<PlanData>(load_plan(plan_dir))), plan_(owned_.get()) {
+  init();
+}
+
+NeedleGuide::NeedleGuide(const PlanData& plan) : plan_(&plan) { init(); }
+
+NeedleGuide::~NeedleGuide() = default;
+
+void NeedleGuide::init() {
+  evaluator_ = std::make_unique<TrajectoryEvaluator>(*plan_);
+  const nlohmann::json& j = plan_->json;
+  if (j.is_object() && j.contains("parameters") && j["parameters"].is_object() &&
+      j["parameters"].contains("eps") && j["parameters"]["eps"].is_number()) {
+    eps_ = j["parameters"]["eps"].get<double>();
+  }
+  if (plan_->area) {
+    const AreaSafetyGeometry& a = *plan_->area;
+    for (size_t i = 0; i < a.vertices.size() && i < a.safe.size(); ++i) {
+      if (!a.safe[i]) continue;
+      const Eigen::Vector3d d = a.vertices[i] - plan_->tumor_centre;
+      if (!(d.norm() > 1e-9)) continue;
+      safe_dirs_.push_back(d.normalized());
+      safe_vertex_.push_back(int(i));
+    }
+  }
+}
+
+NeedleState NeedleGuide::evaluate(const Eigen::Isometry3d& T_ct_needle,
+                                  const Eigen::Vector3d& tip_in_needle,
+                                  const Eigen::Vector3d& axis_in_needle) const {
+  const PlanData& plan = *plan_;
+  NeedleState s;
+  const Eigen::Vector3d axis = T_ct_needle.linear() * axis_in_needle;
+  if (!axis.allFinite() || !(axis.norm() > 1e-12) || !tip_in_needle.allFinite()) {
+    throw Error("needle guidance: the needle axis must be a finite non-zero vector and the tip "
+                "finite (needle calibration)");
+  }
+  s.tip = T_ct_needle * tip_in_needle;
+  s.axis = axis.normalized();
+  s.eps = eps_;
+  const Eigen::Vector3d c = plan.tumor_centre;
+  const Eigen::Vector3d w = c - s.tip;
+  s.tip_to_centroid_mm = w.norm();
+  const double along = w.dot(s.axis);
+  s.points_away = along <= 0 && s.tip_to_centroid_mm > 1e-6;
+  s.along_axis_mm = std::max(0.0, along);
+  s.target = s.tip + s.along_axis_mm * s.axis;
+  s.miss_distance_mm = (c - s.target).norm();
+
+  // A tip already inside the body: the line is evaluated from where it entered the body (the
+  // nearest voxel outside the body behind the tip), so structures already pierced still count.
+  s.line_start = s.tip;
+  if (!plan.labels.empty() && s.along_axis_mm > 1e-6 && in_body(plan.labels, s.tip)) {
+    const double step = 0.5 * plan.labels.geometry().spacing.minCoeff();
+    const std::optional<BodyExit> exit =
+        first_body_exit(plan.labels, s.tip, -s.axis, step, 1000.0);
+    // An exit beyond the grid is no outside voxel behind the tip: keep the tip.
+    if (exit && nearest_voxel(plan.labels, exit->first_outside)) {
+      s.line_start = exit->first_outside;
+      s.tip_in_body = true;
+    }
+  }
+
+  if (s.along_axis_mm > 1e-6) {
+    Trajectory t;
+    t.name = "needle";
+    t.entry = s.line_start;
+    t.target = s.target;
+    s.evaluation = evaluator_->evaluate(t);
+    s.clear = s.evaluation.line_integral <= eps_;
+    if (!s.evaluation.values.empty()) s.tip_class = s.evaluation.values.front().safety_class;
+  } else {
+    s.evaluation.trajectory.entry = s.evaluation.trajectory.target = s.tip;
+    s.evaluation.labels_available = !plan.labels.empty();
+    // Path safety at the tip even without an extension.
+    if (!plan.values.empty()) {
+      const auto vol = plan.path_safety.find(plan.values.front());
+      if (vol != plan.path_safety.end()) {
+        const double v = sample_path_safety(vol->second, s.tip);
+        if (!std::isfinite(v)) {
+          s.tip_class = "outside";
+        } else {
+          const SafetyClass k = plan.classes.at(plan.values.front()).classify(v);
+          s.tip_class = k == SafetyClass::kSafe     ? "safe"
+                        : k == SafetyClass::kMedium ? "medium"
+                                                    : "dangerous";
+        }
+      }
+    }
+  }
+
+  if (!plan.tumor.empty()) {
+    s.tumor_depth_mm = s.evaluation.tumor_depth_mm;
+    if (s.tumor_depth_mm >= 0 && s.tip_in_body) {
+      s.tumor_depth_mm = std::max(0.0, s.tumor_depth_mm - (s.tip - s.line_start).norm());
+    }
+    if (s.along_axis_mm <= 1e-6 && !s.points_away) {
+      const bool in = nearest_voxel_or<uint8_t>(plan.tumor, s.tip, 0) != 0;
+      s.tumor_depth_mm = in ? 0.0 : -1.0;
+    }
+    s.hits_tumor = s.tumor_depth_mm >= 0;
+  } else if (plan.area) {
+    const Ellipsoid& e = plan.area->ellipsoid;
+    const Eigen::Vector3d q =
+        (e.axes.transpose() * (s.target - e.centre)).cwiseQuotient(e.radii);
+    s.hits_tumor = !s.points_away && q.squaredNorm() <= 1.0;
+  } else {
+    s.hits_tumor = !s.points_away && s.miss_distance_mm <= 0.5;
+  }
+
+  s.safety = !s.clear || s.tip_class == "dangerous" ? NeedleSafety::kDangerous
+             : s.tip_class == "medium"              ? NeedleSafety::kMedium
+                                                    : NeedleSafety::kSafe;
+
+  // Nearest safe direction: max dot product of the outward needle direction over the
+  // precomputed unit directions.
+  s.angle_to_safe_deg = kNaN;
+  if (!safe_dirs_.empty()) {
+    const Eigen::Vector3d out = -s.axis;
+    double best = -2;
+    size_t best_i = 0;
+    for (size_t i = 0; i < safe_dirs_.size(); ++i) {
+      const double d = out.dot(safe_dirs_[i]);
+      if (d > best) {
+        best = d;
+        best_i = i;
+      }
+    }
+    s.angle_to_safe_deg = std::acos(std::clamp(best, -1.0, 1.0)) * 180.0 / M_PI;
+    s.nearest_safe_vertex = safe_vertex_[best_i];
+    s.nearest_safe_direction = safe_dirs_[best_i];
+  }
+  return s;
+}
+
+NeedleState needle_guidance(const PlanData& plan, const Eigen::Isometry3d& T_ct_needle,
+                            const Eigen::Vector3d& tip_in_needle,
+                            const Eigen::Vector3d& axis_in_needle) {
+  return NeedleGuide(plan).evaluate(T_ct_needle, tip_in_needle, axis_in_needle);
+}
+
+}  // namespace crepuscular::planning

@@ -1,0 +1,167 @@
+// Tests of foundation/output_files: a file or folder appears complete or not at all, and a failed
+// write leaves nothing behind.
+#include "foundation/output_files.hpp"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "foundation/error.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/temporary_folder.hpp"
+
+namespace crepuscular {
+namespace {
+
+using test::expect_error_containing;
+
+namespace fs = std::filesystem;
+
+// A fresh empty folder (no ".partial" sibling) in this program's temporary folder.
+fs::path temp_dir(const std::string& name) {
+  const fs::path dir = test::fresh_path(name);
+  fs::create_directories(dir);
+  return dir;
+}
+
+std::vector<std::string> entries(const fs::path& dir) {
+  std::vector<std::string> names;
+  for (const auto& e : fs::directory_iterator(dir)) names.push_back(e.path().filename().string());
+  std::sort(names.begin(), names.end());
+  return names;
+}
+
+std::string read(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::stringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
+TEST(OutputFiles, TemporarySiblingKeepsFolderAndExtension) {
+  const std::string t = temporary_sibling("some/dir/plan.nii.gz");
+  EXPECT_EQ(fs::path(t).parent_path(), fs::path("some/dir"));
+  EXPECT_EQ(t.rfind(".nii.gz"), t.size() - 7);
+  EXPECT_EQ(fs::path(t).filename().string().rfind(".tmp-", 0), 0u);
+  EXPECT_NE(temporary_sibling("plan.json"), temporary_sibling("plan.json"));  // unique
+}
+
+TEST(OutputFiles, TextAndBinaryFilesAreWrittenAndReplaced) {
+  const fs::path dir = temp_dir("text");
+  write_text_file((dir / "a.txt").string(), "first\n");
+  write_text_file((dir / "a.txt").string(), "second\n");
+  EXPECT_EQ(read(dir / "a.txt"), "second\n");
+  const unsigned char bytes[4] = {0xFF, 0xD8, 0x00, 0x01};
+  write_binary_file((dir / "b.bin").string(), bytes, sizeof bytes);
+  EXPECT_EQ(read(dir / "b.bin"), std::string("\xFF\xD8\x00\x01", 4));
+  EXPECT_EQ(entries(dir), (std::vector<std::string>{"a.txt", "b.bin"}));
+}
+
+TEST(OutputFiles, FailedWriterLeavesNothingAndKeepsTheOldFile) {
+  const fs::path dir = temp_dir("writer");
+  const std::string path = (dir / "camera.yaml").string();
+  write_text_file(path, "old\n");
+  expect_error_containing(
+      [&] {
+        write_file_atomically(path, [&](const std::string& temporary) {
+          std::ofstream(temporary) << "half a fil";
+          throw Error(path + ": the writer failed");
+        });
+      },
+      {"camera.yaml", "writer failed"});
+  EXPECT_EQ(entries(dir), std::vector<std::string>{"camera.yaml"});
+  EXPECT_EQ(read(path), "old\n");
+}
+
+TEST(OutputFiles, WriterGetsASiblingWithTheSameExtension) {
+  const fs::path dir = temp_dir("sibling");
+  const std::string path = (dir / "out.png").string();
+  write_file_atomically(path, [&](const std::string& temporary) {
+    EXPECT_EQ(fs::path(temporary).parent_path(), dir);
+    EXPECT_EQ(fs::path(temporary).extension(), ".png");
+    std::ofstream(temporary) << "png";
+  });
+  EXPECT_EQ(read(path), "png");
+}
+
+TEST(OutputFiles, FailedRenameNamesTheFileAndLeavesNoTemporary) {
+  const fs::path dir = temp_dir("rename");
+  fs::create_directories(dir / "taken.txt" / "inside");  // a non-empty folder has the name
+  expect_error_containing([&] { write_text_file((dir / "taken.txt").string(), "x"); },
+                          {"taken.txt"});
+  EXPECT_EQ(entries(dir), std::vector<std::string>{"taken.txt"});
+}
+
+TEST(OutputFiles, MissingFolderIsAnErrorNamingTheFile) {
+  const fs::path dir = temp_dir("missing");
+  expect_error_containing(
+      [&] { write_text_file((dir / "no" / "such" / "plan.json").string(), "{}"); }, {"plan.json"});
+  EXPECT_TRUE(entries(dir).empty());
+}
+
+TEST(OutputFiles, PendingFileIsRemovedUnlessCommitted) {
+  const fs::path dir = temp_dir("pending");
+  {
+    PendingFile f((dir / "log.csv").string());
+    std::ofstream(f.temporary()) << "a,b\n";
+    EXPECT_EQ(entries(dir).size(), 1u);
+  }
+  EXPECT_TRUE(entries(dir).empty());
+  PendingFile f((dir / "log.csv").string());
+  std::ofstream(f.temporary()) << "a,b\n";
+  f.commit();
+  EXPECT_TRUE(f.committed());
+  EXPECT_EQ(entries(dir), std::vector<std::string>{"log.csv"});
+}
+
+TEST(OutputFiles, StagedDirectoryAppearsOnlyOnCommitAndReplaces) {
+  const fs::path root = temp_dir("staged");
+  const std::string final_path = (root / "plan").string();
+  {
+    StagedDirectory out(final_path);
+    write_text_file(out.file("plan.json"), "{}\n");
+    EXPECT_FALSE(fs::exists(final_path));
+  }
+  EXPECT_TRUE(entries(root).empty());  // never committed: nothing left
+  {
+    StagedDirectory out(final_path);
+    write_text_file(out.file("a.txt"), "1");
+    out.commit();
+  }
+  {
+    StagedDirectory out(final_path + "/");
+    write_text_file(out.file("b.txt"), "2");
+    out.commit();
+  }
+  EXPECT_EQ(entries(root), std::vector<std::string>{"plan"});
+  EXPECT_EQ(entries(final_path), std::vector<std::string>{"b.txt"});  // replaced as a whole
+}
+
+TEST(OutputFiles, KeptStagingFolderSurvivesAFailureAndMustNotExist) {
+  const fs::path root = temp_dir("kept");
+  const std::string final_path = (root / "rec").string();
+  {
+    StagedDirectory out(final_path, StagedDirectory::OnFailure::kKeep);
+    EXPECT_EQ(out.path(), final_path + ".partial");
+    write_text_file(out.file("frames.csv"), "frame\n");
+  }
+  EXPECT_EQ(entries(root), std::vector<std::string>{"rec.partial"});  // kept: replayable
+  expect_error_containing(
+      [&] { StagedDirectory again(final_path, StagedDirectory::OnFailure::kKeep); },
+      {"rec.partial", "exists"});
+  fs::remove_all(final_path + ".partial");
+  StagedDirectory out(final_path, StagedDirectory::OnFailure::kKeep);
+  out.commit();
+  EXPECT_EQ(entries(root), std::vector<std::string>{"rec"});
+  expect_error_containing(
+      [&] { StagedDirectory again(final_path, StagedDirectory::OnFailure::kKeep); },
+      {"rec", "exists"});
+}
+
+}  // namespace
+}  // namespace crepuscular

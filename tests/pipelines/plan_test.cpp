@@ -1,0 +1,172 @@
+// The plan job end to end: files written, their geometry and content, and bad input that must
+// leave no output behind (through the library and through the `crepuscular` command).
+#include "pipelines/plan.hpp"
+
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+
+#include <Eigen/Geometry>
+#include <cmath>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+
+#include "foundation/error.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "planning/plan_folder/plan_folder.hpp"
+#include "tests/support/cli.hpp"
+#include "tests/support/errors.hpp"
+#include "tests/support/plans.hpp"
+#include "tests/support/temporary_folder.hpp"
+
+namespace fs = std::filesystem;
+
+namespace crepuscular::planning {
+namespace {
+
+using pipelines::PlanRequest;
+using pipelines::run_plan;
+using test::expect_error_containing;
+using test::run_cli;
+
+class PlanTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    // The mini plan (test::write_mini_plan_inputs) with a rotated direction.
+    test::MiniPlanOptions o;
+    o.grid.direction = Eigen::AngleAxisd(0.3, Eigen::Vector3d(0, 0, 1)).toRotationMatrix();
+    inputs_ = test::write_mini_plan_inputs(dir_, o);
+    labels_ = inputs_.labels;
+    tumor_ = inputs_.tumor;
+    table_ = inputs_.vulnerability;
+  }
+
+  PlanRequest request(const std::string& out) const {
+    PlanRequest r = inputs_.request((dir_ / out).string());
+    r.margin.fwhm_mm = 2.0;
+    return r;
+  }
+
+  // Files and folders left in dir_ apart from the inputs.
+  std::vector<std::string> leftovers() const {
+    std::vector<std::string> names;
+    for (const auto& e : fs::directory_iterator(dir_)) {
+      const std::string n = e.path().filename().string();
+      if (n != "labels.nii.gz" && n != "tumor.nii.gz" && n != "table.json") names.push_back(n);
+    }
+    return names;
+  }
+
+  test::TemporaryFolder dir_;
+  test::MiniPlanInputs inputs_;
+  std::string labels_, tumor_, table_;
+};
+
+TEST_F(PlanTest, WritesEveryValueOnTheOutputGridWithNanOutsideTheBall) {
+  const nlohmann::json plan = run_plan(request("plan"));
+  for (const char* f : {"blocking.nii.gz", "roi.nii.gz", "path_safety_svv.nii.gz", "path_safety_isbv.nii.gz",
+                        "path_safety_ivbv.nii.gz", "path_safety_bvv.nii.gz", "plan.json"}) {
+    EXPECT_TRUE(fs::exists(dir_ / "plan" / f)) << f;
+  }
+  const Volume<float> svv = read_volume<float>((dir_ / "plan/path_safety_svv.nii.gz").string());
+  const auto& g = svv.geometry();
+  // 2 ceil(R/h) + 1 = 2 * 8 + 1 voxels at h = 2 mm, axes of the label map.
+  EXPECT_EQ(g.dims, (Index3{17, 17, 17}));
+  EXPECT_NEAR(g.spacing.x(), 2.0, 1e-6);
+  const Volume<int32_t> labels = read_label_map(labels_);
+  EXPECT_LT((g.direction - labels.geometry().direction).cwiseAbs().maxCoeff(), 1e-5);
+  // The centre voxel lies on the tumor centroid, voxel (11, 11, 11) of the inputs.
+  const Eigen::Vector3d c = labels.geometry().index_to_physical(11, 11, 11);
+  EXPECT_LT((svv.index_to_physical(8, 8, 8) - c).norm(), 1e-3);
+  const Volume<uint8_t> roi = read_mask((dir_ / "plan/roi.nii.gz").string());
+  EXPECT_EQ(roi(0, 0, 0), 0);
+  EXPECT_EQ(roi(8, 8, 8), 1);
+  EXPECT_EQ(roi(0, 8, 8), 1);  // 8 voxels from the centre: on the ball's surface
+  EXPECT_FALSE(std::isnan(svv(8, 8, 8)));
+  // Outside the ball the file holds NaN. ITK's NIfTI reader turns NaN into 0, so look with
+  // nibabel where it is installed.
+  const std::string py = "/usr/bin/python3 -c \"import nibabel, numpy; d = nibabel.load('" +
+                         (dir_ / "plan/path_safety_svv.nii.gz").string() +
+                         "').get_fdata(); raise SystemExit(0 if numpy.isnan(d[0,0,0]) and not "
+                         "numpy.isnan(d[8,8,8]) else 3)\" 2>/dev/null";
+  const int rc = std::system(py.c_str());
+  if (WEXITSTATUS(rc) != 1) {  // 1: python or nibabel missing
+    EXPECT_EQ(WEXITSTATUS(rc), 0) << "NaN outside the ball";
+  }
+  // Toward the vessel side (+i) paths cross impassable blocking: SVV is lower there than on the
+  // free side (-i) at the same distance.
+  EXPECT_LT(svv(15, 8, 8), svv(1, 8, 8));
+  EXPECT_EQ(svv(1, 8, 8), 100.0f);
+  EXPECT_EQ(plan["parameters"]["values"].size(), 4u);
+  EXPECT_EQ(plan["inputs"]["tumor"]["md5"].get<std::string>().size(), 32u);
+  EXPECT_EQ(plan["tumor"]["voxels"].get<int>(), 27);
+  EXPECT_GT(plan["timings"]["total_s"].get<double>(), 0.0);
+  EXPECT_TRUE(plan["classes"].contains("bvv"));
+  EXPECT_EQ(leftovers(), std::vector<std::string>{"plan"});
+}
+
+TEST_F(PlanTest, ChecksumIsMd5OfTheFile) {
+  std::ofstream(dir_ / "abc.txt") << "abc";
+  // MD5("abc"), RFC 1321 test suite.
+  EXPECT_EQ(file_checksum((dir_ / "abc.txt").string()), "900150983cd24fb0d6963f7d28e17f72");
+}
+
+TEST_F(PlanTest, FailedRunLeavesNoOutputAndKeepsTheEarlierPlan) {
+  run_plan(request("plan"));
+  const auto before = fs::last_write_time(dir_ / "plan" / "plan.json");
+  // Empty tumor mask: refused after the staging folder was made.
+  Volume<uint8_t> empty(read_mask(tumor_).geometry(), 0);
+  write_volume(empty, (dir_ / "empty.nii.gz").string());
+  PlanRequest r = request("plan");
+  r.tumor = (dir_ / "empty.nii.gz").string();
+  EXPECT_THROW(run_plan(r), Error);
+  EXPECT_EQ(fs::last_write_time(dir_ / "plan" / "plan.json"), before);
+  fs::remove(dir_ / "empty.nii.gz");
+  EXPECT_EQ(leftovers(), std::vector<std::string>{"plan"});
+  // A fresh output folder is not created at all.
+  r.out_dir = (dir_ / "other").string();
+  r.tumor = (dir_ / "missing.nii.gz").string();
+  EXPECT_THROW(run_plan(r), Error);
+  EXPECT_FALSE(fs::exists(dir_ / "other"));
+}
+
+TEST_F(PlanTest, UnknownLabelIsRefusedNamingTheLabel) {
+  Volume<int32_t> labels = read_label_map(labels_);
+  labels(3, 3, 3) = 7;
+  write_volume(labels, labels_);
+  expect_error_containing([&] { run_plan(request("plan")); }, "7");
+  EXPECT_TRUE(leftovers().empty());
+}
+
+TEST_F(PlanTest, CommandLineReportsBadInputAndWritesNothing) {
+  std::string err;
+  const std::string out = (dir_ / "cli").string();
+  // Truncated tumor file.
+  const std::string bad = (dir_ / "bad.nii.gz").string();
+  std::ofstream(bad) << "not a volume";
+  EXPECT_EQ(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " + bad +
+                        " --out " + out,
+                    &err, test::Capture::kStderr),
+            1);
+  EXPECT_EQ(err.rfind("error: ", 0), 0u) << err;
+  EXPECT_NE(err.find("bad.nii.gz"), std::string::npos) << err;
+  EXPECT_FALSE(fs::exists(out));
+  // Negative spacing.
+  EXPECT_NE(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " +
+                        tumor_ + " --spacing -1 --out " + out,
+                    &err, test::Capture::kStderr),
+            0);
+  EXPECT_NE(err.find("spacing"), std::string::npos) << err;
+  EXPECT_FALSE(fs::exists(out));
+  // A working run through the command line.
+  EXPECT_EQ(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " +
+                        tumor_ + " --radius 10 --value svv,bvv --device cpu --out " + out,
+                    &err, test::Capture::kStderr),
+            0)
+      << err;
+  EXPECT_TRUE(fs::exists(dir_ / "cli" / "path_safety_bvv.nii.gz"));
+  EXPECT_FALSE(fs::exists(dir_ / "cli" / "path_safety_isbv.nii.gz"));
+}
+
+}  // namespace
+}  // namespace crepuscular::planning
