@@ -2,6 +2,7 @@
 #include "apps/commands.hpp"
 #include "apps/enum_names.hpp"
 #include "pipelines/plan.hpp"
+#include "planning/trajectories/evaluate.hpp"
 
 namespace crepuscular::apps {
 
@@ -19,26 +20,45 @@ void add_plan_command(CLI::App& app) {
       "  ivbv  integral volume blocking value: line integrals weighted by tumor chord length\n"
       "  bvv   blocker volume value: blocking weighted by the volume each sample stands for\n"
       "        (isbv, ivbv, bvv: low = safe)\n"
-      "Blocking comes from a label map and a vulnerability table (--labels with --vulnerability\n"
-      "or --preset), a ready blocking volume (--blocking), or CT thresholds (--ct alone).\n"
+      "Blocking comes from label maps and vulnerability tables (--labels, repeatable, with\n"
+      "--vulnerability or --preset or a table per map), a ready blocking volume (--blocking), or\n"
+      "CT thresholds (--ct alone). Voxels of the region of interest outside the scan (the\n"
+      "inputs' grids) are UNKNOWN: no value, 2 in roi.nii.gz, never shown as safe.\n"
       "Writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/path_safety_<value>.nii.gz (float32, LPS,\n"
       "NaN outside the region of interest; open in 3D Slicer), PLAN_DIR/area_safety.vtk (the\n"
       "safe access regions around the tumor and their leeway, for the first value; a model in\n"
       "3D Slicer or ParaView) and PLAN_DIR/plan.json.\n"
-      "Example:\n"
+      "Examples:\n"
       "  crepuscular phantom --out data && crepuscular plan --labels data/labels.nii.gz \\\n"
-      "      --tumor data/tumor.nii.gz --preset phantom --out plan");
-  cmd->add_option("--labels", req->labels, "Label map (NIfTI, NRRD, MetaImage or DICOM folder)")
-      ->check(CLI::ExistingPath);
-  cmd->add_option("--tumor", req->tumor, "Tumor mask (voxels > 0.5 are tumor)")
-      ->required()
-      ->check(CLI::ExistingPath);
+      "      --tumor data/tumor.nii.gz --preset phantom --out plan\n"
+      "  crepuscular plan --labels seg_total.nii.gz:totalsegmentator \\\n"
+      "      --labels seg_vessels.nii.gz:totalsegmentator_liver_vessels \\\n"
+      "      --tumor seg_vessels.nii.gz:2 --lesion 1 --ct ct.nii.gz --mode fast --out plan");
+  cmd->add_option("--labels", req->labels,
+                  "Label map FILE[:TABLE], repeatable: NIfTI, NRRD, MetaImage, DICOM folder, or a "
+                  "3D Slicer segmentation (.seg.nrrd, segments matched to the table by name). "
+                  "TABLE: a preset name or a vulnerability JSON (default: --vulnerability, "
+                  "--preset, or vulnerability.json beside the map). Where maps overlap the higher "
+                  "level wins");
+  cmd->add_option("--tumor", req->tumor,
+                  "Tumor FILE (a mask: voxels > 0.5) or FILE:LABEL (a label value, or a segment "
+                  "name of a .seg.nrrd)")
+      ->required();
+  cmd->add_option("--lesion", req->lesion,
+                  "Plan for the K-th largest lesion of the tumor mask (1 = largest); with several "
+                  "lesions and neither --lesion nor --lesion-at, plan lists them and stops")
+      ->check(CLI::PositiveNumber);
+  auto lesion_at = std::make_shared<std::string>();
+  cmd->add_option("--lesion-at", *lesion_at,
+                  "Plan for the lesion at (or nearest to) this point: X,Y,Z in LPS mm");
   cmd->add_option("--vulnerability", req->vulnerability,
                   "Vulnerability table JSON: label -> level -> blocking per mm "
                   "(default: vulnerability.json beside the label map)")
       ->check(CLI::ExistingFile);
   cmd->add_option("--preset", req->preset,
-                  "Built-in vulnerability table: phantom, totalsegmentator");
+                  "Built-in vulnerability table: phantom, totalsegmentator, "
+                  "totalsegmentator_liver_vessels")
+      ->excludes("--vulnerability");
   cmd->add_option("--ct", req->ct,
                   "CT in HU; thresholded (bone, internal air) when no labels are given");
   cmd->add_option("--blocking", req->blocking,
@@ -86,10 +106,14 @@ void add_plan_command(CLI::App& app) {
   cmd->add_option("--area-max-distance", req->area_safety.max_distance_mm,
                   "Area safety: maximum extrusion in mm (default: the region of interest "
                   "radius R)");
+  cmd->add_flag("--crop-to-scan", req->crop_to_scan,
+                "Leave the part of the region of interest outside the scan out (not computed) "
+                "instead of marking it unknown");
   cmd->add_option("--out", req->out_dir, "Output plan folder (replaced only when complete)")
       ->required();
-  cmd->callback([req, values] {
+  cmd->callback([req, values, lesion_at] {
     req->path_safety.values = planning::parse_value_set(*values);
+    if (!lesion_at->empty()) req->lesion_at = planning::parse_point(*lesion_at, "--lesion-at");
     pipelines::run_plan(*req);
   });
 }

@@ -12,6 +12,10 @@ targets=(path_safety_cuda_test path_safety_test path_safety_fast_test bench_path
 # BUNDLE=overlay: the overlay renderer benchmark alone (with OpenCV, GLFW, X11 and libglvnd it does
 # not fit beside the CUDA programs in the 64 MiB a carried path may hold).
 if [ "${BUNDLE:-}" = overlay ]; then targets=(overlay_bench guide_bench); fi
+# BUNDLE=plan: the GPU tests and `crepuscular plan` end to end (bench_plan), compressed.
+if [ "${BUNDLE:-}" = plan ]; then
+  targets=(path_safety_cuda_test path_safety_test path_safety_fast_test bench_plan)
+fi
 cmake --build "$build" -j "$(nproc)" --target "${targets[@]}"
 rm -rf .device && mkdir -p .device/bin .device/lib
 for t in "${targets[@]}"; do
@@ -26,7 +30,7 @@ done | sort -u | grep -vE '/(libc|libm|libdl|libpthread|librt|ld-linux[^/]*|libc
 du -sh .device
 # The overlay programs' libraries exceed the carry limit uncompressed: carry .device.tar.xz and
 # unpack it there (run_gpu.sh does).
-if [ "${BUNDLE:-}" = overlay ]; then
+if [ "${BUNDLE:-}" = overlay ] || [ "${BUNDLE:-}" = plan ]; then
   tar -cJf .device.tar.xz .device && rm -rf .device
   du -sh .device.tar.xz
 fi

@@ -58,7 +58,7 @@ int main(int argc, char** argv) {
     po.spacing_mm = spacing;
     planning::write_phantom(planning::make_phantom(po), (dir / "phantom").string());
     pipelines::PlanRequest req;
-    req.labels = (dir / "phantom/labels.nii.gz").string();
+    req.labels = {(dir / "phantom/labels.nii.gz").string()};
     req.tumor = (dir / "phantom/tumor.nii.gz").string();
     req.vulnerability = (dir / "phantom/vulnerability.json").string();
     req.path_safety.mode = planning::Mode::kFast;

@@ -8,6 +8,7 @@
 #include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
+#include <numeric>
 #include <sstream>
 
 #include "foundation/error.hpp"
@@ -61,28 +62,30 @@ void check_poses(const std::vector<Eigen::Isometry3d>& poses, const char* what) 
   }
 }
 
-}  // namespace
-
-PivotResult calibrate_pivot(const std::vector<Eigen::Isometry3d>& T_cam_needle,
-                            const PivotOptions& options) {
-  const int n = int(T_cam_needle.size());
+void check_pivot_pose_count(int n, const PivotOptions& options) {
   if (n < options.min_poses) {
     throw Error("pivot calibration: " + std::to_string(n) + " needle poses (at least " +
                 std::to_string(options.min_poses) +
                 " needed). Record the needle board while pivoting the needle about its resting "
                 "tip for 10-20 s.");
   }
-  check_poses(T_cam_needle, "pivot calibration");
-  PivotResult result;
-  result.rotation_spread_deg = max_pairwise_angle_deg(T_cam_needle);
-  // Spread about the least excited axis: smallest singular value of the stacked R_i - mean(R).
+}
+
+// Spread about the least excited axis (degrees): smallest singular value of the stacked
+// R_i - mean(R).
+double least_axis_spread_deg(const std::vector<Eigen::Isometry3d>& T_cam_needle) {
+  const int n = int(T_cam_needle.size());
   Eigen::Matrix3d mean = Eigen::Matrix3d::Zero();
   for (const auto& T : T_cam_needle) mean += T.linear();
   mean /= n;
   Eigen::MatrixXd D(3 * n, 3);
   for (int i = 0; i < n; ++i) D.block<3, 3>(3 * i, 0) = T_cam_needle[size_t(i)].linear() - mean;
   const double smin = Eigen::JacobiSVD<Eigen::MatrixXd>(D).singularValues()(2);
-  result.axis_spread_deg = std::asin(std::min(1.0, smin / std::sqrt(double(n)))) * 180.0 / kPi;
+  return std::asin(std::min(1.0, smin / std::sqrt(double(n)))) * 180.0 / kPi;
+}
+
+// Throws Error with advice when the spreads of `result` are below the options' minimums.
+void check_pivot_motion(const PivotResult& result, const PivotOptions& options) {
   if (result.rotation_spread_deg < options.min_rotation_spread_deg ||
       result.axis_spread_deg < options.min_axis_spread_deg) {
     std::ostringstream msg;
@@ -96,53 +99,60 @@ PivotResult calibrate_pivot(const std::vector<Eigen::Isometry3d>& T_cam_needle,
            "only leaves the tip undetermined.";
     throw Error(msg.str());
   }
+}
 
-  // Closed form: [R_i  -I] [t; p] = -t_i in the least-squares sense.
-  Eigen::MatrixXd A(3 * n, 6);
-  Eigen::VectorXd b(3 * n);
+// The linear system [R_i  -I] [t; p] = -t_i of all poses (3 rows per pose).
+struct PivotSystem {
+  Eigen::MatrixXd A;
+  Eigen::VectorXd b;
+};
+
+PivotSystem linear_pivot_system(const std::vector<Eigen::Isometry3d>& T_cam_needle) {
+  const int n = int(T_cam_needle.size());
+  PivotSystem system{Eigen::MatrixXd(3 * n, 6), Eigen::VectorXd(3 * n)};
   for (int i = 0; i < n; ++i) {
-    A.block<3, 3>(3 * i, 0) = T_cam_needle[size_t(i)].linear();
-    A.block<3, 3>(3 * i, 3) = -Eigen::Matrix3d::Identity();
-    b.segment<3>(3 * i) = -T_cam_needle[size_t(i)].translation();
+    system.A.block<3, 3>(3 * i, 0) = T_cam_needle[size_t(i)].linear();
+    system.A.block<3, 3>(3 * i, 3) = -Eigen::Matrix3d::Identity();
+    system.b.segment<3>(3 * i) = -T_cam_needle[size_t(i)].translation();
   }
-  const Eigen::VectorXd x = A.colPivHouseholderQr().solve(b);
-  double tip[3] = {x(0), x(1), x(2)};
-  double pivot[3] = {x(3), x(4), x(5)};
-  result.linear_tip_needle = x.head<3>();
+  return system;
+}
 
-  // Robust refinement: a Cauchy loss bounds the pull of poses where the tip slipped or the board
-  // was mis-detected.
+// Robust refinement of tip and pivot (in place) over the poses `rows`: a Cauchy loss bounds the
+// pull of poses where the tip slipped or the board was mis-detected.
+ceres::Solver::Summary solve_robust(const std::vector<Eigen::Isometry3d>& T_cam_needle,
+                                    const std::vector<int>& rows, double robust_scale_mm,
+                                    double* tip, double* pivot) {
   ceres::Problem problem;
-  for (const auto& T : T_cam_needle) {
-    problem.AddResidualBlock(PivotCost::Create(T), new ceres::CauchyLoss(options.robust_scale_mm),
-                             tip, pivot);
+  for (int i : rows) {
+    problem.AddResidualBlock(PivotCost::Create(T_cam_needle[size_t(i)]),
+                             new ceres::CauchyLoss(robust_scale_mm), tip, pivot);
   }
   ceres::Solver::Options solver_options;
   solver_options.linear_solver_type = ceres::DENSE_QR;
   solver_options.max_num_iterations = 100;
   ceres::Solver::Summary summary;
   ceres::Solve(solver_options, &problem, &summary);
-  result.solver_report = summary.BriefReport();
-  if (!summary.IsSolutionUsable()) {
-    throw Error("pivot calibration: the robust solve failed (" + summary.BriefReport() + ")");
-  }
-  result.tip_needle = Eigen::Vector3d(tip[0], tip[1], tip[2]);
-  result.pivot_cam = Eigen::Vector3d(pivot[0], pivot[1], pivot[2]);
+  return summary;
+}
 
-  // Residuals, robust spread (1.4826 x median absolute residual per axis, as a 3D RMS) and outliers.
+// |T_i tip - pivot| of every pose (mm).
+std::vector<double> pivot_residuals(const std::vector<Eigen::Isometry3d>& T_cam_needle,
+                                    const Eigen::Vector3d& tip, const Eigen::Vector3d& pivot) {
   std::vector<double> r;
-  double sum_all = 0;
-  for (const auto& T : T_cam_needle) {
-    const double d = (T * result.tip_needle - result.pivot_cam).norm();
-    r.push_back(d);
-    sum_all += d * d;
-  }
+  for (const auto& T : T_cam_needle) r.push_back((T * tip - pivot).norm());
+  return r;
+}
+
+// Marks as outliers the residuals above max(outlier_mm, 3 x robust RMS), the robust RMS being
+// 1.4826 x the median residual (per axis, as a 3D RMS); counts the inliers and returns their rows.
+std::vector<int> mark_outliers(PivotResult& result, const PivotOptions& options) {
+  const std::vector<double>& r = result.residual_mm;
+  const int n = int(r.size());
   std::vector<double> sorted = r;
   std::nth_element(sorted.begin(), sorted.begin() + n / 2, sorted.end());
   const double robust_rms = 1.4826 * sorted[size_t(n / 2)];
   const double limit = std::max(options.outlier_mm, 3.0 * robust_rms);
-  double sum_in = 0;
-  result.residual_mm = r;
   result.outlier.assign(size_t(n), false);
   std::vector<int> in_rows;
   for (int i = 0; i < n; ++i) {
@@ -150,40 +160,81 @@ PivotResult calibrate_pivot(const std::vector<Eigen::Isometry3d>& T_cam_needle,
       result.outlier[size_t(i)] = true;
     } else {
       ++result.inliers;
-      sum_in += r[size_t(i)] * r[size_t(i)];
       in_rows.push_back(i);
     }
   }
+  return in_rows;
+}
+
+// Sum of the squared residuals, over the inliers only when `inliers_only`.
+double sum_of_squares(const PivotResult& result, bool inliers_only) {
+  double sum = 0;
+  for (size_t i = 0; i < result.residual_mm.size(); ++i) {
+    if (inliers_only && result.outlier[i]) continue;
+    sum += result.residual_mm[i] * result.residual_mm[i];
+  }
+  return sum;
+}
+
+// Standard deviation of the tip: sigma^2 (A^T A)^-1 over the inlier rows of the linear system,
+// sigma^2 per coordinate from the inliers' sum of squared residuals.
+Eigen::Vector3d tip_stddev_mm(const Eigen::MatrixXd& A, const std::vector<int>& in_rows,
+                              double sum_in) {
+  const int inliers = int(in_rows.size());
+  Eigen::MatrixXd Ai(3 * inliers, 6);
+  for (size_t k = 0; k < in_rows.size(); ++k) {
+    Ai.middleRows<3>(Eigen::Index(3 * k)) = A.middleRows<3>(3 * in_rows[k]);
+  }
+  const double sigma2 = sum_in / std::max(1, 3 * inliers - 6);
+  const Eigen::Matrix<double, 6, 6> cov = sigma2 * (Ai.transpose() * Ai).inverse();
+  return cov.diagonal().head<3>().cwiseSqrt();
+}
+
+}  // namespace
+
+PivotResult calibrate_pivot(const std::vector<Eigen::Isometry3d>& T_cam_needle,
+                            const PivotOptions& options) {
+  const int n = int(T_cam_needle.size());
+  check_pivot_pose_count(n, options);
+  check_poses(T_cam_needle, "pivot calibration");
+  PivotResult result;
+  result.rotation_spread_deg = max_pairwise_angle_deg(T_cam_needle);
+  result.axis_spread_deg = least_axis_spread_deg(T_cam_needle);
+  check_pivot_motion(result, options);
+
+  // Closed form in the least-squares sense, the start of the robust solve.
+  const PivotSystem linear = linear_pivot_system(T_cam_needle);
+  const Eigen::VectorXd x = linear.A.colPivHouseholderQr().solve(linear.b);
+  double tip[3] = {x(0), x(1), x(2)};
+  double pivot[3] = {x(3), x(4), x(5)};
+  result.linear_tip_needle = x.head<3>();
+
+  std::vector<int> all_rows(T_cam_needle.size());
+  std::iota(all_rows.begin(), all_rows.end(), 0);
+  const ceres::Solver::Summary summary =
+      solve_robust(T_cam_needle, all_rows, options.robust_scale_mm, tip, pivot);
+  result.solver_report = summary.BriefReport();
+  if (!summary.IsSolutionUsable()) {
+    throw Error("pivot calibration: the robust solve failed (" + summary.BriefReport() + ")");
+  }
+  result.tip_needle = Eigen::Vector3d(tip[0], tip[1], tip[2]);
+  result.pivot_cam = Eigen::Vector3d(pivot[0], pivot[1], pivot[2]);
+  result.residual_mm = pivot_residuals(T_cam_needle, result.tip_needle, result.pivot_cam);
+  const double sum_all = sum_of_squares(result, false);
+  const std::vector<int> in_rows = mark_outliers(result, options);
+
   // Without the outliers, solved again (their pull under the Cauchy loss is small, not zero).
   if (result.inliers < n && result.inliers >= options.min_poses) {
-    ceres::Problem inlier_problem;
-    for (int i : in_rows) {
-      inlier_problem.AddResidualBlock(PivotCost::Create(T_cam_needle[size_t(i)]),
-                                      new ceres::CauchyLoss(options.robust_scale_mm), tip, pivot);
-    }
-    ceres::Solve(solver_options, &inlier_problem, &summary);
-    result.solver_report = summary.BriefReport();
+    result.solver_report =
+        solve_robust(T_cam_needle, in_rows, options.robust_scale_mm, tip, pivot).BriefReport();
     result.tip_needle = Eigen::Vector3d(tip[0], tip[1], tip[2]);
     result.pivot_cam = Eigen::Vector3d(pivot[0], pivot[1], pivot[2]);
-    sum_in = 0;
-    for (int i = 0; i < n; ++i) {
-      const double d = (T_cam_needle[size_t(i)] * result.tip_needle - result.pivot_cam).norm();
-      result.residual_mm[size_t(i)] = d;
-      if (!result.outlier[size_t(i)]) sum_in += d * d;
-    }
+    result.residual_mm = pivot_residuals(T_cam_needle, result.tip_needle, result.pivot_cam);
   }
+  const double sum_in = sum_of_squares(result, true);
   result.rms_mm = result.inliers > 0 ? std::sqrt(sum_in / result.inliers) : 0.0;
   result.rms_all_mm = std::sqrt(sum_all / n);
-  // Standard deviation of the tip: sigma^2 (A^T A)^-1 over the inliers, sigma^2 per coordinate.
-  if (result.inliers > 2) {
-    Eigen::MatrixXd Ai(3 * result.inliers, 6);
-    for (size_t k = 0; k < in_rows.size(); ++k) {
-      Ai.middleRows<3>(Eigen::Index(3 * k)) = A.middleRows<3>(3 * in_rows[k]);
-    }
-    const double sigma2 = sum_in / std::max(1, 3 * result.inliers - 6);
-    const Eigen::Matrix<double, 6, 6> cov = sigma2 * (Ai.transpose() * Ai).inverse();
-    result.tip_stddev_mm = cov.diagonal().head<3>().cwiseSqrt();
-  }
+  if (result.inliers > 2) result.tip_stddev_mm = tip_stddev_mm(linear.A, in_rows, sum_in);
   spdlog::info("pivot calibration: tip ({:.2f}, {:.2f}, {:.2f}) mm in the needle frame, RMS {:.3f} "
                "mm over {} of {} poses, rotation spread {:.1f} deg",
                tip[0], tip[1], tip[2], result.rms_mm, result.inliers, n,

@@ -1,14 +1,13 @@
 // CUDA launchers of the path safety values: one thread per output voxel, 8x8x4 voxel blocks,
 // every visible GPU taking a slab of z-slices. The math is kernels/path_safety_math.hpp.
-#include "kernels/path_safety_cuda.hpp"
-
 #include <cuda_runtime.h>
 
 #include <algorithm>
-#include <cmath>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <exception>
+#include <functional>
 #include <limits>
 #include <mutex>
 #include <string>
@@ -16,6 +15,7 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "kernels/path_safety_cuda.hpp"
 #include "kernels/path_safety_fast.hpp"
 #include "kernels/value_set.hpp"
 
@@ -104,64 +104,8 @@ struct DeviceScene {
   DeviceScene(const PathSafetyScene<double>& host, BlockingStorage storage)
       : tumor(size_t(host.tumor.nx) * host.tumor.ny * host.tumor.nz),
         surface(size_t(std::max(host.surface_count, 1))) {
-    const size_t nb = size_t(host.blocking.nx) * host.blocking.ny * host.blocking.nz;
-    const size_t nt = size_t(host.tumor.nx) * host.tumor.ny * host.tumor.nz;
-    scene.blocking.nx = host.blocking.nx;
-    scene.blocking.ny = host.blocking.ny;
-    scene.blocking.nz = host.blocking.nz;
-    scene.blocking.physical_to_index = to_float(host.blocking.physical_to_index);
-    scene.blocking.bricks = nullptr;
-    if (host.blocking.bricks) {
-      const size_t count = size_t(host.blocking.bx) * host.blocking.by * host.blocking.bz;
-      bricks.allocate(count);
-      check(cudaMemcpy(bricks.ptr, host.blocking.bricks, count, cudaMemcpyHostToDevice),
-            "upload bricks");
-      scene.blocking.bricks = bricks.ptr;
-      scene.blocking.bx = host.blocking.bx;
-      scene.blocking.by = host.blocking.by;
-      scene.blocking.bz = host.blocking.bz;
-    }
-    if (storage == BlockingStorage::kGlobal) {
-      blocking.allocate(nb);
-      check(cudaMemcpy(blocking.ptr, host.blocking.values, nb * sizeof(float),
-                       cudaMemcpyHostToDevice),
-            "upload blocking volume");
-      scene.blocking.values = blocking.ptr;
-    } else {
-      const cudaChannelFormatDesc desc = cudaCreateChannelDesc<float>();
-      const cudaExtent extent = make_cudaExtent(size_t(host.blocking.nx),
-                                                size_t(host.blocking.ny),
-                                                size_t(host.blocking.nz));
-      check(cudaMalloc3DArray(&array, &desc, extent), "cudaMalloc3DArray");
-      cudaMemcpy3DParms copy = {};
-      copy.srcPtr = make_cudaPitchedPtr(const_cast<float*>(host.blocking.values),
-                                        size_t(host.blocking.nx) * sizeof(float),
-                                        size_t(host.blocking.nx), size_t(host.blocking.ny));
-      copy.dstArray = array;
-      copy.extent = extent;
-      copy.kind = cudaMemcpyHostToDevice;
-      check(cudaMemcpy3D(&copy), "upload blocking texture");
-      cudaResourceDesc res = {};
-      res.resType = cudaResourceTypeArray;
-      res.res.array.array = array;
-      cudaTextureDesc tex = {};
-      tex.addressMode[0] = tex.addressMode[1] = tex.addressMode[2] = cudaAddressModeBorder;
-      tex.filterMode = cudaFilterModeLinear;
-      tex.readMode = cudaReadModeElementType;
-      tex.normalizedCoords = 0;
-      check(cudaCreateTextureObject(&texture, &res, &tex, nullptr), "cudaCreateTextureObject");
-      scene.blocking.values = nullptr;
-    }
-    check(cudaMemcpy(tumor.ptr, host.tumor.mask, nt, cudaMemcpyHostToDevice), "upload tumor");
-    scene.tumor.mask = tumor.ptr;
-    scene.tumor.nx = host.tumor.nx;
-    scene.tumor.ny = host.tumor.ny;
-    scene.tumor.nz = host.tumor.nz;
-    scene.tumor.physical_to_index = host.tumor.physical_to_index;
-    for (int a = 0; a < 3; ++a) {
-      scene.tumor.lo[a] = host.tumor.lo[a];
-      scene.tumor.hi[a] = host.tumor.hi[a];
-    }
+    upload_blocking(host.blocking, storage);
+    upload_tumor(host.tumor);
     if (host.surface_count > 0) {
       check(cudaMemcpy(surface.ptr, host.surface,
                        size_t(host.surface_count) * sizeof(SurfacePoint<double>),
@@ -177,6 +121,73 @@ struct DeviceScene {
   ~DeviceScene() {
     if (texture) cudaDestroyTextureObject(texture);
     if (array) cudaFreeArray(array);
+  }
+
+ private:
+  // The blocking volume (global memory, or a texture: `storage`) and its empty bricks.
+  void upload_blocking(const BlockingGrid<double>& host, BlockingStorage storage) {
+    const size_t nb = size_t(host.nx) * host.ny * host.nz;
+    scene.blocking.nx = host.nx;
+    scene.blocking.ny = host.ny;
+    scene.blocking.nz = host.nz;
+    scene.blocking.physical_to_index = to_float(host.physical_to_index);
+    scene.blocking.bricks = nullptr;
+    if (host.bricks) {
+      const size_t count = size_t(host.bx) * host.by * host.bz;
+      bricks.allocate(count);
+      check(cudaMemcpy(bricks.ptr, host.bricks, count, cudaMemcpyHostToDevice), "upload bricks");
+      scene.blocking.bricks = bricks.ptr;
+      scene.blocking.bx = host.bx;
+      scene.blocking.by = host.by;
+      scene.blocking.bz = host.bz;
+    }
+    if (storage == BlockingStorage::kGlobal) {
+      blocking.allocate(nb);
+      check(cudaMemcpy(blocking.ptr, host.values, nb * sizeof(float), cudaMemcpyHostToDevice),
+            "upload blocking volume");
+      scene.blocking.values = blocking.ptr;
+    } else {
+      upload_texture(host);
+      scene.blocking.values = nullptr;
+    }
+  }
+
+  // The blocking volume as a 3D texture with hardware trilinear filtering, border 0.
+  void upload_texture(const BlockingGrid<double>& host) {
+    const cudaChannelFormatDesc desc = cudaCreateChannelDesc<float>();
+    const cudaExtent extent = make_cudaExtent(size_t(host.nx), size_t(host.ny), size_t(host.nz));
+    check(cudaMalloc3DArray(&array, &desc, extent), "cudaMalloc3DArray");
+    cudaMemcpy3DParms copy = {};
+    copy.srcPtr =
+        make_cudaPitchedPtr(const_cast<float*>(host.values), size_t(host.nx) * sizeof(float),
+                            size_t(host.nx), size_t(host.ny));
+    copy.dstArray = array;
+    copy.extent = extent;
+    copy.kind = cudaMemcpyHostToDevice;
+    check(cudaMemcpy3D(&copy), "upload blocking texture");
+    cudaResourceDesc res = {};
+    res.resType = cudaResourceTypeArray;
+    res.res.array.array = array;
+    cudaTextureDesc tex = {};
+    tex.addressMode[0] = tex.addressMode[1] = tex.addressMode[2] = cudaAddressModeBorder;
+    tex.filterMode = cudaFilterModeLinear;
+    tex.readMode = cudaReadModeElementType;
+    tex.normalizedCoords = 0;
+    check(cudaCreateTextureObject(&texture, &res, &tex, nullptr), "cudaCreateTextureObject");
+  }
+
+  void upload_tumor(const TumorGrid<double>& host) {
+    const size_t nt = size_t(host.nx) * host.ny * host.nz;
+    check(cudaMemcpy(tumor.ptr, host.mask, nt, cudaMemcpyHostToDevice), "upload tumor");
+    scene.tumor.mask = tumor.ptr;
+    scene.tumor.nx = host.nx;
+    scene.tumor.ny = host.ny;
+    scene.tumor.nz = host.nz;
+    scene.tumor.physical_to_index = host.physical_to_index;
+    for (int a = 0; a < 3; ++a) {
+      scene.tumor.lo[a] = host.lo[a];
+      scene.tumor.hi[a] = host.hi[a];
+    }
   }
 };
 
@@ -311,151 +322,270 @@ struct EventPair {
   }
 };
 
-CudaRunReport run_fast(const PathSafetyScene<double>& host_scene, const OutputGridDesc& grid,
-                       unsigned values, float* const out[kValueCount],
-                       const CudaRunOptions& options, int devices) {
-  const int n = grid.n;
-  const size_t voxels = size_t(n) * n * n;
-  const int64_t threads_total = tiled_count(n);
-  const int points = host_scene.surface_count;
-  const int m = options.fast_cells, radial = options.fast_radial;
-  const size_t cells = size_t(m) * size_t(m);
-  const bool moments = (values & kBvv) != 0;
-  const float h = float(std::sqrt(grid.axes[0][0] * grid.axes[0][0] +
-                                  grid.axes[0][1] * grid.axes[0][1] +
-                                  grid.axes[0][2] * grid.axes[0][2]));
-  // One device finalizes in place; several download their per-voxel sums and the host adds them.
-  std::vector<std::vector<VoxelState<float>>> partial(static_cast<size_t>(devices));
+// Runs work(d) for every device d, each on a host thread of its own; then rethrows the error of
+// the first device (in device order) that failed.
+template <typename Work>
+void on_every_device(int devices, const Work& work) {
   std::vector<std::exception_ptr> errors(static_cast<size_t>(devices));
-  std::atomic<int> points_done{0};
-  std::mutex progress_mutex;
-  double setup_s = 0, cast_s = 0, combine_s = 0, finish_s = 0;
-  const auto t0 = std::chrono::steady_clock::now();
-  const auto work = [&](int d) {
-    try {
-      const auto td = std::chrono::steady_clock::now();
-      check(cudaSetDevice(d), "cudaSetDevice");
-      const int p0 = int(int64_t(points) * d / devices), p1 = int(int64_t(points) * (d + 1) / devices);
-      if (p1 <= p0) return;
-      DeviceScene ds(host_scene, options.storage);
-      DeviceBuffer<VoxelState<float>> states{voxels};
-      check(cudaMemset(states.ptr, 0, voxels * sizeof(VoxelState<float>)), "cudaMemset");
-      // As many tables at once as half the free memory holds (at most 16, or as asked).
-      size_t free_bytes = 0, total_bytes = 0;
-      check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
-      const size_t per_slot = cells * size_t(radial) * sizeof(float) * (moments ? 3 : 1) +
-                              cells * sizeof(DirectionCrossing);
-      const size_t max_slots = options.fast_slots > 0 ? size_t(options.fast_slots) : 16;
-      const int slots =
-          int(std::max<size_t>(1, std::min<size_t>(max_slots, free_bytes / 2 / per_slot)));
-      DeviceBuffer<float> c0(cells * radial * slots), c1, c2;
-      if (moments) {
-        c1.allocate(cells * radial * slots);
-        c2.allocate(cells * radial * slots);
-      }
-      DeviceBuffer<DirectionCrossing> crossing(cells * slots);
-      TableBatch batch{};
-      batch.first = {m,      radial, int64_t(cells), h, 0.5f * h, c0.ptr, c1.ptr,
-                     c2.ptr, crossing.ptr};
-      batch.value_stride = cells * size_t(radial);
-      batch.cell_stride = cells;
-      SlabGrid g{};
-      for (int a = 0; a < 3; ++a) {
-        g.origin[a] = grid.origin[a];
-        for (int b = 0; b < 3; ++b) g.axes[a][b] = grid.axes[a][b];
-      }
-      g.n = n;
-      g.half = grid.half;
-      g.max_sq = grid.max_sq;
-      check(cudaDeviceSynchronize(), "fast mode setup");
-      if (d == 0) setup_s = seconds_since(td);
-      EventPair cast_events, combine_events;
-      double cast_ms = 0, combine_ms = 0;
-      with_value_set(values, [&](auto tag) {
-        constexpr unsigned kValues = decltype(tag)::value;
-        for (int p = p0; p < p1; p += slots) {
-          const int count = std::min(slots, p1 - p);
-          const dim3 cast_blocks(unsigned((cells + 255) / 256), unsigned(count));
-          check(cudaEventRecord(cast_events.begin), "cudaEventRecord");
-          if (options.storage == BlockingStorage::kTexture) {
-            cast_directions_kernel<<<cast_blocks, 256>>>(
-                ds.scene, batch, p, count, TextureSampler{ds.texture, ds.scene.blocking});
-          } else {
-            cast_directions_kernel<<<cast_blocks, 256>>>(ds.scene, batch, p, count,
-                                                         GridSampler<float>{ds.scene.blocking});
-          }
-          check(cudaGetLastError(), "cast kernel launch");
-          check(cudaEventRecord(cast_events.end), "cudaEventRecord");
-          check(cudaEventRecord(combine_events.begin), "cudaEventRecord");
-          combine_tables_kernel<kValues><<<unsigned(threads_total / 256), 256>>>(
-              ds.scene, batch, p, count, g, states.ptr);
-          check(cudaGetLastError(), "combine kernel launch");
-          check(cudaEventRecord(combine_events.end), "cudaEventRecord");
-          check(cudaDeviceSynchronize(), "fast path safety kernels");
-          cast_ms += event_ms(cast_events.begin, cast_events.end);
-          combine_ms += event_ms(combine_events.begin, combine_events.end);
-          const int done = points_done += count;
-          if (options.progress) {
-            std::lock_guard<std::mutex> lock(progress_mutex);
-            options.progress(double(done) / double(points));
-          }
-        }
-      });
-      if (d == 0) {
-        cast_s = cast_ms * 1e-3;
-        combine_s = combine_ms * 1e-3;
-      }
-      const auto tf = std::chrono::steady_clock::now();
-      if (devices == 1) {
-        DeviceBuffer<float> results[kValueCount];
-        float* dev_out[kValueCount] = {nullptr, nullptr, nullptr, nullptr};
-        for (int v = 0; v < kValueCount; ++v) {
-          if (!(values & (1u << v))) continue;
-          results[v].allocate(voxels);
-          dev_out[v] = results[v].ptr;
-          check(cudaMemset(dev_out[v], 0xFF, voxels * sizeof(float)), "cudaMemset");  // NaN
-        }
-        finalize_kernel<<<unsigned(threads_total / 256), 256>>>(
-            g, values, float(host_scene.s2), states.ptr, dev_out[0], dev_out[1], dev_out[2],
-            dev_out[3]);
-        check(cudaGetLastError(), "finalize kernel launch");
-        check(cudaDeviceSynchronize(), "finalize kernel");
-        if (options.wait_for_outputs) options.wait_for_outputs();
-        for (int v = 0; v < kValueCount; ++v) {
-          if (!dev_out[v]) continue;
-          check(cudaMemcpy(out[v], dev_out[v], voxels * sizeof(float), cudaMemcpyDeviceToHost),
-                "download results");
-        }
-      } else {
-        partial[size_t(d)].resize(voxels);
-        check(cudaMemcpy(partial[size_t(d)].data(), states.ptr,
-                         voxels * sizeof(VoxelState<float>), cudaMemcpyDeviceToHost),
-              "download states");
-      }
-      if (d == 0) finish_s = seconds_since(tf);
-    } catch (...) {
-      errors[size_t(d)] = std::current_exception();
-    }
-  };
   std::vector<std::thread> threads;
-  for (int d = 0; d < devices; ++d) threads.emplace_back(work, d);
+  for (int d = 0; d < devices; ++d) {
+    threads.emplace_back([&work, &errors, d] {
+      try {
+        work(d);
+      } catch (...) {
+        errors[size_t(d)] = std::current_exception();
+      }
+    });
+  }
   for (auto& t : threads) t.join();
   for (auto& e : errors) {
     if (e) std::rethrow_exception(e);
   }
-  if (devices > 1) {
-    // Sum the devices' partial states (counts and sums add), finalize.
+}
+
+// Work done over all devices, reported as a fraction of `total` through the caller's callback,
+// one call at a time.
+class Progress {
+ public:
+  Progress(const std::function<void(double)>& callback, double total)
+      : callback_(callback), total_(total) {}
+  void add(int64_t count) {
+    const int64_t done = done_ += count;
+    if (callback_) {
+      std::lock_guard<std::mutex> lock(mutex_);
+      callback_(double(done) / total_);
+    }
+  }
+
+ private:
+  const std::function<void(double)>& callback_;
+  double total_;
+  std::atomic<int64_t> done_{0};
+  std::mutex mutex_;
+};
+
+// The kernels' view of the output grid (z_begin, z_end and z_slab left 0 for the caller).
+SlabGrid slab_grid(const OutputGridDesc& grid) {
+  SlabGrid g{};
+  for (int a = 0; a < 3; ++a) {
+    g.origin[a] = grid.origin[a];
+    for (int b = 0; b < 3; ++b) g.axes[a][b] = grid.axes[a][b];
+  }
+  g.n = grid.n;
+  g.half = grid.half;
+  g.max_sq = grid.max_sq;
+  return g;
+}
+
+// Device arrays of the requested values (bits of `values`), `count` floats each, all bits set:
+// NaN, so that voxels outside the ball stay "not computed".
+struct DeviceOutputs {
+  DeviceBuffer<float> buffers[kValueCount];
+  float* ptr[kValueCount] = {nullptr, nullptr, nullptr, nullptr};
+
+  DeviceOutputs(unsigned values, size_t count) {
+    for (int v = 0; v < kValueCount; ++v) {
+      if (!(values & (1u << v))) continue;
+      buffers[v].allocate(count);
+      ptr[v] = buffers[v].ptr;
+      check(cudaMemset(ptr[v], 0xFF, count * sizeof(float)), "cudaMemset");
+    }
+  }
+  // Copies `count` floats of each array to host_out[value] + offset.
+  void download(float* const host_out[kValueCount], size_t offset, size_t count) const {
+    for (int v = 0; v < kValueCount; ++v) {
+      if (!ptr[v]) continue;
+      check(cudaMemcpy(host_out[v] + offset, ptr[v], count * sizeof(float), cudaMemcpyDeviceToHost),
+            "download results");
+    }
+  }
+};
+
+// ---------------------------------------------------------------------------------------------
+// Fast mode: the surface points split between the devices; each device casts the direction
+// tables of its points in batches and adds them into every voxel's state.
+
+// The sizes of a fast run, the same on every device.
+struct FastLayout {
+  int n = 0;
+  size_t voxels = 0;
+  int64_t threads_total = 0;  // threads of the tiled per-voxel kernels
+  int m = 0, radial = 0;      // table side and radial samples
+  size_t cells = 0;           // m * m directions per table
+  bool moments = false;       // bvv needs the two moment tables c1, c2
+  float h = 0;                // output spacing, mm
+};
+
+FastLayout fast_layout(const OutputGridDesc& grid, unsigned values, const CudaRunOptions& options) {
+  FastLayout l;
+  l.n = grid.n;
+  l.voxels = size_t(l.n) * l.n * l.n;
+  l.threads_total = tiled_count(l.n);
+  l.m = options.fast_cells;
+  l.radial = options.fast_radial;
+  l.cells = size_t(l.m) * size_t(l.m);
+  l.moments = (values & kBvv) != 0;
+  l.h = float(std::sqrt(grid.axes[0][0] * grid.axes[0][0] + grid.axes[0][1] * grid.axes[0][1] +
+                        grid.axes[0][2] * grid.axes[0][2]));
+  return l;
+}
+
+// The direction tables of one batch of surface points on the device: as many slots as half the
+// free memory holds (at most 16, or options.fast_slots).
+struct DeviceTables {
+  DeviceBuffer<float> c0, c1, c2;
+  DeviceBuffer<DirectionCrossing> crossing;
+  TableBatch batch{};
+  int slots = 0;
+
+  DeviceTables(const FastLayout& l, int fast_slots) {
+    size_t free_bytes = 0, total_bytes = 0;
+    check(cudaMemGetInfo(&free_bytes, &total_bytes), "cudaMemGetInfo");
+    const size_t per_slot = l.cells * size_t(l.radial) * sizeof(float) * (l.moments ? 3 : 1) +
+                            l.cells * sizeof(DirectionCrossing);
+    const size_t max_slots = fast_slots > 0 ? size_t(fast_slots) : 16;
+    slots = int(std::max<size_t>(1, std::min<size_t>(max_slots, free_bytes / 2 / per_slot)));
+    c0.allocate(l.cells * l.radial * slots);
+    if (l.moments) {
+      c1.allocate(l.cells * l.radial * slots);
+      c2.allocate(l.cells * l.radial * slots);
+    }
+    crossing.allocate(l.cells * slots);
+    batch.first = {l.m,    l.radial, int64_t(l.cells), l.h,         0.5f * l.h,
+                   c0.ptr, c1.ptr,   c2.ptr,           crossing.ptr};
+    batch.value_stride = l.cells * size_t(l.radial);
+    batch.cell_stride = l.cells;
+  }
+};
+
+class FastRun {
+ public:
+  FastRun(const PathSafetyScene<double>& host_scene, const OutputGridDesc& grid, unsigned values,
+          float* const out[kValueCount], const CudaRunOptions& options, int devices)
+      : host_scene_(host_scene),
+        grid_(grid),
+        values_(values),
+        out_(out),
+        options_(options),
+        devices_(devices),
+        layout_(fast_layout(grid, values, options)),
+        partial_(static_cast<size_t>(devices)),
+        progress_(options.progress, double(host_scene.surface_count)) {}
+
+  CudaRunReport run() {
+    const auto t0 = std::chrono::steady_clock::now();
+    on_every_device(devices_, [this](int d) { on_device(d); });
+    if (devices_ > 1) {
+      const auto tf = std::chrono::steady_clock::now();
+      if (options_.wait_for_outputs) options_.wait_for_outputs();
+      sum_partial_states();
+      finish_s_ += seconds_since(tf);
+    }
+    CudaRunReport report;
+    report.device_count = devices_;
+    report.devices = "cuda:" + device_name(0) + " x" + std::to_string(devices_);
+    report.kernel_seconds = seconds_since(t0);
+    report.phases = {
+        {"setup", setup_s_}, {"cast", cast_s_}, {"combine", combine_s_}, {"finish", finish_s_}};
+    return report;
+  }
+
+ private:
+  // Device d's share of the surface points: upload, batches, then its results (one device) or
+  // its per-voxel states (several). Phase times are those of device 0.
+  void on_device(int d) {
+    const auto td = std::chrono::steady_clock::now();
+    check(cudaSetDevice(d), "cudaSetDevice");
+    const int points = host_scene_.surface_count;
+    const int p0 = int(int64_t(points) * d / devices_);
+    const int p1 = int(int64_t(points) * (d + 1) / devices_);
+    if (p1 <= p0) return;
+    DeviceScene ds(host_scene_, options_.storage);
+    DeviceBuffer<VoxelState<float>> states{layout_.voxels};
+    check(cudaMemset(states.ptr, 0, layout_.voxels * sizeof(VoxelState<float>)), "cudaMemset");
+    DeviceTables tables(layout_, options_.fast_slots);
+    const SlabGrid g = slab_grid(grid_);
+    check(cudaDeviceSynchronize(), "fast mode setup");
+    if (d == 0) setup_s_ = seconds_since(td);
+    double cast_ms = 0, combine_ms = 0;
+    with_value_set(values_, [&](auto tag) {
+      constexpr unsigned kValues = decltype(tag)::value;
+      cast_and_combine<kValues>(ds, tables, g, p0, p1, states.ptr, cast_ms, combine_ms);
+    });
+    if (d == 0) {
+      cast_s_ = cast_ms * 1e-3;
+      combine_s_ = combine_ms * 1e-3;
+    }
     const auto tf = std::chrono::steady_clock::now();
-    if (options.wait_for_outputs) options.wait_for_outputs();
+    if (devices_ == 1) {
+      finalize_on_device(g, states.ptr);
+    } else {
+      auto& partial = partial_[size_t(d)];
+      partial.resize(layout_.voxels);
+      check(cudaMemcpy(partial.data(), states.ptr, layout_.voxels * sizeof(VoxelState<float>),
+                       cudaMemcpyDeviceToHost),
+            "download states");
+    }
+    if (d == 0) finish_s_ = seconds_since(tf);
+  }
+
+  // The tables of surface points [p0, p1), a batch of tables.slots at a time: cast, then added
+  // into the per-voxel states. Adds the kernels' times to cast_ms and combine_ms.
+  template <unsigned Values>
+  void cast_and_combine(const DeviceScene& ds, const DeviceTables& tables, const SlabGrid& g,
+                        int p0, int p1, VoxelState<float>* states, double& cast_ms,
+                        double& combine_ms) {
+    EventPair cast_events, combine_events;
+    const int slots = tables.slots;
+    for (int p = p0; p < p1; p += slots) {
+      const int count = std::min(slots, p1 - p);
+      const dim3 cast_blocks(unsigned((layout_.cells + 255) / 256), unsigned(count));
+      check(cudaEventRecord(cast_events.begin), "cudaEventRecord");
+      if (options_.storage == BlockingStorage::kTexture) {
+        cast_directions_kernel<<<cast_blocks, 256>>>(ds.scene, tables.batch, p, count,
+                                                     TextureSampler{ds.texture, ds.scene.blocking});
+      } else {
+        cast_directions_kernel<<<cast_blocks, 256>>>(ds.scene, tables.batch, p, count,
+                                                     GridSampler<float>{ds.scene.blocking});
+      }
+      check(cudaGetLastError(), "cast kernel launch");
+      check(cudaEventRecord(cast_events.end), "cudaEventRecord");
+      check(cudaEventRecord(combine_events.begin), "cudaEventRecord");
+      combine_tables_kernel<Values><<<unsigned(layout_.threads_total / 256), 256>>>(
+          ds.scene, tables.batch, p, count, g, states);
+      check(cudaGetLastError(), "combine kernel launch");
+      check(cudaEventRecord(combine_events.end), "cudaEventRecord");
+      check(cudaDeviceSynchronize(), "fast path safety kernels");
+      cast_ms += event_ms(cast_events.begin, cast_events.end);
+      combine_ms += event_ms(combine_events.begin, combine_events.end);
+      progress_.add(count);
+    }
+  }
+
+  // One device: its states are complete; finalize them there and download the values.
+  void finalize_on_device(const SlabGrid& g, const VoxelState<float>* states) {
+    const DeviceOutputs outputs(values_, layout_.voxels);
+    float* const* dev_out = outputs.ptr;
+    finalize_kernel<<<unsigned(layout_.threads_total / 256), 256>>>(
+        g, values_, float(host_scene_.s2), states, dev_out[0], dev_out[1], dev_out[2], dev_out[3]);
+    check(cudaGetLastError(), "finalize kernel launch");
+    check(cudaDeviceSynchronize(), "finalize kernel");
+    if (options_.wait_for_outputs) options_.wait_for_outputs();
+    outputs.download(out_, 0, layout_.voxels);
+  }
+
+  // Several devices: sums their partial states (counts and sums add) and finalizes on the host.
+  void sum_partial_states() {
+    const int n = layout_.n;
     const float nan = std::numeric_limits<float>::quiet_NaN();
     for (int k = 0; k < n; ++k) {
       for (int j = 0; j < n; ++j) {
         for (int i = 0; i < n; ++i) {
           const size_t off = (size_t(k) * n + j) * n + i;
-          const int64_t di = i - grid.half, dj = j - grid.half, dk = k - grid.half;
-          const bool inside = di * di + dj * dj + dk * dk <= grid.max_sq;
+          const int64_t di = i - grid_.half, dj = j - grid_.half, dk = k - grid_.half;
+          const bool inside = di * di + dj * dj + dk * dk <= grid_.max_sq;
           VoxelState<float> sum{};
-          for (const auto& part : partial) {
+          for (const auto& part : partial_) {
             if (part.empty() || !inside) continue;
             const VoxelState<float>& s = part[off];
             sum.svv.visible += s.svv.visible;
@@ -465,35 +595,35 @@ CudaRunReport run_fast(const PathSafetyScene<double>& host_scene, const OutputGr
             sum.bvv.sum += s.bvv.sum;
           }
           float res[kValueCount] = {nan, nan, nan, nan};
-          if (inside) finalize_values(sum, values, float(host_scene.s2), res);
+          if (inside) finalize_values(sum, values_, float(host_scene_.s2), res);
           for (int v = 0; v < kValueCount; ++v) {
-            if (out[v]) out[v][off] = res[v];
+            if (out_[v]) out_[v][off] = res[v];
           }
         }
       }
     }
-    finish_s += seconds_since(tf);
   }
-  CudaRunReport report;
-  report.device_count = devices;
-  report.devices = "cuda:" + device_name(0) + " x" + std::to_string(devices);
-  report.kernel_seconds = seconds_since(t0);
-  report.phases = {{"setup", setup_s}, {"cast", cast_s}, {"combine", combine_s},
-                   {"finish", finish_s}};
-  return report;
-}
 
-}  // namespace
+  const PathSafetyScene<double>& host_scene_;
+  const OutputGridDesc& grid_;
+  const unsigned values_;
+  float* const* out_;
+  const CudaRunOptions& options_;
+  const int devices_;
+  const FastLayout layout_;
+  // One device finalizes in place; several download their per-voxel sums and the host adds them.
+  std::vector<std::vector<VoxelState<float>>> partial_;
+  Progress progress_;
+  double setup_s_ = 0, cast_s_ = 0, combine_s_ = 0, finish_s_ = 0;  // device 0, seconds
+};
 
-CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& host_scene,
-                                   const OutputGridDesc& grid, unsigned values,
-                                   float* const out[kValueCount], const CudaRunOptions& options) {
-  int devices = cuda_device_count();
-  if (devices == 0) throw Error("CUDA: no device found");
-  if (options.max_devices > 0) devices = std::min(devices, options.max_devices);
-  if (options.fast_cells > 0) return run_fast(host_scene, grid, values, out, options, devices);
+// ---------------------------------------------------------------------------------------------
+// Exact mode: the output grid split into slabs of whole z-slices, one per device.
+
+// Slab boundaries (devices + 1 slice indices), balanced by the number of ball voxels rather than
+// by slice count.
+std::vector<int> slab_bounds(const OutputGridDesc& grid, int devices) {
   const int n = grid.n;
-  // Slabs: whole slices, balanced by the number of ball voxels rather than by slice count.
   std::vector<double> weight(static_cast<size_t>(n));
   double total = 0.0;
   for (int k = 0; k < n; ++k) {
@@ -509,86 +639,88 @@ CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& host_scene,
     acc += weight[size_t(k)];
     if (acc >= total * dev / devices) bounds[size_t(dev++)] = k + 1;
   }
+  return bounds;
+}
 
-  std::atomic<int64_t> slices_done{0};
-  std::once_flag outputs_ready;
-  std::mutex progress_mutex;
-  std::vector<std::exception_ptr> errors(static_cast<size_t>(devices));
-  std::string names;
+// The name of the last device whose properties can be read ("" when none).
+std::string last_device_name(int devices) {
+  std::string name;
   for (int d = 0; d < devices; ++d) {
     cudaDeviceProp prop{};
-    if (cudaGetDeviceProperties(&prop, d) == cudaSuccess) names = prop.name;
+    if (cudaGetDeviceProperties(&prop, d) == cudaSuccess) name = prop.name;
   }
-  const auto t0 = std::chrono::steady_clock::now();
-  const auto work = [&](int d) {
-    try {
-      check(cudaSetDevice(d), "cudaSetDevice");
-      const int z0 = bounds[size_t(d)], z1 = bounds[size_t(d) + 1];
-      if (z1 <= z0) return;
-      DeviceScene ds(host_scene, options.storage);
-      const size_t slab = size_t(z1 - z0) * size_t(n) * size_t(n);
-      DeviceBuffer<float> buffers[kValueCount];
-      float* dev_out[kValueCount] = {nullptr, nullptr, nullptr, nullptr};
-      for (int v = 0; v < kValueCount; ++v) {
-        if (values & (1u << v)) {
-          buffers[v].allocate(slab);
-          dev_out[v] = buffers[v].ptr;
-          // All bits set is a NaN: voxels outside the ball stay "not computed".
-          check(cudaMemset(dev_out[v], 0xFF, slab * sizeof(float)), "cudaMemset");
-        }
-      }
-      SlabGrid g{};
-      for (int a = 0; a < 3; ++a) {
-        g.origin[a] = grid.origin[a];
-        for (int b = 0; b < 3; ++b) g.axes[a][b] = grid.axes[a][b];
-      }
-      g.n = n;
-      g.z_slab = z0;
-      g.half = grid.half;
-      g.max_sq = grid.max_sq;
-      const dim3 block(8, 8, 4);
-      constexpr int kSlicesPerLaunch = 8;
-      with_value_set(values, [&](auto tag) {
-        constexpr unsigned kValues = decltype(tag)::value;
-        for (int z = z0; z < z1; z += kSlicesPerLaunch) {
-          g.z_begin = z;
-          g.z_end = std::min(z + kSlicesPerLaunch, z1);
-          const dim3 blocks((n + 7) / 8, (n + 7) / 8, (g.z_end - g.z_begin + 3) / 4);
-          if (options.storage == BlockingStorage::kTexture) {
-            path_safety_kernel<kValues><<<blocks, block>>>(ds.scene, g, TextureSampler{ds.texture, ds.scene.blocking},
-                                                           dev_out[0], dev_out[1], dev_out[2],
-                                                           dev_out[3]);
-          } else {
-            path_safety_kernel<kValues><<<blocks, block>>>(
-                ds.scene, g, GridSampler<float>{ds.scene.blocking}, dev_out[0], dev_out[1],
-                dev_out[2], dev_out[3]);
-          }
-          check(cudaGetLastError(), "kernel launch");
-          check(cudaDeviceSynchronize(), "path safety kernel");
-          const int64_t done = slices_done += (g.z_end - g.z_begin);
-          if (options.progress) {
-            std::lock_guard<std::mutex> lock(progress_mutex);
-            options.progress(double(done) / double(n));
-          }
-        }
-      });
-      if (options.wait_for_outputs) std::call_once(outputs_ready, options.wait_for_outputs);
-      for (int v = 0; v < kValueCount; ++v) {
-        if (!dev_out[v]) continue;
-        check(cudaMemcpy(out[v] + size_t(z0) * size_t(n) * size_t(n), dev_out[v],
-                         slab * sizeof(float), cudaMemcpyDeviceToHost),
-              "download results");
-      }
-    } catch (...) {
-      errors[size_t(d)] = std::current_exception();
+  return name;
+}
+
+// The slices [z0, z1) of slab `g` (g.z_slab == z0), kSlicesPerLaunch per launch, into `outputs`
+// (slab-sized arrays).
+template <unsigned Values>
+void launch_slab(const DeviceScene& ds, SlabGrid g, int z0, int z1, const DeviceOutputs& outputs,
+                 BlockingStorage storage, Progress& progress) {
+  const int n = g.n;
+  const dim3 block(8, 8, 4);
+  constexpr int kSlicesPerLaunch = 8;
+  float* const* dev_out = outputs.ptr;
+  for (int z = z0; z < z1; z += kSlicesPerLaunch) {
+    g.z_begin = z;
+    g.z_end = std::min(z + kSlicesPerLaunch, z1);
+    const dim3 blocks((n + 7) / 8, (n + 7) / 8, (g.z_end - g.z_begin + 3) / 4);
+    if (storage == BlockingStorage::kTexture) {
+      path_safety_kernel<Values><<<blocks, block>>>(ds.scene, g,
+                                                    TextureSampler{ds.texture, ds.scene.blocking},
+                                                    dev_out[0], dev_out[1], dev_out[2], dev_out[3]);
+    } else {
+      path_safety_kernel<Values><<<blocks, block>>>(ds.scene, g,
+                                                    GridSampler<float>{ds.scene.blocking},
+                                                    dev_out[0], dev_out[1], dev_out[2], dev_out[3]);
     }
-  };
-  std::vector<std::thread> threads;
-  for (int d = 0; d < devices; ++d) threads.emplace_back(work, d);
-  for (auto& t : threads) t.join();
-  for (auto& e : errors) {
-    if (e) std::rethrow_exception(e);
+    check(cudaGetLastError(), "kernel launch");
+    check(cudaDeviceSynchronize(), "path safety kernel");
+    progress.add(g.z_end - g.z_begin);
   }
+}
+
+// Device d's slab [z0, z1): upload, launches, download into out[] at the slab's offset.
+void exact_on_device(int d, int z0, int z1, const PathSafetyScene<double>& host_scene,
+                     const OutputGridDesc& grid, unsigned values, float* const out[kValueCount],
+                     const CudaRunOptions& options, Progress& progress,
+                     std::once_flag& outputs_ready) {
+  check(cudaSetDevice(d), "cudaSetDevice");
+  if (z1 <= z0) return;
+  const int n = grid.n;
+  DeviceScene ds(host_scene, options.storage);
+  const size_t slab = size_t(z1 - z0) * size_t(n) * size_t(n);
+  const DeviceOutputs outputs(values, slab);
+  SlabGrid g = slab_grid(grid);
+  g.z_slab = z0;
+  with_value_set(values, [&](auto tag) {
+    constexpr unsigned kValues = decltype(tag)::value;
+    launch_slab<kValues>(ds, g, z0, z1, outputs, options.storage, progress);
+  });
+  if (options.wait_for_outputs) std::call_once(outputs_ready, options.wait_for_outputs);
+  outputs.download(out, size_t(z0) * size_t(n) * size_t(n), slab);
+}
+
+}  // namespace
+
+CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& host_scene,
+                                   const OutputGridDesc& grid, unsigned values,
+                                   float* const out[kValueCount], const CudaRunOptions& options) {
+  int devices = cuda_device_count();
+  if (devices == 0) throw Error("CUDA: no device found");
+  if (options.max_devices > 0) devices = std::min(devices, options.max_devices);
+  if (options.fast_cells > 0) {
+    return FastRun(host_scene, grid, values, out, options, devices).run();
+  }
+  const std::vector<int> bounds = slab_bounds(grid, devices);
+  Progress progress(options.progress, double(grid.n));
+  std::once_flag outputs_ready;
+  const std::string names = last_device_name(devices);
+  const auto t0 = std::chrono::steady_clock::now();
+  on_every_device(devices, [&](int d) {
+    exact_on_device(d, bounds[size_t(d)], bounds[size_t(d) + 1], host_scene, grid, values, out,
+                    options, progress, outputs_ready);
+  });
   CudaRunReport report;
   report.device_count = devices;
   report.devices = "cuda:" + names + " x" + std::to_string(devices);

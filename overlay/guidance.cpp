@@ -281,32 +281,129 @@ void GuidanceOverlay::build_entry_contours() {
   }
 }
 
+namespace {
+
+// The volume rendering's options from the guidance options. Without a resolution scale: a quarter
+// on software OpenGL (llvmpipe), full resolution on a GPU.
+VolumeRenderingOptions volume_rendering_options(const GuidanceOptions& options,
+                                                const OverlayRenderer& renderer) {
+  VolumeRenderingOptions vo;
+  vo.palette = options.palette;
+  vo.resolution_scale = options.volume_resolution_scale;
+  if (!(vo.resolution_scale > 0)) {
+    vo.resolution_scale =
+        renderer.gl_description().find("llvmpipe") != std::string::npos ? 0.25 : 1.0;
+  }
+  vo.show_safe = options.volume_classes[0];
+  vo.show_medium = options.volume_classes[1];
+  vo.show_dangerous = options.volume_classes[2];
+  return vo;
+}
+
+// Sets every computed voxel whose centre is outside the body (inside_body(p) false) to NaN.
+template <typename InsideBody>
+void clear_outside_body(planning::Volume<float>& volume, const InsideBody& inside_body) {
+  const auto d = volume.dims();
+  for (int64_t k = 0; k < d[2]; ++k)
+    for (int64_t j = 0; j < d[1]; ++j)
+      for (int64_t i = 0; i < d[0]; ++i) {
+        float& v = volume(i, j, k);
+        if (std::isfinite(v) && !inside_body(volume.index_to_physical(i, j, k))) {
+          v = std::numeric_limits<float>::quiet_NaN();
+        }
+      }
+}
+
+void add_rays(OverlayRenderer& renderer, const std::vector<GuidanceOverlay::Ray>& rays,
+              const Eigen::Isometry3d& T_cam_ct, planning::Palette palette) {
+  for (const GuidanceOverlay::Ray& ray : rays) {
+    Polyline line;
+    line.points_cam = {T_cam_ct * ray.start, T_cam_ct * ray.end};
+    line.colour = class_bgr(palette, ray.safety_class);
+    line.width_px = 1.5;
+    line.opacity = 0.45;
+    renderer.add_polyline("rays", line);
+  }
+}
+
+void add_entry_contours(OverlayRenderer& renderer,
+                        const std::vector<GuidanceOverlay::Contour>& contours,
+                        const Eigen::Isometry3d& T_cam_ct, planning::Palette palette) {
+  for (const GuidanceOverlay::Contour& c : contours) {
+    Polyline line;
+    for (const auto& p : c.points) line.points_cam.push_back(T_cam_ct * p);
+    line.closed = c.closed;
+    // Every entry area is safe: its leeway runs from the medium colour (a small region) to the
+    // safe colour (the largest).
+    line.colour = bgr(planning::leeway_colour(palette, 0.5 + 0.5 * std::clamp(c.leeway, 0.0, 1.0)));
+    line.width_px = 2.0 + 6.0 * std::clamp(c.leeway, 0.0, 1.0);
+    line.opacity = 0.9;
+    renderer.add_polyline("entry", line);
+  }
+}
+
+// The tumor's silhouette: its surface voxels (CT LPS mm, `voxel_mm` wide) projected as discs of
+// their apparent size, the outline of their union.
+void add_tumor_silhouette(OverlayRenderer& renderer, const std::vector<Eigen::Vector3d>& surface,
+                          double voxel_mm, const Eigen::Isometry3d& T_cam_ct,
+                          const cv::Scalar& colour) {
+  const calibration::CameraModel& cam = renderer.camera();
+  std::vector<cv::Point2f> pts;
+  double radius_px = 1;
+  for (const auto& p_ct : surface) {
+    const Eigen::Vector3d p = T_cam_ct * p_ct;
+    if (p.z() < 1.0) continue;
+    const Eigen::Vector2d uv = cam.project(p);
+    if (!uv.allFinite()) continue;
+    pts.emplace_back(float(uv.x()), float(uv.y()));
+    radius_px = std::max(radius_px, 0.6 * cam.fx * voxel_mm / p.z());
+  }
+  if (pts.empty()) return;
+  cv::Rect box = cv::boundingRect(pts);
+  const int pad = int(std::ceil(radius_px)) + 2;
+  box = cv::Rect(box.x - pad, box.y - pad, box.width + 2 * pad, box.height + 2 * pad);
+  if (box.width >= 4000 || box.height >= 4000) return;
+  cv::Mat mask(box.size(), CV_8U, cv::Scalar(0));
+  const int shift = 4;
+  for (const auto& q : pts) {
+    cv::circle(
+        mask, cv::Point(int(std::lround((q.x - box.x) * 16)), int(std::lround((q.y - box.y) * 16))),
+        int(std::lround(radius_px * 16)), cv::Scalar(255), cv::FILLED, cv::LINE_8, shift);
+  }
+  std::vector<std::vector<cv::Point>> outlines;
+  cv::findContours(mask, outlines, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+  for (const auto& o : outlines) {
+    std::vector<Eigen::Vector2d> px;
+    for (const auto& q : o) px.emplace_back(q.x + box.x, q.y + box.y);
+    renderer.add_polyline_px("tumor", px, colour, 2.0, true);
+  }
+}
+
+// The tumor centre: a small cross in 3D, 8 mm across.
+void add_tumor_centre(OverlayRenderer& renderer, const Eigen::Vector3d& centre,
+                      const Eigen::Isometry3d& T_cam_ct, const cv::Scalar& colour) {
+  for (int axis = 0; axis < 3; ++axis) {
+    Polyline line;
+    Eigen::Vector3d d = Eigen::Vector3d::Zero();
+    d[axis] = 4.0;
+    line.points_cam = {T_cam_ct * (centre - d), T_cam_ct * (centre + d)};
+    line.colour = colour;
+    line.width_px = 2;
+    renderer.add_polyline("tumor", line);
+  }
+}
+
+}  // namespace
+
 void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct) {
   const auto palette = options_.palette;
   if (visible(GuidanceLayer::kVolume)) {
     if (!volume_) {
-      VolumeRenderingOptions vo;
-      vo.palette = palette;
-      vo.resolution_scale = options_.volume_resolution_scale;
-      if (!(vo.resolution_scale > 0)) {
-        vo.resolution_scale =
-            renderer.gl_description().find("llvmpipe") != std::string::npos ? 0.25 : 1.0;
-      }
-      vo.show_safe = options_.volume_classes[0];
-      vo.show_medium = options_.volume_classes[1];
-      vo.show_dangerous = options_.volume_classes[2];
+      const VolumeRenderingOptions vo = volume_rendering_options(options_, renderer);
       // Only inside the body: air in front of the patient has path safety values too.
       planning::Volume<float> inside = plan_.path_safety.at(value_);
       if (!plan_.labels.empty()) {
-        const auto d = inside.dims();
-        for (int64_t k = 0; k < d[2]; ++k)
-          for (int64_t j = 0; j < d[1]; ++j)
-            for (int64_t i = 0; i < d[0]; ++i) {
-              float& v = inside(i, j, k);
-              if (std::isfinite(v) && !inside_body(inside.index_to_physical(i, j, k))) {
-                v = std::numeric_limits<float>::quiet_NaN();
-              }
-            }
+        clear_outside_body(inside, [this](const Eigen::Vector3d& p) { return inside_body(p); });
       }
       volume_ = std::make_unique<SafetyVolumeRendering>(inside, plan_.classes.at(value_), vo);
     }
@@ -314,77 +411,12 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
     SafetyVolumeRendering* volume = volume_.get();
     renderer.set_layer_draw("volume", [volume](const DrawContext& c) { volume->draw(c); });
   }
-  if (visible(GuidanceLayer::kRays)) {
-    for (const Ray& ray : rays_) {
-      Polyline line;
-      line.points_cam = {T_cam_ct * ray.start, T_cam_ct * ray.end};
-      line.colour = class_bgr(palette, ray.safety_class);
-      line.width_px = 1.5;
-      line.opacity = 0.45;
-      renderer.add_polyline("rays", line);
-    }
-  }
-  if (visible(GuidanceLayer::kEntry)) {
-    for (const Contour& c : contours_) {
-      Polyline line;
-      for (const auto& p : c.points) line.points_cam.push_back(T_cam_ct * p);
-      line.closed = c.closed;
-      // Every entry area is safe: its leeway runs from the medium colour (a small region) to the
-      // safe colour (the largest).
-      line.colour = bgr(planning::leeway_colour(palette, 0.5 + 0.5 * std::clamp(c.leeway, 0.0, 1.0)));
-      line.width_px = 2.0 + 6.0 * std::clamp(c.leeway, 0.0, 1.0);
-      line.opacity = 0.9;
-      renderer.add_polyline("entry", line);
-    }
-  }
+  if (visible(GuidanceLayer::kRays)) add_rays(renderer, rays_, T_cam_ct, palette);
+  if (visible(GuidanceLayer::kEntry)) add_entry_contours(renderer, contours_, T_cam_ct, palette);
   if (visible(GuidanceLayer::kTumor)) {
     const cv::Scalar magenta(255, 0, 255);
-    const calibration::CameraModel& cam = renderer.camera();
-    // Silhouette: project the surface voxels as discs of their apparent size, outline the union.
-    std::vector<cv::Point2f> pts;
-    double radius_px = 1;
-    for (const auto& p_ct : tumor_surface_) {
-      const Eigen::Vector3d p = T_cam_ct * p_ct;
-      if (p.z() < 1.0) continue;
-      const Eigen::Vector2d uv = cam.project(p);
-      if (!uv.allFinite()) continue;
-      pts.emplace_back(float(uv.x()), float(uv.y()));
-      radius_px = std::max(radius_px, 0.6 * cam.fx * tumor_voxel_mm_ / p.z());
-    }
-    if (!pts.empty()) {
-      cv::Rect box = cv::boundingRect(pts);
-      const int pad = int(std::ceil(radius_px)) + 2;
-      box = cv::Rect(box.x - pad, box.y - pad, box.width + 2 * pad, box.height + 2 * pad);
-      if (box.width < 4000 && box.height < 4000) {
-        cv::Mat mask(box.size(), CV_8U, cv::Scalar(0));
-        const int shift = 4;
-        for (const auto& q : pts) {
-          cv::circle(mask,
-                     cv::Point(int(std::lround((q.x - box.x) * 16)),
-                               int(std::lround((q.y - box.y) * 16))),
-                     int(std::lround(radius_px * 16)), cv::Scalar(255), cv::FILLED, cv::LINE_8,
-                     shift);
-        }
-        std::vector<std::vector<cv::Point>> outlines;
-        cv::findContours(mask, outlines, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
-        for (const auto& o : outlines) {
-          std::vector<Eigen::Vector2d> px;
-          for (const auto& q : o) px.emplace_back(q.x + box.x, q.y + box.y);
-          renderer.add_polyline_px("tumor", px, magenta, 2.0, true);
-        }
-      }
-    }
-    // The centre: a small cross in 3D.
-    const Eigen::Vector3d c = plan_.tumor_centre;
-    for (int axis = 0; axis < 3; ++axis) {
-      Polyline line;
-      Eigen::Vector3d d = Eigen::Vector3d::Zero();
-      d[axis] = 4.0;
-      line.points_cam = {T_cam_ct * (c - d), T_cam_ct * (c + d)};
-      line.colour = magenta;
-      line.width_px = 2;
-      renderer.add_polyline("tumor", line);
-    }
+    add_tumor_silhouette(renderer, tumor_surface_, tumor_voxel_mm_, T_cam_ct, magenta);
+    add_tumor_centre(renderer, plan_.tumor_centre, T_cam_ct, magenta);
   }
 }
 

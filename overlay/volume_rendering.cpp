@@ -160,6 +160,45 @@ std::vector<uint8_t> empty_distance(const planning::Index3& dims, const std::vec
   return g;
 }
 
+// Throws Error when OpenGL reports an error (`during`: what was being done).
+void throw_on_gl_error(const char* during) {
+  const GLenum err = glGetError();
+  if (err != GL_NO_ERROR) {
+    throw Error("volume rendering: OpenGL error " + std::to_string(err) + " " + during);
+  }
+}
+
+// Pixels per axis the rays are cast on: the image's, or its reduced version's.
+int cast_size(int image_size, double resolution_scale) {
+  return resolution_scale < 1 ? std::max(1, int(std::lround(image_size * resolution_scale)))
+                              : image_size;
+}
+
+// The march shader's per-class uniforms, index 0 being "no class": absorption per mm (0 when the
+// class is hidden), colour 0..1, and one whole step's premultiplied colour and alpha.
+struct ClassUniforms {
+  float opacity[4] = {0, 0, 0, 0};
+  float colour[12] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+  float full_step[16] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+};
+
+ClassUniforms class_uniforms(const VolumeRenderingOptions& options, float step_mm) {
+  ClassUniforms u;
+  const bool shown[3] = {options.show_safe, options.show_medium, options.show_dangerous};
+  const auto colours = planning::class_colours(options.palette);
+  for (int c = 0; c < 3; ++c) {
+    u.opacity[c + 1] = shown[c] ? float(options.opacity_per_mm[c]) : 0.0f;
+    for (int ch = 0; ch < 3; ++ch)
+      u.colour[(c + 1) * 3 + ch] = float(colours[size_t(c)][size_t(ch)] / 255.0);
+  }
+  for (int c = 1; c < 4; ++c) {
+    const double a = 1.0 - std::exp(-double(u.opacity[c]) * double(step_mm));
+    for (int ch = 0; ch < 3; ++ch) u.full_step[c * 4 + ch] = float(u.colour[c * 3 + ch] * a);
+    u.full_step[c * 4 + 3] = float(a);
+  }
+  return u;
+}
+
 }  // namespace
 
 Eigen::Vector3f pixel_ray(const calibration::CameraModel& camera, double u, double v) {
@@ -175,7 +214,154 @@ struct SafetyVolumeRendering::Gl {
   int low_width = 0, low_height = 0;
   calibration::CameraModel ray_camera;  // the camera the rays were made for
   int ray_width = 0, ray_height = 0;
+
+  // The programs, the vertex array, the class texture (per voxel: class, and Chebyshev distance
+  // in voxels to the nearest classified voxel) and the ray texture, in the current context.
+  // Throws Error when the grid exceeds the 3D texture limit or a program does not link; the
+  // caller checks glGetError.
+  static std::unique_ptr<Gl> create(const planning::Index3& dims,
+                                    const std::vector<uint8_t>& voxel_classes);
+  // Re-makes the per-pixel rays of the width x height grid the rays are cast on (the image, or
+  // its reduced version whose pixel centres map to image positions by the size ratio) when the
+  // camera or that size changed.
+  void update_rays(const DrawContext& context, int width, int height);
+  // (Re)makes the width x height reduced-resolution target when its size changed. Throws Error
+  // when it is incomplete, with target_fbo bound again.
+  void update_low_target(int width, int height, GLint target_fbo);
+  // Binds the march program with its textures and uniforms, for a cast of `rows` rows.
+  void bind_march(const RaySetup& ray, const Eigen::Vector3f& box_lo, const Eigen::Vector3f& box_hi,
+                  const planning::Index3& dims, const ClassUniforms& classes, float step_mm,
+                  int rows) const;
+  // Casts into the reduced-resolution target, then binds target_fbo, its viewport and the
+  // composite program that draws the target over it.
+  void cast_reduced(int width, int height, GLint target_fbo, const GLint viewport[4],
+                    const DrawContext& context) const;
 };
+
+std::unique_ptr<SafetyVolumeRendering::Gl> SafetyVolumeRendering::Gl::create(
+    const planning::Index3& dims, const std::vector<uint8_t>& voxel_classes) {
+  auto gl = std::make_unique<Gl>();
+  GLint max_size = 0;
+  glGetIntegerv(GL_MAX_3D_TEXTURE_SIZE, &max_size);
+  if (dims[0] > max_size || dims[1] > max_size || dims[2] > max_size) {
+    throw Error("volume rendering: path safety grid " + std::to_string(dims[0]) + "x" +
+                std::to_string(dims[1]) + "x" + std::to_string(dims[2]) +
+                " exceeds the OpenGL 3D texture limit of " + std::to_string(max_size));
+  }
+  gl->march_program = link_gl_program(kFullScreenVertex, kMarchFragment, "volume rendering");
+  gl->composite_program =
+      link_gl_program(kFullScreenVertex, kCompositeFragment, "volume rendering");
+  glGenVertexArrays(1, &gl->vao);
+  glGenTextures(1, &gl->class_texture);
+  glBindTexture(GL_TEXTURE_3D, gl->class_texture);
+  glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+  glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+  glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAX_LEVEL, 0);
+  glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
+  const std::vector<uint8_t> distance = empty_distance(dims, voxel_classes);
+  std::vector<uint8_t> texels(voxel_classes.size() * 2);
+  for (size_t v = 0; v < voxel_classes.size(); ++v) {
+    texels[2 * v] = voxel_classes[v];
+    texels[2 * v + 1] = distance[v];
+  }
+  glTexImage3D(GL_TEXTURE_3D, 0, GL_RG8UI, GLsizei(dims[0]), GLsizei(dims[1]), GLsizei(dims[2]), 0,
+               GL_RG_INTEGER, GL_UNSIGNED_BYTE, texels.data());
+  glGenTextures(1, &gl->ray_texture);
+  glBindTexture(GL_TEXTURE_2D, gl->ray_texture);
+  glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
+  glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
+  glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAX_LEVEL, 0);
+  return gl;
+}
+
+void SafetyVolumeRendering::Gl::update_rays(const DrawContext& context, int width, int height) {
+  const auto& camera = context.camera;
+  if (same_camera(ray_camera, camera) && ray_width == width && ray_height == height) return;
+  std::vector<float> rays(size_t(width) * size_t(height) * 3);
+  const double sx = double(context.width) / width, sy = double(context.height) / height;
+  for (int r = 0; r < height; ++r) {
+    for (int c = 0; c < width; ++c) {
+      const Eigen::Vector3f d = pixel_ray(camera, (c + 0.5) * sx - 0.5, (r + 0.5) * sy - 0.5);
+      std::copy(d.data(), d.data() + 3, rays.begin() + (size_t(r) * size_t(width) + size_t(c)) * 3);
+    }
+  }
+  glBindTexture(GL_TEXTURE_2D, ray_texture);
+  glPixelStorei(GL_UNPACK_ALIGNMENT, 4);
+  glTexImage2D(GL_TEXTURE_2D, 0, GL_RGB32F, width, height, 0, GL_RGB, GL_FLOAT, rays.data());
+  ray_camera = camera;
+  ray_width = width;
+  ray_height = height;
+}
+
+void SafetyVolumeRendering::Gl::update_low_target(int width, int height, GLint target_fbo) {
+  if (low_width == width && low_height == height) return;
+  if (!low_texture) glGenTextures(1, &low_texture);
+  if (!low_fbo) glGenFramebuffers(1, &low_fbo);
+  glBindTexture(GL_TEXTURE_2D, low_texture);
+  glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_LINEAR);
+  glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_LINEAR);
+  glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_WRAP_S, GL_CLAMP_TO_EDGE);
+  glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_WRAP_T, GL_CLAMP_TO_EDGE);
+  glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAX_LEVEL, 0);
+  glTexImage2D(GL_TEXTURE_2D, 0, GL_RGBA16F, width, height, 0, GL_RGBA, GL_FLOAT, nullptr);
+  glBindFramebuffer(GL_FRAMEBUFFER, low_fbo);
+  glFramebufferTexture2D(GL_FRAMEBUFFER, GL_COLOR_ATTACHMENT0, GL_TEXTURE_2D, low_texture, 0);
+  if (glCheckFramebufferStatus(GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE) {
+    glBindFramebuffer(GL_FRAMEBUFFER, GLuint(target_fbo));
+    throw Error("volume rendering: reduced-resolution framebuffer incomplete");
+  }
+  low_width = width;
+  low_height = height;
+}
+
+void SafetyVolumeRendering::Gl::bind_march(const RaySetup& ray, const Eigen::Vector3f& box_lo,
+                                           const Eigen::Vector3f& box_hi,
+                                           const planning::Index3& dims,
+                                           const ClassUniforms& classes, float step_mm,
+                                           int rows) const {
+  const GLuint program = march_program;
+  glUseProgram(program);
+  glBindVertexArray(vao);
+  glActiveTexture(GL_TEXTURE0);
+  glBindTexture(GL_TEXTURE_3D, class_texture);
+  glActiveTexture(GL_TEXTURE1);
+  glBindTexture(GL_TEXTURE_2D, ray_texture);
+  glUniform1i(glGetUniformLocation(program, "classes"), 0);
+  glUniform1i(glGetUniformLocation(program, "rays"), 1);
+  glUniformMatrix3fv(glGetUniformLocation(program, "M"), 1, GL_FALSE,
+                     ray.M.data());  // column-major
+  glUniform3fv(glGetUniformLocation(program, "m0"), 1, ray.m0.data());
+  glUniform3fv(glGetUniformLocation(program, "box_lo"), 1, box_lo.data());
+  glUniform3fv(glGetUniformLocation(program, "box_hi"), 1, box_hi.data());
+  glUniform3i(glGetUniformLocation(program, "dims"), GLint(dims[0]), GLint(dims[1]),
+              GLint(dims[2]));
+  glUniform4fv(glGetUniformLocation(program, "full_step"), 4, classes.full_step);
+  glUniform1fv(glGetUniformLocation(program, "opacity"), 4, classes.opacity);
+  glUniform3fv(glGetUniformLocation(program, "colour"), 4, classes.colour);
+  glUniform1f(glGetUniformLocation(program, "step_mm"), step_mm);
+  glUniform1i(glGetUniformLocation(program, "rows"), rows);
+  glUniform1i(glGetUniformLocation(program, "max_steps"), kMaxSteps);
+  glUniform1f(glGetUniformLocation(program, "opaque"), float(kVolumeRenderingOpaque));
+}
+
+void SafetyVolumeRendering::Gl::cast_reduced(int width, int height, GLint target_fbo,
+                                             const GLint viewport[4],
+                                             const DrawContext& context) const {
+  glBindFramebuffer(GL_FRAMEBUFFER, low_fbo);
+  glViewport(0, 0, width, height);
+  glDisable(GL_BLEND);
+  glClearColor(0, 0, 0, 0);
+  glClear(GL_COLOR_BUFFER_BIT);
+  glDrawArrays(GL_TRIANGLES, 0, 3);
+  glBindFramebuffer(GL_FRAMEBUFFER, GLuint(target_fbo));
+  glViewport(viewport[0], viewport[1], viewport[2], viewport[3]);
+  glUseProgram(composite_program);
+  glActiveTexture(GL_TEXTURE0);
+  glBindTexture(GL_TEXTURE_2D, low_texture);
+  glUniform1i(glGetUniformLocation(composite_program, "image"), 0);
+  glUniform2f(glGetUniformLocation(composite_program, "size"), float(context.width),
+              float(context.height));
+}
 
 SafetyVolumeRendering::SafetyVolumeRendering(const planning::Volume<float>& path_safety,
                                              const planning::SafetyClasses& classes,
@@ -316,162 +502,32 @@ void SafetyVolumeRendering::draw(const DrawContext& context) {
   // The objects are lost with their context (e.g. a renderer made anew): make them again.
   if (gl_ && (!glIsProgram(gl_->march_program) || !glIsTexture(gl_->class_texture))) gl_.reset();
   if (!gl_) {
-    auto gl = std::make_unique<Gl>();
-    GLint max_size = 0;
-    glGetIntegerv(GL_MAX_3D_TEXTURE_SIZE, &max_size);
-    const auto& dims = geometry_.dims;
-    if (dims[0] > max_size || dims[1] > max_size || dims[2] > max_size) {
-      throw Error("volume rendering: path safety grid " + std::to_string(dims[0]) + "x" +
-                  std::to_string(dims[1]) + "x" + std::to_string(dims[2]) +
-                  " exceeds the OpenGL 3D texture limit of " + std::to_string(max_size));
-    }
-    gl->march_program = link_gl_program(kFullScreenVertex, kMarchFragment, "volume rendering");
-    gl->composite_program =
-        link_gl_program(kFullScreenVertex, kCompositeFragment, "volume rendering");
-    glGenVertexArrays(1, &gl->vao);
-    glGenTextures(1, &gl->class_texture);
-    glBindTexture(GL_TEXTURE_3D, gl->class_texture);
-    glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
-    glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
-    glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAX_LEVEL, 0);
-    glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
-    // Per voxel: class, and Chebyshev distance (voxels) to the nearest classified voxel.
-    const std::vector<uint8_t> distance = empty_distance(geometry_.dims, voxel_classes_);
-    std::vector<uint8_t> texels(voxel_classes_.size() * 2);
-    for (size_t v = 0; v < voxel_classes_.size(); ++v) {
-      texels[2 * v] = voxel_classes_[v];
-      texels[2 * v + 1] = distance[v];
-    }
-    glTexImage3D(GL_TEXTURE_3D, 0, GL_RG8UI, GLsizei(dims[0]), GLsizei(dims[1]), GLsizei(dims[2]),
-                 0, GL_RG_INTEGER, GL_UNSIGNED_BYTE, texels.data());
-    glGenTextures(1, &gl->ray_texture);
-    glBindTexture(GL_TEXTURE_2D, gl->ray_texture);
-    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
-    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
-    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAX_LEVEL, 0);
-    const GLenum err = glGetError();
-    gl_ = std::move(gl);
-    if (err != GL_NO_ERROR) {
-      throw Error("volume rendering: OpenGL error " + std::to_string(err) +
-                  " while creating the class texture");
-    }
+    gl_ = Gl::create(geometry_.dims, voxel_classes_);
+    throw_on_gl_error("while creating the class texture");
   }
   if (box_lo_.x() > box_hi_.x()) return;  // nothing classified: nothing to draw
 
-  const auto& camera = context.camera;
-  const double scale = options_.resolution_scale;
-  const int width = scale < 1 ? std::max(1, int(std::lround(context.width * scale))) : context.width;
-  const int height =
-      scale < 1 ? std::max(1, int(std::lround(context.height * scale))) : context.height;
-
-  // Per-pixel rays of the grid the rays are cast on (the image, or its reduced version whose pixel
-  // centres map to image positions by the size ratio).
-  if (!same_camera(gl_->ray_camera, camera) || gl_->ray_width != width ||
-      gl_->ray_height != height) {
-    std::vector<float> rays(size_t(width) * size_t(height) * 3);
-    const double sx = double(context.width) / width, sy = double(context.height) / height;
-    for (int r = 0; r < height; ++r) {
-      for (int c = 0; c < width; ++c) {
-        const Eigen::Vector3f d = pixel_ray(camera, (c + 0.5) * sx - 0.5, (r + 0.5) * sy - 0.5);
-        std::copy(d.data(), d.data() + 3, rays.begin() + (size_t(r) * size_t(width) + size_t(c)) * 3);
-      }
-    }
-    glBindTexture(GL_TEXTURE_2D, gl_->ray_texture);
-    glPixelStorei(GL_UNPACK_ALIGNMENT, 4);
-    glTexImage2D(GL_TEXTURE_2D, 0, GL_RGB32F, width, height, 0, GL_RGB, GL_FLOAT, rays.data());
-    gl_->ray_camera = camera;
-    gl_->ray_width = width;
-    gl_->ray_height = height;
-  }
-
+  const int width = cast_size(context.width, options_.resolution_scale);
+  const int height = cast_size(context.height, options_.resolution_scale);
+  gl_->update_rays(context, width, height);
   GLint target_fbo = 0;
   GLint viewport[4] = {0, 0, 0, 0};
   glGetIntegerv(GL_DRAW_FRAMEBUFFER_BINDING, &target_fbo);
   glGetIntegerv(GL_VIEWPORT, viewport);
   const bool reduced = width != context.width || height != context.height;
-  if (reduced && (gl_->low_width != width || gl_->low_height != height)) {
-    if (!gl_->low_texture) glGenTextures(1, &gl_->low_texture);
-    if (!gl_->low_fbo) glGenFramebuffers(1, &gl_->low_fbo);
-    glBindTexture(GL_TEXTURE_2D, gl_->low_texture);
-    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_LINEAR);
-    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_LINEAR);
-    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_WRAP_S, GL_CLAMP_TO_EDGE);
-    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_WRAP_T, GL_CLAMP_TO_EDGE);
-    glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAX_LEVEL, 0);
-    glTexImage2D(GL_TEXTURE_2D, 0, GL_RGBA16F, width, height, 0, GL_RGBA, GL_FLOAT, nullptr);
-    glBindFramebuffer(GL_FRAMEBUFFER, gl_->low_fbo);
-    glFramebufferTexture2D(GL_FRAMEBUFFER, GL_COLOR_ATTACHMENT0, GL_TEXTURE_2D, gl_->low_texture, 0);
-    if (glCheckFramebufferStatus(GL_FRAMEBUFFER) != GL_FRAMEBUFFER_COMPLETE) {
-      glBindFramebuffer(GL_FRAMEBUFFER, GLuint(target_fbo));
-      throw Error("volume rendering: reduced-resolution framebuffer incomplete");
-    }
-    gl_->low_width = width;
-    gl_->low_height = height;
-  }
+  if (reduced) gl_->update_low_target(width, height, target_fbo);
 
-  // Ray casting, premultiplied output.
-  const GLuint program = gl_->march_program;
-  glUseProgram(program);
-  glBindVertexArray(gl_->vao);
-  glActiveTexture(GL_TEXTURE0);
-  glBindTexture(GL_TEXTURE_3D, gl_->class_texture);
-  glActiveTexture(GL_TEXTURE1);
-  glBindTexture(GL_TEXTURE_2D, gl_->ray_texture);
-  glUniform1i(glGetUniformLocation(program, "classes"), 0);
-  glUniform1i(glGetUniformLocation(program, "rays"), 1);
-  const RaySetup s = ray_setup();
-  glUniformMatrix3fv(glGetUniformLocation(program, "M"), 1, GL_FALSE, s.M.data());  // column-major
-  glUniform3fv(glGetUniformLocation(program, "m0"), 1, s.m0.data());
-  glUniform3fv(glGetUniformLocation(program, "box_lo"), 1, box_lo_.data());
-  glUniform3fv(glGetUniformLocation(program, "box_hi"), 1, box_hi_.data());
-  const auto& dims = geometry_.dims;
-  glUniform3i(glGetUniformLocation(program, "dims"), GLint(dims[0]), GLint(dims[1]), GLint(dims[2]));
-  const bool shown[3] = {options_.show_safe, options_.show_medium, options_.show_dangerous};
-  float opacity[4] = {0, 0, 0, 0};
-  float colour[12] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
-  const auto colours = planning::class_colours(options_.palette);
-  for (int c = 0; c < 3; ++c) {
-    opacity[c + 1] = shown[c] ? float(options_.opacity_per_mm[c]) : 0.0f;
-    for (int ch = 0; ch < 3; ++ch) colour[(c + 1) * 3 + ch] = float(colours[size_t(c)][size_t(ch)] / 255.0);
-  }
-  float full_step[16] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
-  for (int c = 1; c < 4; ++c) {
-    const double a = 1.0 - std::exp(-double(opacity[c]) * double(float(step())));
-    for (int ch = 0; ch < 3; ++ch) full_step[c * 4 + ch] = float(colour[c * 3 + ch] * a);
-    full_step[c * 4 + 3] = float(a);
-  }
-  glUniform4fv(glGetUniformLocation(program, "full_step"), 4, full_step);
-  glUniform1fv(glGetUniformLocation(program, "opacity"), 4, opacity);
-  glUniform3fv(glGetUniformLocation(program, "colour"), 4, colour);
-  glUniform1f(glGetUniformLocation(program, "step_mm"), float(step()));
-  glUniform1i(glGetUniformLocation(program, "rows"), height);
-  glUniform1i(glGetUniformLocation(program, "max_steps"), kMaxSteps);
-  glUniform1f(glGetUniformLocation(program, "opaque"), float(kVolumeRenderingOpaque));
-  if (reduced) {
-    glBindFramebuffer(GL_FRAMEBUFFER, gl_->low_fbo);
-    glViewport(0, 0, width, height);
-    glDisable(GL_BLEND);
-    glClearColor(0, 0, 0, 0);
-    glClear(GL_COLOR_BUFFER_BIT);
-    glDrawArrays(GL_TRIANGLES, 0, 3);
-    glBindFramebuffer(GL_FRAMEBUFFER, GLuint(target_fbo));
-    glViewport(viewport[0], viewport[1], viewport[2], viewport[3]);
-    glUseProgram(gl_->composite_program);
-    glActiveTexture(GL_TEXTURE0);
-    glBindTexture(GL_TEXTURE_2D, gl_->low_texture);
-    glUniform1i(glGetUniformLocation(gl_->composite_program, "image"), 0);
-    glUniform2f(glGetUniformLocation(gl_->composite_program, "size"), float(context.width),
-                float(context.height));
-  }
+  // Ray casting, premultiplied output (at reduced resolution: composited bilinearly).
+  const float step_mm = float(step());
+  gl_->bind_march(ray_setup(), box_lo_, box_hi_, geometry_.dims, class_uniforms(options_, step_mm),
+                  step_mm, height);
+  if (reduced) gl_->cast_reduced(width, height, target_fbo, viewport, context);
   glEnable(GL_BLEND);
   glBlendFunc(GL_ONE, GL_ONE_MINUS_SRC_ALPHA);
   glDrawArrays(GL_TRIANGLES, 0, 3);
   glBlendFunc(GL_SRC_ALPHA, GL_ONE_MINUS_SRC_ALPHA);
   glActiveTexture(GL_TEXTURE0);
-  const GLenum err = glGetError();
-  if (err != GL_NO_ERROR) {
-    throw Error("volume rendering: OpenGL error " + std::to_string(err) + " while drawing");
-  }
+  throw_on_gl_error("while drawing");
 }
 
 }  // namespace crepuscular::overlay

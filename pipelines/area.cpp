@@ -18,6 +18,7 @@
 #include "planning/imaging/volume_io.hpp"
 #include "planning/preprocessing/blocking.hpp"
 #include "planning/safety/area_safety.hpp"
+#include "planning/safety/unknown.hpp"
 
 namespace fs = std::filesystem;
 
@@ -43,6 +44,7 @@ nlohmann::json read_json_file(const std::string& path) {
 // so a Setup stays where it was filled in.
 struct Setup {
   Volume<float> blocking, path_safety;
+  Volume<uint8_t> region;  // the plan's voxel states (roi): unknown stops an extrusion unsafe
   SafetyTest test;
   std::string criterion;
   double threshold = 0;
@@ -121,17 +123,18 @@ void setup_preview(const AreaRequest& r, Setup& s) {
   s.info["mode"] = "preview";
 }
 
-// NIfTI readers may turn the NaN of "not computed" into 0: the plan's ROI mask says which voxels
-// were computed.
-void mark_outside_roi(Volume<float>& path_safety, const std::string& roi_file,
-                      const std::string& file) {
-  const Volume<uint8_t> roi = read_mask(roi_file);
+// NIfTI readers may turn the NaN of "not computed" into 0: the plan's voxel states (roi,
+// planning/safety/unknown.hpp RegionState) say which voxels were computed. Returns the states.
+Volume<uint8_t> mark_outside_roi(Volume<float>& path_safety, const std::string& roi_file,
+                                 const std::string& file) {
+  Volume<uint8_t> roi = read_volume<uint8_t>(roi_file);
   if (!roi.geometry().same_grid(path_safety.geometry(), 1e-3)) {
     throw Error(roi_file + ": not on the grid of " + file);
   }
   for (int64_t i = 0; i < roi.voxel_count(); ++i) {
-    if (!roi[i]) path_safety[i] = std::numeric_limits<float>::quiet_NaN();
+    if (roi[i] != kRegionComputed) path_safety[i] = std::numeric_limits<float>::quiet_NaN();
   }
+  return roi;
 }
 
 // Path safety: unsafe where the plan's value is past its class threshold (or the one given).
@@ -161,11 +164,12 @@ void setup_from_plan(const AreaRequest& r, Setup& s) {
     spdlog::info("reading path safety volume {}", file);
     s.path_safety = read_volume<float>(file);
     if (outputs.contains("roi")) {
-      mark_outside_roi(s.path_safety,
+      s.region = mark_outside_roi(s.path_safety,
                        (fs::path(r.plan_dir) / outputs.at("roi").get<std::string>()).string(),
                        file);
     }
-    s.test = path_safety_test(s.path_safety, higher, s.threshold);
+    s.test = path_safety_test(s.path_safety, higher, s.threshold,
+                              s.region.empty() ? nullptr : &s.region);
     s.criterion = "path safety " + value + (higher ? " < " : " > ") + number(s.threshold) + " (" +
                   r.unsafe_class + (r.unsafe_class == "medium" ? " or dangerous" : "") +
                   " is unsafe)";

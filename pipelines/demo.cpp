@@ -29,7 +29,7 @@ namespace {
 
 void make_plan(const DemoRequest& a, const std::string& dir) {
   PlanRequest req;
-  req.labels = dir + "/phantom/labels.nii.gz";
+  req.labels = {dir + "/phantom/labels.nii.gz"};
   req.tumor = dir + "/phantom/tumor.nii.gz";
   req.vulnerability = dir + "/phantom/vulnerability.json";
   req.path_safety.device = a.device;

@@ -314,39 +314,45 @@ std::string check_view(const tracking::SyntheticScene& scene, double margin_px) 
   return "";
 }
 
-// Builds the scene for one pair of approaches. Returns an empty string on success.
-std::string build_scene(GuidanceScenario& sc, const planning::PlanData& plan,
-                        const Candidate& safe, const Candidate& danger,
-                        const GuidanceScenarioOptions& o, const Eigen::Vector3d& view_axis) {
-  const Eigen::Vector3d c = sc.target_ct;
-  const Eigen::Vector3d v = view_axis.normalized();
-  // Camera orientation: optical axis v; image x along CT x (the boards lie side by side across the
-  // body), image y down.
-  Eigen::Matrix3d R_ct_cam = frame_along(v, Eigen::Vector3d::UnitX());
-
-  // Patient board beside the entries, toward the midline (anterior skin, flattest there).
+// Where the patient board goes: beside the entries, toward the midline (anterior skin, flattest
+// there), 95 mm inside the label map's z range, 5 mm anterior of the map (outside the body).
+Eigen::Vector3d board_anchor(const planning::ImageGeometry& g, const Candidate& safe,
+                             const Candidate& danger) {
   const Eigen::Vector3d mid = 0.5 * (safe.entry + danger.entry);
   const double side = mid.x() > 0 ? -1.0 : 1.0;
   const double spread = std::abs(safe.entry.x() - danger.entry.x());
   const double board_x = mid.x() + side * (60.0 + 70.0 + 0.5 * spread);
-  const planning::ImageGeometry& g = plan.labels.geometry();
   const Eigen::Vector3d lo = g.index_to_physical(Eigen::Vector3d::Zero());
   const Eigen::Vector3d hi =
       g.index_to_physical(Eigen::Vector3d(g.dims[0] - 1, g.dims[1] - 1, g.dims[2] - 1));
   const double zmin = std::min(lo.z(), hi.z()) + 95, zmax = std::max(lo.z(), hi.z()) - 95;
   const double board_z = zmin <= zmax ? std::clamp(mid.z(), zmin, zmax) : 0.5 * (lo.z() + hi.z());
   const double ymin = std::min(lo.y(), hi.y());
-  const std::optional<BoardPlacement> placement =
-      place_board(plan.labels, Eigen::Vector3d(board_x, ymin - 5.0, board_z));
-  if (!placement) return "no anterior skin for the patient board at x = " + std::to_string(board_x);
+  return Eigen::Vector3d(board_x, ymin - 5.0, board_z);
+}
+
+// Lays the patient board on the skin (sc.T_ct_patient). Returns an empty string on success.
+std::string place_patient_board(GuidanceScenario& sc, const planning::Volume<int32_t>& labels,
+                                const Candidate& safe, const Candidate& danger) {
+  const Eigen::Vector3d anchor = board_anchor(labels.geometry(), safe, danger);
+  const std::optional<BoardPlacement> placement = place_board(labels, anchor);
+  if (!placement) {
+    return "no anterior skin for the patient board at x = " + std::to_string(anchor.x());
+  }
   if (placement->max_fiducial_offset_mm > 2.0) {
     return "the skin under the patient board is too curved (a fiducial lies " +
            std::to_string(placement->max_fiducial_offset_mm) + " mm from it)";
   }
   sc.T_ct_patient = placement->T_ct_patient;
+  return "";
+}
 
+// The needle's script: the safe approach, then the dangerous one, the needle's x axis along the
+// camera image's x.
+Script make_script(const Eigen::Vector3d& centroid, const Candidate& safe, const Candidate& danger,
+                   const Eigen::Matrix3d& R_ct_cam, const GuidanceScenarioOptions& o) {
   Script script;
-  script.centroid = c;
+  script.centroid = centroid;
   script.entry_s = safe.entry;
   script.entry_d = danger.entry;
   script.d_s = -safe.u;
@@ -358,9 +364,95 @@ std::string build_scene(GuidanceScenario& sc, const planning::PlanData& plan,
   script.sw = o.switch_s;
   script.outside = o.start_outside_mm;
   script.short_of = o.stop_short_mm;
+  return script;
+}
+
+// Tag corners in CT: the patient board's, and the needle board's every third frame.
+std::vector<Eigen::Vector3d> tag_corners_ct(const GuidanceScenario& sc,
+                                            const tracking::SceneBoard& patient,
+                                            const tracking::SceneBoard& needle,
+                                            const Script& script) {
+  const tracking::SyntheticScene& s = sc.scene;
+  std::vector<Eigen::Vector3d> points;
+  for (const tracking::BoardTag& t : patient.board.tags) {
+    for (const Eigen::Vector3d& p : t.corners) points.push_back(sc.T_ct_patient * p);
+  }
+  for (int64_t f = 0; f < s.frame_count; f += 3) {
+    const Eigen::Isometry3d T = script.T_ct_needle(double(f) / s.fps);
+    for (const tracking::BoardTag& t : needle.board.tags) {
+      for (const Eigen::Vector3d& p : t.corners) points.push_back(T * p);
+    }
+  }
+  return points;
+}
+
+// Camera position (cam_ct) on the optical axis v: the image of `points` centred, the board centre
+// at camera_distance_mm. Returns an empty string on success.
+std::string place_camera(const std::vector<Eigen::Vector3d>& points,
+                         const Eigen::Vector3d& board_ct, Eigen::Vector3d look,
+                         const Eigen::Matrix3d& R_ct_cam, const Eigen::Vector3d& v,
+                         const calibration::CameraModel& camera, double camera_distance_mm,
+                         Eigen::Vector3d& cam_ct) {
+  cam_ct = look - camera_distance_mm * v;
+  for (int it = 0; it < 12; ++it) {
+    const Eigen::Vector3d w = board_ct - look;
+    const double wv = w.dot(v);
+    const double disc = wv * wv - w.squaredNorm() + camera_distance_mm * camera_distance_mm;
+    if (disc < 0) return "cannot place the camera";
+    cam_ct = look - (-wv + std::sqrt(disc)) * v;
+    double u0 = 1e300, u1 = -1e300, v0 = 1e300, v1 = -1e300, depth = 0;
+    for (const Eigen::Vector3d& p : points) {
+      const Eigen::Vector3d q = R_ct_cam.transpose() * (p - cam_ct);
+      if (q.z() < 50) return "a board lies behind the camera";
+      const Eigen::Vector2d px = camera.project(q);
+      u0 = std::min(u0, px.x());
+      u1 = std::max(u1, px.x());
+      v0 = std::min(v0, px.y());
+      v1 = std::max(v1, px.y());
+      depth += q.z();
+    }
+    depth /= double(points.size());
+    const double du = 0.5 * (u0 + u1) - camera.cx, dv = 0.5 * (v0 + v1) - camera.cy;
+    look += R_ct_cam * Eigen::Vector3d(du * depth / camera.fx, dv * depth / camera.fy, 0.0);
+  }
+  return "";
+}
+
+// Keyframes: the patient board's under the camera drift (breathing, a camera arm settling: three
+// keyframes of T_cam_ct), and the needle board's every frame, following the script.
+void add_keyframes(const GuidanceScenario& sc, const Script& script,
+                   const GuidanceScenarioOptions& o, tracking::SceneBoard& patient,
+                   tracking::SceneBoard& needle) {
+  const double dr = o.camera_drift_mm;
+  const std::vector<std::pair<double, Eigen::Isometry3d>> drift = {
+      {0.0, small_motion({0.0, 0.0, 0.0}, {0.0, 0.0, -0.5 * dr})},
+      {0.5 * sc.duration_s, small_motion({0.8, -1.0, 0.5}, {0.3 * dr, -0.2 * dr, 0.0})},
+      {sc.duration_s, small_motion({-0.6, 1.2, -0.4}, {-0.2 * dr, 0.25 * dr, 0.5 * dr})}};
+  for (const auto& [t, D] : drift) {
+    patient.keyframes.push_back({t, D * sc.T_cam_ct_nominal * sc.T_ct_patient});
+  }
+  const Eigen::Isometry3d T_patient_ct = sc.T_ct_patient.inverse();
+  for (int64_t f = 0; f < sc.scene.frame_count; ++f) {
+    const double t = double(f) / sc.scene.fps;
+    needle.keyframes.push_back(
+        {t, tracking::pose_at(patient, t) * T_patient_ct * script.T_ct_needle(t)});
+  }
+}
+
+// Builds the scene for one pair of approaches. Returns an empty string on success.
+std::string build_scene(GuidanceScenario& sc, const planning::PlanData& plan, const Candidate& safe,
+                        const Candidate& danger, const GuidanceScenarioOptions& o,
+                        const Eigen::Vector3d& view_axis) {
+  const Eigen::Vector3d v = view_axis.normalized();
+  // Camera orientation: optical axis v; image x along CT x (the boards lie side by side across the
+  // body), image y down.
+  const Eigen::Matrix3d R_ct_cam = frame_along(v, Eigen::Vector3d::UnitX());
+  const std::string board_problem = place_patient_board(sc, plan.labels, safe, danger);
+  if (!board_problem.empty()) return board_problem;
+  const Script script = make_script(sc.target_ct, safe, danger, R_ct_cam, o);
   sc.duration_s = 2 * o.hold_s + 2 * o.approach_s + o.switch_s;
 
-  tracking::SyntheticScene builtin = tracking::builtin_scene();
+  const tracking::SyntheticScene builtin = tracking::builtin_scene();
   tracking::SyntheticScene& s = sc.scene;
   s = builtin;
   s.fps = o.fps;
@@ -372,61 +464,20 @@ std::string build_scene(GuidanceScenario& sc, const planning::PlanData& plan,
   patient.keyframes.clear();
   needle.keyframes.clear();
 
-  // Camera position: centre the image of everything, board centre at camera_distance_mm.
-  std::vector<Eigen::Vector3d> points;
-  for (const tracking::BoardTag& t : patient.board.tags) {
-    for (const Eigen::Vector3d& p : t.corners) points.push_back(sc.T_ct_patient * p);
-  }
-  for (int64_t f = 0; f < s.frame_count; f += 3) {
-    const Eigen::Isometry3d T = script.T_ct_needle(double(f) / s.fps);
-    for (const tracking::BoardTag& t : needle.board.tags) {
-      for (const Eigen::Vector3d& p : t.corners) points.push_back(T * p);
-    }
-  }
+  // Camera: looking at the middle between the board and the entries to begin with.
+  const Eigen::Vector3d mid = 0.5 * (safe.entry + danger.entry);
   const Eigen::Vector3d board_ct = sc.T_ct_patient.translation();
-  Eigen::Vector3d look = 0.5 * (board_ct + mid);
-  Eigen::Vector3d cam_ct = look - o.camera_distance_mm * v;
-  for (int it = 0; it < 12; ++it) {
-    const Eigen::Vector3d w = board_ct - look;
-    const double wv = w.dot(v);
-    const double disc = wv * wv - w.squaredNorm() + o.camera_distance_mm * o.camera_distance_mm;
-    if (disc < 0) return "cannot place the camera";
-    cam_ct = look - (-wv + std::sqrt(disc)) * v;
-    double u0 = 1e300, u1 = -1e300, v0 = 1e300, v1 = -1e300, depth = 0;
-    for (const Eigen::Vector3d& p : points) {
-      const Eigen::Vector3d q = R_ct_cam.transpose() * (p - cam_ct);
-      if (q.z() < 50) return "a board lies behind the camera";
-      const Eigen::Vector2d px = s.camera.project(q);
-      u0 = std::min(u0, px.x());
-      u1 = std::max(u1, px.x());
-      v0 = std::min(v0, px.y());
-      v1 = std::max(v1, px.y());
-      depth += q.z();
-    }
-    depth /= double(points.size());
-    const double du = 0.5 * (u0 + u1) - s.camera.cx, dv = 0.5 * (v0 + v1) - s.camera.cy;
-    look += R_ct_cam * Eigen::Vector3d(du * depth / s.camera.fx, dv * depth / s.camera.fy, 0.0);
-  }
+  Eigen::Vector3d cam_ct;
+  const std::string camera_problem =
+      place_camera(tag_corners_ct(sc, patient, needle, script), board_ct, 0.5 * (board_ct + mid),
+                   R_ct_cam, v, s.camera, o.camera_distance_mm, cam_ct);
+  if (!camera_problem.empty()) return camera_problem;
   Eigen::Isometry3d T_ct_cam = Eigen::Isometry3d::Identity();
   T_ct_cam.linear() = R_ct_cam;
   T_ct_cam.translation() = cam_ct;
   sc.T_cam_ct_nominal = T_ct_cam.inverse();
 
-  // Camera drift (breathing, a camera arm settling): three keyframes of T_cam_ct.
-  const double dr = o.camera_drift_mm;
-  const std::vector<std::pair<double, Eigen::Isometry3d>> drift = {
-      {0.0, small_motion({0.0, 0.0, 0.0}, {0.0, 0.0, -0.5 * dr})},
-      {0.5 * sc.duration_s, small_motion({0.8, -1.0, 0.5}, {0.3 * dr, -0.2 * dr, 0.0})},
-      {sc.duration_s, small_motion({-0.6, 1.2, -0.4}, {-0.2 * dr, 0.25 * dr, 0.5 * dr})}};
-  for (const auto& [t, D] : drift) {
-    patient.keyframes.push_back({t, D * sc.T_cam_ct_nominal * sc.T_ct_patient});
-  }
-  const Eigen::Isometry3d T_patient_ct = sc.T_ct_patient.inverse();
-  for (int64_t f = 0; f < s.frame_count; ++f) {
-    const double t = double(f) / s.fps;
-    needle.keyframes.push_back(
-        {t, tracking::pose_at(patient, t) * T_patient_ct * script.T_ct_needle(t)});
-  }
+  add_keyframes(sc, script, o, patient, needle);
   s.boards = {patient, needle};
   s.validate("guidance scene");
   return check_view(s, o.image_margin_px);
@@ -495,6 +546,119 @@ std::string describe(const GuidanceApproach& a) {
   return b + (structures.empty() ? std::string("nothing") : structures);
 }
 
+void check_scenario_inputs(const planning::PlanData& plan, const GuidanceScenarioOptions& o,
+                           const std::string& what) {
+  if (plan.labels.empty()) {
+    throw Error(what + ": the plan has no label map (plan.json inputs.labels)");
+  }
+  if (plan.values.empty() || plan.path_safety.empty()) {
+    throw Error(what + ": the plan has no path safety volume");
+  }
+  if (!(o.fps > 0) || !(o.approach_s > 0) || !(o.switch_s > 0) || o.hold_s < 0) {
+    throw Error(what + ": fps, approach_s and switch_s must be > 0 and hold_s >= 0");
+  }
+  if (!(o.view_axis_ct.norm() > 0)) throw Error(what + ": view_axis_ct must not be zero");
+}
+
+// The candidate approaches: directions within max_angle_from_anterior_deg of anterior on a
+// Fibonacci sphere, those whose line enters the body.
+std::vector<Candidate> candidate_approaches(const Searcher& searcher,
+                                            const GuidanceScenarioOptions& o) {
+  const std::vector<Eigen::Vector3d> dirs =
+      fibonacci_cap(o.sphere_points, -Eigen::Vector3d::UnitY(), o.max_angle_from_anterior_deg);
+  std::vector<Candidate> all;
+  all.reserve(dirs.size());
+  for (const Eigen::Vector3d& u : dirs) {
+    Candidate c = searcher.evaluate(u);
+    if (c.valid) all.push_back(std::move(c));
+  }
+  return all;
+}
+
+// The safe candidates, nearest to the view axis v first, and how many are dangerous.
+struct Census {
+  std::vector<const Candidate*> safe;
+  size_t n_dangerous = 0;
+};
+
+Census census_of(const Searcher& searcher, const std::vector<Candidate>& all,
+                 const Eigen::Vector3d& v) {
+  Census census;
+  for (const Candidate& c : all) {
+    if (searcher.is_safe(c)) census.safe.push_back(&c);
+    if (searcher.is_dangerous(c)) ++census.n_dangerous;
+  }
+  std::sort(census.safe.begin(), census.safe.end(), [&](const Candidate* a, const Candidate* b) {
+    return angle_deg(-a->u, v) < angle_deg(-b->u, v);
+  });
+  return census;
+}
+
+// Safe also when turned by robust_deg in any of 8 directions.
+bool is_robustly_safe(const Searcher& searcher, const Candidate& s, double robust_deg) {
+  for (const Eigen::Vector3d& w : Searcher::ring(s.u, robust_deg)) {
+    if (!searcher.is_safe(searcher.evaluate(w))) return false;
+  }
+  return true;
+}
+
+// A dangerous candidate with its steadiness: still dangerous when turned by 1 degree in any of 8
+// directions (no flicker under tracking noise).
+struct Danger {
+  const Candidate* c;
+  bool steady;
+};
+
+// The dangerous partners of the safe candidate s, min..max_separation_deg from it, best first:
+// vessel-only crossings first, then steady ones, then a clear crossing (>= 3 mm in the vessel),
+// then a short swing (within 28 degrees), then the direction nearest the camera's axis v.
+std::vector<Danger> dangerous_partners(const Searcher& searcher, const std::vector<Candidate>& all,
+                                       const Candidate& s, const GuidanceScenarioOptions& o,
+                                       const Eigen::Vector3d& v) {
+  std::vector<Danger> danger;
+  for (const Candidate& c : all) {
+    const double sep = angle_deg(c.u, s.u);
+    if (sep < o.min_separation_deg || sep > o.max_separation_deg || !searcher.is_dangerous(c)) {
+      continue;
+    }
+    bool steady = true;
+    for (const Eigen::Vector3d& w : Searcher::ring(c.u, 1.0)) {
+      if (!searcher.is_dangerous(searcher.evaluate(w))) {
+        steady = false;
+        break;
+      }
+    }
+    danger.push_back({&c, steady});
+  }
+  const double short_swing_deg = std::min(28.0, o.max_separation_deg);
+  std::sort(danger.begin(), danger.end(), [&](const Danger& a, const Danger& b) {
+    const auto key = [&](const Danger& d) {
+      return std::make_tuple(d.c->other_high_risk, !d.steady, d.c->vessel_length_mm < 3.0,
+                             angle_deg(d.c->u, s.u) > short_swing_deg, angle_deg(-d.c->u, v));
+    };
+    return key(a) < key(b);
+  });
+  return danger;
+}
+
+// A built scene's approaches and needle calibration, logged.
+void complete_scenario(GuidanceScenario& sc, const Candidate& s, const Candidate& d,
+                       const GuidanceScenarioOptions& o) {
+  const Eigen::Vector3d view = sc.T_cam_ct_nominal.linear().row(2).transpose();
+  sc.safe = make_approach("safe", s, o, view, o.hold_s);
+  sc.dangerous = make_approach("dangerous", d, o, view, o.hold_s + o.approach_s + o.switch_s);
+  sc.needle.date = calibration::utc_timestamp();
+  sc.needle.inputs = {"synthetic guidance scene (ground truth)"};
+  sc.needle.board = "needle";
+  sc.needle.tip_needle = tracking::kNeedleTipInNeedle;
+  sc.needle.axis_needle = Eigen::Vector3d::UnitZ();
+  spdlog::info("guidance scenario: {}", describe(sc.safe));
+  spdlog::info("guidance scenario: {}", describe(sc.dangerous));
+  spdlog::info("guidance scenario: {:.1f} deg between the approaches; {} frames at {} fps",
+               angle_deg(sc.safe.direction_ct, sc.dangerous.direction_ct), sc.scene.frame_count,
+               sc.scene.fps);
+}
+
 }  // namespace
 
 bool is_vessel_name(const std::string& name) {
@@ -519,110 +683,36 @@ Eigen::Isometry3d GuidanceScenario::T_ct_needle_at(double time_s) const {
 GuidanceScenario make_guidance_scenario(const planning::PlanData& plan,
                                         const GuidanceScenarioOptions& o) {
   const std::string what = "guidance scenario (plan " + plan.dir + ")";
-  if (plan.labels.empty()) throw Error(what + ": the plan has no label map (plan.json inputs.labels)");
-  if (plan.values.empty() || plan.path_safety.empty()) {
-    throw Error(what + ": the plan has no path safety volume");
-  }
-  if (!(o.fps > 0) || !(o.approach_s > 0) || !(o.switch_s > 0) || o.hold_s < 0) {
-    throw Error(what + ": fps, approach_s and switch_s must be > 0 and hold_s >= 0");
-  }
-  if (!(o.view_axis_ct.norm() > 0)) throw Error(what + ": view_axis_ct must not be zero");
+  check_scenario_inputs(plan, o, what);
   GuidanceScenario sc;
   sc.target_ct = plan.tumor_centre;
   const Searcher searcher(plan, sc.target_ct);
-
-  const std::vector<Eigen::Vector3d> dirs =
-      fibonacci_cap(o.sphere_points, -Eigen::Vector3d::UnitY(), o.max_angle_from_anterior_deg);
-  std::vector<Candidate> all;
-  all.reserve(dirs.size());
-  for (const Eigen::Vector3d& u : dirs) {
-    Candidate c = searcher.evaluate(u);
-    if (c.valid) all.push_back(std::move(c));
-  }
+  const std::vector<Candidate> all = candidate_approaches(searcher, o);
   const Eigen::Vector3d v = o.view_axis_ct.normalized();
-  std::vector<const Candidate*> safe;
-  size_t n_dangerous = 0;
-  for (const Candidate& c : all) {
-    if (searcher.is_safe(c)) safe.push_back(&c);
-    if (searcher.is_dangerous(c)) ++n_dangerous;
-  }
+  const Census census = census_of(searcher, all, v);
   spdlog::info("guidance scenario: {} directions within {} deg of anterior, {} safe, {} crossing "
                "a vessel dangerously",
-               all.size(), o.max_angle_from_anterior_deg, safe.size(), n_dangerous);
-  std::sort(safe.begin(), safe.end(), [&](const Candidate* a, const Candidate* b) {
-    return angle_deg(-a->u, v) < angle_deg(-b->u, v);
-  });
+               all.size(), o.max_angle_from_anterior_deg, census.safe.size(), census.n_dangerous);
 
+  // The first pair (robustly safe, dangerous partner) whose scene can be built, at most 200 tried.
   std::string last_problem = "no direction is safe";
   int robust_found = 0, pairs_tried = 0;
-  for (const Candidate* s : safe) {
-    bool robust = true;
-    for (const Eigen::Vector3d& w : Searcher::ring(s->u, o.robust_deg)) {
-      if (!searcher.is_safe(searcher.evaluate(w))) {
-        robust = false;
-        break;
-      }
-    }
-    if (!robust) continue;
+  for (const Candidate* s : census.safe) {
+    if (!is_robustly_safe(searcher, *s, o.robust_deg)) continue;
     ++robust_found;
     last_problem = "no dangerous direction crossing a vessel " +
                    std::to_string(int(o.min_separation_deg)) + " to " +
                    std::to_string(int(o.max_separation_deg)) + " deg from the safe one";
-    // Dangerous candidates with their steadiness: still dangerous when turned by 1 degree in any
-    // of 8 directions (no flicker under tracking noise).
-    struct Danger {
-      const Candidate* c;
-      bool steady;
-    };
-    std::vector<Danger> danger;
-    for (const Candidate& c : all) {
-      const double sep = angle_deg(c.u, s->u);
-      if (sep < o.min_separation_deg || sep > o.max_separation_deg || !searcher.is_dangerous(c)) {
-        continue;
-      }
-      bool steady = true;
-      for (const Eigen::Vector3d& w : Searcher::ring(c.u, 1.0)) {
-        if (!searcher.is_dangerous(searcher.evaluate(w))) {
-          steady = false;
-          break;
-        }
-      }
-      danger.push_back({&c, steady});
-    }
-    // Vessel-only crossings first, then steady ones, then a clear crossing (>= 3 mm in the
-    // vessel), then a short swing (within 28 degrees), then the direction nearest the camera's
-    // axis.
-    const double short_swing_deg = std::min(28.0, o.max_separation_deg);
-    std::sort(danger.begin(), danger.end(), [&](const Danger& a, const Danger& b) {
-      const auto key = [&](const Danger& d) {
-        return std::make_tuple(d.c->other_high_risk, !d.steady, d.c->vessel_length_mm < 3.0,
-                               angle_deg(d.c->u, s->u) > short_swing_deg, angle_deg(-d.c->u, v));
-      };
-      return key(a) < key(b);
-    });
+    const std::vector<Danger> danger = dangerous_partners(searcher, all, *s, o, v);
     for (const Danger& dg : danger) {
-      const Candidate* d = dg.c;
       if (++pairs_tried > 200) break;
       GuidanceScenario trial = sc;
-      const std::string problem = build_scene_any_view(trial, plan, *s, *d, o);
+      const std::string problem = build_scene_any_view(trial, plan, *s, *dg.c, o);
       if (!problem.empty()) {
         last_problem = problem;
         continue;
       }
-      const Eigen::Vector3d view = trial.T_cam_ct_nominal.linear().row(2).transpose();
-      trial.safe = make_approach("safe", *s, o, view, o.hold_s);
-      trial.dangerous =
-          make_approach("dangerous", *d, o, view, o.hold_s + o.approach_s + o.switch_s);
-      trial.needle.date = calibration::utc_timestamp();
-      trial.needle.inputs = {"synthetic guidance scene (ground truth)"};
-      trial.needle.board = "needle";
-      trial.needle.tip_needle = tracking::kNeedleTipInNeedle;
-      trial.needle.axis_needle = Eigen::Vector3d::UnitZ();
-      spdlog::info("guidance scenario: {}", describe(trial.safe));
-      spdlog::info("guidance scenario: {}", describe(trial.dangerous));
-      spdlog::info("guidance scenario: {:.1f} deg between the approaches; {} frames at {} fps",
-                   angle_deg(trial.safe.direction_ct, trial.dangerous.direction_ct),
-                   trial.scene.frame_count, trial.scene.fps);
+      complete_scenario(trial, *s, *dg.c, o);
       return trial;
     }
     spdlog::debug("guidance scenario: safe direction {:.1f} deg from the view axis: {} dangerous "
@@ -631,9 +721,10 @@ GuidanceScenario make_guidance_scenario(const planning::PlanData& plan,
     if (pairs_tried > 200) break;
   }
   throw Error(what + ": cannot script the guidance scene: " + last_problem + " (" +
-              std::to_string(safe.size()) + " safe directions, " + std::to_string(robust_found) +
-              " of them safe within " + std::to_string(o.robust_deg) + " deg, " +
-              std::to_string(n_dangerous) + " crossing a vessel dangerously)");
+              std::to_string(census.safe.size()) + " safe directions, " +
+              std::to_string(robust_found) + " of them safe within " +
+              std::to_string(o.robust_deg) + " deg, " + std::to_string(census.n_dangerous) +
+              " crossing a vessel dangerously)");
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -5,15 +5,19 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <future>
+#include <vector>
 #include <cmath>
-#include <ctime>
 #include <nlohmann/json.hpp>
 
 #include "foundation/error.hpp"
 #include "foundation/output_files.hpp"
+#include "foundation/text.hpp"
 #include "pipelines/job_inputs.hpp"
+#include "pipelines/plan_inputs.hpp"
 #include "planning/imaging/volume_io.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
+#include "planning/safety/unknown.hpp"
 
 namespace crepuscular::pipelines {
 
@@ -21,72 +25,49 @@ using namespace planning;  // NOLINT: the job drives the planning modules throug
 
 namespace {
 
-std::string now_iso8601() {
-  const std::time_t t = std::time(nullptr);
-  char buf[32];
-  std::strftime(buf, sizeof(buf), "%Y-%m-%dT%H:%M:%SZ", std::gmtime(&t));
-  return buf;
-}
-
 void check_request(const PlanRequest& req) {
   if (req.tumor.empty()) throw Error("plan: a tumor mask is required");
   if (req.out_dir.empty()) throw Error("plan: an output folder is required");
   const int sources = int(!req.labels.empty()) + int(!req.blocking.empty());
-  if (sources > 1) throw Error("plan: give either a label map or a blocking volume, not both");
+  if (sources > 1) throw Error("plan: give either label maps or a blocking volume, not both");
   if (sources == 0 && req.ct.empty()) {
     throw Error(
         "plan: no blocking information: give a label map (with a vulnerability table or "
         "preset), a ready blocking volume, or a CT for thresholding");
   }
-  require_input(req.tumor, "the tumor mask");
-  if (!req.labels.empty()) require_input(req.labels, "the label map");
+  if (!req.preset.empty() && !req.vulnerability.empty()) {
+    throw Error("plan: give either a vulnerability table or a preset, not both (plan.json would "
+                "record only one of them)");
+  }
+  if (req.lesion < 0) throw Error("plan: the lesion number counts from 1 (the largest)");
+  if (req.lesion > 0 && req.lesion_at) {
+    throw Error("plan: choose the lesion either by number or by a point, not both");
+  }
+  require_input(tumor_file(req.tumor), "the tumor");
+  for (const auto& f : label_files(req.labels)) require_input(f, "a label map");
   if (!req.blocking.empty()) require_input(req.blocking, "the blocking volume");
   if (!req.ct.empty()) require_input(req.ct, "the CT");
   if (!req.vulnerability.empty()) require_input(req.vulnerability, "the vulnerability table");
 }
 
-struct Blocking {
-  Volume<float> volume;
-  std::string source;          // the file it came from
-  nlohmann::json description;  // plan.json "preprocessing"
-};
-
-// Step 1: the blocking volume, from a ready volume, a label map and its table, or CT thresholds.
-Blocking make_blocking(const PlanRequest& req) {
-  Blocking b;
-  if (!req.blocking.empty()) {
-    spdlog::info("reading blocking volume {}", req.blocking);
-    b.volume = read_volume<float>(req.blocking);
-    b.source = req.blocking;
-    b.description = {{"mode", "ready blocking volume"}};
-  } else if (!req.labels.empty()) {
-    const ChosenTable table = choose_vulnerability_table(req.labels, req.vulnerability, req.preset);
-    spdlog::info("reading label map {}", req.labels);
-    const Volume<int32_t> labels = read_label_map(req.labels);
-    b.volume = blocking_from_labels(labels, table.table, req.margin, req.labels);
-    b.source = req.labels;
-    b.description = {{"mode", "labels"},
-                     {"vulnerability_source", table.source},
-                     {"vulnerability", table.table.to_json()},
-                     {"margin_fwhm_mm", req.margin.fwhm_mm}};
-  } else {
-    spdlog::info("reading CT {} for thresholding", req.ct);
-    const Volume<float> ct = read_volume<float>(req.ct);
-    b.volume = blocking_from_ct(ct, req.ct_thresholds, req.margin);
-    b.source = req.ct;
-    b.description = {{"mode", "ct thresholds"},
-                     {"bone_hu", req.ct_thresholds.bone_hu},
-                     {"air_hu", req.ct_thresholds.air_hu},
-                     {"impassable_per_mm", req.ct_thresholds.impassable_per_mm},
-                     {"margin_fwhm_mm", req.margin.fwhm_mm}};
-  }
-  validate_blocking(b.volume, b.source);
-  return b;
+// Step 1: blocking volume, tumor and scanned volume from the inputs.
+PlanInputs read_inputs(const PlanRequest& req) {
+  PlanInputOptions o;
+  o.labels = req.labels;
+  o.vulnerability = req.vulnerability;
+  o.preset = req.preset;
+  o.ct = req.ct;
+  o.blocking = req.blocking;
+  o.margin = req.margin;
+  o.ct_thresholds = req.ct_thresholds;
+  o.tumor = req.tumor;
+  o.lesion = req.lesion;
+  o.lesion_at = req.lesion_at;
+  return read_plan_inputs(o);
 }
 
 // Step 2: path safety, with progress in steps of 10 % unless the caller reports it.
-PathSafetyResult compute(const PlanRequest& req, const Blocking& blocking,
-                         const Volume<uint8_t>& tumor) {
+PathSafetyResult compute(const PlanRequest& req, const PlanInputs& in) {
   PathSafetyOptions ps = req.path_safety;
   if (!ps.progress) {
     ps.progress = [last = -1](double f) mutable {
@@ -98,7 +79,7 @@ PathSafetyResult compute(const PlanRequest& req, const Blocking& blocking,
     };
   }
   const PathSafetyResult result =
-      compute_path_safety(blocking.volume, tumor, ps, blocking.source, req.tumor);
+      compute_path_safety(in.blocking, in.tumor, ps, in.blocking_source, tumor_file(req.tumor));
   spdlog::info("path safety done in {:.1f} s on {}", result.seconds, result.device);
   return result;
 }
@@ -122,29 +103,42 @@ nlohmann::json statistics_json(const Volume<float>& vol) {
 }
 
 // Step 3: blocking, region of interest and path safety volumes into the staged folder.
+// Grids above this many voxels are written as uncompressed NIfTI (.nii): gzip, even at level 1,
+// runs at ~100 MB/s a core while the disk takes GB/s (bench/RESULTS.md, plan end to end).
+constexpr int64_t kUncompressedAboveVoxels = 32 * 1024 * 1024;
+
+// Step 3: blocking, voxel states and path safety volumes into the staged folder, concurrently.
 Written write_volumes(const StagedDirectory& out, const Volume<float>& blocking,
-                      const PathSafetyResult& result) {
-  write_volume(blocking, out.file("blocking.nii.gz"));
-  // The region of interest as a mask: ITK-based readers (3D Slicer among them) turn NaN into 0
-  // when they load NIfTI, so "not computed" must also be visible without NaN.
-  Volume<uint8_t> roi(result.grid.geometry, 0);
-  for (int64_t k = 0; k < roi.dims()[2]; ++k)
-    for (int64_t j = 0; j < roi.dims()[1]; ++j)
-      for (int64_t i = 0; i < roi.dims()[0]; ++i) roi(i, j, k) = result.grid.in_roi(i, j, k);
-  write_volume(roi, out.file("roi.nii.gz"));
+                      const Volume<uint8_t>& tumor, const PathSafetyResult& result,
+                      const Volume<uint8_t>& region) {
+  const std::string ext =
+      result.grid.geometry.voxel_count() > kUncompressedAboveVoxels ? ".nii" : ".nii.gz";
   Written w;
-  w.outputs = {{"blocking", "blocking.nii.gz"}, {"roi", "roi.nii.gz"}};
+  w.outputs = {{"blocking", "blocking" + ext}, {"roi", "roi" + ext}, {"tumor", "tumor.nii.gz"}};
+  std::vector<std::future<void>> writes;
+  writes.push_back(std::async(std::launch::async,
+                              [&] { write_volume(blocking, out.file("blocking" + ext)); }));
+  // The planned lesion itself (a label of a label map, or one of several lesions): what slices,
+  // evaluate and guidance outline.
+  writes.push_back(std::async(std::launch::async,
+                              [&] { write_volume(tumor, out.file("tumor.nii.gz")); }));
+  // The voxel states (RegionState): ITK-based readers (3D Slicer among them) turn NaN into 0 when
+  // they load NIfTI, so "not computed" and "unknown" must also be visible without NaN.
+  writes.push_back(std::async(std::launch::async,
+                              [&] { write_volume(region, out.file("roi" + ext)); }));
   for (int v = 0; v < kernels::kValueCount; ++v) {
     const unsigned bit = 1u << v;
     if (!(result.values & bit)) continue;
     const std::string name = value_name(bit);
-    const std::string file = "path_safety_" + name + ".nii.gz";
+    const std::string file = "path_safety_" + name + ext;
     const Volume<float>& vol = result.volumes[size_t(v)];
-    write_volume(vol, out.file(file));
+    writes.push_back(
+        std::async(std::launch::async, [&out, &vol, file] { write_volume(vol, out.file(file)); }));
     w.outputs[name] = file;
     w.classes[name] = classes_json(bit, vol);
     w.statistics[name] = statistics_json(vol);
   }
+  for (auto& f : writes) f.get();  // rethrows the first failure; the staged folder goes with it
   return w;
 }
 
@@ -180,31 +174,72 @@ nlohmann::json fast_check_json(const PlanRequest& req, const PathSafetyResult& r
 }
 
 // Step 5: plan.json from the request, the blocking, the result and what was written.
-nlohmann::json plan_json(const PlanRequest& req, const Blocking& blocking,
+nlohmann::json coverage_json(const CoverageReport& c) {
+  nlohmann::json beyond;
+  for (size_t side = 0; side < c.reach.beyond_mm.size(); ++side) {
+    beyond[ScanReach::side_names()[side]] = c.reach.beyond_mm[side];
+  }
+  return {{"scan_grids", c.grids},
+          {"roi_voxels", c.roi_voxels},
+          {"unknown_voxels", c.unknown_voxels},
+          {"unknown_share", c.unknown_share},
+          {"cropped_voxels", c.cropped_voxels},
+          {"roi_beyond_scan_mm", beyond},
+          {"tumor_voxels_at_scan_edge", c.tumor_edge_voxels},
+          {"unknown",
+           "inside the region of interest but outside the scanned volume (the intersection of "
+           "the anatomy inputs' grids): no path safety value (NaN), 2 in roi.nii.gz; never safe"}};
+}
+
+// Says when the scan does not show all of the region or touches the tumor.
+void warn_about_coverage(const CoverageReport& c, bool cropped) {
+  const std::string sides = c.reach.describe();
+  if (!sides.empty()) {
+    if (cropped) {
+      spdlog::warn("the region of interest reaches beyond the scan ({}): {} voxels left out "
+                   "(--crop-to-scan)", sides, c.cropped_voxels);
+    } else {
+      spdlog::warn("the region of interest reaches beyond the scan ({}): {:.1f} % of it is "
+                   "UNKNOWN (no path safety; never shown as safe)", sides, 100.0 * c.unknown_share);
+    }
+  }
+  if (c.tumor_edge_voxels > 0) {
+    spdlog::warn("the tumor touches the edge of the scan ({} voxels): paths beyond that edge are "
+                 "unknown", c.tumor_edge_voxels);
+  }
+}
+
+nlohmann::json plan_json(const PlanRequest& req, const PlanInputs& in,
                          const PathSafetyResult& result, const Written& written) {
   nlohmann::json plan;
   plan["crepuscular_version"] = CREPUSCULAR_VERSION;
-  plan["created_utc"] = now_iso8601();
+  plan["created_utc"] = utc_now_iso8601();
+  const std::vector<std::string> labels = label_files(req.labels);
+  nlohmann::json all_labels = nlohmann::json::array();
+  for (const auto& f : labels) all_labels.push_back(input_json(f, req.out_dir));
   plan["inputs"] = {
-      {"labels", input_json(req.labels, req.out_dir)},
-      {"tumor", input_json(req.tumor, req.out_dir)},
+      // The first label map: the body outline and structure names of slices, evaluate, guide.
+      {"labels", labels.empty() ? nlohmann::json(nullptr) : input_json(labels.front(), req.out_dir)},
+      {"label_maps", all_labels},
+      {"tumor", input_json(tumor_file(req.tumor), req.out_dir)},
       {"vulnerability", input_json(req.vulnerability, req.out_dir)},
       {"preset", req.preset.empty() ? nlohmann::json(nullptr) : nlohmann::json(req.preset)},
       {"ct", input_json(req.ct, req.out_dir)},
       {"blocking", input_json(req.blocking, req.out_dir)}};
-  plan["preprocessing"] = blocking.description;
+  plan["preprocessing"] = in.preprocessing;
+  plan["tumor_source"] = in.tumor_source;
   plan["parameters"] = parameters_json(req, result);
   if (result.mode == Mode::kFast) plan["fast_mode_vs_exact"] = fast_check_json(req, result);
   const Eigen::Vector3d& c = result.grid.centre;
   plan["grid"] = geometry_json(result.grid.geometry);
   plan["grid"]["centre_lps_mm"] = {c.x(), c.y(), c.z()};
   plan["grid"]["roi_voxels"] = result.grid.roi_voxels;
-  plan["grid"]["outside_roi"] = "NaN (not computed)";
+  plan["grid"]["outside_roi"] = "NaN (not computed), 0 in roi.nii.gz";
   plan["tumor"] = {{"voxels", result.tumor_voxels},
                    {"surface_points", result.surface_points},
                    {"s2_mm2", result.s2_mm2},
                    {"centroid_lps_mm", {c.x(), c.y(), c.z()}}};
-  plan["blocking_grid"] = geometry_json(blocking.volume.geometry());
+  plan["blocking_grid"] = geometry_json(in.blocking.geometry());
   plan["rays"] = result.rays;
   plan["classes"] = written.classes;
   plan["statistics"] = written.statistics;
@@ -221,33 +256,38 @@ nlohmann::json run_plan(const PlanRequest& req) {
   nlohmann::json timings;
 
   auto t = Clock::now();
-  const Blocking blocking = make_blocking(req);
-  timings["preprocessing_s"] = seconds_since(t);
+  const PlanInputs in = read_inputs(req);
+  timings["read_and_preprocess_s"] = seconds_since(t);
 
   t = Clock::now();
-  spdlog::info("reading tumor mask {}", req.tumor);
-  const Volume<uint8_t> tumor = read_mask(req.tumor);
-  timings["read_tumor_s"] = seconds_since(t);
-
-  t = Clock::now();
-  const PathSafetyResult result = compute(req, blocking, tumor);
+  PathSafetyResult result = compute(req, in);
   timings["path_safety_s"] = seconds_since(t);
 
+  // Unknown is never safe: the region outside the scan gets no value.
   t = Clock::now();
-  Written written = write_volumes(out, blocking.volume, result);
+  CoverageReport coverage;
+  const Volume<uint8_t> region = apply_scan_coverage(result, in.coverage, in.tumor,
+                                                     {req.crop_to_scan}, &coverage);
+  warn_about_coverage(coverage, req.crop_to_scan);
+  timings["scan_coverage_s"] = seconds_since(t);
+
+  t = Clock::now();
+  Written written = write_volumes(out, in.blocking, in.tumor, result, region);
   timings["write_s"] = seconds_since(t);
 
   // Step 4, area safety (§3.3): the first computed value.
   nlohmann::json area_safety;
   if (req.area_safety.enabled) {
     t = Clock::now();
-    area_safety = plan_area_safety(tumor, result, req.area_safety, out.file("area_safety.vtk"));
+    area_safety = plan_area_safety(in.tumor, result, req.area_safety, out.file("area_safety.vtk"),
+                                   &region);
     written.outputs["area_safety"] = "area_safety.vtk";
     timings["area_safety_s"] = seconds_since(t);
   }
   timings["total_s"] = seconds_since(t_start);
 
-  nlohmann::json plan = plan_json(req, blocking, result, written);
+  nlohmann::json plan = plan_json(req, in, result, written);
+  plan["scan_coverage"] = coverage_json(coverage);
   if (!area_safety.is_null()) plan["area_safety"] = area_safety;
   plan["outputs"] = written.outputs;
   plan["timings"] = timings;

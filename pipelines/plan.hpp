@@ -4,7 +4,10 @@
 #pragma once
 
 #include <nlohmann/json_fwd.hpp>
+#include <Eigen/Core>
+#include <optional>
 #include <string>
+#include <vector>
 
 #include "planning/preprocessing/blocking.hpp"
 #include "planning/safety/area_safety.hpp"
@@ -13,21 +16,30 @@
 namespace crepuscular::pipelines {
 
 struct PlanRequest {
-  std::string labels;         // label map (with vulnerability table or preset)
-  std::string tumor;          // tumor mask (required)
-  std::string vulnerability;  // vulnerability table JSON
-  std::string preset;         // built-in vulnerability table
+  // Label maps, "FILE[:TABLE]" each (pipelines/plan_inputs.hpp): NIfTI/NRRD label maps or 3D
+  // Slicer segmentations; where they overlap the higher level wins.
+  std::vector<std::string> labels;
+  std::string tumor;          // "FILE" (mask) or "FILE:LABEL" (label value or segment name)
+  int lesion = 0;             // K-th largest lesion of the tumor mask (1 = largest); 0: the only
+  std::optional<Eigen::Vector3d> lesion_at;  // or the lesion at this point (LPS mm)
+  std::string vulnerability;  // vulnerability table JSON (label maps without their own)
+  std::string preset;         // built-in vulnerability table (label maps without their own)
   std::string ct;             // CT in HU: thresholded when no labels are given
   std::string blocking;       // ready blocking volume (risk per mm): used as is
   planning::PathSafetyOptions path_safety;
   planning::MarginOptions margin;
   planning::CtThresholds ct_thresholds;
   planning::AreaSafetyPlanOptions area_safety;  // §3.3: area_safety.vtk for the first value
+  // Voxels of the region of interest outside the scan are left out (not computed) instead of
+  // being unknown.
+  bool crop_to_scan = false;
   std::string out_dir;
 };
 
-// Runs preprocessing and path safety and writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/roi.nii.gz,
-// PLAN_DIR/path_safety_<value>.nii.gz (float32, NaN outside the region of interest) and
+// Runs preprocessing and path safety and writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/roi.nii.gz
+// (planning::RegionState: 0 not computed, 1 computed, 2 unknown: inside the region of interest but
+// outside the scan), PLAN_DIR/path_safety_<value>.nii.gz (float32, NaN where not computed or
+// unknown) and
 // PLAN_DIR/plan.json, and (area_safety.enabled) PLAN_DIR/area_safety.vtk with plan.json's
 // "area_safety" section. Returns the content of plan.json. Throws Error on bad input, naming the
 // input by its role; then nothing is left at out_dir (an earlier plan there stays untouched).

@@ -118,7 +118,8 @@ nlohmann::json view_json(const std::string& file, SlicePlaneKind kind, const Sli
           {"image_width", view.image.width},
           {"image_height", view.image.height},
           {"structures", view.structures},
-          {"contour_segments", view.contour_segments}};
+          {"contour_segments", view.contour_segments},
+          {"unknown_pixels", view.unknown_pixels}};
 }
 
 }  // namespace
@@ -144,6 +145,7 @@ nlohmann::json run_slices(const SlicesRequest& req) {
   SliceScene scene;
   scene.ct = &ct;
   scene.path_safety = &plan.path_safety.at(value);
+  scene.region_state = plan.region.empty() ? nullptr : &plan.region;
   scene.value_name = value;
   scene.classes = plan.classes.at(value);
   scene.labels = plan.labels.empty() ? nullptr : &plan.labels;
@@ -172,6 +174,10 @@ nlohmann::json run_slices(const SlicesRequest& req) {
     spdlog::info("{}: {} x {} pixels of {:.2f} mm, {} structures, {} contour segments", file,
                  view.view_width, view.view_height, view.pixel_mm, view.structures.size(),
                  view.contour_segments);
+    if (view.unknown_pixels > 0) {
+      spdlog::warn("{}: {} pixels show the region of interest outside the scan (unknown, hatched)",
+                   file, view.unknown_pixels);
+    }
     views.push_back(view_json(file, kind, plane, view));
   }
   nlohmann::json j = {

@@ -132,7 +132,7 @@ RecordingWriter::RecordingWriter(const std::string& dir, const SessionInfo& sess
   }
   std::error_code ec;
   if (fs::exists(dir_) && !fs::is_empty(dir_, ec)) {
-    throw Error(dir_ + ": recording folder exists and is not empty; choose another --out");
+    throw Error(dir_ + ": recording folder exists and is not empty; choose another folder");
   }
   fs::create_directories(fs::path(dir_) / "frames", ec);
   if (ec) throw Error(dir_ + ": cannot create recording folder (" + ec.message() + ")");

@@ -204,7 +204,7 @@ FrameRecorder::FrameRecorder(const std::string& out_dir, const std::string& sour
   while (m.final_dir.size() > 1 && m.final_dir.back() == '/') m.final_dir.pop_back();
   m.partial = m.final_dir + ".partial";
   if (fs::exists(m.final_dir)) {
-    throw Error(m.final_dir + ": exists; choose another --out or remove it first");
+    throw Error(m.final_dir + ": exists; choose another output folder or remove it first");
   }
   if (fs::exists(m.partial)) {
     throw Error(m.partial + ": exists (an interrupted recording, replayable as recording:" +

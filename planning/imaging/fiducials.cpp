@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <fstream>
 #include <limits>
+#include <optional>
 #include <sstream>
 
 #include <nlohmann/json.hpp>
@@ -30,25 +31,30 @@ struct Component {
   double peak = -std::numeric_limits<double>::infinity();
 };
 
-}  // namespace
+using MaskImage = itk::Image<uint8_t, 3>;
+using LabelImage = itk::Image<uint32_t, 3>;
 
+// 1 where the CT is at or above `threshold`, on the CT's grid; `above` counts those voxels.
 template <typename T>
-std::vector<Fiducial> detect_fiducials(const Volume<T>& ct, const FiducialDetectionOptions& options) {
+MaskImage::Pointer threshold_mask(const Volume<T>& ct, double threshold, int64_t& above) {
   const ImageGeometry& g = ct.geometry();
-  g.validate("CT");
-  using MaskImage = itk::Image<uint8_t, 3>;
-  using LabelImage = itk::Image<uint32_t, 3>;
   auto mask = MaskImage::New();
   set_image_geometry(*mask, g);
   mask->Allocate();
   uint8_t* m = mask->GetBufferPointer();
-  int64_t above = 0;
+  above = 0;
   for (int64_t o = 0; o < g.voxel_count(); ++o) {
-    m[o] = double(ct[o]) >= options.threshold ? 1 : 0;
+    m[o] = double(ct[o]) >= threshold ? 1 : 0;
     above += m[o];
   }
-  spdlog::debug("fiducials: {} voxels at or above {}", above, options.threshold);
-  if (above == 0) return {};
+  return mask;
+}
+
+// Voxel count, index bounding box and peak CT value of each fully connected component of `mask`,
+// indexed by component label (entry 0, the background, stays empty).
+template <typename T>
+std::vector<Component> connected_components(const Volume<T>& ct, const MaskImage::Pointer& mask) {
+  const ImageGeometry& g = ct.geometry();
   auto cc = itk::ConnectedComponentImageFilter<MaskImage, LabelImage>::New();
   cc->SetInput(mask);
   cc->SetFullyConnected(true);
@@ -68,77 +74,131 @@ std::vector<Fiducial> detect_fiducials(const Volume<T>& ct, const FiducialDetect
     }
     c.peak = std::max(c.peak, double(ct[o]));
   }
-  const double voxel_mm3 = g.voxel_volume_mm3();
+  return comps;
+}
+
+// Index box [lo, hi] (inclusive) around a component: its bounding box grown by the margin,
+// clipped to the grid.
+struct Window {
+  Index3 lo, hi;
+};
+
+Window component_window(const Component& c, const ImageGeometry& g, int margin_voxels) {
+  Window w;
+  for (size_t a = 0; a < 3; ++a) {
+    w.lo[a] = std::max<int64_t>(0, c.lo[a] - margin_voxels);
+    w.hi[a] = std::min<int64_t>(g.dims[a] - 1, c.hi[a] + margin_voxels);
+  }
+  return w;
+}
+
+// Local background: median of the window's border voxels, at most `threshold`.
+template <typename T>
+double local_background(const Volume<T>& ct, const Window& w, double threshold) {
+  std::vector<double> border;
+  for (int64_t k = w.lo[2]; k <= w.hi[2]; ++k) {
+    for (int64_t j = w.lo[1]; j <= w.hi[1]; ++j) {
+      for (int64_t i = w.lo[0]; i <= w.hi[0]; ++i) {
+        if (i == w.lo[0] || i == w.hi[0] || j == w.lo[1] || j == w.hi[1] || k == w.lo[2] ||
+            k == w.hi[2]) {
+          border.push_back(double(ct(i, j, k)));
+        }
+      }
+    }
+  }
+  std::nth_element(border.begin(), border.begin() + long(border.size() / 2), border.end());
+  return std::min(border[border.size() / 2], threshold);
+}
+
+// Sums over the window of the weights w = CT - background (voxels with w <= floor left out), of
+// w x index and of w x (mm position)(mm position)^T.
+struct Moments {
+  double wsum = 0;
+  Eigen::Vector3d first = Eigen::Vector3d::Zero();
+  Eigen::Matrix3d second = Eigen::Matrix3d::Zero();
+};
+
+template <typename T>
+Moments window_moments(const Volume<T>& ct, const Window& win, double background, double floor) {
+  const Eigen::Matrix3d to_mm = ct.geometry().index_to_physical_matrix();
+  Moments m;
+  for (int64_t k = win.lo[2]; k <= win.hi[2]; ++k) {
+    for (int64_t j = win.lo[1]; j <= win.hi[1]; ++j) {
+      for (int64_t i = win.lo[0]; i <= win.hi[0]; ++i) {
+        const double w = double(ct(i, j, k)) - background;
+        if (w <= floor) continue;
+        const Eigen::Vector3d x{double(i), double(j), double(k)};
+        m.wsum += w;
+        m.first += w * x;
+        const Eigen::Vector3d xm = to_mm * x;
+        m.second += w * xm * xm.transpose();
+      }
+    }
+  }
+  return m;
+}
+
+// Longest / shortest principal extent of the moments' spread about the centroid (mm). Extents of
+// a single-voxel-thick component are bounded below by the voxel's own spread.
+double elongation(const Moments& m, const ImageGeometry& g) {
   const Eigen::Matrix3d to_mm = g.index_to_physical_matrix();
+  const Eigen::Vector3d mean_mm = to_mm * (m.first / m.wsum);
+  const Eigen::Matrix3d cov = m.second / m.wsum - mean_mm * mean_mm.transpose();
+  const Eigen::Vector3d ev = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(cov).eigenvalues();
+  const double smallest =
+      std::sqrt(std::max(ev(0), g.spacing.minCoeff() * g.spacing.minCoeff() / 12.0));
+  return std::sqrt(std::max(ev(2), 0.0)) / smallest;
+}
+
+// The bead of one component: its intensity-weighted centroid (index space, over the window above
+// the local background); nothing when its volume or its elongation rules it out.
+template <typename T>
+std::optional<Fiducial> measure_bead(const Volume<T>& ct, const Component& c,
+                                     const FiducialDetectionOptions& options) {
+  const ImageGeometry& g = ct.geometry();
+  const double volume = double(c.voxels) * g.voxel_volume_mm3();
+  if (volume < options.min_volume_mm3 || volume > options.max_volume_mm3) {
+    spdlog::debug("fiducials: component of {:.1f} mm3 skipped (outside {}..{} mm3)", volume,
+                  options.min_volume_mm3, options.max_volume_mm3);
+    return std::nullopt;
+  }
+  const Window window = component_window(c, g, options.margin_voxels);
+  const double background = local_background(ct, window, options.threshold);
+  const Moments m = window_moments(ct, window, background, 0.05 * (c.peak - background));
+  if (m.wsum <= 0) return std::nullopt;
+  const double stretch = elongation(m, g);
+  if (stretch > options.max_elongation) {
+    spdlog::debug("fiducials: component of {:.1f} mm3 skipped (elongation {:.1f})", volume,
+                  stretch);
+    return std::nullopt;
+  }
+  Fiducial f;
+  f.position = g.index_to_physical(Eigen::Vector3d(m.first / m.wsum));
+  f.volume_mm3 = volume;
+  f.peak = c.peak;
+  return f;
+}
+
+}  // namespace
+
+template <typename T>
+std::vector<Fiducial> detect_fiducials(const Volume<T>& ct,
+                                       const FiducialDetectionOptions& options) {
+  ct.geometry().validate("CT");
+  int64_t above = 0;
+  const MaskImage::Pointer mask = threshold_mask(ct, options.threshold, above);
+  spdlog::debug("fiducials: {} voxels at or above {}", above, options.threshold);
+  if (above == 0) return {};
+  const std::vector<Component> comps = connected_components(ct, mask);
   std::vector<Fiducial> found;
-  for (size_t l = 1; l <= count; ++l) {
-    const Component& c = comps[l];
-    const double volume = double(c.voxels) * voxel_mm3;
-    if (volume < options.min_volume_mm3 || volume > options.max_volume_mm3) {
-      spdlog::debug("fiducials: component of {:.1f} mm3 skipped (outside {}..{} mm3)", volume,
-                    options.min_volume_mm3, options.max_volume_mm3);
-      continue;
-    }
-    Index3 lo, hi;
-    for (size_t a = 0; a < 3; ++a) {
-      lo[a] = std::max<int64_t>(0, c.lo[a] - options.margin_voxels);
-      hi[a] = std::min<int64_t>(g.dims[a] - 1, c.hi[a] + options.margin_voxels);
-    }
-    // Local background: median of the window's border voxels.
-    std::vector<double> border;
-    for (int64_t k = lo[2]; k <= hi[2]; ++k) {
-      for (int64_t j = lo[1]; j <= hi[1]; ++j) {
-        for (int64_t i = lo[0]; i <= hi[0]; ++i) {
-          if (i == lo[0] || i == hi[0] || j == lo[1] || j == hi[1] || k == lo[2] || k == hi[2]) {
-            border.push_back(double(ct(i, j, k)));
-          }
-        }
-      }
-    }
-    std::nth_element(border.begin(), border.begin() + long(border.size() / 2), border.end());
-    const double background = std::min(border[border.size() / 2], options.threshold);
-    // Intensity-weighted centroid (index space) and second moments (mm) over the window.
-    double wsum = 0;
-    Eigen::Vector3d first = Eigen::Vector3d::Zero();
-    Eigen::Matrix3d second = Eigen::Matrix3d::Zero();
-    const double floor = 0.05 * (c.peak - background);
-    for (int64_t k = lo[2]; k <= hi[2]; ++k) {
-      for (int64_t j = lo[1]; j <= hi[1]; ++j) {
-        for (int64_t i = lo[0]; i <= hi[0]; ++i) {
-          const double w = double(ct(i, j, k)) - background;
-          if (w <= floor) continue;
-          const Eigen::Vector3d x{double(i), double(j), double(k)};
-          wsum += w;
-          first += w * x;
-          const Eigen::Vector3d xm = to_mm * x;
-          second += w * xm * xm.transpose();
-        }
-      }
-    }
-    if (wsum <= 0) continue;
-    const Eigen::Vector3d centroid_index = first / wsum;
-    const Eigen::Vector3d mean_mm = to_mm * centroid_index;
-    const Eigen::Matrix3d cov = second / wsum - mean_mm * mean_mm.transpose();
-    const Eigen::Vector3d ev = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(cov).eigenvalues();
-    // Extents of a single-voxel-thick component are bounded below by the voxel's own spread.
-    const double smallest = std::sqrt(std::max(ev(0), g.spacing.minCoeff() * g.spacing.minCoeff() / 12.0));
-    const double elongation = std::sqrt(std::max(ev(2), 0.0)) / smallest;
-    if (elongation > options.max_elongation) {
-      spdlog::debug("fiducials: component of {:.1f} mm3 skipped (elongation {:.1f})", volume,
-                    elongation);
-      continue;
-    }
-    Fiducial f;
-    f.position = g.index_to_physical(centroid_index);
-    f.volume_mm3 = volume;
-    f.peak = c.peak;
-    found.push_back(f);
+  for (size_t l = 1; l < comps.size(); ++l) {
+    if (const std::optional<Fiducial> f = measure_bead(ct, comps[l], options)) found.push_back(*f);
   }
   std::sort(found.begin(), found.end(),
             [](const Fiducial& a, const Fiducial& b) { return a.peak > b.peak; });
   for (size_t i = 0; i < found.size(); ++i) found[i].label = "B-" + std::to_string(i + 1);
   spdlog::info("fiducials: {} bead(s) found above {} ({} bright component(s) in all)", found.size(),
-               options.threshold, count);
+               options.threshold, comps.size() - 1);
   return found;
 }
 

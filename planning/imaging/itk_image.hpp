@@ -1,12 +1,19 @@
-// ITK images on the grid of an ImageGeometry: the one place where our geometry becomes ITK's
-// (origin, spacing, direction; both LPS). Internal to planning/.
+// ITK images and image files on the grid of an ImageGeometry: the one place where our geometry
+// becomes ITK's and back (origin, spacing, direction; both LPS). Internal to planning/.
 #pragma once
 
 #ifndef ITK_USE_SYSTEM_EIGEN
 #define ITK_USE_SYSTEM_EIGEN  // one Eigen in every file: the system's, which volume.hpp includes
 #endif
 #include <itkImage.h>
+#include <itkImageIOBase.h>
 
+#include <Eigen/Core>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "foundation/error.hpp"
 #include "planning/imaging/volume.hpp"
 
 namespace crepuscular::planning {
@@ -28,6 +35,38 @@ void set_image_geometry(Image& image, const ImageGeometry& g) {
   image.SetSpacing(spacing);
   image.SetOrigin(origin);
   image.SetDirection(direction);
+}
+
+// Geometry checks beyond ImageGeometry::validate: the direction must be orthonormal (validate only
+// looks at the determinant). Tolerance 1e-3 because NIfTI stores the direction in float32. Throws
+// Error naming `path`.
+inline void check_geometry(const ImageGeometry& g, const std::string& path) {
+  g.validate(path);
+  const double deviation =
+      (g.direction.transpose() * g.direction - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
+  if (deviation > 1e-3) {
+    std::ostringstream m;
+    m.precision(10);
+    m << path << ": direction cosines are not orthonormal (|D^T D - I| = " << deviation
+      << ", expected < 0.001)";
+    throw Error(m.str());
+  }
+}
+
+// The grid of a file's first three axes as its ImageIO reports them (after ReadImageInformation),
+// checked with check_geometry. The direction is read from the IO itself: for files with more than
+// 3 axes ImageFileReader replaces it with the identity.
+inline ImageGeometry geometry_of_image_io(const itk::ImageIOBase& io, const std::string& path) {
+  ImageGeometry g;
+  for (unsigned a = 0; a < 3; ++a) {
+    g.dims[a] = int64_t(io.GetDimensions(a));
+    g.spacing[a] = io.GetSpacing(a);
+    g.origin[a] = io.GetOrigin(a);
+    const std::vector<double> axis = io.GetDirection(a);
+    for (unsigned r = 0; r < 3; ++r) g.direction(r, a) = r < axis.size() ? axis[r] : 0.0;
+  }
+  check_geometry(g, path);
+  return g;
 }
 
 }  // namespace crepuscular::planning

@@ -34,6 +34,7 @@ void for_each_voxel_coverage(const std::vector<ScanCoverage::Grid>& grids,
                              const ImageGeometry& grid, F&& f) {
   const std::vector<IndexMap> maps = index_maps(grids, grid);
   const Index3& d = grid.dims;
+#pragma omp parallel for schedule(dynamic, 1)
   for (int64_t k = 0; k < d[2]; ++k) {
     for (int64_t j = 0; j < d[1]; ++j) {
       for (int64_t i = 0; i < d[0]; ++i) {

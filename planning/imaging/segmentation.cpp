@@ -19,12 +19,9 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "planning/imaging/itk_image.hpp"
 
-// ITK headers after ours: one Eigen (the system's) in this unit, as in volume_io.cpp.
-#ifndef ITK_USE_SYSTEM_EIGEN
-#define ITK_USE_SYSTEM_EIGEN
-#endif
-#include <itkImageIOBase.h>
+// ITK headers after itk_image.hpp, which has ITK use the system Eigen: one Eigen in this unit.
 #include <itkMetaDataObject.h>
 #include <itkNrrdImageIO.h>
 
@@ -198,6 +195,199 @@ std::string list_segments(const std::vector<Segment>& segments) {
   return s.empty() ? "none" : s;
 }
 
+// The file's NRRD ImageIO with its header read; Error when it is no readable NRRD file.
+itk::NrrdImageIO::Pointer open_nrrd(const std::string& path) {
+  std::error_code ec;
+  if (!fs::is_regular_file(path, ec)) {
+    throw Error(path + ": " + (fs::exists(path, ec) ? "not a file" : "no such file") +
+                " (expected a 3D Slicer segmentation, .seg.nrrd)");
+  }
+  auto io = itk::NrrdImageIO::New();
+  if (!io->CanReadFile(path.c_str())) {
+    throw Error(path + ": not a NRRD file (expected a 3D Slicer segmentation, .seg.nrrd)");
+  }
+  io->SetFileName(path);
+  try {
+    io->ReadImageInformation();
+  } catch (const itk::ExceptionObject& e) {
+    throw Error(path + ": cannot read the NRRD header (" + one_line(e) + ")");
+  }
+  return io;
+}
+
+// Layout: 3D with one component per layer, or the obsolete 4D (4th axis = segment).
+struct Layout {
+  bool legacy_4d = false;
+  int layer_count = 0;
+};
+
+Layout layout_of(const itk::NrrdImageIO& io, const std::string& path) {
+  const unsigned dims = io.GetNumberOfDimensions();
+  const unsigned components = io.GetNumberOfComponents();
+  Layout layout;
+  layout.layer_count = int(components);
+  if (dims == 4 && io.GetDimensions(3) > 1) {
+    if (components != 1) {
+      throw Error(path + ": 4D image with " + std::to_string(components) +
+                  " components per voxel (expected 3D with one component per layer, or the "
+                  "obsolete 4D layout with one segment per 4th-axis index)");
+    }
+    layout.legacy_4d = true;
+    layout.layer_count = int(io.GetDimensions(3));
+  } else if (dims < 3 || dims > 4) {
+    throw Error(path + ": image is " + std::to_string(dims) +
+                "D (expected 3D, one component per layer)");
+  }
+  return layout;
+}
+
+std::string layers_text(int layer_count) {
+  return std::to_string(layer_count) + " layer" + (layer_count == 1 ? "" : "s");
+}
+
+// Segment n's layer: the 4th-axis index in the obsolete layout, else Segment<n>_Layer, else n
+// (Slicer's default: each segment in a layer of its own).
+int segment_layer(const std::string& path, int n, const std::string& name,
+                  const std::optional<std::string>& layer, const Layout& layout) {
+  if (layout.legacy_4d) {
+    if (n >= layout.layer_count) {
+      throw Error(path + ": segment " + std::to_string(n) + " '" + name + "' has no volume (" +
+                  std::to_string(layout.layer_count) + " along the 4th axis)");
+    }
+    return n;
+  }
+  if (layer) {
+    return header_integer(path, segment_key(n, "Layer"), *layer, 0, layout.layer_count - 1,
+                          " for a file of " + layers_text(layout.layer_count));
+  }
+  if (n >= layout.layer_count) {
+    throw Error(path + ": " + segment_key(n, "Layer") + " is missing and the file holds " +
+                layers_text(layout.layer_count) + " (expected a layer for every segment)");
+  }
+  return n;
+}
+
+// Segment n of the header with its extent (none in the obsolete layout); nothing when the header
+// has no Segment<n>_ID, _Name, _LabelValue or _Layer key.
+struct SegmentEntry {
+  Segment segment;
+  std::optional<Extent> extent;
+};
+
+std::optional<SegmentEntry> segment_entry(const itk::MetaDataDictionary& dict,
+                                          const std::string& path, int n, const Layout& layout) {
+  const auto id = header_value(dict, segment_key(n, "ID"));
+  const auto name = header_value(dict, segment_key(n, "Name"));
+  const auto value = header_value(dict, segment_key(n, "LabelValue"));
+  const auto layer = header_value(dict, segment_key(n, "Layer"));
+  if (!id && !name && !value && !layer) return std::nullopt;
+  SegmentEntry entry;
+  Segment& s = entry.segment;
+  s.index = n;
+  s.id = id.value_or("");
+  s.name = name && !name->empty() ? *name : s.id;
+  if (s.name.empty()) s.name = "Segment" + std::to_string(n);
+  if (value) {
+    s.label_value = header_integer(path, segment_key(n, "LabelValue"), *value, 1, kMaxLabelValue);
+  }
+  s.layer = segment_layer(path, n, s.name, layer, layout);
+  const auto extent = header_value(dict, segment_key(n, "Extent"));
+  if (extent && !layout.legacy_4d) {
+    entry.extent = parse_extent(path, segment_key(n, "Extent"), *extent);
+  }
+  return entry;
+}
+
+// Segments: N = 0, 1, ... while any Segment<N>_ key exists (Slicer itself counts Segment<N>_ID);
+// their extents in the same order. Error on a label value repeated within a layer, or no segment.
+void read_segments(const itk::MetaDataDictionary& dict, const std::string& path,
+                   const Layout& layout, std::vector<Segment>& segments,
+                   std::vector<std::optional<Extent>>& extents) {
+  for (int n = 0;; ++n) {
+    std::optional<SegmentEntry> entry = segment_entry(dict, path, n, layout);
+    if (!entry) break;
+    const Segment& s = entry->segment;
+    extents.push_back(entry->extent);
+    for (const Segment& other : segments) {
+      if (other.layer == s.layer && other.label_value == s.label_value) {
+        throw Error(path + ": " + segment_key(n, "LabelValue") + " is " +
+                    std::to_string(s.label_value) + ", as for segment " +
+                    std::to_string(other.index) + " '" + other.name + "' in the same layer " +
+                    std::to_string(s.layer) + " (expected unique values within a layer)");
+      }
+    }
+    segments.push_back(s);
+  }
+  if (segments.empty()) {
+    throw Error(path +
+                ": no segments in the header (no key Segment0_ID, Segment0_Name, "
+                "Segment0_LabelValue or Segment0_Layer; expected a 3D Slicer segmentation; a plain "
+                "label map needs a vulnerability table by label value)");
+  }
+}
+
+// Every stored value; Error unless they are `voxels` x layer_count components.
+std::vector<char> read_voxels(itk::NrrdImageIO& io, const std::string& path, int64_t voxels,
+                              int layer_count) {
+  std::vector<char> raw;
+  read_raw(io, path, raw);
+  const size_t component_bytes = io.GetComponentSize();
+  if (component_bytes == 0 || raw.size() != size_t(voxels * layer_count) * component_bytes) {
+    throw Error(path + ": holds " + std::to_string(raw.size()) + " bytes of voxels for " +
+                std::to_string(voxels) + " voxels x " + std::to_string(layer_count) + " layers");
+  }
+  return raw;
+}
+
+// The label map of layer l: each voxel the label value of its segment, 0 elsewhere. Values no
+// segment declares and voxels outside their segment's extent are left out, with a warning.
+Volume<int32_t> layer_labels(const itk::NrrdImageIO& io, const std::vector<char>& raw,
+                             const std::string& path, const ImageGeometry& g, const Layout& layout,
+                             int l, const std::vector<Segment>& segments,
+                             const std::vector<std::optional<Extent>>& extents) {
+  const bool legacy_4d = layout.legacy_4d;
+  const int layer_count = layout.layer_count;
+  const int64_t voxels = g.voxel_count();
+  // Value -> segment (position in segments).
+  std::vector<int> segment_of_value(size_t(kMaxLabelValue) + 1, -1);
+  for (size_t i = 0; i < segments.size(); ++i) {
+    if (segments[i].layer != l) continue;
+    // The obsolete 4D layout stores each segment as a binary volume: any value > 0 is inside.
+    segment_of_value[size_t(legacy_4d ? 1 : segments[i].label_value)] = int(i);
+  }
+  Volume<int32_t> labels(g, 0);
+  std::map<int64_t, int64_t> undeclared;  // value -> voxels
+  int64_t outside_extent = 0;
+  with_stored_values(io, raw, path, [&](const auto* stored) {
+    for (int64_t v = 0; v < voxels; ++v) {
+      const int64_t element = legacy_4d ? v + voxels * l : v * layer_count + l;
+      int64_t x = integer_value(stored[element], element, path);
+      if (x == 0) continue;
+      if (legacy_4d) x = x > 0 ? 1 : x;
+      const int i = x > 0 && x <= kMaxLabelValue ? segment_of_value[size_t(x)] : -1;
+      if (i < 0) {
+        ++undeclared[x];
+        continue;
+      }
+      const auto& extent = extents[size_t(i)];
+      if (extent && !extent->contains(g.index_of_offset(v))) {
+        ++outside_extent;
+        continue;
+      }
+      labels[v] = int32_t(segments[size_t(i)].label_value);
+    }
+  });
+  for (const auto& [x, count] : undeclared) {
+    spdlog::warn("{}: layer {} holds value {} in {} voxels, which no segment declares; ignored",
+                 path, l, x, count);
+  }
+  if (outside_extent > 0) {
+    spdlog::warn("{}: layer {}: {} labelled voxels outside their segment's extent; ignored", path,
+                 l, outside_extent);
+  }
+  return labels;
+}
+
 }  // namespace
 
 std::string normalized_structure_name(const std::string& name) {
@@ -270,167 +460,19 @@ Volume<uint8_t> Segmentation::segment_mask(const Segment& segment) const {
 }
 
 Segmentation read_segmentation(const std::string& path) {
-  std::error_code ec;
-  if (!fs::is_regular_file(path, ec)) {
-    throw Error(path + ": " + (fs::exists(path, ec) ? "not a file" : "no such file") +
-                " (expected a 3D Slicer segmentation, .seg.nrrd)");
-  }
-  auto io = itk::NrrdImageIO::New();
-  if (!io->CanReadFile(path.c_str())) {
-    throw Error(path + ": not a NRRD file (expected a 3D Slicer segmentation, .seg.nrrd)");
-  }
-  io->SetFileName(path);
-  try {
-    io->ReadImageInformation();
-  } catch (const itk::ExceptionObject& e) {
-    throw Error(path + ": cannot read the NRRD header (" + one_line(e) + ")");
-  }
-
-  // Layout: 3D with one component per layer, or the obsolete 4D (4th axis = segment).
-  const unsigned dims = io->GetNumberOfDimensions();
-  const unsigned components = io->GetNumberOfComponents();
-  bool legacy_4d = false;
-  int layer_count = int(components);
-  if (dims == 4 && io->GetDimensions(3) > 1) {
-    if (components != 1) {
-      throw Error(path + ": 4D image with " + std::to_string(components) +
-                  " components per voxel (expected 3D with one component per layer, or the "
-                  "obsolete 4D layout with one segment per 4th-axis index)");
-    }
-    legacy_4d = true;
-    layer_count = int(io->GetDimensions(3));
-  } else if (dims < 3 || dims > 4) {
-    throw Error(path + ": image is " + std::to_string(dims) +
-                "D (expected 3D, one component per layer)");
-  }
-
-  ImageGeometry g;
-  for (unsigned a = 0; a < 3; ++a) {
-    g.dims[a] = int64_t(io->GetDimensions(a));
-    g.spacing[a] = io->GetSpacing(a);
-    g.origin[a] = io->GetOrigin(a);
-    const std::vector<double> axis = io->GetDirection(a);
-    for (unsigned r = 0; r < 3; ++r) g.direction(r, a) = r < axis.size() ? axis[r] : 0.0;
-  }
-  g.validate(path);
-  const double deviation =
-      (g.direction.transpose() * g.direction - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff();
-  if (deviation > 1e-3) {
-    std::ostringstream m;
-    m << path << ": direction cosines are not orthonormal (|D^T D - I| = " << deviation
-      << ", expected < 0.001)";
-    throw Error(m.str());
-  }
-
-  // Segments: N = 0, 1, ... while any Segment<N>_ key exists (Slicer itself counts Segment<N>_ID).
-  const itk::MetaDataDictionary& dict = io->GetMetaDataDictionary();
+  const itk::NrrdImageIO::Pointer io = open_nrrd(path);
+  const Layout layout = layout_of(*io, path);
+  const ImageGeometry g = geometry_of_image_io(*io, path);
   Segmentation seg;
   seg.source = path;
   std::vector<std::optional<Extent>> extents;
-  for (int n = 0;; ++n) {
-    const auto id = header_value(dict, segment_key(n, "ID"));
-    const auto name = header_value(dict, segment_key(n, "Name"));
-    const auto value = header_value(dict, segment_key(n, "LabelValue"));
-    const auto layer = header_value(dict, segment_key(n, "Layer"));
-    if (!id && !name && !value && !layer) break;
-    Segment s;
-    s.index = n;
-    s.id = id.value_or("");
-    s.name = name && !name->empty() ? *name : s.id;
-    if (s.name.empty()) s.name = "Segment" + std::to_string(n);
-    if (value) {
-      s.label_value = header_integer(path, segment_key(n, "LabelValue"), *value, 1, kMaxLabelValue);
-    }
-    if (legacy_4d) {
-      s.layer = n;
-      if (n >= layer_count) {
-        throw Error(path + ": segment " + std::to_string(n) + " '" + s.name + "' has no volume (" +
-                    std::to_string(layer_count) + " along the 4th axis)");
-      }
-    } else if (layer) {
-      s.layer = header_integer(path, segment_key(n, "Layer"), *layer, 0, layer_count - 1,
-                               " for a file of " + std::to_string(layer_count) + " layer" +
-                                   (layer_count == 1 ? "" : "s"));
-    } else {
-      s.layer = n;  // Slicer's default: each segment in a layer of its own
-      if (n >= layer_count) {
-        throw Error(path + ": " + segment_key(n, "Layer") + " is missing and the file holds " +
-                    std::to_string(layer_count) + " layer" + (layer_count == 1 ? "" : "s") +
-                    " (expected a layer for every segment)");
-      }
-    }
-    const auto extent = header_value(dict, segment_key(n, "Extent"));
-    extents.push_back(extent && !legacy_4d ? std::optional<Extent>(parse_extent(
-                                                 path, segment_key(n, "Extent"), *extent))
-                                           : std::nullopt);
-    for (const Segment& other : seg.segments) {
-      if (other.layer == s.layer && other.label_value == s.label_value) {
-        throw Error(path + ": " + segment_key(n, "LabelValue") + " is " +
-                    std::to_string(s.label_value) + ", as for segment " +
-                    std::to_string(other.index) + " '" + other.name + "' in the same layer " +
-                    std::to_string(s.layer) + " (expected unique values within a layer)");
-      }
-    }
-    seg.segments.push_back(s);
-  }
-  if (seg.segments.empty()) {
-    throw Error(path +
-                ": no segments in the header (no key Segment0_ID, Segment0_Name, "
-                "Segment0_LabelValue or Segment0_Layer; expected a 3D Slicer segmentation; a plain "
-                "label map needs a vulnerability table by label value)");
-  }
-
-  std::vector<char> raw;
-  read_raw(*io, path, raw);
-  const int64_t voxels = g.voxel_count();
-  const size_t component_bytes = io->GetComponentSize();
-  if (component_bytes == 0 || raw.size() != size_t(voxels * layer_count) * component_bytes) {
-    throw Error(path + ": holds " + std::to_string(raw.size()) + " bytes of voxels for " +
-                std::to_string(voxels) + " voxels x " + std::to_string(layer_count) + " layers");
-  }
-
-  // Per layer: value -> segment (position in seg.segments), then the label map.
-  for (int l = 0; l < layer_count; ++l) {
-    std::vector<int> segment_of_value(size_t(kMaxLabelValue) + 1, -1);
-    for (size_t i = 0; i < seg.segments.size(); ++i) {
-      if (seg.segments[i].layer != l) continue;
-      // The obsolete 4D layout stores each segment as a binary volume: any value > 0 is inside.
-      segment_of_value[size_t(legacy_4d ? 1 : seg.segments[i].label_value)] = int(i);
-    }
-    Volume<int32_t> labels(g, 0);
-    std::map<int64_t, int64_t> undeclared;  // value -> voxels
-    int64_t outside_extent = 0;
-    with_stored_values(*io, raw, path, [&](const auto* stored) {
-      for (int64_t v = 0; v < voxels; ++v) {
-        const int64_t element = legacy_4d ? v + voxels * l : v * layer_count + l;
-        int64_t x = integer_value(stored[element], element, path);
-        if (x == 0) continue;
-        if (legacy_4d) x = x > 0 ? 1 : x;
-        const int i = x > 0 && x <= kMaxLabelValue ? segment_of_value[size_t(x)] : -1;
-        if (i < 0) {
-          ++undeclared[x];
-          continue;
-        }
-        const auto& extent = extents[size_t(i)];
-        if (extent && !extent->contains(g.index_of_offset(v))) {
-          ++outside_extent;
-          continue;
-        }
-        labels[v] = int32_t(seg.segments[size_t(i)].label_value);
-      }
-    });
-    for (const auto& [x, count] : undeclared) {
-      spdlog::warn("{}: layer {} holds value {} in {} voxels, which no segment declares; ignored",
-                   path, l, x, count);
-    }
-    if (outside_extent > 0) {
-      spdlog::warn("{}: layer {}: {} labelled voxels outside their segment's extent; ignored", path,
-                   l, outside_extent);
-    }
-    seg.layers.push_back(std::move(labels));
+  read_segments(io->GetMetaDataDictionary(), path, layout, seg.segments, extents);
+  const std::vector<char> raw = read_voxels(*io, path, g.voxel_count(), layout.layer_count);
+  for (int l = 0; l < layout.layer_count; ++l) {
+    seg.layers.push_back(layer_labels(*io, raw, path, g, layout, l, seg.segments, extents));
   }
   spdlog::debug("{}: {} segments in {} layers, {} x {} x {} voxels", path, seg.segments.size(),
-                layer_count, g.dims[0], g.dims[1], g.dims[2]);
+                layout.layer_count, g.dims[0], g.dims[1], g.dims[2]);
   return seg;
 }
 

@@ -171,14 +171,16 @@ void read_parameters(PlanData& plan, const std::string& json_path) {
   }
 }
 
-// NaN marks voxels outside the region of interest, but NIfTI readers may hand them back as 0:
-// the ROI mask beside the volumes (or the ball of radius R around the grid centre) decides.
+// NaN marks voxels without a value (outside the region of interest, or unknown: outside the
+// scan), but NIfTI readers hand them back as 0: the voxel states of roi.nii.gz (RegionState; older
+// plans: 1 inside, 0 outside), or else the ball of radius R around the grid centre, decide. Only
+// computed voxels keep their value; an unknown one must never read as a (safe) 0.
 void mark_outside_roi(PlanData& plan, const nlohmann::json& outputs) {
   Volume<uint8_t> roi;
   if (outputs.contains("roi") && outputs["roi"].is_string()) {
     const std::string path = in_plan(plan.dir, outputs["roi"].get<std::string>());
     std::error_code ec;
-    if (fs::exists(path, ec)) roi = read_mask(path);
+    if (fs::exists(path, ec)) roi = read_volume<uint8_t>(path);
     if (!roi.empty() && !roi.geometry().same_grid(plan.grid, 1e-4)) {
       throw Error(path + ": not on the plan's grid (plan.json \"grid\")");
     }
@@ -195,7 +197,7 @@ void mark_outside_roi(PlanData& plan, const nlohmann::json& outputs) {
     for (int64_t o = 0; o < volume.voxel_count(); ++o) {
       bool inside;
       if (!roi.empty()) {
-        inside = roi[o] != 0;
+        inside = roi[o] == 1;  // kRegionComputed
       } else {
         const Index3 idx = g.index_of_offset(o);
         inside =
@@ -204,6 +206,7 @@ void mark_outside_roi(PlanData& plan, const nlohmann::json& outputs) {
       if (!inside) volume[o] = nan;
     }
   }
+  plan.region = std::move(roi);
 }
 
 // The blocking volume, the classes of every value and the path safety volumes asked for.
@@ -258,7 +261,12 @@ void read_inputs(PlanData& plan, const PlanLoadOptions& options, const std::stri
     }
   }
   if (options.tumor) {
-    const std::string path = input_path(j, "tumor", plan.dir, JsonPath(json_path));
+    // The planned lesion as the plan wrote it (a label of a label map, one of several lesions),
+    // else (older plans) the tumor mask input.
+    const nlohmann::json& outputs = j.contains("outputs") ? j["outputs"] : nlohmann::json::object();
+    const std::string path = outputs.contains("tumor") && outputs["tumor"].is_string()
+                                 ? in_plan(plan.dir, outputs["tumor"].get<std::string>())
+                                 : input_path(j, "tumor", plan.dir, JsonPath(json_path));
     if (!path.empty() && fs::exists(path, ec)) {
       plan.tumor = read_mask(path);
     } else if (!path.empty()) {

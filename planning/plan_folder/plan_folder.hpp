@@ -60,6 +60,9 @@ struct PlanData {
   Volume<float> blocking;
   std::vector<std::string> values;  // computed values, plan.json order ("svv", "isbv", ...)
   std::map<std::string, Volume<float>> path_safety;  // NaN outside the region of interest
+  // Voxel states of roi.nii.gz (planning/safety/unknown.hpp RegionState: 0 not computed, 1
+  // computed, 2 unknown: outside the scan); empty for plans without it.
+  Volume<uint8_t> region;
   std::map<std::string, SafetyClasses> classes;      // plan.json "classes"
   Volume<int32_t> labels;                            // empty when the plan has no label map
   std::string labels_path;

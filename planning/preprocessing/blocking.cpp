@@ -122,6 +122,105 @@ std::vector<int32_t> distinct_labels(const Volume<int32_t>& labels) {
   return out;
 }
 
+// Throws Error unless the CT thresholds are finite, air below bone, and the risk positive.
+void check_ct_thresholds(const CtThresholds& thresholds) {
+  if (!std::isfinite(thresholds.bone_hu) || !std::isfinite(thresholds.air_hu) ||
+      thresholds.air_hu >= thresholds.bone_hu) {
+    std::ostringstream m;
+    m << "CT thresholds: air " << thresholds.air_hu << " HU, bone " << thresholds.bone_hu
+      << " HU (expected finite, air below bone)";
+    throw Error(m.str());
+  }
+  if (!std::isfinite(thresholds.impassable_per_mm) || thresholds.impassable_per_mm <= 0.0) {
+    std::ostringstream m;
+    m << "CT thresholds: impassable_per_mm is " << thresholds.impassable_per_mm
+      << " (expected a finite value > 0)";
+    throw Error(m.str());
+  }
+}
+
+struct AirMask {
+  MaskImage::Pointer image;  // 1 where HU <= the air threshold
+  int64_t voxels = 0;
+};
+
+// The air mask of the CT; a NaN is bad input, not tissue: Error naming the voxel.
+AirMask air_mask(const Volume<float>& ct_hu, double air_hu, const std::string& source) {
+  const ImageGeometry& g = ct_hu.geometry();
+  const int64_t n = ct_hu.voxel_count();
+  const float* hu = ct_hu.data();
+  AirMask air;
+  air.image = make_image<MaskImage>(g);
+  uint8_t* air_p = air.image->GetBufferPointer();
+  for (int64_t v = 0; v < n; ++v) {
+    if (std::isnan(hu[v])) {
+      const Index3 ijk = g.index_of_offset(v);
+      std::ostringstream m;
+      m << source << ": voxel (" << ijk[0] << ", " << ijk[1] << ", " << ijk[2]
+        << ") is NaN (expected Hounsfield units)";
+      throw Error(m.str());
+    }
+    air_p[v] = hu[v] <= air_hu ? 1 : 0;
+    air.voxels += air_p[v];
+  }
+  return air;
+}
+
+// Which of the `count` components (labels 1..count in `comp`) touch a side face of the grid: the
+// faces parallel to the table (cranio-caudal) axis, the index axis closest to LPS S.
+std::vector<uint8_t> components_on_side_faces(const uint32_t* comp, size_t count,
+                                              const ImageGeometry& g) {
+  int table_axis = 0;
+  for (int a = 1; a < 3; ++a) {
+    if (std::abs(g.direction(2, a)) > std::abs(g.direction(2, table_axis))) table_axis = a;
+  }
+  std::vector<uint8_t> outside(count + 1, 0);
+  const Index3& d = g.dims;
+  for (int64_t k = 0; k < d[2]; ++k) {
+    for (int64_t j = 0; j < d[1]; ++j) {
+      const bool whole_row = (table_axis != 1 && (j == 0 || j == d[1] - 1)) ||
+                             (table_axis != 2 && (k == 0 || k == d[2] - 1));
+      if (!whole_row && table_axis == 0) continue;
+      const int64_t step = whole_row ? 1 : std::max<int64_t>(d[0] - 1, 1);
+      for (int64_t i = 0; i < d[0]; i += step) {
+        const uint32_t c = comp[g.offset(i, j, k)];
+        if (c != 0 && c <= count) outside[c] = 1;
+      }
+    }
+  }
+  return outside;
+}
+
+// Air components (6-connected) touching the volume's side faces are outside the body; the others
+// (lungs, bowel gas, pockets) are inside it and impassable. The side faces are those parallel to
+// the table (cranio-caudal) axis: the two faces across that axis usually cut through the body
+// (lungs and trachea reach the first slice of an abdominal CT), and air touching only them is
+// still inside. Outside air always reaches a side face. Sets inside_air (one flag per voxel) and
+// returns the number of inside air voxels.
+int64_t mark_inside_air(const AirMask& air, const ImageGeometry& g, const std::string& source,
+                        std::vector<uint8_t>& inside_air) {
+  using Components = itk::ConnectedComponentImageFilter<MaskImage, ComponentImage>;
+  auto cc = Components::New();
+  cc->SetInput(air.image);
+  cc->SetFullyConnected(false);
+  try {
+    cc->Update();
+  } catch (const itk::ExceptionObject& e) {
+    throw Error(source + ": connected components of air failed: " + e.GetDescription());
+  }
+  const uint32_t* comp = cc->GetOutput()->GetBufferPointer();
+  const size_t count = size_t(cc->GetObjectCount());
+  const std::vector<uint8_t> outside = components_on_side_faces(comp, count, g);
+  const int64_t n = g.voxel_count();
+  int64_t inside = 0;
+  for (int64_t v = 0; v < n; ++v) {
+    const uint32_t c = comp[v];
+    inside_air[size_t(v)] = (c != 0 && c <= count && !outside[c]) ? 1 : 0;
+    inside += inside_air[size_t(v)];
+  }
+  return inside;
+}
+
 }  // namespace
 
 Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const VulnerabilityTable& table,
@@ -177,84 +276,17 @@ Volume<float> blocking_from_ct(const Volume<float>& ct_hu, const CtThresholds& t
                 " values for " + std::to_string(ct_hu.voxel_count()) + " voxels");
   }
   check_margin(margin);
-  if (!std::isfinite(thresholds.bone_hu) || !std::isfinite(thresholds.air_hu) ||
-      thresholds.air_hu >= thresholds.bone_hu) {
-    std::ostringstream m;
-    m << "CT thresholds: air " << thresholds.air_hu << " HU, bone " << thresholds.bone_hu
-      << " HU (expected finite, air below bone)";
-    throw Error(m.str());
-  }
-  if (!std::isfinite(thresholds.impassable_per_mm) || thresholds.impassable_per_mm <= 0.0) {
-    std::ostringstream m;
-    m << "CT thresholds: impassable_per_mm is " << thresholds.impassable_per_mm
-      << " (expected a finite value > 0)";
-    throw Error(m.str());
-  }
+  check_ct_thresholds(thresholds);
 
   const ImageGeometry& g = ct_hu.geometry();
   const int64_t n = ct_hu.voxel_count();
   const float* hu = ct_hu.data();
-
-  // Air mask; a NaN is bad input, not tissue.
-  MaskImage::Pointer air = make_image<MaskImage>(g);
-  uint8_t* air_p = air->GetBufferPointer();
-  int64_t air_voxels = 0;
-  for (int64_t v = 0; v < n; ++v) {
-    if (std::isnan(hu[v])) {
-      const Index3 ijk = g.index_of_offset(v);
-      std::ostringstream m;
-      m << source << ": voxel (" << ijk[0] << ", " << ijk[1] << ", " << ijk[2]
-        << ") is NaN (expected Hounsfield units)";
-      throw Error(m.str());
-    }
-    air_p[v] = hu[v] <= thresholds.air_hu ? 1 : 0;
-    air_voxels += air_p[v];
-  }
-
-  // Air components (6-connected) touching the volume's side faces are outside the body; the others
-  // (lungs, bowel gas, pockets) are inside it and impassable. The side faces are those parallel to
-  // the table (cranio-caudal) axis, the index axis closest to LPS S: the two faces across that axis
-  // usually cut through the body (lungs and trachea reach the first slice of an abdominal CT), and
-  // air touching only them is still inside. Outside air always reaches a side face.
+  const AirMask air = air_mask(ct_hu, thresholds.air_hu, source);
   std::vector<uint8_t> inside_air(static_cast<size_t>(n), 0);
-  if (air_voxels > 0) {
-    using Components = itk::ConnectedComponentImageFilter<MaskImage, ComponentImage>;
-    auto cc = Components::New();
-    cc->SetInput(air);
-    cc->SetFullyConnected(false);
-    try {
-      cc->Update();
-    } catch (const itk::ExceptionObject& e) {
-      throw Error(source + ": connected components of air failed: " + e.GetDescription());
-    }
-    const uint32_t* comp = cc->GetOutput()->GetBufferPointer();
-    const size_t count = size_t(cc->GetObjectCount());
-    int table_axis = 0;
-    for (int a = 1; a < 3; ++a) {
-      if (std::abs(g.direction(2, a)) > std::abs(g.direction(2, table_axis))) table_axis = a;
-    }
-    std::vector<uint8_t> outside(count + 1, 0);
-    const Index3& d = g.dims;
-    for (int64_t k = 0; k < d[2]; ++k) {
-      for (int64_t j = 0; j < d[1]; ++j) {
-        const bool whole_row = (table_axis != 1 && (j == 0 || j == d[1] - 1)) ||
-                               (table_axis != 2 && (k == 0 || k == d[2] - 1));
-        if (!whole_row && table_axis == 0) continue;
-        const int64_t step = whole_row ? 1 : std::max<int64_t>(d[0] - 1, 1);
-        for (int64_t i = 0; i < d[0]; i += step) {
-          const uint32_t c = comp[g.offset(i, j, k)];
-          if (c != 0 && c <= count) outside[c] = 1;
-        }
-      }
-    }
-    int64_t inside = 0;
-    for (int64_t v = 0; v < n; ++v) {
-      const uint32_t c = comp[v];
-      inside_air[size_t(v)] = (c != 0 && c <= count && !outside[c]) ? 1 : 0;
-      inside += inside_air[size_t(v)];
-    }
+  if (air.voxels > 0) {
+    const int64_t inside = mark_inside_air(air, g, source, inside_air);
     spdlog::info("blocking from CT: {} air voxels (<= {} HU), {} of them inside the body",
-                 air_voxels, thresholds.air_hu, inside);
+                 air.voxels, thresholds.air_hu, inside);
   }
 
   const auto blocked = [&](int64_t v) {

@@ -32,6 +32,7 @@
 #include "planning/preprocessing/blocking.hpp"
 #include "foundation/output_files.hpp"
 #include "planning/safety/safety_classes.hpp"
+#include "planning/safety/unknown.hpp"
 #include "planning/imaging/sampling.hpp"
 #include "planning/imaging/volume_io.hpp"
 #include "planning/preprocessing/vulnerability.hpp"
@@ -217,12 +218,17 @@ SafetyTest blocking_safety_test(const Volume<float>& blocking, double threshold)
   };
 }
 
-SafetyTest path_safety_test(const Volume<float>& volume, bool higher_is_safer, double threshold) {
+SafetyTest path_safety_test(const Volume<float>& volume, bool higher_is_safer, double threshold,
+                            const Volume<uint8_t>* region_state) {
   const float* values = volume.data();
   const ImageGeometry geometry = volume.geometry();
   const kernels::Affine<double> to_index = physical_to_index_affine(geometry);
+  const Volume<uint8_t>* states = region_state && !region_state->empty() ? region_state : nullptr;
   // Trilinear over the computed (finite) voxels around p; none (weight <= 1e-9): outside.
   return [=](const Eigen::Vector3d& p) {
+    if (states && nearest_voxel_or<uint8_t>(*states, p, kRegionNotComputed) == kRegionUnknown) {
+      return PointSafety::kUnknown;
+    }
     const kernels::Vec3<double> q = to_index.apply({p.x(), p.y(), p.z()});
     const double value = trilinear_finite(geometry, values, Eigen::Vector3d(q.x, q.y, q.z), 1e-9);
     if (std::isnan(value)) return PointSafety::kOutside;
@@ -264,6 +270,7 @@ AreaSafetyGeometry compute_area_safety(const Ellipsoid& e, const SafetyTest& tes
   std::exception_ptr failure;
   std::mutex failure_mutex;
   std::atomic<int64_t> done{0};
+  std::atomic<int64_t> unknown_count{0};
   int last_decile = 0;
 #pragma omp parallel for schedule(dynamic, 64) num_threads(threads)
   for (int64_t v = 0; v < nv; ++v) {
@@ -280,8 +287,12 @@ AreaSafetyGeometry compute_area_safety(const Ellipsoid& e, const SafetyTest& tes
           safe = 0;
           break;
         }
-        if (s == PointSafety::kOutside) {
+        if (s == PointSafety::kOutside || s == PointSafety::kUnknown) {
           length = k == 0 ? 0.0 : double(k - 1) * g.step_mm;
+          if (s == PointSafety::kUnknown) {
+            safe = 0;  // unknown is never safe
+            ++unknown_count;
+          }
           break;
         }
       }
@@ -302,6 +313,11 @@ AreaSafetyGeometry compute_area_safety(const Ellipsoid& e, const SafetyTest& tes
     }
   }
   if (failure) std::rethrow_exception(failure);
+  g.unknown_vertex_count = unknown_count;
+  if (g.unknown_vertex_count > 0) {
+    spdlog::warn("area safety: {} of {} extrusions reach the unknown (outside the scan): not safe",
+                 g.unknown_vertex_count, nv);
+  }
   measure_regions(g);
   int64_t safe_count = 0;
   for (uint8_t s : g.safe) safe_count += s;
@@ -311,6 +327,7 @@ AreaSafetyGeometry compute_area_safety(const Ellipsoid& e, const SafetyTest& tes
 }
 
 namespace {
+
 int find_root(std::vector<int>& parent, int x) {
   while (parent[size_t(x)] != x) {
     parent[size_t(x)] = parent[size_t(parent[size_t(x)])];
@@ -318,6 +335,156 @@ int find_root(std::vector<int>& parent, int x) {
   }
   return x;
 }
+
+// Throws Error when the safe flags or a triangle's vertex indices do not fit the vertices.
+void check_region_inputs(const AreaSafetyGeometry& g) {
+  const size_t nv = g.vertices.size();
+  if (g.safe.size() != nv) {
+    throw Error("area safety: " + std::to_string(g.safe.size()) + " safe flags for " +
+                std::to_string(nv) + " vertices");
+  }
+  for (const auto& t : g.triangles)
+    for (int v : t)
+      if (v < 0 || size_t(v) >= nv) {
+        throw Error("area safety: triangle vertex " + std::to_string(v) + " out of range (" +
+                    std::to_string(nv) + " vertices)");
+      }
+}
+
+// Connected safe regions over the mesh edges, numbered in the order of their first vertex.
+struct SafeComponents {
+  std::vector<int> of_vertex;     // component of each vertex, -1 for an unsafe one
+  std::vector<int> first_vertex;  // lowest vertex index of each component
+  int count() const { return int(first_vertex.size()); }
+};
+
+SafeComponents safe_components(const AreaSafetyGeometry& g) {
+  const size_t nv = g.vertices.size();
+  // Union-find over the edges whose two ends are safe.
+  std::vector<int> parent(nv);
+  std::iota(parent.begin(), parent.end(), 0);
+  for (const auto& t : g.triangles)
+    for (int e = 0; e < 3; ++e) {
+      const int a = t[size_t(e)], b = t[size_t((e + 1) % 3)];
+      if (!g.safe[size_t(a)] || !g.safe[size_t(b)]) continue;
+      const int ra = find_root(parent, a), rb = find_root(parent, b);
+      if (ra != rb) parent[size_t(std::max(ra, rb))] = std::min(ra, rb);
+    }
+  SafeComponents c;
+  c.of_vertex.assign(nv, -1);
+  for (size_t v = 0; v < nv; ++v) {
+    if (!g.safe[v]) continue;
+    const int r = find_root(parent, int(v));
+    if (c.of_vertex[size_t(r)] < 0) {
+      c.of_vertex[size_t(r)] = c.count();
+      c.first_vertex.push_back(int(v));
+    }
+    c.of_vertex[v] = c.of_vertex[size_t(r)];
+  }
+  return c;
+}
+
+// Per-vertex shares: a third of each adjacent signed tetrahedron from the ellipsoid centre (mass,
+// mm^3), a third of each adjacent base triangle's area (weight of centre and axis, mm^2).
+struct VertexShares {
+  std::vector<double> mass, weight;
+};
+
+VertexShares vertex_shares(const AreaSafetyGeometry& g) {
+  const size_t nv = g.vertices.size();
+  const Eigen::Vector3d c = g.ellipsoid.centre;
+  const bool have_base = g.base.size() == nv;
+  VertexShares s{std::vector<double>(nv, 0.0), std::vector<double>(nv, 0.0)};
+  for (const auto& t : g.triangles) {
+    const Eigen::Vector3d a = g.vertices[size_t(t[0])] - c, b = g.vertices[size_t(t[1])] - c,
+                          d = g.vertices[size_t(t[2])] - c;
+    const double vol = a.dot(b.cross(d)) / 6.0;
+    const auto& p = have_base ? g.base : g.vertices;
+    const double area =
+        0.5 * (p[size_t(t[1])] - p[size_t(t[0])]).cross(p[size_t(t[2])] - p[size_t(t[0])]).norm();
+    for (int v : t) {
+      s.mass[size_t(v)] += vol / 3.0;
+      s.weight[size_t(v)] += area / 3.0;
+    }
+  }
+  return s;
+}
+
+// Sums over the vertices of one component, in vertex order.
+struct ComponentSums {
+  double size = 0, wsum = 0;
+  Eigen::Vector3d centre = Eigen::Vector3d::Zero(), axis = Eigen::Vector3d::Zero();
+  int vertices = 0, first = 0;
+};
+
+std::vector<ComponentSums> component_sums(const AreaSafetyGeometry& g, const SafeComponents& comp,
+                                          const VertexShares& shares) {
+  const size_t nv = g.vertices.size();
+  const Eigen::Vector3d c = g.ellipsoid.centre;
+  const bool have_normals = g.normals.size() == nv;
+  std::vector<ComponentSums> acc(static_cast<size_t>(comp.count()));
+  for (int r = 0; r < comp.count(); ++r) acc[size_t(r)].first = comp.first_vertex[size_t(r)];
+  for (size_t v = 0; v < nv; ++v) {
+    if (comp.of_vertex[v] < 0) continue;
+    ComponentSums& a = acc[size_t(comp.of_vertex[v])];
+    a.size += shares.mass[v];
+    a.wsum += shares.weight[v];
+    a.centre += shares.weight[v] * g.vertices[v];
+    const Eigen::Vector3d dir = have_normals ? g.normals[v] : (g.vertices[v] - c).normalized();
+    a.axis += shares.weight[v] * dir;
+    ++a.vertices;
+  }
+  return acc;
+}
+
+// The region of one component: weighted centre, main axis, leeway against the largest size.
+AreaRegion make_region(const AreaSafetyGeometry& g, const ComponentSums& a, int id,
+                       double largest) {
+  AreaRegion r;
+  r.id = id;
+  r.size_mm3 = a.size;
+  r.centre = a.wsum > 0 ? Eigen::Vector3d(a.centre / a.wsum)
+                        : Eigen::Vector3d(g.vertices[size_t(a.first)]);
+  // A region around the whole tumor has no preferred direction: its mean normal vanishes; then
+  // the ellipsoid's shortest axis (the shortest way out of the tumor) stands for it.
+  r.main_axis = a.axis.norm() > 1e-3 * std::max(a.wsum, 1e-12)
+                    ? Eigen::Vector3d(a.axis.normalized())
+                    : Eigen::Vector3d(g.ellipsoid.axes.col(2));
+  r.leeway = largest > 0 ? std::max(0.0, a.size / largest) : 0.0;
+  r.vertex_count = a.vertices;
+  return r;
+}
+
+// Writes g.regions largest first (ties: the lower first vertex) and each vertex's region and
+// leeway.
+void rank_regions(AreaSafetyGeometry& g, const SafeComponents& comp,
+                  const std::vector<ComponentSums>& acc) {
+  const int count = comp.count();
+  std::vector<int> order(static_cast<size_t>(count));
+  std::iota(order.begin(), order.end(), 0);
+  std::sort(order.begin(), order.end(), [&](int x, int y) {
+    const ComponentSums &a = acc[size_t(x)], &b = acc[size_t(y)];
+    if (a.size != b.size) return a.size > b.size;
+    return a.first < b.first;
+  });
+  std::vector<int> id_of(static_cast<size_t>(count));
+  g.regions.clear();
+  const double largest = count > 0 ? acc[size_t(order[0])].size : 0.0;
+  for (int k = 0; k < count; ++k) {
+    id_of[size_t(order[size_t(k)])] = k;
+    g.regions.push_back(make_region(g, acc[size_t(order[size_t(k)])], k, largest));
+  }
+  const size_t nv = g.vertices.size();
+  g.region.assign(nv, -1);
+  g.leeway.assign(nv, 0.0f);
+  for (size_t v = 0; v < nv; ++v) {
+    if (comp.of_vertex[v] < 0) continue;
+    const int id = id_of[size_t(comp.of_vertex[v])];
+    g.region[v] = id;
+    g.leeway[v] = float(g.regions[size_t(id)].leeway);
+  }
+}
+
 }  // namespace
 
 double enclosed_volume(const AreaSafetyGeometry& g) {
@@ -332,110 +499,9 @@ double enclosed_volume(const AreaSafetyGeometry& g) {
 }
 
 void measure_regions(AreaSafetyGeometry& g) {
-  const size_t nv = g.vertices.size();
-  if (g.safe.size() != nv) {
-    throw Error("area safety: " + std::to_string(g.safe.size()) + " safe flags for " +
-                std::to_string(nv) + " vertices");
-  }
-  for (const auto& t : g.triangles)
-    for (int v : t)
-      if (v < 0 || size_t(v) >= nv) {
-        throw Error("area safety: triangle vertex " + std::to_string(v) + " out of range (" +
-                    std::to_string(nv) + " vertices)");
-      }
-  // Connected safe regions over the mesh edges (union-find).
-  std::vector<int> parent(nv);
-  std::iota(parent.begin(), parent.end(), 0);
-  for (const auto& t : g.triangles)
-    for (int e = 0; e < 3; ++e) {
-      const int a = t[size_t(e)], b = t[size_t((e + 1) % 3)];
-      if (!g.safe[size_t(a)] || !g.safe[size_t(b)]) continue;
-      const int ra = find_root(parent, a), rb = find_root(parent, b);
-      if (ra != rb) parent[size_t(std::max(ra, rb))] = std::min(ra, rb);
-    }
-  std::vector<int> provisional(nv, -1);
-  int count = 0;
-  std::vector<int> first_vertex;
-  for (size_t v = 0; v < nv; ++v) {
-    if (!g.safe[v]) continue;
-    const int r = find_root(parent, int(v));
-    if (provisional[size_t(r)] < 0) {
-      provisional[size_t(r)] = count++;
-      first_vertex.push_back(int(v));
-    }
-    provisional[v] = provisional[size_t(r)];
-  }
-
-  // Per-vertex shares: a third of each adjacent signed tetrahedron (mass), a third of each
-  // adjacent base triangle's area (weight of centre and axis).
-  const Eigen::Vector3d c = g.ellipsoid.centre;
-  const bool have_base = g.base.size() == nv;
-  const bool have_normals = g.normals.size() == nv;
-  std::vector<double> mass(nv, 0.0), weight(nv, 0.0);
-  for (const auto& t : g.triangles) {
-    const Eigen::Vector3d a = g.vertices[size_t(t[0])] - c, b = g.vertices[size_t(t[1])] - c,
-                          d = g.vertices[size_t(t[2])] - c;
-    const double vol = a.dot(b.cross(d)) / 6.0;
-    const auto& p = have_base ? g.base : g.vertices;
-    const double area =
-        0.5 * (p[size_t(t[1])] - p[size_t(t[0])]).cross(p[size_t(t[2])] - p[size_t(t[0])]).norm();
-    for (int v : t) {
-      mass[size_t(v)] += vol / 3.0;
-      weight[size_t(v)] += area / 3.0;
-    }
-  }
-  struct Acc {
-    double size = 0, wsum = 0;
-    Eigen::Vector3d centre = Eigen::Vector3d::Zero(), axis = Eigen::Vector3d::Zero();
-    int vertices = 0, first = 0;
-  };
-  std::vector<Acc> acc(static_cast<size_t>(count));
-  for (int r = 0; r < count; ++r) acc[size_t(r)].first = first_vertex[size_t(r)];
-  for (size_t v = 0; v < nv; ++v) {
-    if (provisional[v] < 0) continue;
-    Acc& a = acc[size_t(provisional[v])];
-    a.size += mass[v];
-    a.wsum += weight[v];
-    a.centre += weight[v] * g.vertices[v];
-    const Eigen::Vector3d dir = have_normals ? g.normals[v] : (g.vertices[v] - c).normalized();
-    a.axis += weight[v] * dir;
-    ++a.vertices;
-  }
-  std::vector<int> order(static_cast<size_t>(count));
-  std::iota(order.begin(), order.end(), 0);
-  std::sort(order.begin(), order.end(), [&](int x, int y) {
-    const Acc &a = acc[size_t(x)], &b = acc[size_t(y)];
-    if (a.size != b.size) return a.size > b.size;
-    return a.first < b.first;
-  });
-  std::vector<int> id_of(static_cast<size_t>(count));
-  g.regions.clear();
-  const double largest = count > 0 ? acc[size_t(order[0])].size : 0.0;
-  for (int k = 0; k < count; ++k) {
-    const Acc& a = acc[size_t(order[size_t(k)])];
-    id_of[size_t(order[size_t(k)])] = k;
-    AreaRegion r;
-    r.id = k;
-    r.size_mm3 = a.size;
-    r.centre = a.wsum > 0 ? Eigen::Vector3d(a.centre / a.wsum)
-                          : Eigen::Vector3d(g.vertices[size_t(a.first)]);
-    // A region around the whole tumor has no preferred direction: its mean normal vanishes; then
-    // the ellipsoid's shortest axis (the shortest way out of the tumor) stands for it.
-    r.main_axis = a.axis.norm() > 1e-3 * std::max(a.wsum, 1e-12)
-                      ? Eigen::Vector3d(a.axis.normalized())
-                      : Eigen::Vector3d(g.ellipsoid.axes.col(2));
-    r.leeway = largest > 0 ? std::max(0.0, a.size / largest) : 0.0;
-    r.vertex_count = a.vertices;
-    g.regions.push_back(r);
-  }
-  g.region.assign(nv, -1);
-  g.leeway.assign(nv, 0.0f);
-  for (size_t v = 0; v < nv; ++v) {
-    if (provisional[v] < 0) continue;
-    const int id = id_of[size_t(provisional[v])];
-    g.region[v] = id;
-    g.leeway[v] = float(g.regions[size_t(id)].leeway);
-  }
+  check_region_inputs(g);
+  const SafeComponents components = safe_components(g);
+  rank_regions(g, components, component_sums(g, components, vertex_shares(g)));
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -576,9 +642,8 @@ class Tokens {
   int line_ = 1;
 };
 
-}  // namespace
-
-AreaSafetyGeometry read_area_safety_vtk(const std::string& path) {
+// Reads the file and checks the legacy VTK header, up to 'DATASET POLYDATA'.
+Tokens open_polydata(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   if (!in) throw Error(path + ": cannot read file");
   std::stringstream buf;
@@ -592,125 +657,176 @@ AreaSafetyGeometry read_area_safety_vtk(const std::string& path) {
   if (tok.word("DATASET") != "DATASET" || tok.word("POLYDATA") != "POLYDATA") {
     tok.fail("expected 'DATASET POLYDATA'");
   }
-  AreaSafetyGeometry g;
-  int64_t nv = -1;
+  return tok;
+}
+
+// The dataset field arrays that write_area_safety_vtk writes, as read (others are skipped).
+struct VtkFieldArrays {
   std::vector<double> ellipsoid, settings, sizes, leeways, counts, centres, axes;
-  std::string w;
-  while (tok.next(w)) {
-    if (w == "FIELD") {
-      tok.word("field name");
-      const int64_t arrays = tok.integer("array count");
-      for (int64_t a = 0; a < arrays; ++a) {
-        const std::string name = tok.word("array name");
-        const int64_t comps = tok.integer("components"), tuples = tok.integer("tuples");
-        tok.word("data type");
-        std::vector<double> values(size_t(std::max<int64_t>(0, comps * tuples)));
-        for (double& x : values) x = tok.number(name.c_str());
-        if (name == "ellipsoid")
-          ellipsoid = values;
-        else if (name == "area_settings")
-          settings = values;
-        else if (name == "region_size_mm3")
-          sizes = values;
-        else if (name == "region_leeway")
-          leeways = values;
-        else if (name == "region_vertex_count")
-          counts = values;
-        else if (name == "region_centre")
-          centres = values;
-        else if (name == "region_main_axis")
-          axes = values;
-      }
-    } else if (w == "POINTS") {
-      nv = tok.integer("point count");
-      tok.word("point type");
-      g.vertices.resize(size_t(nv));
-      for (auto& v : g.vertices)
-        for (int c = 0; c < 3; ++c) v[c] = tok.number("point coordinate");
-    } else if (w == "POLYGONS") {
-      const int64_t n = tok.integer("polygon count");
-      tok.integer("polygon list size");
-      g.triangles.resize(size_t(n));
-      for (auto& t : g.triangles) {
-        if (tok.integer("polygon size") != 3) tok.fail("POLYGONS: only triangles are read");
-        for (int c = 0; c < 3; ++c) {
-          const int64_t v = tok.integer("vertex index");
-          if (v < 0 || v >= nv) tok.fail("POLYGONS: vertex index out of range");
-          t[size_t(c)] = int(v);
-        }
-      }
-    } else if (w == "POINT_DATA") {
-      if (tok.integer("point data count") != nv) tok.fail("POINT_DATA count differs from POINTS");
-    } else if (w == "NORMALS") {
-      tok.word("normals name");
-      tok.word("normals type");
-      g.normals.resize(size_t(nv));
-      for (auto& n : g.normals)
-        for (int c = 0; c < 3; ++c) n[c] = tok.number("normal component");
-    } else if (w == "SCALARS") {
-      const std::string name = tok.word("scalars name");
-      tok.word("scalars type");
-      std::string lut = tok.word("LOOKUP_TABLE");
-      if (lut != "LOOKUP_TABLE") {  // optional component count
-        lut = tok.word("LOOKUP_TABLE");
-      }
-      tok.word("lookup table name");
-      std::vector<double> values(static_cast<size_t>(nv));
-      for (double& x : values) x = tok.number(name.c_str());
-      if (name == "safe") {
-        g.safe.assign(values.begin(), values.end());
-      } else if (name == "region") {
-        g.region.assign(values.begin(), values.end());
-      } else if (name == "leeway") {
-        g.leeway.assign(values.begin(), values.end());
-      } else if (name == "extrusion_mm") {
-        g.extrusion.assign(values.begin(), values.end());
-      }
-    } else {
-      tok.fail("unexpected keyword '" + w + "'");
+};
+
+void read_field_data(Tokens& tok, VtkFieldArrays& f) {
+  tok.word("field name");
+  const int64_t arrays = tok.integer("array count");
+  for (int64_t a = 0; a < arrays; ++a) {
+    const std::string name = tok.word("array name");
+    const int64_t comps = tok.integer("components"), tuples = tok.integer("tuples");
+    tok.word("data type");
+    std::vector<double> values(size_t(std::max<int64_t>(0, comps * tuples)));
+    for (double& x : values) x = tok.number(name.c_str());
+    if (name == "ellipsoid")
+      f.ellipsoid = values;
+    else if (name == "area_settings")
+      f.settings = values;
+    else if (name == "region_size_mm3")
+      f.sizes = values;
+    else if (name == "region_leeway")
+      f.leeways = values;
+    else if (name == "region_vertex_count")
+      f.counts = values;
+    else if (name == "region_centre")
+      f.centres = values;
+    else if (name == "region_main_axis")
+      f.axes = values;
+  }
+}
+
+// Returns the point count.
+int64_t read_points(Tokens& tok, AreaSafetyGeometry& g) {
+  const int64_t nv = tok.integer("point count");
+  tok.word("point type");
+  g.vertices.resize(size_t(nv));
+  for (auto& v : g.vertices)
+    for (int c = 0; c < 3; ++c) v[c] = tok.number("point coordinate");
+  return nv;
+}
+
+void read_polygons(Tokens& tok, int64_t nv, AreaSafetyGeometry& g) {
+  const int64_t n = tok.integer("polygon count");
+  tok.integer("polygon list size");
+  g.triangles.resize(size_t(n));
+  for (auto& t : g.triangles) {
+    if (tok.integer("polygon size") != 3) tok.fail("POLYGONS: only triangles are read");
+    for (int c = 0; c < 3; ++c) {
+      const int64_t v = tok.integer("vertex index");
+      if (v < 0 || v >= nv) tok.fail("POLYGONS: vertex index out of range");
+      t[size_t(c)] = int(v);
     }
   }
+}
+
+void read_normals(Tokens& tok, int64_t nv, AreaSafetyGeometry& g) {
+  tok.word("normals name");
+  tok.word("normals type");
+  g.normals.resize(size_t(nv));
+  for (auto& n : g.normals)
+    for (int c = 0; c < 3; ++c) n[c] = tok.number("normal component");
+}
+
+// One SCALARS array of the point data: safe, region, leeway, extrusion_mm (others are skipped).
+void read_scalars(Tokens& tok, int64_t nv, AreaSafetyGeometry& g) {
+  const std::string name = tok.word("scalars name");
+  tok.word("scalars type");
+  std::string lut = tok.word("LOOKUP_TABLE");
+  if (lut != "LOOKUP_TABLE") {  // optional component count
+    lut = tok.word("LOOKUP_TABLE");
+  }
+  tok.word("lookup table name");
+  std::vector<double> values(static_cast<size_t>(nv));
+  for (double& x : values) x = tok.number(name.c_str());
+  if (name == "safe") {
+    g.safe.assign(values.begin(), values.end());
+  } else if (name == "region") {
+    g.region.assign(values.begin(), values.end());
+  } else if (name == "leeway") {
+    g.leeway.assign(values.begin(), values.end());
+  } else if (name == "extrusion_mm") {
+    g.extrusion.assign(values.begin(), values.end());
+  }
+}
+
+// The sections every area safety file has: points, triangles and the per-vertex scalars.
+void check_sections(const Tokens& tok, int64_t nv, const AreaSafetyGeometry& g) {
   if (nv < 0) tok.fail("no POINTS section");
   if (g.triangles.empty()) tok.fail("no POLYGONS section");
   if (g.safe.size() != size_t(nv) || g.region.size() != size_t(nv) ||
       g.leeway.size() != size_t(nv)) {
     tok.fail("POINT_DATA must hold the scalars safe, region and leeway");
   }
-  if (ellipsoid.size() == 15) {
-    g.ellipsoid.centre = Eigen::Vector3d(ellipsoid[0], ellipsoid[1], ellipsoid[2]);
+}
+
+// The ellipsoid, the settings and the regions, where the field arrays hold them whole.
+void apply_field_arrays(const VtkFieldArrays& f, AreaSafetyGeometry& g) {
+  if (f.ellipsoid.size() == 15) {
+    const auto& e = f.ellipsoid;
+    g.ellipsoid.centre = Eigen::Vector3d(e[0], e[1], e[2]);
     for (int c = 0; c < 3; ++c)
-      g.ellipsoid.axes.col(c) = Eigen::Vector3d(
-          ellipsoid[size_t(3 + 3 * c)], ellipsoid[size_t(4 + 3 * c)], ellipsoid[size_t(5 + 3 * c)]);
-    g.ellipsoid.radii = Eigen::Vector3d(ellipsoid[12], ellipsoid[13], ellipsoid[14]);
+      g.ellipsoid.axes.col(c) =
+          Eigen::Vector3d(e[size_t(3 + 3 * c)], e[size_t(4 + 3 * c)], e[size_t(5 + 3 * c)]);
+    g.ellipsoid.radii = Eigen::Vector3d(e[12], e[13], e[14]);
   }
-  if (settings.size() == 5) {
-    g.max_distance_mm = settings[0];
-    g.step_mm = settings[1];
-    g.spacing_mm = settings[2];
-    g.threshold = settings[3];
-    g.rings = int(settings[4]);
+  if (f.settings.size() == 5) {
+    g.max_distance_mm = f.settings[0];
+    g.step_mm = f.settings[1];
+    g.spacing_mm = f.settings[2];
+    g.threshold = f.settings[3];
+    g.rings = int(f.settings[4]);
     g.segments = 2 * g.rings;
   }
-  const size_t nr = sizes.size();
-  if (leeways.size() == nr && counts.size() == nr && centres.size() == 3 * nr &&
-      axes.size() == 3 * nr) {
+  const size_t nr = f.sizes.size();
+  if (f.leeways.size() == nr && f.counts.size() == nr && f.centres.size() == 3 * nr &&
+      f.axes.size() == 3 * nr) {
     for (size_t r = 0; r < nr; ++r) {
       AreaRegion region;
       region.id = int(r);
-      region.size_mm3 = sizes[r];
-      region.leeway = leeways[r];
-      region.vertex_count = int(counts[r]);
-      region.centre = Eigen::Vector3d(centres[3 * r], centres[3 * r + 1], centres[3 * r + 2]);
-      region.main_axis = Eigen::Vector3d(axes[3 * r], axes[3 * r + 1], axes[3 * r + 2]);
+      region.size_mm3 = f.sizes[r];
+      region.leeway = f.leeways[r];
+      region.vertex_count = int(f.counts[r]);
+      region.centre = Eigen::Vector3d(f.centres[3 * r], f.centres[3 * r + 1], f.centres[3 * r + 2]);
+      region.main_axis = Eigen::Vector3d(f.axes[3 * r], f.axes[3 * r + 1], f.axes[3 * r + 2]);
       g.regions.push_back(region);
     }
   }
-  if (g.extrusion.size() == size_t(nv) && g.normals.size() == size_t(nv)) {
-    g.base.resize(size_t(nv));
-    for (size_t v = 0; v < size_t(nv); ++v) {
-      g.base[v] = g.vertices[v] - double(g.extrusion[v]) * g.normals[v];
+}
+
+// The unextruded base surface, where the extrusion and the normals are both present.
+void restore_base(AreaSafetyGeometry& g) {
+  const size_t nv = g.vertices.size();
+  if (g.extrusion.size() != nv || g.normals.size() != nv) return;
+  g.base.resize(nv);
+  for (size_t v = 0; v < nv; ++v) {
+    g.base[v] = g.vertices[v] - double(g.extrusion[v]) * g.normals[v];
+  }
+}
+
+}  // namespace
+
+AreaSafetyGeometry read_area_safety_vtk(const std::string& path) {
+  Tokens tok = open_polydata(path);
+  AreaSafetyGeometry g;
+  VtkFieldArrays fields;
+  int64_t nv = -1;
+  std::string w;
+  while (tok.next(w)) {
+    if (w == "FIELD") {
+      read_field_data(tok, fields);
+    } else if (w == "POINTS") {
+      nv = read_points(tok, g);
+    } else if (w == "POLYGONS") {
+      read_polygons(tok, nv, g);
+    } else if (w == "POINT_DATA") {
+      if (tok.integer("point data count") != nv) tok.fail("POINT_DATA count differs from POINTS");
+    } else if (w == "NORMALS") {
+      read_normals(tok, nv, g);
+    } else if (w == "SCALARS") {
+      read_scalars(tok, nv, g);
+    } else {
+      tok.fail("unexpected keyword '" + w + "'");
     }
   }
+  check_sections(tok, nv, g);
+  apply_field_arrays(fields, g);
+  restore_base(g);
   return g;
 }
 
@@ -738,6 +854,7 @@ nlohmann::json area_safety_json(const AreaSafetyGeometry& g) {
           {"vertex_count", g.vertices.size()},
           {"triangle_count", g.triangles.size()},
           {"safe_vertex_count", safe},
+          {"unknown_vertex_count", g.unknown_vertex_count},
           {"max_edge_full_extrusion_mm",
            g.base.empty() ? nlohmann::json(nullptr)
                           : nlohmann::json(max_edge_length(g, g.max_distance_mm))},
@@ -756,7 +873,8 @@ nlohmann::json area_safety_json(const AreaSafetyGeometry& g) {
 // The plan's area safety step
 
 nlohmann::json plan_area_safety(const Volume<uint8_t>& tumor, const PathSafetyResult& result,
-                                const AreaSafetyPlanOptions& options, const std::string& vtk_path) {
+                                const AreaSafetyPlanOptions& options, const std::string& vtk_path,
+                                const Volume<uint8_t>* region_state) {
   const auto t0 = Clock::now();
   int slot = -1;
   for (int v = 0; v < kernels::kValueCount; ++v) {
@@ -782,7 +900,8 @@ nlohmann::json plan_area_safety(const Volume<uint8_t>& tumor, const PathSafetyRe
   o.max_distance_mm = options.max_distance_mm > 0 ? options.max_distance_mm : result.grid.radius_mm;
   const Ellipsoid e = fit_tumor_ellipsoid(tumor);
   AreaSafetyGeometry g =
-      compute_area_safety(e, path_safety_test(volume, classes.higher_is_safer, threshold), o);
+      compute_area_safety(e, path_safety_test(volume, classes.higher_is_safer, threshold,
+                                              region_state), o);
   g.criterion = std::string("path safety ") + value_name(bit) +
                 (classes.higher_is_safer ? " < " : " > ") + number(threshold) + " (" +
                 options.unsafe_class + (options.unsafe_class == "medium" ? " or dangerous" : "") +

@@ -44,7 +44,8 @@ struct AreaSafetyGeometry {
   std::vector<Eigen::Vector3d> vertices;      // extruded vertex (LPS mm)
   std::vector<std::array<int, 3>> triangles;  // outward-facing, closed surface
   std::vector<uint8_t> safe;                  // 1 where the extrusion reached the maximum distance
-                                              // (or the edge of the computed region, all safe)
+                                              // (or the edge of the computed region, all safe);
+                                              // 0 where it stopped unsafe or at unknown
   std::vector<int> region;                    // region id per vertex, -1 where unsafe
   std::vector<float> leeway;                  // per vertex: its region's leeway, 0 where unsafe
   std::vector<AreaRegion> regions;            // by decreasing size
@@ -57,6 +58,7 @@ struct AreaSafetyGeometry {
   double step_mm = 0;            // sampling step along the normals
   double spacing_mm = 0;         // h: the edge bound the tessellation was refined for
   std::string criterion;         // how "unsafe" was decided, in words (for area_safety_json)
+  int64_t unknown_vertex_count = 0;  // extrusions stopped at the unknown (outside the scan)
   double threshold = 0;          // the unsafe threshold of that criterion
 };
 
@@ -91,11 +93,13 @@ int rings_for_edge_bound(const Ellipsoid& ellipsoid, double max_distance_mm, dou
 
 // --- Unsafe criterion ---------------------------------------------------------------------------
 
-enum class PointSafety { kSafe, kUnsafe, kOutside };
+enum class PointSafety { kSafe, kUnsafe, kOutside, kUnknown };
 
 // The unsafe criterion at one point (LPS mm). kOutside: no data there (outside the path safety
 // volume's region of interest); the extrusion stops there and the vertex counts as safe, since
-// every point of it that has data is safe. Must be callable from several threads at once.
+// every point of it that has data is safe. kUnknown: inside the region of interest but outside
+// the scan (planning/safety/unknown.hpp): the extrusion stops there and the vertex is NOT safe
+// (unknown is never safe). Must be callable from several threads at once.
 using SafetyTest = std::function<PointSafety(const Eigen::Vector3d& point)>;
 
 // Preview (§3.3 "fast preview"): unsafe where the blocking volume (trilinear, 0 outside its grid)
@@ -105,9 +109,11 @@ SafetyTest blocking_safety_test(const Volume<float>& blocking, double threshold)
 // Path safety: unsafe where the value (trilinear over the computed voxels; NaN voxels are left out
 // and their weight renormalised) is past the threshold: value > threshold, or value < threshold
 // when higher_is_safer (SVV). kOutside where no corner of the interpolation cell was computed.
-// `path_safety` must outlive the returned test.
+// kUnknown where the nearest voxel of `region_state` (RegionState, roi.nii.gz; optional) is
+// unknown, before the value is looked at (the interpolation would borrow computed neighbours).
+// `path_safety` and `region_state` must outlive the returned test.
 SafetyTest path_safety_test(const Volume<float>& path_safety, bool higher_is_safer,
-                            double threshold);
+                            double threshold, const Volume<uint8_t>* region_state = nullptr);
 
 // --- The geometry -------------------------------------------------------------------------------
 
@@ -122,7 +128,8 @@ struct AreaSafetyOptions {
 // Tessellates (rings_for_edge_bound), extrudes every vertex along its normal in steps of at most
 // h/2 from distance 0 up to max_distance_mm, stopping at the first unsafe sample (the vertex is
 // placed there, unsafe) or at the first kOutside sample (placed at the last sample with data,
-// safe); classifies; finds connected safe regions over the mesh edges; measures them
+// safe) or at the first kUnknown sample (placed at the last sample before it, unsafe, counted in
+// unknown_vertex_count); classifies; finds connected safe regions over the mesh edges; measures them
 // (measure_regions). Throws Error on bad options.
 AreaSafetyGeometry compute_area_safety(const Ellipsoid& ellipsoid, const SafetyTest& test,
                                        const AreaSafetyOptions& options);
@@ -164,8 +171,10 @@ struct AreaSafetyPlanOptions {
 
 // The plan's area safety step: for the first value computed in `result`, unsafe past the class
 // threshold of options.unsafe_class (default_classes of that volume) or options.threshold; maximum
-// distance R; edge bound h. Writes the mesh to `vtk_path` and returns plan.json's "area_safety".
+// distance R; edge bound h. `region_state`: the voxel states of the plan (extrusions stop unsafe
+// at unknown voxels). Writes the mesh to `vtk_path` and returns plan.json's "area_safety".
 nlohmann::json plan_area_safety(const Volume<uint8_t>& tumor, const PathSafetyResult& result,
-                                const AreaSafetyPlanOptions& options, const std::string& vtk_path);
+                                const AreaSafetyPlanOptions& options, const std::string& vtk_path,
+                                const Volume<uint8_t>* region_state = nullptr);
 
 }  // namespace crepuscular::planning

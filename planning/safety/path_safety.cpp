@@ -106,11 +106,11 @@ unsigned parse_value_set(const std::string& text) {
     } else if (item == "all") {
       values |= kernels::kAllValues;
     } else if (!item.empty()) {
-      throw Error("--value: unknown path safety value '" + item +
+      throw Error("path safety values: unknown value '" + item +
                   "' (expected svv, isbv, ivbv, bvv or all, comma-separated)");
     }
   }
-  if (values == 0) throw Error("--value: no path safety value given (expected e.g. svv,bvv)");
+  if (values == 0) throw Error("path safety values: none given (expected e.g. svv,bvv)");
   return values;
 }
 
@@ -133,13 +133,13 @@ Device parse_device(const std::string& text) {
   if (text == "auto") return Device::kAuto;
   if (text == "cpu") return Device::kCpu;
   if (text == "cuda") return Device::kCuda;
-  throw Error("--device: unknown device '" + text + "' (expected auto, cpu or cuda)");
+  throw Error("path safety device: unknown device '" + text + "' (expected auto, cpu or cuda)");
 }
 
 Mode parse_mode(const std::string& text) {
   if (text == "exact") return Mode::kExact;
   if (text == "fast") return Mode::kFast;
-  throw Error("--mode: unknown mode '" + text + "' (expected exact or fast)");
+  throw Error("path safety mode: unknown mode '" + text + "' (expected exact or fast)");
 }
 
 const char* mode_name(Mode mode) { return mode == Mode::kFast ? "fast" : "exact"; }
@@ -249,11 +249,11 @@ OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>
   double h = options.spacing_mm;
   if (h == 0.0) h = std::min(bg.spacing.minCoeff(), tumor.geometry().spacing.minCoeff());
   if (!(h > 0.0) || !std::isfinite(h)) {
-    throw Error("--spacing: output spacing must be > 0 mm (got " + std::to_string(h) + ")");
+    throw Error("output spacing: must be > 0 mm (got " + std::to_string(h) + ")");
   }
   double r = options.radius_mm;
   if (!(r >= 0.0) || !std::isfinite(r)) {
-    throw Error("--radius: radius must be >= 0 mm (got " + std::to_string(r) + ")");
+    throw Error("region of interest radius: must be >= 0 mm (got " + std::to_string(r) + ")");
   }
   if (r == 0.0) {
     const auto& d = bg.dims;
@@ -271,7 +271,7 @@ OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>
     if (r == 0.0) {
       throw Error(
           "blocking volume has no voxel with b > 0, so the region of interest (the ball "
-          "reaching the farthest blocking voxel) is empty; give --radius MM");
+          "reaching the farthest blocking voxel) is empty; give a region of interest radius");
     }
   }
   out.radius_mm = r;
@@ -280,7 +280,7 @@ OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>
   if (n > 4097) {
     throw Error("region of interest too large: " + std::to_string(n) + " voxels per axis (radius " +
                 std::to_string(r) + " mm at spacing " + std::to_string(h) +
-                " mm); use a larger --spacing or a smaller --radius");
+                " mm); use a larger output spacing or a smaller region of interest radius");
   }
   out.geometry.dims = {n, n, n};
   out.geometry.spacing = Eigen::Vector3d::Constant(h);
@@ -578,12 +578,11 @@ void check_inputs(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
     throw Error("path safety: no valid value requested (expected svv, isbv, ivbv, bvv)");
   }
   if (!(options.eps >= 0.0) || !std::isfinite(options.eps)) {
-    throw Error("--eps: insignificant blocking must be a finite number >= 0 (got " +
+    throw Error("insignificant blocking eps: must be a finite number >= 0 (got " +
                 std::to_string(options.eps) + ")");
   }
   if (options.spacing_mm < 0.0 || !std::isfinite(options.spacing_mm)) {
-    throw Error("--spacing: output spacing must be > 0 mm (got " +
-                std::to_string(options.spacing_mm) + ")");
+    throw Error("output spacing: must be > 0 mm (got " + std::to_string(options.spacing_mm) + ")");
   }
 }
 
@@ -600,10 +599,11 @@ void check_memory(const OutputGrid& grid, const PathSafetyOptions& options) {
     const auto& d = grid.geometry.dims;
     std::ostringstream m;
     m << "region of interest too large for memory: output grid " << d[0] << "x" << d[1] << "x"
-      << d[2] << " voxels (radius " << grid.radius_mm << " mm, spacing "
-      << grid.geometry.spacing[0] << " mm) x " << value_count << " values needs "
-      << format_bytes(need) << ", " << format_bytes(limit)
-      << " may be used; give a larger --spacing, a smaller --radius or fewer --value";
+      << d[2] << " voxels (radius " << grid.radius_mm << " mm, spacing " << grid.geometry.spacing[0]
+      << " mm) x " << value_count << " values needs " << format_bytes(need) << ", "
+      << format_bytes(limit)
+      << " may be used; give a larger output spacing, a smaller region of interest radius or "
+         "fewer path safety values";
     throw Error(m.str());
   }
 }
@@ -668,7 +668,7 @@ PathSafetyResult start_result(const OutputGrid& grid, const TumorSurface& surfac
 class CudaBackend {
  public:
   static constexpr const char* kNoDevice =
-      "--device cuda: no CUDA device found (use --device cpu or auto)";
+      "path safety device cuda: no CUDA device found (choose device cpu or auto)";
 
   // Starting CUDA takes a good part of a second; it overlaps the preparation on the host (not
   // started when the CPU is asked for).
@@ -737,7 +737,7 @@ class CudaBackend {
 class CudaBackend {
  public:
   static constexpr const char* kNoDevice =
-      "--device cuda: this build has no CUDA backend (rebuild with nvcc available)";
+      "path safety device cuda: this build has no CUDA backend (rebuild with nvcc available)";
   explicit CudaBackend(Device) {}
   int device_count() { return 0; }
   void run(const kernels::PathSafetyScene<double>&, const OutputGrid&, const PathSafetyOptions&,

@@ -3,6 +3,7 @@
 #pragma once
 
 #include <array>
+#include <cmath>
 #include <cstdint>
 
 #include "kernels/path_safety_math.hpp"
@@ -10,7 +11,8 @@
 
 namespace crepuscular::planning {
 
-enum class SafetyClass { kSafe = 0, kMedium = 1, kDangerous = 2 };
+// kUnknown: no value (NaN): outside the region of interest or outside the scan. Never safe.
+enum class SafetyClass { kSafe = 0, kMedium = 1, kDangerous = 2, kUnknown = 3 };
 
 struct SafetyClasses {
   bool higher_is_safer = false;
@@ -18,6 +20,7 @@ struct SafetyClasses {
   double dangerous = 0.0;  // dangerous: value > dangerous (or < dangerous when higher is safer)
 
   SafetyClass classify(double value) const {
+    if (std::isnan(value)) return SafetyClass::kUnknown;
     if (higher_is_safer) {
       return value >= safe ? SafetyClass::kSafe
                            : value < dangerous ? SafetyClass::kDangerous : SafetyClass::kMedium;

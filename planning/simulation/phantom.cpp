@@ -645,11 +645,8 @@ void check_options(const PhantomOptions& options) {
   }
 }
 
-}  // namespace
-
-Phantom make_phantom(const PhantomOptions& options) {
-  check_options(options);
-  const double s = options.spacing_mm;
+// The phantom's grid: isotropic `s` mm voxels over kExtentMm, centred on (0, 0, 0), LPS axes.
+ImageGeometry phantom_geometry(double s) {
   ImageGeometry g;
   for (int a = 0; a < 3; ++a) {
     g.dims[size_t(a)] = std::max<int64_t>(1, int64_t(std::llround(kExtentMm[a] / s)));
@@ -657,107 +654,170 @@ Phantom make_phantom(const PhantomOptions& options) {
     g.origin[a] = -0.5 * double(g.dims[size_t(a)] - 1) * s;  // grid centred on (0, 0, 0)
   }
   g.direction.setIdentity();
+  return g;
+}
 
+// Ribs, liver vessels, bowel and its gas pockets (the seed varies the vessels and the bowel).
+Scene make_scene_parts(uint64_t seed) {
+  Scene scene;
+  scene.ribs = make_ribs();
+  scene.liver_vessels = make_liver_vessels(seed);
+  make_bowel(seed, scene.bowel, scene.gas);
+  return scene;
+}
+
+// One axial slice k of the phantom's three volumes (each a row-major x-y plane) at height z.
+struct Slice {
+  int64_t k = 0;
+  double z = 0;
+  uint8_t* labels = nullptr;
+  int16_t* hu = nullptr;
+  uint8_t* tumor = nullptr;
+};
+
+// Centre of voxel (i, j) of the slice.
+Vec3 voxel_centre(const ImageGeometry& g, int64_t i, int64_t j, double z) {
+  const double s = g.spacing.x();
+  return Vec3(g.origin.x() + s * double(i), g.origin.y() + s * double(j), z);
+}
+
+// Body wall and smooth organs, from the column maps.
+void paint_body_and_organs(const ImageGeometry& g, const ColumnMaps& cols, const Slice& sl) {
+  const int64_t nx = g.dims[0], ny = g.dims[1];
+  for (int64_t j = 0; j < ny; ++j) {
+    for (int64_t i = 0; i < nx; ++i) {
+      const size_t c = size_t(i + nx * j);
+      const Vec3 p = voxel_centre(g, i, j, sl.z);
+      switch (cols.kind[c]) {
+        case kColAir:
+          sl.labels[c] = kAir;
+          break;
+        case kColFat:
+          sl.labels[c] = kFat;
+          break;
+        case kColMuscle:
+          sl.labels[c] = kMuscle;
+          break;
+        default:
+          cavity_voxel(p, cols.cavity_d[c], cols.dome[c], sl.labels[c], sl.hu[c]);
+          continue;
+      }
+      sl.hu[c] = kLabelHu[sl.labels[c]];
+    }
+  }
+}
+
+// Great vessels and spine, inside the body.
+void paint_vessels_and_spine(const ImageGeometry& g, const ColumnMaps& cols, const Slice& sl) {
+  const int64_t nx = g.dims[0], ny = g.dims[1];
+  for (int64_t j = 0; j < ny; ++j) {
+    for (int64_t i = 0; i < nx; ++i) {
+      const size_t c = size_t(i + nx * j);
+      if (cols.kind[c] == kColAir) continue;
+      vessel_and_spine_voxel(voxel_centre(g, i, j, sl.z), sl.labels[c], sl.hu[c]);
+    }
+  }
+}
+
+// Gas pockets in the bowel.
+void paint_gas(const std::vector<Sphere>& gas, const ImageGeometry& g, const Slice& sl) {
+  const int64_t nx = g.dims[0];
+  for (const Sphere& sphere : gas) {
+    if (std::abs(sl.z - sphere.c.z()) > sphere.r) continue;
+    const auto [i0, i1] = index_range(g, 0, sphere.c.x() - sphere.r, sphere.c.x() + sphere.r);
+    const auto [j0, j1] = index_range(g, 1, sphere.c.y() - sphere.r, sphere.c.y() + sphere.r);
+    for (int64_t j = j0; j <= j1; ++j) {
+      for (int64_t i = i0; i <= i1; ++i) {
+        const size_t c = size_t(i + nx * j);
+        const Vec3 p = voxel_centre(g, i, j, sl.z);
+        if (sl.labels[c] == kBowel && (p - sphere.c).norm() <= sphere.r) sl.hu[c] = kBowelGasHu;
+      }
+    }
+  }
+}
+
+// Index ranges of the tumor's bounding box.
+struct IndexBox {
+  std::pair<int64_t, int64_t> x, y, z;
+};
+
+IndexBox tumor_box(const ImageGeometry& g) {
+  IndexBox b;
+  b.z = index_range(g, 2, kTumorC.z() - kTumorBoundingR, kTumorC.z() + kTumorBoundingR);
+  b.x = index_range(g, 0, kTumorC.x() - kTumorBoundingR, kTumorC.x() + kTumorBoundingR);
+  b.y = index_range(g, 1, kTumorC.y() - kTumorBoundingR, kTumorC.y() + kTumorBoundingR);
+  return b;
+}
+
+// The tumor: liver tissue (vessels carved out) inside the lobes.
+void paint_tumor(const ImageGeometry& g, const IndexBox& box, const Slice& sl) {
+  if (sl.k < box.z.first || sl.k > box.z.second) return;
+  const int64_t nx = g.dims[0];
+  for (int64_t j = box.y.first; j <= box.y.second; ++j) {
+    for (int64_t i = box.x.first; i <= box.x.second; ++i) {
+      const size_t c = size_t(i + nx * j);
+      if (sl.labels[c] != kLiver && sl.labels[c] != kLiverVessel) continue;
+      if (!in_tumor(voxel_centre(g, i, j, sl.z))) continue;
+      sl.labels[c] = kLiver;
+      sl.hu[c] = kTumorHu;
+      sl.tumor[c] = 1;
+    }
+  }
+}
+
+// Noise, clamped to the HU range -1024..3071.
+void add_noise(uint64_t noise_key, int64_t slice_size, const Slice& sl) {
+  for (int64_t c = 0; c < slice_size; ++c) {
+    const int v = int(sl.hu[c]) + noise_hu(noise_key, sl.k * slice_size + c);
+    sl.hu[c] = int16_t(std::clamp(v, -1024, 3071));
+  }
+}
+
+// Paints one slice; each step overrides what the steps before it painted.
+void paint_slice(const ImageGeometry& g, const Scene& scene, const ColumnMaps& cols,
+                 const IndexBox& tumor, uint64_t noise_key, const Slice& sl) {
+  paint_body_and_organs(g, cols, sl);
+  // Bowel in the fat of the abdominal cavity; liver vessels inside the liver.
+  paint_capsules(scene.bowel, g, sl.k, cols, sl.labels, sl.hu, kBowel,
+                 [](uint8_t l, uint8_t col) { return l == kFat && col == kColCavity; });
+  paint_capsules(scene.liver_vessels, g, sl.k, cols, sl.labels, sl.hu, kLiverVessel,
+                 [](uint8_t l, uint8_t) { return l == kLiver; });
+  paint_vessels_and_spine(g, cols, sl);
+  // Ribs after the spine (inside the body).
+  paint_capsules(scene.ribs, g, sl.k, cols, sl.labels, sl.hu, kBone,
+                 [](uint8_t, uint8_t col) { return col != kColAir; });
+  paint_gas(scene.gas, g, sl);
+  paint_tumor(g, tumor, sl);
+  add_noise(noise_key, g.dims[0] * g.dims[1], sl);
+}
+
+}  // namespace
+
+Phantom make_phantom(const PhantomOptions& options) {
+  check_options(options);
+  const ImageGeometry g = phantom_geometry(options.spacing_mm);
   Phantom ph;
   ph.ct = Volume<int16_t>(g, kLabelHu[kAir]);
   ph.labels = Volume<uint8_t>(g, kAir);
   ph.tumor = Volume<uint8_t>(g, 0);
 
-  Scene scene;
-  scene.ribs = make_ribs();
-  scene.liver_vessels = make_liver_vessels(options.seed);
-  make_bowel(options.seed, scene.bowel, scene.gas);
+  const Scene scene = make_scene_parts(options.seed);
   const ColumnMaps cols = make_column_maps(g);
+  const IndexBox tumor = tumor_box(g);
   const uint64_t noise_key = splitmix64(options.seed ^ 0x6E6F697365ull);
-
   const int64_t nx = g.dims[0], ny = g.dims[1], nz = g.dims[2];
   const int64_t slice_size = nx * ny;
-  // Tumor bounding box (index ranges).
-  const auto tz = index_range(g, 2, kTumorC.z() - kTumorBoundingR, kTumorC.z() + kTumorBoundingR);
-  const auto tx = index_range(g, 0, kTumorC.x() - kTumorBoundingR, kTumorC.x() + kTumorBoundingR);
-  const auto ty = index_range(g, 1, kTumorC.y() - kTumorBoundingR, kTumorC.y() + kTumorBoundingR);
-
 #pragma omp parallel for schedule(dynamic, 1)
   for (int64_t k = 0; k < nz; ++k) {
-    uint8_t* labels = ph.labels.data() + k * slice_size;
-    int16_t* hu = ph.ct.data() + k * slice_size;
-    uint8_t* tumor = ph.tumor.data() + k * slice_size;
-    const double z = g.origin.z() + g.spacing.z() * double(k);
-    // 1. Body wall and smooth organs.
-    for (int64_t j = 0; j < ny; ++j) {
-      for (int64_t i = 0; i < nx; ++i) {
-        const size_t c = size_t(i + nx * j);
-        const Vec3 p(g.origin.x() + s * double(i), g.origin.y() + s * double(j), z);
-        switch (cols.kind[c]) {
-          case kColAir:
-            labels[c] = kAir;
-            break;
-          case kColFat:
-            labels[c] = kFat;
-            break;
-          case kColMuscle:
-            labels[c] = kMuscle;
-            break;
-          default:
-            cavity_voxel(p, cols.cavity_d[c], cols.dome[c], labels[c], hu[c]);
-            continue;
-        }
-        hu[c] = kLabelHu[labels[c]];
-      }
-    }
-    // 2. Bowel in the fat of the abdominal cavity; liver vessels inside the liver.
-    paint_capsules(scene.bowel, g, k, cols, labels, hu, kBowel,
-                   [](uint8_t l, uint8_t col) { return l == kFat && col == kColCavity; });
-    paint_capsules(scene.liver_vessels, g, k, cols, labels, hu, kLiverVessel,
-                   [](uint8_t l, uint8_t) { return l == kLiver; });
-    // 3. Great vessels and spine, then ribs (inside the body).
-    for (int64_t j = 0; j < ny; ++j) {
-      for (int64_t i = 0; i < nx; ++i) {
-        const size_t c = size_t(i + nx * j);
-        if (cols.kind[c] == kColAir) continue;
-        const Vec3 p(g.origin.x() + s * double(i), g.origin.y() + s * double(j), z);
-        vessel_and_spine_voxel(p, labels[c], hu[c]);
-      }
-    }
-    paint_capsules(scene.ribs, g, k, cols, labels, hu, kBone,
-                   [](uint8_t, uint8_t col) { return col != kColAir; });
-    // 4. Gas pockets in the bowel.
-    for (const Sphere& sphere : scene.gas) {
-      if (std::abs(z - sphere.c.z()) > sphere.r) continue;
-      const auto [i0, i1] = index_range(g, 0, sphere.c.x() - sphere.r, sphere.c.x() + sphere.r);
-      const auto [j0, j1] = index_range(g, 1, sphere.c.y() - sphere.r, sphere.c.y() + sphere.r);
-      for (int64_t j = j0; j <= j1; ++j) {
-        for (int64_t i = i0; i <= i1; ++i) {
-          const size_t c = size_t(i + nx * j);
-          const Vec3 p(g.origin.x() + s * double(i), g.origin.y() + s * double(j), z);
-          if (labels[c] == kBowel && (p - sphere.c).norm() <= sphere.r) hu[c] = kBowelGasHu;
-        }
-      }
-    }
-    // 5. Tumor: liver tissue (vessels carved out) inside the lobes.
-    if (k >= tz.first && k <= tz.second) {
-      for (int64_t j = ty.first; j <= ty.second; ++j) {
-        for (int64_t i = tx.first; i <= tx.second; ++i) {
-          const size_t c = size_t(i + nx * j);
-          if (labels[c] != kLiver && labels[c] != kLiverVessel) continue;
-          const Vec3 p(g.origin.x() + s * double(i), g.origin.y() + s * double(j), z);
-          if (!in_tumor(p)) continue;
-          labels[c] = kLiver;
-          hu[c] = kTumorHu;
-          tumor[c] = 1;
-        }
-      }
-    }
-    // 6. Noise.
-    for (int64_t c = 0; c < slice_size; ++c) {
-      const int v = int(hu[c]) + noise_hu(noise_key, k * slice_size + c);
-      hu[c] = int16_t(std::clamp(v, -1024, 3071));
-    }
+    const Slice slice{k, g.origin.z() + g.spacing.z() * double(k),
+                      ph.labels.data() + k * slice_size, ph.ct.data() + k * slice_size,
+                      ph.tumor.data() + k * slice_size};
+    paint_slice(g, scene, cols, tumor, noise_key, slice);
   }
 
   ph.vulnerability = nlohmann::json::parse(preset_sources().at("phantom"));
-  spdlog::debug("phantom: {}x{}x{} voxels of {} mm, {} vessel tube pieces, seed {}", nx, ny, nz, s,
-                scene.liver_vessels.size(), options.seed);
+  spdlog::debug("phantom: {}x{}x{} voxels of {} mm, {} vessel tube pieces, seed {}", nx, ny, nz,
+                options.spacing_mm, scene.liver_vessels.size(), options.seed);
   return ph;
 }
 

@@ -21,6 +21,7 @@
 #include "planning/safety/path_safety.hpp"
 #include "planning/imaging/sampling.hpp"
 #include "planning/imaging/volume_io.hpp"
+#include "planning/safety/unknown.hpp"
 
 namespace fs = std::filesystem;
 
@@ -83,24 +84,19 @@ TrajectoryEvaluator::TrajectoryEvaluator(const PlanData& plan)
     : impl_(std::make_unique<Impl>(plan)) {}
 TrajectoryEvaluator::~TrajectoryEvaluator() = default;
 
-TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
-  const PlanData& plan = impl_->plan;
-  TrajectoryEvaluation e;
-  e.trajectory = t;
-  const Eigen::Vector3d d = t.target - t.entry;
-  e.length_mm = d.norm();
-  if (!(e.length_mm > 1e-6)) {
-    throw Error("trajectory \"" + t.name + "\": entry and target coincide " + point_text(t.entry));
-  }
+namespace {
 
-  // Line integral exactly as DESIGN.md section 4 defines it for a ray p -> t (kernels).
+// Line integral exactly as DESIGN.md section 4 defines it for a ray p -> t (kernels): sets the
+// integral, its sample count and its step.
+void integrate_blocking(const kernels::PathSafetyScene<double>& scene, const Trajectory& t,
+                        TrajectoryEvaluation& e) {
   kernels::SurfacePoint<double> target{};
   target.position = {t.target.x(), t.target.y(), t.target.z()};
   target.normal = {0, 0, 0};
   target.offset = -1;
   const kernels::Vec3<double> p{t.entry.x(), t.entry.y(), t.entry.z()};
-  const auto ray = kernels::make_ray(impl_->scene, p, target);
-  const kernels::GridSampler<double> sampler{impl_->scene.blocking};
+  const auto ray = kernels::make_ray(scene, p, target);
+  const kernels::GridSampler<double> sampler{scene.blocking};
   double integral = 0;
   for (int k = 1; k <= ray.n; ++k) {
     integral += sampler(kernels::along(ray.q0, ray.dq, double(k))) * double(ray.step);
@@ -108,16 +104,43 @@ TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
   e.samples = ray.n;
   e.step_mm = double(ray.step);
   e.line_integral = integral;
+}
 
-  // Structures and tumor: nearest-voxel lookups at samples k = 0..M (entry to target), M so that
-  // the step is at most gamma and at most half the finest label spacing. A structure is entered
-  // half a step before its first sample; its length is its sample count times the step.
+// The structure search's sample count M over `length_mm`: the step is at most gamma and at most
+// half the finest spacing of the label map and the tumor mask.
+int structure_sample_count(const PlanData& plan, double length_mm) {
   double step_bound = plan.gamma_mm;
   if (!plan.labels.empty())
     step_bound = std::min(step_bound, 0.5 * plan.labels.geometry().spacing.minCoeff());
   if (!plan.tumor.empty())
     step_bound = std::min(step_bound, 0.5 * plan.tumor.geometry().spacing.minCoeff());
-  const int m = std::max(1, int(std::ceil(e.length_mm / step_bound)));
+  return std::max(1, int(std::ceil(length_mm / step_bound)));
+}
+
+// A structure first met at `depth_mm`, named and rated from the plan's vulnerability table.
+StructureHit structure_hit(const PlanData& plan, int32_t label, double depth_mm) {
+  StructureHit h;
+  h.label = label;
+  h.name = "label " + std::to_string(label);
+  h.depth_mm = depth_mm;
+  if (plan.table) {
+    if (const LabelClass* c = plan.table->find_label(label)) {
+      h.name = c->name;
+      h.level = c->level;
+      if (const VulnerabilityLevel* lv = plan.table->find_level(c->level)) {
+        h.level_name = lv->name;
+        h.blocking_per_mm = lv->blocking_per_mm;
+      }
+    }
+  }
+  return h;
+}
+
+// Structures and tumor: nearest-voxel lookups at samples k = 0..M (entry to target). A structure
+// is entered half a step before its first sample; its length is its sample count times the step.
+void find_structures_and_tumor(const PlanData& plan, const Trajectory& t, TrajectoryEvaluation& e) {
+  const Eigen::Vector3d d = t.target - t.entry;
+  const int m = structure_sample_count(plan, e.length_mm);
   const double l = e.length_mm / m;
   e.structure_step_mm = l;
   e.labels_available = !plan.labels.empty();
@@ -130,23 +153,7 @@ TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
       const int32_t label = nearest_voxel_or<int32_t>(plan.labels, x, 0);
       if (label != 0) {
         auto it = hits.find(label);
-        if (it == hits.end()) {
-          StructureHit h;
-          h.label = label;
-          h.name = "label " + std::to_string(label);
-          h.depth_mm = depth;
-          if (plan.table) {
-            if (const LabelClass* c = plan.table->find_label(label)) {
-              h.name = c->name;
-              h.level = c->level;
-              if (const VulnerabilityLevel* lv = plan.table->find_level(c->level)) {
-                h.level_name = lv->name;
-                h.blocking_per_mm = lv->blocking_per_mm;
-              }
-            }
-          }
-          it = hits.emplace(label, h).first;
-        }
+        if (it == hits.end()) it = hits.emplace(label, structure_hit(plan, label, depth)).first;
         it->second.length_mm += l;
       }
     }
@@ -162,62 +169,118 @@ TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
     e.target_in_tumor = nearest_voxel_or<uint8_t>(plan.tumor, t.target, 0) != 0;
     e.tumor_depth_mm = tumor_first < 0 ? -1.0 : tumor_first == 0 ? 0.0 : (tumor_first - 0.5) * l;
   }
+}
 
-  // Path safety at the entry and its rank within the region of interest.
+// Whether p lies outside the scan, as far as the plan records it (TrajectoryEvaluation).
+bool outside_scan(const PlanData& plan, const Eigen::Vector3d& p) {
+  if (plan.region.empty()) return false;
+  if (nearest_voxel_or<uint8_t>(plan.region, p, kRegionNotComputed) == kRegionUnknown) return true;
+  return !plan.blocking.empty() &&
+         !within_extent(plan.blocking.geometry(), plan.blocking.physical_to_index(p));
+}
+
+// The entry outside the scan, and the length of entry -> target outside it: the midpoints of the
+// structure search's M steps, each step counted whole.
+void find_scan_coverage(const PlanData& plan, const Trajectory& t, TrajectoryEvaluation& e) {
+  e.entry_outside_scan = outside_scan(plan, t.entry);
+  if (plan.region.empty()) return;
+  const int m = structure_sample_count(plan, e.length_mm);
+  const double l = e.length_mm / m;
+  int outside = 0;
+  for (int k = 1; k <= m; ++k) {
+    outside += outside_scan(plan, t.entry + ((double(k) - 0.5) / m) * (t.target - t.entry));
+  }
+  e.outside_scan_mm = outside * l;
+}
+
+// Path safety of one value at the entry, its class and its rank within the region of interest
+// (`sorted`: the finite values of the volume, ascending).
+EntryValue entry_value(const std::string& value, const Volume<float>& volume,
+                       const SafetyClasses& classes, const std::vector<float>& sorted,
+                       const Eigen::Vector3d& entry) {
+  EntryValue ev;
+  ev.value = value;
+  ev.at_entry = sample_path_safety(volume, entry);
+  if (std::isfinite(ev.at_entry)) {
+    ev.safety_class = class_name(classes.classify(ev.at_entry));
+    const auto& s = sorted;
+    const auto lo = std::lower_bound(s.begin(), s.end(), float(ev.at_entry));
+    const auto hi = std::upper_bound(s.begin(), s.end(), float(ev.at_entry));
+    const double below = double(lo - s.begin()), equal = double(hi - lo);
+    ev.percentile = s.empty() ? kNaN : 100.0 * (below + 0.5 * equal) / double(s.size());
+    ev.safety_percentile = classes.higher_is_safer ? ev.percentile : 100.0 - ev.percentile;
+  } else {
+    ev.safety_class = "outside";
+    ev.percentile = ev.safety_percentile = kNaN;
+  }
+  return ev;
+}
+
+// Area safety: the extrusion column (normal ray of a base vertex) nearest to the entry.
+EntryArea entry_area(const AreaSafetyGeometry& a, const Eigen::Vector3d& entry) {
+  EntryArea area;
+  area.available = true;
+  double best = std::numeric_limits<double>::infinity();
+  for (size_t i = 0; i < a.base.size(); ++i) {
+    const Eigen::Vector3d w = entry - a.base[i];
+    const double s = w.dot(a.normals[i]);
+    const double dist = s > 0 ? (w - s * a.normals[i]).norm() : w.norm();
+    if (dist < best) {
+      best = dist;
+      area.vertex = int(i);
+      area.along_normal_mm = std::max(0.0, s);
+    }
+  }
+  const size_t v = size_t(area.vertex);
+  area.ray_distance_mm = best;
+  area.extrusion_mm = (v < a.vertices.size()) ? (a.vertices[v] - a.base[v]).norm() : 0.0;
+  area.safe = v < a.safe.size() && a.safe[v] != 0;
+  area.region = v < a.region.size() ? a.region[v] : -1;
+  double largest = 0;
+  for (const auto& r : a.regions) largest = std::max(largest, r.size_mm3);
+  for (const auto& r : a.regions) {
+    if (r.id == area.region) area.region_size_mm3 = r.size_mm3;
+  }
+  if (area.region >= 0 && largest > 0) {
+    area.relative_area_safety = area.region_size_mm3 / largest;
+  } else if (area.region >= 0 && v < a.leeway.size()) {
+    area.relative_area_safety = a.leeway[v];  // no region sizes: the stored leeway
+  }
+  return area;
+}
+
+}  // namespace
+
+TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
+  const PlanData& plan = impl_->plan;
+  TrajectoryEvaluation e;
+  e.trajectory = t;
+  e.length_mm = (t.target - t.entry).norm();
+  if (!(e.length_mm > 1e-6)) {
+    throw Error("trajectory \"" + t.name + "\": entry and target coincide " + point_text(t.entry));
+  }
+  integrate_blocking(impl_->scene, t, e);
+  find_structures_and_tumor(plan, t, e);
+  find_scan_coverage(plan, t, e);
   for (const auto& value : plan.values) {
     const auto vol = plan.path_safety.find(value);
     if (vol == plan.path_safety.end()) continue;
-    EntryValue ev;
-    ev.value = value;
-    ev.at_entry = sample_path_safety(vol->second, t.entry);
-    const SafetyClasses& classes = plan.classes.at(value);
-    if (std::isfinite(ev.at_entry)) {
-      ev.safety_class = class_name(classes.classify(ev.at_entry));
-      const auto& s = impl_->sorted.at(value);
-      const auto lo = std::lower_bound(s.begin(), s.end(), float(ev.at_entry));
-      const auto hi = std::upper_bound(s.begin(), s.end(), float(ev.at_entry));
-      const double below = double(lo - s.begin()), equal = double(hi - lo);
-      ev.percentile = s.empty() ? kNaN : 100.0 * (below + 0.5 * equal) / double(s.size());
-      ev.safety_percentile = classes.higher_is_safer ? ev.percentile : 100.0 - ev.percentile;
-    } else {
-      ev.safety_class = "outside";
-      ev.percentile = ev.safety_percentile = kNaN;
+    e.values.push_back(
+        entry_value(value, vol->second, plan.classes.at(value), impl_->sorted.at(value), t.entry));
+    // Unknown is never safe: no value at an entry outside the scan (the trilinear sample could
+    // borrow one from computed neighbours), and no "safe" for a path that leaves the scan.
+    EntryValue& ev = e.values.back();
+    if (e.entry_outside_scan) {
+      ev.at_entry = ev.percentile = ev.safety_percentile = kNaN;
+      ev.safety_class = "unknown";
+    } else if (e.leaves_scan() && ev.safety_class == "safe") {
+      ev.safety_class = "unknown";
     }
-    e.values.push_back(ev);
   }
-
-  // Area safety: the extrusion column (normal ray of a base vertex) nearest to the entry.
   if (plan.area && !plan.area->base.empty() &&
       plan.area->normals.size() == plan.area->base.size()) {
-    const AreaSafetyGeometry& a = *plan.area;
-    EntryArea& area = e.area;
-    area.available = true;
-    double best = std::numeric_limits<double>::infinity();
-    for (size_t i = 0; i < a.base.size(); ++i) {
-      const Eigen::Vector3d w = t.entry - a.base[i];
-      const double s = w.dot(a.normals[i]);
-      const double dist = s > 0 ? (w - s * a.normals[i]).norm() : w.norm();
-      if (dist < best) {
-        best = dist;
-        area.vertex = int(i);
-        area.along_normal_mm = std::max(0.0, s);
-      }
-    }
-    const size_t v = size_t(area.vertex);
-    area.ray_distance_mm = best;
-    area.extrusion_mm = (v < a.vertices.size()) ? (a.vertices[v] - a.base[v]).norm() : 0.0;
-    area.safe = v < a.safe.size() && a.safe[v] != 0;
-    area.region = v < a.region.size() ? a.region[v] : -1;
-    double largest = 0;
-    for (const auto& r : a.regions) largest = std::max(largest, r.size_mm3);
-    for (const auto& r : a.regions) {
-      if (r.id == area.region) area.region_size_mm3 = r.size_mm3;
-    }
-    if (area.region >= 0 && largest > 0) {
-      area.relative_area_safety = area.region_size_mm3 / largest;
-    } else if (area.region >= 0 && v < a.leeway.size()) {
-      area.relative_area_safety = a.leeway[v];  // no region sizes: the stored leeway
-    }
+    e.area = entry_area(*plan.area, t.entry);
+    if (e.leaves_scan()) e.area.safe = false;  // not reported safe: see evaluation_text
   }
   return e;
 }
@@ -251,6 +314,12 @@ nlohmann::json evaluation_json(const TrajectoryEvaluation& e) {
   j["structure_step_mm"] = e.structure_step_mm;
   j["target_in_tumor"] = e.target_in_tumor;
   j["tumor_depth_mm"] = e.tumor_depth_mm >= 0 ? nlohmann::json(e.tumor_depth_mm) : nullptr;
+  j["scan"] = {{"entry_outside_scan", e.entry_outside_scan},
+               {"length_outside_scan_mm", e.outside_scan_mm},
+               {"leaves_scan", e.leaves_scan()},
+               {"note",
+                "outside the scan the anatomy is unknown: never reported safe (class "
+                "\"unknown\")"}};
   nlohmann::json values = nlohmann::json::object();
   for (const auto& v : e.values) {
     values[v.value] = {{"at_entry", num(v.at_entry)},
@@ -306,8 +375,21 @@ std::string evaluation_text(const TrajectoryEvaluation& e) {
     s << "Tumor: " << (e.target_in_tumor ? "target inside" : "not reached (or no tumor mask)")
       << "\n";
   }
+  if (e.entry_outside_scan) {
+    s << "Scan: the entry lies OUTSIDE the scan: the anatomy there is unknown (no path safety "
+         "value; never safe)\n";
+  }
+  if (e.outside_scan_mm > 0) {
+    s << "Scan: " << fmt::format("{:.1f}", e.outside_scan_mm) << " mm of the path (of "
+      << fmt::format("{:.1f}", e.length_mm)
+      << " mm) lie OUTSIDE the scan: unknown anatomy, the path is never reported safe\n";
+  }
   if (!e.values.empty()) s << "Path safety at the entry:\n";
   for (const auto& v : e.values) {
+    if (v.safety_class == "unknown" && !std::isfinite(v.at_entry)) {
+      s << "  " << v.value << ": unknown (outside the scan)\n";
+      continue;
+    }
     if (!std::isfinite(v.at_entry)) {
       s << "  " << v.value << ": outside the region of interest\n";
       continue;
@@ -316,7 +398,10 @@ std::string evaluation_text(const TrajectoryEvaluation& e) {
                      v.value, v.at_entry, v.safety_class, v.safety_percentile);
   }
   if (e.area.available) {
-    if (e.area.safe) {
+    if (e.leaves_scan()) {
+      s << "Area safety: unknown (the path leaves the scan; nearest extrusion column "
+        << (e.area.region >= 0 ? "in region " + std::to_string(e.area.region) : "unsafe") << ")";
+    } else if (e.area.safe) {
       s << "Area safety: entry in safe region " << e.area.region << " ("
         << fmt::format("{:.0f}", e.area.region_size_mm3) << " mm^3), relative area safety "
         << fmt::format("{:.0f}", 100.0 * e.area.relative_area_safety) << " %";
@@ -339,7 +424,7 @@ std::string evaluation_csv_header(const TrajectoryEvaluation& e) {
   for (const auto& v : e.values) {
     h += "," + v.value + "_at_entry," + v.value + "_class," + v.value + "_safety_percentile";
   }
-  h += ",in_safe_region,area_region,relative_area_safety";
+  h += ",in_safe_region,area_region,relative_area_safety,entry_outside_scan,outside_scan_mm";
   return h;
 }
 
@@ -375,6 +460,8 @@ std::string evaluation_csv_row(const TrajectoryEvaluation& e) {
   } else {
     r += ",,,";
   }
+  r += std::string(",") + (e.entry_outside_scan ? "1" : "0") + "," +
+       fmt::format("{:.1f}", e.outside_scan_mm);
   return r;
 }
 

@@ -45,8 +45,11 @@ struct StructureHit {
 
 struct EntryValue {
   std::string value;             // "svv", "isbv", ...
-  double at_entry = 0;           // NaN when the entry lies outside the region of interest
-  std::string safety_class;      // "safe", "medium", "dangerous" or "outside"
+  double at_entry = 0;           // NaN outside the region of interest or outside the scan
+  // "safe", "medium", "dangerous", "outside" (the region of interest) or "unknown": the entry
+  // lies outside the scan, or the path leaves the scan where the value alone would say safe
+  // (the anatomy there is unknown; a medium or dangerous value stays: unknown parts only add).
+  std::string safety_class;
   double percentile = 0;         // % of ROI voxels with a lower value (ties count half)
   double safety_percentile = 0;  // % of ROI voxels less safe than the entry (100: safest)
 };
@@ -77,6 +80,12 @@ struct TrajectoryEvaluation {
   bool labels_available = false;
   bool target_in_tumor = false;
   double tumor_depth_mm = -1;  // where the path first enters the tumor; -1: never / no mask
+  // Scan coverage (planning/safety/unknown.hpp): a point is outside the scan where its nearest
+  // voxel of the plan's region states is unknown, or (plans with region states) where it lies
+  // beyond the blocking grid. Plans without roi.nii.gz: always inside.
+  bool entry_outside_scan = false;
+  double outside_scan_mm = 0;  // length of entry -> target outside the scan (+/- structure step)
+  bool leaves_scan() const { return entry_outside_scan || outside_scan_mm > 0; }
   std::vector<EntryValue> values;
   EntryArea area;
 };

@@ -24,6 +24,7 @@
 #include "foundation/output_files.hpp"
 #include "planning/imaging/sampling.hpp"
 #include "planning/imaging/volume_io.hpp"
+#include "planning/safety/unknown.hpp"
 
 namespace fs = std::filesystem;
 
@@ -239,6 +240,30 @@ SliceView frame_view(const SliceScene& scene, const SlicePlane& plane,
     vmin = std::min(vmin, d.dot(plane.down));
     vmax = std::max(vmax, d.dot(plane.down));
   }
+  // Unknown voxels beyond the CT (a thin scan, a large region of interest) are shown too.
+  if (scene.region_state) {
+    const Volume<uint8_t>& r = *scene.region_state;
+    Eigen::Vector3d lo = Eigen::Vector3d::Constant(1e300), hi = -lo;
+    for (int64_t k = 0; k < r.dims()[2]; ++k)
+      for (int64_t j = 0; j < r.dims()[1]; ++j)
+        for (int64_t i = 0; i < r.dims()[0]; ++i) {
+          if (r(i, j, k) != kRegionUnknown) continue;
+          lo = lo.cwiseMin(Eigen::Vector3d(double(i), double(j), double(k)));
+          hi = hi.cwiseMax(Eigen::Vector3d(double(i), double(j), double(k)));
+        }
+    if (lo.x() <= hi.x()) {
+      for (int c = 0; c < 8; ++c) {
+        const Eigen::Vector3d idx((c & 1) ? hi.x() + 0.5 : lo.x() - 0.5,
+                                  (c & 2) ? hi.y() + 0.5 : lo.y() - 0.5,
+                                  (c & 4) ? hi.z() + 0.5 : lo.z() - 0.5);
+        const Eigen::Vector3d d = r.geometry().index_to_physical(idx) - plane.centre;
+        umin = std::min(umin, d.dot(plane.right));
+        umax = std::max(umax, d.dot(plane.right));
+        vmin = std::min(vmin, d.dot(plane.down));
+        vmax = std::max(vmax, d.dot(plane.down));
+      }
+    }
+  }
   double pixel = options.pixel_mm;
   if (!(pixel > 0)) {
     double finest = cg.spacing.minCoeff();
@@ -263,12 +288,13 @@ SliceView frame_view(const SliceScene& scene, const SlicePlane& plane,
 }
 
 // The layers of a view sampled at its pixel centres: the CT in its window with the path safety
-// classes blended over it (BGR, black outside the CT), and the label and tumor values (nearest
-// voxel) that the outlines are traced on.
+// classes blended over it (BGR, black outside the CT) and unknown voxels hatched, and the label
+// and tumor values (nearest voxel) that the outlines are traced on.
 struct SliceLayers {
   cv::Mat image;   // CV_8UC3
   cv::Mat labels;  // CV_32S, 0 where none
   cv::Mat tumor;   // CV_8U, 255 in the tumor
+  int64_t unknown_pixels = 0;
 };
 
 SliceLayers sample_layers(const SliceScene& scene, const SliceView& view,
@@ -279,17 +305,25 @@ SliceLayers sample_layers(const SliceScene& scene, const SliceView& view,
   SliceLayers layers{cv::Mat(h, w, CV_8UC3, cv::Scalar(0, 0, 0)),
                      cv::Mat(h, w, CV_32S, cv::Scalar(0)), cv::Mat(h, w, CV_8U, cv::Scalar(0))};
   const double alpha = std::clamp(options.overlay_opacity, 0.0, 1.0);
-#pragma omp parallel for schedule(static)
+  int64_t unknown_pixels = 0;
+#pragma omp parallel for schedule(static) reduction(+ : unknown_pixels)
   for (int y = 0; y < h; ++y) {
     for (int x = 0; x < w; ++x) {
       const Eigen::Vector3d p = view.point_of(x, y);
+      const bool unknown = scene.region_state &&
+                           nearest_voxel_or<uint8_t>(*scene.region_state, p, kRegionNotComputed) ==
+                               kRegionUnknown;
       const std::optional<double> hu = trilinear_clamped(ct, ct.physical_to_index(p));
-      if (!hu) continue;
-      const uint8_t g = window_grey(*hu, options.window_width, options.window_level);
+      if (!hu && !unknown) continue;
+      const uint8_t g = hu ? window_grey(*hu, options.window_width, options.window_level) : 0;
       double rgb[3] = {double(g), double(g), double(g)};
       const std::optional<float> value =
-          scene.path_safety ? nearest_voxel(*scene.path_safety, p) : std::nullopt;
-      if (value && std::isfinite(*value)) {
+          scene.path_safety && !unknown ? nearest_voxel(*scene.path_safety, p) : std::nullopt;
+      if (unknown) {
+        // Unknown (outside the scan): hatched, never a class colour, never hidden.
+        ++unknown_pixels;
+        if (unknown_hatch_pixel(x, y)) rgb[0] = rgb[1] = rgb[2] = kUnknownHatchGrey;
+      } else if (value && std::isfinite(*value)) {
         const int k = int(scene.classes.classify(*value));
         if (!options.hidden[size_t(k)]) {
           for (int c = 0; c < 3; ++c)
@@ -308,6 +342,7 @@ SliceLayers sample_layers(const SliceScene& scene, const SliceView& view,
       }
     }
   }
+  layers.unknown_pixels = unknown_pixels;
   return layers;
 }
 
@@ -506,6 +541,18 @@ void legend_path_safety(const SliceScene& scene, const SliceOptions& options, Le
   }
 }
 
+// Legend row of the unknown state: a hatched swatch.
+void legend_unknown(LegendWriter& out) {
+  const cv::Rect swatch(12, out.y() - 11, 22, 13);
+  cv::rectangle(out.panel(), swatch, cv::Scalar(0, 0, 0), cv::FILLED);
+  for (int y = 0; y < swatch.height; ++y)
+    for (int x = 0; x < swatch.width; ++x)
+      if (unknown_hatch_pixel(x, y))
+        out.panel().at<cv::Vec3b>(swatch.y + y, swatch.x + x) =
+            cv::Vec3b(kUnknownHatchGrey, kUnknownHatchGrey, kUnknownHatchGrey);
+  out.line("unknown (outside the scan)", 42);
+}
+
 // Legend rows of the area safety contour: its line width at three leeways, the unsafe line.
 void legend_area_safety(const SliceScene& scene, const SliceOptions& options, double pixel,
                         LegendWriter& out) {
@@ -531,7 +578,7 @@ void legend_area_safety(const SliceScene& scene, const SliceOptions& options, do
 
 // What the legend lists besides the scene's layers.
 struct LegendContent {
-  bool axis_shown = false, tumor_shown = false;
+  bool axis_shown = false, tumor_shown = false, unknown_shown = false;
   std::vector<std::pair<std::string, Rgb>> structures;  // outlined structures and their colours
 };
 
@@ -550,6 +597,7 @@ void draw_legend(const SliceScene& scene, const SliceView& view, const SliceOpti
   if (plane.right.x() > 0.7) out.line("patient's left on image right");
   out.gap();
   legend_path_safety(scene, options, out);
+  if (content.unknown_shown) legend_unknown(out);
   out.gap();
   legend_area_safety(scene, options, view.pixel_mm, out);
   if (content.axis_shown) {
@@ -597,8 +645,10 @@ SliceView render_slice(const SliceScene& scene, const SlicePlane& plane,
   SliceView view = frame_view(scene, plane, options);
   SliceLayers layers = sample_layers(scene, view, options);
   cv::Mat& img = layers.image;
+  view.unknown_pixels = layers.unknown_pixels;
 
   LegendContent legend;
+  legend.unknown_shown = layers.unknown_pixels > 0;
   std::set<int> seen;
   if (scene.labels) seen = draw_structure_outlines(layers.labels, img);
   for (int l : seen) {
@@ -624,7 +674,8 @@ SliceView render_slice(const SliceScene& scene, const SlicePlane& plane,
   // The view, and the legend panel right of it.
   const int w = view.view_width, h = view.view_height;
   const int lw = std::max(0, options.legend_width);
-  const int legend_height = 330 + 18 * int(legend.structures.size());
+  const int legend_height =
+      330 + 18 * int(legend.structures.size()) + (legend.unknown_shown ? 18 : 0);
   const int H = lw > 0 ? std::max(h, legend_height) : h;
   cv::Mat out(H, w + lw, CV_8UC3, cv::Scalar(0, 0, 0));
   img.copyTo(out(cv::Rect(0, 0, w, h)));

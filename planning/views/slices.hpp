@@ -54,6 +54,10 @@ std::string orientation_letters(const Eigen::Vector3d& direction);
 struct SliceScene {
   const Volume<float>* ct = nullptr;           // HU, required
   const Volume<float>* path_safety = nullptr;  // NaN outside the region of interest
+  // Voxel states of the plan (planning/safety/unknown.hpp RegionState, roi.nii.gz): voxels in the
+  // unknown state (2: outside the scan) are drawn as grey hatching, never in a class colour, and
+  // the view grows to show them where they lie beyond the CT.
+  const Volume<uint8_t>* region_state = nullptr;
   std::string value_name;                      // "svv", ... (legend)
   SafetyClasses classes;
   const Volume<int32_t>* labels = nullptr;
@@ -97,11 +101,22 @@ struct SliceView {
   RgbImage image;                       // view + legend panel
   std::vector<std::string> structures;  // names of the structures outlined in this view
   int contour_segments = 0;             // area safety contour segments drawn
+  int64_t unknown_pixels = 0;           // view pixels drawn as unknown (hatched)
 
   // View pixel (continuous; pixel centres at integers) of a point projected onto the plane.
   Eigen::Vector2d pixel_of(const Eigen::Vector3d& p) const;
   Eigen::Vector3d point_of(double x, double y) const;
 };
+
+// Unknown voxels (outside the scan): diagonal lines of kUnknownHatchGrey, kUnknownHatchWidth
+// pixels wide every kUnknownHatchPeriod pixels (pixels with (x + y) % period < width), over the CT
+// (over black where the CT does not reach).
+constexpr uint8_t kUnknownHatchGrey = 190;
+constexpr int kUnknownHatchPeriod = 8;
+constexpr int kUnknownHatchWidth = 2;
+inline bool unknown_hatch_pixel(int x, int y) {
+  return (x + y) % kUnknownHatchPeriod < kUnknownHatchWidth;
+}
 
 // Grey level of a CT value in the window (0..255).
 uint8_t window_grey(double hu, double width, double level);

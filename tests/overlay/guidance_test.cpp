@@ -111,7 +111,7 @@ class GuidanceTest : public ::testing::Test {
     planning::write_volume(tumor, (*dir_ / "tumor.nii.gz").string());
     test::write_fat_and_vessel_table((*dir_ / "table.json").string());
     pipelines::PlanRequest r;
-    r.labels = (*dir_ / "labels.nii.gz").string();
+    r.labels = {(*dir_ / "labels.nii.gz").string()};
     r.tumor = (*dir_ / "tumor.nii.gz").string();
     r.vulnerability = (*dir_ / "table.json").string();
     r.margin.fwhm_mm = 0.0;

@@ -22,6 +22,7 @@
 #include "foundation/error.hpp"
 #include "pipelines/plan.hpp"
 #include "planning/imaging/volume_io.hpp"
+#include "planning/safety/unknown.hpp"
 #include "tests/support/cli.hpp"
 #include "tests/support/errors.hpp"
 #include "tests/support/grids.hpp"
@@ -435,6 +436,51 @@ TEST(AreaSafetyExtrusion, PathSafetyTestSkipsUncomputedVoxels) {
   }
 }
 
+TEST(AreaSafetyExtrusion, ExtrusionsReachingTheUnknownStopThereNotSafe) {
+  // Path safety computed in a ball of radius 10 mm, safe everywhere (0, unsafe above 3); the
+  // scan ends at z = 5.5 mm: voxels above are unknown (NaN, region state 2).
+  const ImageGeometry grid = centred_cube_grid(31, 1.0);
+  Volume<float> ps(grid, std::nanf(""));
+  Volume<uint8_t> state(grid, kRegionNotComputed);
+  for (int64_t k = 0; k < 31; ++k)
+    for (int64_t j = 0; j < 31; ++j)
+      for (int64_t i = 0; i < 31; ++i) {
+        const Eigen::Vector3d x = ps.index_to_physical(i, j, k);
+        if (x.norm() > 10.0) continue;
+        state(i, j, k) = x.z() > 5.5 ? kRegionUnknown : kRegionComputed;
+        if (state(i, j, k) == kRegionComputed) ps(i, j, k) = 0.0f;
+      }
+  const SafetyTest test = path_safety_test(ps, false, 3.0, &state);
+  EXPECT_EQ(test(Eigen::Vector3d(0.3, 0.2, 3.0)), PointSafety::kSafe);
+  // Beside computed voxels (the interpolation alone would borrow their value): unknown.
+  EXPECT_EQ(test(Eigen::Vector3d(0.3, 0.2, 6.2)), PointSafety::kUnknown);
+  EXPECT_EQ(test(Eigen::Vector3d(0.0, 13.0, 0.0)), PointSafety::kOutside);
+  AreaSafetyOptions o;
+  o.spacing_mm = 1.0;
+  o.max_distance_mm = 30.0;
+  const AreaSafetyGeometry g = compute_area_safety(sphere(4), test, o);
+  // A ray from the centre meets the scan's edge (z = 5.5) inside the ball (10 mm) when
+  // n_z > 0.55: those stop there, not safe (margins for the voxels at the edges).
+  int64_t toward = 0;
+  for (size_t v = 0; v < g.base.size(); ++v) {
+    const Eigen::Vector3d& n = g.normals[v];
+    if (n.z() > 0.7) {
+      ++toward;
+      ASSERT_FALSE(g.safe[v]) << n.transpose();
+      ASSERT_EQ(g.region[v], -1);
+      ASSERT_LE(g.vertices[v].z(), 6.0 + 1e-9) << "extruded past the scan's edge";
+    }
+    if (n.z() < 0.45) ASSERT_TRUE(g.safe[v]) << n.transpose();
+  }
+  EXPECT_GT(toward, 0);
+  EXPECT_GE(g.unknown_vertex_count, toward);
+  EXPECT_EQ(area_safety_json(g)["unknown_vertex_count"].get<int64_t>(), g.unknown_vertex_count);
+  // Without the states the unknown voxels look like the region's edge: all safe (the old rule).
+  const AreaSafetyGeometry blind = compute_area_safety(sphere(4), path_safety_test(ps, false, 3.0), o);
+  EXPECT_EQ(blind.unknown_vertex_count, 0);
+  for (size_t v = 0; v < blind.base.size(); ++v) ASSERT_TRUE(blind.safe[v]);
+}
+
 // --- VTK file ----------------------------------------------------------------------------------
 
 class AreaSafetyFiles : public ::testing::Test {
@@ -567,6 +613,38 @@ TEST_F(AreaSafetyFiles, ReadingSomethingElseNamesTheFile) {
 }
 
 // --- Plan and command --------------------------------------------------------------------------
+
+TEST_F(AreaSafetyFiles, PlanWhoseScanEndsOnOneSideStopsExtrusionsTowardItNotSafe) {
+  // The mini plan (tumor on voxels 10..12, vessel column at i = 16) with a CT that starts at
+  // i = 7: the scan ends 9 mm from the tumor's centre on the -x side, inside R = 16 mm.
+  const test::MiniPlanInputs inputs = test::write_mini_plan_inputs(dir_);
+  ImageGeometry ct_grid = inputs.grid;
+  ct_grid.origin = inputs.grid.index_to_physical(7, 0, 0);
+  ct_grid.dims[0] -= 7;
+  write_volume(Volume<float>(ct_grid, 40.0f), (dir_ / "ct.nii.gz").string());
+  PlanRequest req = inputs.request((dir_ / "plan").string());
+  req.ct = (dir_ / "ct.nii.gz").string();
+  req.path_safety.values = kernels::kSvv;
+  const nlohmann::json plan = run_plan(req);
+  EXPECT_GT(plan["scan_coverage"]["roi_beyond_scan_mm"]["right"].get<double>(), 0.0)
+      << plan["scan_coverage"].dump();
+  const nlohmann::json& a = plan["area_safety"];
+  EXPECT_GT(a["unknown_vertex_count"].get<int64_t>(), 0) << a.dump();
+  const AreaSafetyGeometry g = read_area_safety_vtk((dir_ / "plan" / "area_safety.vtk").string());
+  const double edge_x = inputs.grid.index_to_physical(Eigen::Vector3d(6.5, 0, 0)).x();
+  int toward = 0, along = 0;
+  for (size_t v = 0; v < g.vertices.size(); ++v) {
+    const Eigen::Vector3d& n = g.normals[v];
+    if (n.x() < -0.9) {  // toward the scan's edge (-x, patient right)
+      ++toward;
+      EXPECT_FALSE(g.safe[v]) << n.transpose();
+      EXPECT_GE(g.vertices[v].x(), edge_x - 1.0) << "extruded past the scan's edge";
+    }
+    if (std::abs(n.z()) > 0.9) along += g.safe[v];  // along the scan (+-z): free fat
+  }
+  EXPECT_GT(toward, 0);
+  EXPECT_GT(along, 0);
+}
 
 TEST_F(AreaSafetyFiles, PlanWritesAreaSafetyAndTheAreaCommandRuns) {
   // The mini plan with a rotated direction and an impassable "vessel" sheet at i = 16 on one side.

@@ -15,6 +15,7 @@
 #include "planning/trajectories/markups.hpp"
 #include "pipelines/plan.hpp"
 #include "planning/imaging/volume_io.hpp"
+#include "planning/safety/unknown.hpp"
 #include "tests/support/cli.hpp"
 #include "tests/support/errors.hpp"
 #include "tests/support/grids.hpp"
@@ -174,6 +175,97 @@ TEST(EvaluateTest, EntryValueClassAndPercentileWithinTheRegionOfInterest) {
   e = ev.evaluate(t);
   EXPECT_EQ(e.values[0].safety_class, "outside");
   EXPECT_TRUE(std::isnan(e.values[0].at_entry));
+}
+
+TEST(EvaluateTest, OutsideTheScanIsUnknownNeverSafeInJsonTextAndCsv) {
+  // 10^3 voxels of 3 mm, centres -13.5 .. 13.5: svv 95 (safe) where z < 0 (k < 5), unknown
+  // above (outside the scan: NaN and region state 2, as load_plan gives them); one dangerous
+  // column at i = j = 2.
+  const ImageGeometry g = cube_grid(10, 3.0, Eigen::Vector3d(-13.5, -13.5, -13.5));
+  Volume<float> svv(g, 95.0f);
+  Volume<uint8_t> region(g, kRegionComputed);
+  for (int k = 5; k < 10; ++k)
+    for (int j = 0; j < 10; ++j)
+      for (int i = 0; i < 10; ++i) {
+        svv(i, j, k) = std::numeric_limits<float>::quiet_NaN();
+        region(i, j, k) = kRegionUnknown;
+      }
+  for (int k = 0; k < 5; ++k) svv(2, 2, k) = 10.0f;
+  PlanData plan = blocking_plan(Volume<float>(g, 0.0f));
+  plan.values = {"svv"};
+  plan.path_safety["svv"] = svv;
+  SafetyClasses c;
+  c.higher_is_safer = true;
+  c.safe = 90;
+  c.dangerous = 50;
+  plan.classes["svv"] = c;
+  plan.region = region;
+  const TrajectoryEvaluator ev(plan);
+  const auto csv_tail = [](const TrajectoryEvaluation& e) {
+    const std::string row = evaluation_csv_row(e);
+    const size_t a = row.rfind(','), b = row.rfind(',', a - 1);
+    return row.substr(b + 1);
+  };
+
+  // Inside the scan all the way: safe, nothing outside.
+  Trajectory t;
+  t.entry = Eigen::Vector3d(1.5, 1.5, -10.5);
+  t.target = Eigen::Vector3d(1.5, 1.5, -4.5);
+  TrajectoryEvaluation e = ev.evaluate(t);
+  EXPECT_EQ(e.values[0].safety_class, "safe");
+  EXPECT_FALSE(e.entry_outside_scan);
+  EXPECT_EQ(e.outside_scan_mm, 0.0);
+  EXPECT_EQ(csv_tail(e), "0,0.0");
+
+  // The entry in an unknown voxel beside computed ones (the trilinear sample alone would borrow
+  // 95 from below): unknown, no value; a tenth of the path lies above z = 0.
+  t.entry = Eigen::Vector3d(9, 0, 1.0);
+  t.target = Eigen::Vector3d(0, 0, -9);
+  e = ev.evaluate(t);
+  EXPECT_TRUE(e.entry_outside_scan);
+  EXPECT_EQ(e.values[0].safety_class, "unknown");
+  EXPECT_TRUE(std::isnan(e.values[0].at_entry));
+  EXPECT_NEAR(e.outside_scan_mm, 0.1 * e.length_mm, e.structure_step_mm);
+  nlohmann::json j = evaluation_json(e);
+  EXPECT_EQ(j["path_safety"]["svv"]["class"], "unknown");
+  EXPECT_EQ(j["scan"]["entry_outside_scan"], true);
+  EXPECT_GT(j["scan"]["length_outside_scan_mm"].get<double>(), 0.0);
+  std::string text = evaluation_text(e);
+  EXPECT_NE(text.find("entry lies OUTSIDE the scan"), std::string::npos) << text;
+  EXPECT_NE(text.find("svv: unknown (outside the scan)"), std::string::npos) << text;
+  EXPECT_EQ(csv_tail(e).substr(0, 2), "1,");
+  EXPECT_NE(evaluation_csv_row(e).find(",unknown,"), std::string::npos);
+
+  // A safe entry whose path runs on into the unknown part (7.5 of 18 mm): the value stays, the
+  // class is unknown, the length is reported.
+  t.entry = Eigen::Vector3d(1.5, 1.5, -10.5);
+  t.target = Eigen::Vector3d(1.5, 1.5, 7.5);
+  e = ev.evaluate(t);
+  EXPECT_FALSE(e.entry_outside_scan);
+  EXPECT_NEAR(e.values[0].at_entry, 95.0, 1e-9);
+  EXPECT_EQ(e.values[0].safety_class, "unknown");
+  EXPECT_NEAR(e.outside_scan_mm, 7.5, e.structure_step_mm);
+  text = evaluation_text(e);
+  EXPECT_NE(text.find("lie OUTSIDE the scan"), std::string::npos) << text;
+  EXPECT_EQ(evaluation_json(e)["scan"]["leaves_scan"], true);
+  // A dangerous entry stays dangerous (unknown parts can only add blocking).
+  t.entry = Eigen::Vector3d(-7.5, -7.5, -10.5);
+  t.target = Eigen::Vector3d(-7.5, -7.5, 7.5);
+  EXPECT_EQ(ev.evaluate(t).values[0].safety_class, "dangerous");
+  // An entry beyond the plan's grids (the blocking grid) is outside the scan too.
+  t.entry = Eigen::Vector3d(1.5, 1.5, -30);
+  t.target = Eigen::Vector3d(1.5, 1.5, -4.5);
+  e = ev.evaluate(t);
+  EXPECT_TRUE(e.entry_outside_scan);
+  EXPECT_EQ(e.values[0].safety_class, "unknown");
+  EXPECT_NEAR(e.outside_scan_mm, 15.0, e.structure_step_mm);
+
+  // A plan without region states (older plans) knows nothing of the scan.
+  plan.region = Volume<uint8_t>();
+  const TrajectoryEvaluator old(plan);
+  t.entry = Eigen::Vector3d(1.5, 1.5, -10.5);
+  t.target = Eigen::Vector3d(1.5, 1.5, 7.5);
+  EXPECT_EQ(old.evaluate(t).values[0].safety_class, "safe");
 }
 
 // Six base vertices on the axes around c (an octahedron), extruded along their normals; +x and

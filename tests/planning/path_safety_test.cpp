@@ -260,7 +260,7 @@ TEST(PathSafetyInput, ZeroOrNegativeSpacingIsRefused) {
                           "spacing");
   PathSafetyOptions o;
   o.spacing_mm = -1.0;
-  expect_error_containing([&] { compute_path_safety(s.blocking, s.tumor, o); }, "--spacing");
+  expect_error_containing([&] { compute_path_safety(s.blocking, s.tumor, o); }, "output spacing");
 }
 
 TEST(PathSafetyInput, RegionTooLargeForMemoryIsRefusedBeforeAllocating) {

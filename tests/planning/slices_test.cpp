@@ -15,6 +15,7 @@
 #include "foundation/error.hpp"
 #include "pipelines/plan.hpp"
 #include "planning/imaging/volume_io.hpp"
+#include "planning/safety/unknown.hpp"
 #include "tests/support/cli.hpp"
 #include "tests/support/grids.hpp"
 #include "tests/support/plans.hpp"
@@ -100,6 +101,77 @@ TEST(SlicesTest, VoxelOfKnownClassHasItsBlendedColour) {
   expect_colour(pixel(cb, pg.index_to_physical(5, 5, 5)), blend({0, 114, 178}), 1.0, "blue safe");
   expect_colour(pixel(cb, pg.index_to_physical(5, 3, 5)), blend({240, 228, 66}), 1.0,
                 "yellow dangerous");
+}
+
+TEST(SlicesTest, UnknownVoxelsAreHatchedNeverAClassColourAlsoBeyondTheCt) {
+  const Eigen::Vector3d c(10, -20, 30);
+  const Volume<float> ct(centred_cube_grid(40, 2.0, c), 40.0f);  // grey 128, z in c +- 40 mm
+  // Plan grid of 4 mm voxels, z in c +- 62 mm: computed and safe up to c.z + 10 mm, unknown
+  // above (also beyond the CT); one unknown voxel even holds a finite safe value.
+  const ImageGeometry pg = centred_cube_grid(31, 4.0, c);
+  Volume<float> svv(pg, 95.0f);
+  Volume<uint8_t> state(pg, kRegionComputed);
+  for (int k = 0; k < 31; ++k)
+    for (int j = 0; j < 31; ++j)
+      for (int i = 0; i < 31; ++i) {
+        if (pg.index_to_physical(i, j, k).z() > c.z() + 10) {
+          state(i, j, k) = kRegionUnknown;
+          if (!(i == 20 && k == 20)) svv(i, j, k) = std::numeric_limits<float>::quiet_NaN();
+        }
+      }
+  SliceScene scene;
+  scene.ct = &ct;
+  scene.path_safety = &svv;
+  scene.value_name = "svv";
+  scene.classes.higher_is_safer = true;
+  scene.classes.safe = 90;
+  scene.classes.dangerous = 50;
+  scene.region_state = &state;
+  SliceOptions o;
+  o.pixel_mm = 0.5;
+  const SlicePlane plane = make_slice_plane(SlicePlaneKind::kCoronal, c);
+  const SliceView v = render_slice(scene, plane, o);
+  EXPECT_GT(v.unknown_pixels, 0);
+  const std::array<double, 3> safe{0.6 * 128 + 0.4 * 0, 0.6 * 128 + 0.4 * 200, 0.6 * 128};
+  expect_colour(pixel(v, c + Eigen::Vector3d(0, 0, -20)), safe, 1.0, "computed safe voxel");
+  // Rows inside the CT (z + 20, 24: over grey 128) and beyond it (z + 50, 54: over black; the
+  // view grew to show them): along each row, and along a diagonal, hatch grey where
+  // unknown_hatch_pixel says, the background elsewhere, nothing else (no class colour).
+  const Rgb hatch{kUnknownHatchGrey, kUnknownHatchGrey, kUnknownHatchGrey};
+  for (const double dz : {20.0, 24.0, 50.0, 54.0}) {
+    const uint8_t bg = dz < 40 ? 128 : 0;
+    const Rgb background{bg, bg, bg};
+    const Eigen::Vector2d start = v.pixel_of(c + Eigen::Vector3d(20, 0, dz));
+    const int x0 = int(std::lround(start.x())), y0 = int(std::lround(start.y()));
+    ASSERT_TRUE(x0 >= 0 && y0 >= 0 && x0 + 24 < v.view_width && y0 + 8 < v.view_height) << dz;
+    int lines = 0, gaps = 0;
+    for (int t = 0; t < 24; ++t) {
+      for (const auto& [x, y] : {std::pair<int, int>{x0 + t, y0}, {x0 + t / 3, y0 + t / 3}}) {
+        const Rgb got = v.image.at(x, y);
+        const bool on = unknown_hatch_pixel(x, y);
+        EXPECT_EQ(got, on ? hatch : background)
+            << "z + " << dz << " pixel " << x << "," << y << " got " << int(got[0]) << ","
+            << int(got[1]) << "," << int(got[2]);
+        (on ? lines : gaps)++;
+      }
+    }
+    EXPECT_GT(lines, 4) << dz;
+    EXPECT_GT(gaps, 4) << dz;
+  }
+  // The unknown voxel with a finite safe value is hatched too, not green.
+  const Eigen::Vector2d q = v.pixel_of(pg.index_to_physical(20, 15, 20));
+  for (int dy = -3; dy <= 3; ++dy)
+    for (int dx = -3; dx <= 3; ++dx) {
+      const int x = int(std::lround(q.x())) + dx, y = int(std::lround(q.y())) + dy;
+      const Rgb mid_grey{128, 128, 128};
+      EXPECT_EQ(v.image.at(x, y), unknown_hatch_pixel(x, y) ? hatch : mid_grey);
+    }
+
+  // Without the states: no unknown pixel, and the view ends with the CT.
+  scene.region_state = nullptr;
+  const SliceView plain = render_slice(scene, plane, o);
+  EXPECT_EQ(plain.unknown_pixels, 0);
+  EXPECT_LT(plain.view_height, v.view_height);
 }
 
 // A closed box mesh [-20, 20]^3 around c (12 outward triangles); every vertex safe with `leeway`.

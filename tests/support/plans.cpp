@@ -11,7 +11,7 @@ planning::ImageGeometry mini_plan_grid() { return cube_grid(24, 2.0, Eigen::Vect
 
 pipelines::PlanRequest MiniPlanInputs::request(const std::string& out_dir) const {
   pipelines::PlanRequest r;
-  r.labels = labels;
+  r.labels = {labels};
   r.tumor = tumor;
   r.vulnerability = vulnerability;
   r.path_safety.radius_mm = 16.0;
@@ -59,7 +59,7 @@ MiniPlanInputs write_mini_plan_inputs(const std::filesystem::path& dir,
 pipelines::PlanRequest phantom_plan_request(const std::filesystem::path& phantom_dir,
                                             const std::string& out_dir) {
   pipelines::PlanRequest r;
-  r.labels = (phantom_dir / "labels.nii.gz").string();
+  r.labels = {(phantom_dir / "labels.nii.gz").string()};
   r.tumor = (phantom_dir / "tumor.nii.gz").string();
   r.vulnerability = (phantom_dir / "vulnerability.json").string();
   r.path_safety.values = planning::parse_value_set("svv");

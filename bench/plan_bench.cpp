@@ -1,0 +1,117 @@
+// `crepuscular plan` end to end as a user runs it (read, preprocess, path safety, scan coverage,
+// write, area safety), phase by phase: the built-in phantom at a given spacing with a ball tumor of
+// a given diameter segmented at a given spacing. The phantom is written first (not timed); the
+// plan's own timings (plan.json "timings") and the wall time are printed as one JSON line.
+#include <spdlog/spdlog.h>
+
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <nlohmann/json.hpp>
+
+#include "pipelines/plan.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "planning/simulation/phantom.hpp"
+
+using namespace crepuscular;
+using namespace crepuscular::planning;
+
+namespace {
+
+// A ball of `diameter_mm` at the phantom tumor's centroid, on an isotropic grid of `spacing_mm`.
+Volume<uint8_t> ball_tumor(const Volume<uint8_t>& phantom_tumor, double diameter_mm,
+                           double spacing_mm) {
+  Eigen::Vector3d c = Eigen::Vector3d::Zero();
+  int64_t n = 0;
+  const ImageGeometry& g0 = phantom_tumor.geometry();
+  for (int64_t k = 0; k < g0.dims[2]; ++k)
+    for (int64_t j = 0; j < g0.dims[1]; ++j)
+      for (int64_t i = 0; i < g0.dims[0]; ++i)
+        if (phantom_tumor(i, j, k)) {
+          c += g0.index_to_physical(i, j, k);
+          ++n;
+        }
+  c /= double(n);
+  const double r = 0.5 * diameter_mm;
+  const int64_t half = int64_t(std::ceil(r / spacing_mm)) + 2;
+  ImageGeometry g;
+  g.dims = {2 * half + 1, 2 * half + 1, 2 * half + 1};
+  g.spacing = Eigen::Vector3d::Constant(spacing_mm);
+  g.direction = g0.direction;
+  g.origin = c - g.index_to_physical_matrix() * Eigen::Vector3d::Constant(double(half));
+  Volume<uint8_t> t(g, 0);
+  for (int64_t k = 0; k < g.dims[2]; ++k)
+    for (int64_t j = 0; j < g.dims[1]; ++j)
+      for (int64_t i = 0; i < g.dims[0]; ++i)
+        t(i, j, k) = (g.index_to_physical(i, j, k) - c).norm() <= r;
+  return t;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"crepuscular plan end to end, phase by phase"};
+  double phantom_spacing = 1.0, tumor_diameter = 30.0, tumor_spacing = 1.0, spacing = 2.0;
+  double radius = 100.0;
+  std::string mode = "fast", device = "auto", work = "/tmp/crepuscular_plan_bench", values = "all";
+  bool keep = false;
+  app.add_option("--phantom-spacing", phantom_spacing, "phantom voxel size, mm");
+  app.add_option("--tumor-diameter", tumor_diameter, "ball tumor diameter, mm");
+  app.add_option("--tumor-spacing", tumor_spacing, "tumor mask voxel size, mm");
+  app.add_option("--spacing", spacing, "output spacing h, mm (0: the smallest input spacing)");
+  app.add_option("--radius", radius, "region of interest R, mm");
+  app.add_option("--mode", mode, "exact or fast");
+  app.add_option("--device", device, "auto, cpu or cuda");
+  app.add_option("--value", values, "values (svv,isbv,ivbv,bvv or all)");
+  app.add_option("--work", work, "working folder (phantom and plan)");
+  app.add_flag("--keep", keep, "keep the working folder");
+  CLI11_PARSE(app, argc, argv);
+  spdlog::set_level(spdlog::level::warn);
+  namespace fs = std::filesystem;
+  fs::remove_all(work);
+  fs::create_directories(work);
+
+  PhantomOptions po;
+  po.spacing_mm = phantom_spacing;
+  const auto t_setup = std::chrono::steady_clock::now();
+  const Phantom phantom = make_phantom(po);
+  write_phantom(phantom, work + "/phantom");
+  write_volume(ball_tumor(phantom.tumor, tumor_diameter, tumor_spacing), work + "/tumor.nii.gz");
+  const double setup_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t_setup).count();
+
+  pipelines::PlanRequest req;
+  req.labels = {work + "/phantom/labels.nii.gz"};
+  req.preset = "phantom";
+  req.tumor = work + "/tumor.nii.gz";
+  req.path_safety.values = parse_value_set(values);
+  req.path_safety.mode = parse_mode(mode);
+  req.path_safety.device = parse_device(device);
+  req.path_safety.spacing_mm = spacing;
+  req.path_safety.radius_mm = radius;
+  req.out_dir = work + "/plan";
+  const auto t0 = std::chrono::steady_clock::now();
+  const nlohmann::json plan = pipelines::run_plan(req);
+  const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+
+  uintmax_t bytes = 0;
+  for (const auto& e : fs::directory_iterator(req.out_dir)) bytes += e.file_size();
+  nlohmann::json line = {{"phantom_spacing_mm", phantom_spacing},
+                         {"tumor_diameter_mm", tumor_diameter},
+                         {"tumor_spacing_mm", tumor_spacing},
+                         {"spacing_mm", plan["parameters"]["spacing_mm"]},
+                         {"radius_mm", plan["parameters"]["radius_mm"]},
+                         {"grid", plan["grid"]["dims"]},
+                         {"surface_points", plan["tumor"]["surface_points"]},
+                         {"mode", mode},
+                         {"device", plan["parameters"]["device"]},
+                         {"setup_s_not_counted", setup_s},
+                         {"wall_s", wall_s},
+                         {"timings", plan["timings"]},
+                         {"plan_bytes", bytes}};
+  std::printf("%s\n", line.dump().c_str());
+  if (!keep) fs::remove_all(work);
+  return 0;
+}

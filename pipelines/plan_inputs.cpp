@@ -1,0 +1,218 @@
+// Label maps, segmentations and the tumor lesion -> blocking volume, tumor mask, scanned volume.
+#include "pipelines/plan_inputs.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <deque>
+#include <filesystem>
+
+#include "foundation/error.hpp"
+#include "pipelines/job_inputs.hpp"
+#include "planning/imaging/file_spec.hpp"
+#include "planning/imaging/lesions.hpp"
+#include "planning/imaging/segmentation.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "planning/preprocessing/label_maps.hpp"
+#include "planning/preprocessing/segment_matching.hpp"
+
+namespace crepuscular::pipelines {
+
+using namespace planning;  // NOLINT: the job drives the planning modules throughout
+
+namespace {
+
+bool is_file(const std::string& path) {
+  std::error_code ec;
+  return std::filesystem::exists(path, ec);
+}
+
+planning::FileSpec split(const std::string& spec, const std::string& role) {
+  return split_file_spec(spec, role, is_file);
+}
+
+// The table of one label map: its own (":TABLE"), else the table file or preset of the plan, else
+// vulnerability.json beside it.
+ChosenTable table_for(const planning::FileSpec& spec, const PlanInputOptions& o) {
+  if (spec.qualifier) {
+    const auto names = VulnerabilityTable::preset_names();
+    if (std::find(names.begin(), names.end(), *spec.qualifier) != names.end()) {
+      return {VulnerabilityTable::preset(*spec.qualifier), "preset " + *spec.qualifier};
+    }
+    require_input(*spec.qualifier, "the vulnerability table of " + spec.path);
+    return {VulnerabilityTable::load(*spec.qualifier), *spec.qualifier};
+  }
+  return choose_vulnerability_table(spec.path, o.vulnerability, o.preset);
+}
+
+// The segment of a .seg.nrrd that the tumor spec names, if the tumor comes from that file.
+std::vector<std::string> tumor_segment_in(const std::string& file, const PlanInputOptions& o) {
+  if (o.tumor.empty()) return {};
+  const planning::FileSpec t = split(o.tumor, "tumor");
+  if (!t.qualifier || parse_label_value(*t.qualifier)) return {};
+  std::error_code ec;
+  if (!std::filesystem::equivalent(t.path, file, ec)) return {};
+  return {*t.qualifier};
+}
+
+struct LabelSources {
+  std::deque<Volume<int32_t>> maps;  // deques: the inputs point into them
+  std::deque<VulnerabilityTable> tables;
+  std::deque<Segmentation> segmentations;
+  std::deque<std::vector<VulnerabilityTable>> layer_tables;
+  std::vector<LabelMapInput> inputs;
+  nlohmann::json description = nlohmann::json::array();
+};
+
+void add_label_spec(const std::string& text, const PlanInputOptions& o, LabelSources& s) {
+  const planning::FileSpec spec = split(text, "label map");
+  require_input(spec.path, "a label map");
+  const ChosenTable table = table_for(spec, o);
+  if (is_segmentation_file(spec.path)) {
+    spdlog::info("reading segmentation {}", spec.path);
+    s.segmentations.push_back(read_segmentation(spec.path));
+    const Segmentation& seg = s.segmentations.back();
+    s.layer_tables.push_back(layer_tables(seg, table.table, tumor_segment_in(spec.path, o)));
+    for (const LabelMapInput& in : segmentation_label_maps(seg, s.layer_tables.back())) {
+      s.inputs.push_back(in);
+    }
+    nlohmann::json segments = nlohmann::json::array();
+    for (const Segment& g : seg.segments) {
+      segments.push_back({{"name", g.name}, {"label_value", g.label_value}, {"layer", g.layer}});
+    }
+    s.description.push_back({{"file", spec.path}, {"kind", "3D Slicer segmentation"},
+                             {"vulnerability_source", table.source}, {"segments", segments}});
+    return;
+  }
+  spdlog::info("reading label map {}", spec.path);
+  s.maps.push_back(read_label_map(spec.path));
+  s.tables.push_back(table.table);
+  s.inputs.push_back({&s.maps.back(), &s.tables.back(), spec.path});
+  s.description.push_back({{"file", spec.path}, {"kind", "label map"},
+                           {"vulnerability_source", table.source},
+                           {"vulnerability", table.table.to_json()}});
+}
+
+void blocking_from_label_specs(const PlanInputOptions& o, PlanInputs& in) {
+  LabelSources s;
+  for (const std::string& spec : o.labels) add_label_spec(spec, o, s);
+  if (s.inputs.size() == 1 && s.segmentations.empty()) {
+    // One plain map: on its own grid, exactly as always.
+    const LabelMapInput& only = s.inputs.front();
+    in.blocking = blocking_from_labels(*only.labels, *only.table, o.margin, only.source);
+    in.coverage.add(only.labels->geometry(), only.source);
+  } else {
+    const CombinedLabels c = combine_label_maps(s.inputs);
+    in.blocking = blocking_from_labels(c.labels, c.table, o.margin, "the label maps");
+    in.coverage = c.coverage;
+  }
+  in.blocking_source = s.inputs.front().source;
+  in.preprocessing = {{"mode", "labels"}, {"label_maps", s.description},
+                      {"margin_fwhm_mm", o.margin.fwhm_mm}};
+  // plan.json readers of one map (slices, evaluate, guidance) find its table here.
+  if (s.description.front().contains("vulnerability")) {
+    in.preprocessing["vulnerability_source"] = s.description.front()["vulnerability_source"];
+    in.preprocessing["vulnerability"] = s.description.front()["vulnerability"];
+  }
+}
+
+void make_blocking(const PlanInputOptions& o, PlanInputs& in) {
+  if (!o.blocking.empty()) {
+    spdlog::info("reading blocking volume {}", o.blocking);
+    in.blocking = read_volume<float>(o.blocking);
+    in.blocking_source = o.blocking;
+    in.preprocessing = {{"mode", "ready blocking volume"}};
+    in.coverage.add(in.blocking.geometry(), o.blocking);
+  } else if (!o.labels.empty()) {
+    blocking_from_label_specs(o, in);
+  } else {
+    spdlog::info("reading CT {} for thresholding", o.ct);
+    const Volume<float> ct = read_volume<float>(o.ct);
+    in.blocking = blocking_from_ct(ct, o.ct_thresholds, o.margin);
+    in.blocking_source = o.ct;
+    in.preprocessing = {{"mode", "ct thresholds"},
+                        {"bone_hu", o.ct_thresholds.bone_hu},
+                        {"air_hu", o.ct_thresholds.air_hu},
+                        {"impassable_per_mm", o.ct_thresholds.impassable_per_mm},
+                        {"margin_fwhm_mm", o.margin.fwhm_mm}};
+  }
+  // A CT given beside labels or a blocking volume describes the anatomy too: part of the scan.
+  if (!o.ct.empty() && (!o.labels.empty() || !o.blocking.empty())) {
+    in.coverage.add(read_volume<float>(o.ct).geometry(), o.ct);
+  }
+  validate_blocking(in.blocking, in.blocking_source);
+}
+
+void read_tumor(const PlanInputOptions& o, PlanInputs& in) {
+  const planning::FileSpec spec = split(o.tumor, "tumor");
+  require_input(spec.path, "the tumor");
+  Volume<uint8_t> mask;
+  std::string what = spec.path;
+  in.tumor_source = {{"file", spec.path}};
+  if (!spec.qualifier) {
+    spdlog::info("reading tumor mask {}", spec.path);
+    mask = read_mask(spec.path);
+  } else if (const std::optional<int> value = parse_label_value(*spec.qualifier)) {
+    spdlog::info("reading tumor label {} of {}", *value, spec.path);
+    mask = label_mask(read_label_map(spec.path), *value, spec.path);
+    what = spec.path + " label " + std::to_string(*value);
+    in.tumor_source["label"] = *value;
+  } else {
+    if (!is_segmentation_file(spec.path)) {
+      throw Error(spec.path + ": tumor label '" + *spec.qualifier +
+                  "' is not a label value (1 to 65535); segment names need a 3D Slicer "
+                  "segmentation (.seg.nrrd)");
+    }
+    const Segmentation seg = read_segmentation(spec.path);
+    const Segment& segment = seg.find_segment(*spec.qualifier);
+    mask = seg.segment_mask(segment);
+    what = spec.path + " segment '" + segment.name + "'";
+    in.tumor_source["segment"] = segment.name;
+    in.tumor_source["label"] = segment.label_value;
+  }
+  const LesionSelection selection = o.lesion_at ? LesionSelection::at(*o.lesion_at)
+                                    : o.lesion > 0 ? LesionSelection::by_rank(o.lesion)
+                                                   : LesionSelection::only();
+  SelectedLesion chosen = select_lesion(mask, selection, what);
+  const Lesion& l = chosen.lesion;
+  in.tumor_source["lesion"] = {{"rank", l.rank},
+                               {"lesions_in_mask", chosen.lesion_count},
+                               {"voxels", l.voxels},
+                               {"volume_ml", l.volume_ml},
+                               {"centroid_lps_mm", {l.centroid.x(), l.centroid.y(), l.centroid.z()}}};
+  if (o.lesion_at) {
+    in.tumor_source["lesion"]["selected_at_lps_mm"] = {o.lesion_at->x(), o.lesion_at->y(),
+                                                       o.lesion_at->z()};
+    in.tumor_source["lesion"]["distance_mm"] = chosen.distance_mm;
+    if (chosen.distance_mm > 0.0) {
+      spdlog::warn("{}: no lesion at the point given; the nearest lesion (#{}) is {:.1f} mm away",
+                   what, l.rank, chosen.distance_mm);
+    }
+  }
+  if (chosen.lesion_count > 1) {
+    spdlog::info("{}: lesion #{} of {} ({:.2f} mL)", what, l.rank, chosen.lesion_count,
+                 l.volume_ml);
+  }
+  in.tumor = std::move(chosen.mask);
+}
+
+}  // namespace
+
+std::vector<std::string> label_files(const std::vector<std::string>& label_specs) {
+  std::vector<std::string> files;
+  for (const auto& s : label_specs) files.push_back(split(s, "label map").path);
+  return files;
+}
+
+std::string tumor_file(const std::string& tumor_spec) {
+  return tumor_spec.empty() ? std::string() : split(tumor_spec, "tumor").path;
+}
+
+PlanInputs read_plan_inputs(const PlanInputOptions& o) {
+  PlanInputs in;
+  make_blocking(o, in);
+  read_tumor(o, in);
+  return in;
+}
+
+}  // namespace crepuscular::pipelines
