@@ -1,39 +1,17 @@
 // `crepuscular plan`: blocking volume and path safety volumes from a segmentation and a tumor.
 #include "apps/commands.hpp"
 #include "apps/enum_names.hpp"
+#include "apps/plan_help.hpp"
 #include "pipelines/plan.hpp"
 #include "planning/trajectories/evaluate.hpp"
 
 namespace crepuscular::apps {
 
-void add_plan_command(CLI::App& app) {
-  auto req = std::make_shared<pipelines::PlanRequest>();
-  auto values = std::make_shared<std::string>("all");
-  CLI::App* cmd = app.add_subcommand(
-      "plan",
-      "Compute the path safety volume around a tumor.\n"
-      "For every point in a ball around the tumor, all straight paths from that point to the\n"
-      "tumor surface are traced through the blocking volume (risk per mm), and summarised as:\n"
-      "  svv   surface visibility value: % of the visible tumor surface reachable with a line\n"
-      "        integral of blocking <= eps (high = safe)\n"
-      "  isbv  integral surface blocking value: sum of line integrals to the visible surface\n"
-      "  ivbv  integral volume blocking value: line integrals weighted by tumor chord length\n"
-      "  bvv   blocker volume value: blocking weighted by the volume each sample stands for\n"
-      "        (isbv, ivbv, bvv: low = safe)\n"
-      "Blocking comes from label maps and vulnerability tables (--labels, repeatable, with\n"
-      "--vulnerability or --preset or a table per map), a ready blocking volume (--blocking), or\n"
-      "CT thresholds (--ct alone). Voxels of the region of interest outside the scan (the\n"
-      "inputs' grids) are UNKNOWN: no value, 2 in roi.nii.gz, never shown as safe.\n"
-      "Writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/path_safety_<value>.nii.gz (float32, LPS,\n"
-      "NaN outside the region of interest; open in 3D Slicer), PLAN_DIR/area_safety.vtk (the\n"
-      "safe access regions around the tumor and their leeway, for the first value; a model in\n"
-      "3D Slicer or ParaView) and PLAN_DIR/plan.json.\n"
-      "Examples:\n"
-      "  crepuscular phantom --out data && crepuscular plan --labels data/labels.nii.gz \\\n"
-      "      --tumor data/tumor.nii.gz --preset phantom --out plan\n"
-      "  crepuscular plan --labels seg_total.nii.gz:totalsegmentator \\\n"
-      "      --labels seg_vessels.nii.gz:totalsegmentator_liver_vessels \\\n"
-      "      --tumor seg_vessels.nii.gz:2 --lesion 1 --ct ct.nii.gz --mode fast --out plan");
+namespace {
+
+// Inputs: label maps, tumor and lesion, tables, CT, blocking volume. Returns where --lesion-at goes.
+std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanRequest& r) {
+  auto* req = &r;
   cmd->add_option("--labels", req->labels,
                   "Label map FILE[:TABLE], repeatable: NIfTI, NRRD, MetaImage, DICOM folder, or a "
                   "3D Slicer segmentation (.seg.nrrd, segments matched to the table by name). "
@@ -65,6 +43,13 @@ void add_plan_command(CLI::App& app) {
                   "Ready blocking volume (risk per mm, >= 0), used as is; the tumor mask may lie "
                   "on another grid")
       ->check(CLI::ExistingPath);
+  return lesion_at;
+}
+
+// The method: values, eps, grid, margin, device, mode, threads.
+void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& value_set) {
+  auto* req = &r;
+  auto* values = &value_set;
   cmd->add_option("--value", *values, "Values to compute: svv,isbv,ivbv,bvv or all")
       ->capture_default_str();
   cmd->add_option(
@@ -90,6 +75,16 @@ void add_plan_command(CLI::App& app) {
       ->transform(enum_names(mode_names()))
       ->default_str("exact");
   cmd->add_option("--threads", req->path_safety.threads, "CPU threads (default: all cores)");
+}
+
+}  // namespace
+
+void add_plan_command(CLI::App& app) {
+  auto req = std::make_shared<pipelines::PlanRequest>();
+  auto values = std::make_shared<std::string>("all");
+  CLI::App* cmd = app.add_subcommand("plan", kPlanHelp);
+  const auto lesion_at = add_plan_inputs(cmd, *req);
+  add_plan_method(cmd, *req, *values);
   // Area safety (§3.3), after path safety, for the first computed value.
   cmd->add_flag("!--no-area", req->area_safety.enabled,
                 "Skip the area safety step (by default it writes PLAN_DIR/area_safety.vtk: the "
