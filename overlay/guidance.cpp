@@ -35,6 +35,7 @@ cv::Scalar safety_bgr(planning::Palette palette, planning::NeedleSafety s) {
     case planning::NeedleSafety::kSafe: return class_bgr(palette, planning::SafetyClass::kSafe);
     case planning::NeedleSafety::kMedium: return class_bgr(palette, planning::SafetyClass::kMedium);
     case planning::NeedleSafety::kDangerous: break;
+    case planning::NeedleSafety::kUnknown: return cv::Scalar(170, 170, 170);  // grey: not known
   }
   return class_bgr(palette, planning::SafetyClass::kDangerous);
 }

@@ -53,7 +53,7 @@ std::string approach_text(const GuidanceApproach& a) {
 // Needle safety over the frames of one approach.
 struct Phase {
   const GuidanceApproach* approach;
-  int64_t safe = 0, medium = 0, dangerous = 0, lost = 0;
+  int64_t safe = 0, medium = 0, dangerous = 0, unknown = 0, lost = 0;
   double first_dangerous_s = -1;
 };
 
@@ -73,6 +73,9 @@ void count_phase(Phase& p, const overlay::GuidanceFrameInfo& info, double time_s
     case planning::NeedleSafety::kDangerous:
       ++p.dangerous;
       if (p.first_dangerous_s < 0) p.first_dangerous_s = time_s;
+      break;
+    case planning::NeedleSafety::kUnknown:
+      ++p.unknown;
       break;
   }
 }
@@ -118,12 +121,13 @@ std::string demo_guidance_report(const GuidanceScenario& scenario, const GuideSu
          << " fps, 1280x720) of the patient board on the skin and a tracked needle, guided "
             "headless with the calibration files in setup/.\n\n";
   report << approach_text(scenario.safe) << approach_text(scenario.dangerous) << "\n";
-  report << "| approach | time | frames safe | medium | dangerous | needle not tracked |\n"
-         << "|---|---|---|---|---|---|\n";
+  report << "| approach | time | frames safe | medium | dangerous | unknown (outside the scan) | "
+            "needle not tracked |\n"
+         << "|---|---|---|---|---|---|---|\n";
   for (const Phase& p : phases) {
-    report << fmt::format("| {} | {:.1f}-{:.1f} s | {} | {} | {} | {} |\n", p.approach->name,
+    report << fmt::format("| {} | {:.1f}-{:.1f} s | {} | {} | {} | {} | {} |\n", p.approach->name,
                           p.approach->start_s, p.approach->end_s, p.safe, p.medium, p.dangerous,
-                          p.lost);
+                          p.unknown, p.lost);
   }
   report << fmt::format(
       "\nAnatomy shown in {} of {} frames (patient board tracked); needle evaluated in {}. "

@@ -252,6 +252,9 @@ void count_frame(GuideSummary& summary, GuideFrameResult& r) {
       case planning::NeedleSafety::kDangerous:
         ++summary.needle_dangerous;
         break;
+      case planning::NeedleSafety::kUnknown:
+        ++summary.needle_unknown;
+        break;
     }
   }
   summary.latency_from_capture = r.latency_from_capture;

@@ -52,7 +52,7 @@ struct GuideSummary {
   int64_t dropped = 0;           // frames the source skipped
   int64_t patient_tracked = 0;   // frames with the anatomy drawn
   int64_t needle_evaluated = 0;  // frames with a needle reading
-  int64_t needle_safe = 0, needle_medium = 0, needle_dangerous = 0;
+  int64_t needle_safe = 0, needle_medium = 0, needle_dangerous = 0, needle_unknown = 0;
   double seconds = 0;  // wall time
   double fps = 0;      // frames shown per wall second
   double latency_median_ms = 0, latency_p95_ms = 0, latency_max_ms = 0;

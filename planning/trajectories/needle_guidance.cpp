@@ -109,8 +109,26 @@ void find_tumor_hit(const PlanData& plan, NeedleState& s) {
   }
 }
 
-NeedleSafety overall_safety(const NeedleState& s) {
+// Whether the evaluated line leaves the scanned volume where it matters: between the body and the
+// target. The scan is convex (an intersection of grid boxes) and holds the target, so the part of
+// the line outside it is one piece at the line's start; when that piece is no longer than the
+// air between the start and the body (a tip held in front of the skin, the scan's edge in the
+// air), the body part is all inside the scan.
+bool leaves_scan_in_body(const PlanData& plan, const NeedleState& s) {
+  const TrajectoryEvaluation& e = s.evaluation;
+  if (e.outside_scan_mm <= 0.0 && !e.entry_outside_scan) return false;
+  double air_mm = 0.0;
+  if (!plan.labels.empty() && !s.tip_in_body) {
+    const double step = 0.5 * plan.labels.geometry().spacing.minCoeff();
+    const double length = (s.target - s.line_start).norm();
+    while (air_mm < length && !in_body(plan.labels, s.line_start + air_mm * s.axis)) air_mm += step;
+  }
+  return e.outside_scan_mm > air_mm + e.structure_step_mm;
+}
+
+NeedleSafety overall_safety(const PlanData& plan, const NeedleState& s) {
   return !s.clear || s.tip_class == "dangerous" ? NeedleSafety::kDangerous
+         : leaves_scan_in_body(plan, s)         ? NeedleSafety::kUnknown
          : s.tip_class == "medium"              ? NeedleSafety::kMedium
                                                 : NeedleSafety::kSafe;
 }
@@ -139,7 +157,13 @@ void find_nearest_safe_direction(const std::vector<Eigen::Vector3d>& safe_dirs,
 }  // namespace
 
 const char* needle_safety_name(NeedleSafety s) {
-  return s == NeedleSafety::kSafe ? "safe" : s == NeedleSafety::kMedium ? "medium" : "dangerous";
+  switch (s) {
+    case NeedleSafety::kSafe: return "safe";
+    case NeedleSafety::kMedium: return "medium";
+    case NeedleSafety::kDangerous: return "dangerous";
+    case NeedleSafety::kUnknown: break;
+  }
+  return "unknown";
 }
 
 NeedleGuide::NeedleGuide(const std::string& plan_dir)
@@ -179,7 +203,7 @@ NeedleState NeedleGuide::evaluate(const Eigen::Isometry3d& T_ct_needle,
   start_line_at_body_entry(plan, s);
   evaluate_extension(plan, *evaluator_, eps_, s);
   find_tumor_hit(plan, s);
-  s.safety = overall_safety(s);
+  s.safety = overall_safety(plan, s);
   find_nearest_safe_direction(safe_dirs_, safe_vertex_, s);
   return s;
 }

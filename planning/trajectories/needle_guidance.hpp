@@ -15,8 +15,11 @@
 
 namespace crepuscular::planning {
 
-enum class NeedleSafety { kSafe, kMedium, kDangerous };
-const char* needle_safety_name(NeedleSafety s);  // "safe", "medium", "dangerous"
+// kUnknown: the needle's line leaves the scanned volume between the body and the target (DESIGN.md
+// §4): what it crosses there is not known, so it is never called safe (a crossing seen in the scan
+// still makes it dangerous). A tip held in the air beyond the scan's edge is not unknown.
+enum class NeedleSafety { kSafe, kMedium, kDangerous, kUnknown };
+const char* needle_safety_name(NeedleSafety s);  // "safe", "medium", "dangerous", "unknown"
 
 struct NeedleState {
   Eigen::Vector3d tip = Eigen::Vector3d::Zero();   // needle tip in CT, LPS mm

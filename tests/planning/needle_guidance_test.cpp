@@ -266,3 +266,36 @@ TEST_F(NeedleGuidanceTest, PlanMovedWithItsInputsFindsThem) {
 
 }  // namespace
 }  // namespace crepuscular::planning
+
+namespace crepuscular::planning {
+namespace {
+
+// The same needle as NeedleThroughEmptySpaceToTheTumorIsSafe (12 mm on the -x side, through empty
+// space), but the scan (a CT) ends 9 mm from the tumor's centre on that side: the part of the
+// needle's line beyond the scan is not known, so the needle is unknown, never safe.
+TEST(NeedleGuidanceUnknown, NeedleWhoseLineLeavesTheScanIsUnknownNotSafe) {
+  test::TemporaryFolder dir;
+  const test::MiniPlanInputs inputs = test::write_mini_plan_inputs(dir);
+  ImageGeometry ct_grid = inputs.grid;
+  ct_grid.origin = inputs.grid.index_to_physical(7, 0, 0);
+  ct_grid.dims[0] -= 7;
+  write_volume(Volume<float>(ct_grid, 40.0f), dir.file("ct.nii.gz"));
+  PlanRequest r = inputs.request(dir.file("plan"));
+  r.ct = dir.file("ct.nii.gz");
+  r.margin.fwhm_mm = 0.0;
+  run_plan(r);
+  const NeedleGuide guide(dir.file("plan"));
+  const ImageGeometry& g = inputs.grid;
+  const NeedleState outside = in_ct(guide, g.index_to_physical(5, 11, 11), Eigen::Vector3d::UnitX());
+  EXPECT_TRUE(outside.clear);  // nothing blocks inside the scan...
+  EXPECT_TRUE(outside.evaluation.leaves_scan());
+  EXPECT_EQ(outside.safety, NeedleSafety::kUnknown);  // ...but the part outside is unknown
+  EXPECT_STREQ(needle_safety_name(outside.safety), "unknown");
+  // From +z (inside the scan all the way) the same kind of needle stays safe.
+  const NeedleState inside = in_ct(guide, g.index_to_physical(11, 11, 17), -Eigen::Vector3d::UnitZ());
+  EXPECT_FALSE(inside.evaluation.leaves_scan());
+  EXPECT_EQ(inside.safety, NeedleSafety::kSafe);
+}
+
+}  // namespace
+}  // namespace crepuscular::planning
