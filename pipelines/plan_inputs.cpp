@@ -55,6 +55,16 @@ std::vector<std::string> tumor_segment_in(const std::string& file, const PlanInp
   return {*t.qualifier};
 }
 
+// The tumor's own label value when the tumor is a label of this very label map: that structure
+// is the target, not an obstacle.
+std::optional<int> tumor_label_in(const std::string& file, const PlanInputOptions& o) {
+  if (o.tumor.empty()) return std::nullopt;
+  const planning::FileSpec t = split(o.tumor, "tumor");
+  std::error_code ec;
+  if (!t.qualifier || !std::filesystem::equivalent(t.path, file, ec)) return std::nullopt;
+  return parse_label_value(*t.qualifier);
+}
+
 struct LabelSources {
   std::deque<Volume<int32_t>> maps;  // deques: the inputs point into them
   std::deque<VulnerabilityTable> tables;
@@ -87,6 +97,13 @@ void add_label_spec(const std::string& text, const PlanInputOptions& o, LabelSou
   spdlog::info("reading label map {}", spec.path);
   s.maps.push_back(read_label_map(spec.path));
   s.tables.push_back(table.table);
+  if (const std::optional<int> tumor_label = tumor_label_in(spec.path, o)) {
+    for (LabelClass& c : s.tables.back().labels) {
+      if (c.value != *tumor_label) continue;
+      spdlog::info("{}: label {} ('{}') is the tumor: it does not block", spec.path, c.value, c.name);
+      c.level = s.tables.back().levels.front().level;
+    }
+  }
   s.inputs.push_back({&s.maps.back(), &s.tables.back(), spec.path});
   s.description.push_back({{"file", spec.path}, {"kind", "label map"},
                            {"vulnerability_source", table.source},

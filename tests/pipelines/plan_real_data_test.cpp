@@ -241,3 +241,38 @@ TEST_F(PlanOnRealScan, PresetTogetherWithTableIsRefused) {
 
 }  // namespace
 }  // namespace crepuscular::pipelines
+
+namespace crepuscular::pipelines {
+namespace {
+
+// The tumor as a label of the label map that also gives the blocking (here the gallbladder,
+// label 4, level 2 in the 'total' preset): the target structure does not block its own paths.
+TEST(PlanTumorAsLabel, TheTumorLabelDoesNotBlock) {
+  test::TemporaryFolder dir;
+  const std::string labels = kData + "example_seg_fast_force_split.nii.gz";
+  PlanRequest r;
+  r.labels = {labels + ":totalsegmentator"};
+  r.tumor = labels + ":4";
+  r.path_safety.radius_mm = 15.0;
+  r.path_safety.values = kernels::kSvv;
+  r.path_safety.device = planning::Device::kCpu;
+  r.area_safety.enabled = false;
+  r.out_dir = dir.file("plan");
+  const nlohmann::json plan = run_plan(r);
+  EXPECT_EQ(plan["tumor_source"]["label"].get<int>(), 4);
+  EXPECT_EQ(plan["tumor_source"]["lesion"]["lesions_in_mask"].get<int>(), 1);
+  const auto& c = plan["tumor_source"]["lesion"]["centroid_lps_mm"];
+  const Eigen::Vector3d centroid(c[0].get<double>(), c[1].get<double>(), c[2].get<double>());
+  const Volume<float> blocking = planning::read_volume<float>(dir.file("plan/blocking.nii.gz"));
+  const Eigen::Vector3d ijk = blocking.geometry().physical_to_index(centroid);
+  const float b = blocking(std::lround(ijk.x()), std::lround(ijk.y()), std::lround(ijk.z()));
+  EXPECT_LT(b, 1e-3) << "the gallbladder (level 2, 0.1 per mm) blocks its own paths";
+  // The planned lesion is kept in the plan folder: what slices, evaluate and guide outline.
+  const Volume<uint8_t> kept = planning::read_mask(dir.file("plan/tumor.nii.gz"));
+  int64_t n = 0;
+  for (uint8_t v : kept.values()) n += v;
+  EXPECT_EQ(n, plan["tumor_source"]["lesion"]["voxels"].get<int64_t>());
+}
+
+}  // namespace
+}  // namespace crepuscular::pipelines
