@@ -28,7 +28,7 @@ Volume<uint8_t> virtual_tumor(const Volume<int32_t>& labels, double r_mm) {
   const planning::ImageGeometry& g = labels.geometry();
   const double reach = r_mm + 6.0;
   const int n = int(std::ceil(reach / g.spacing.minCoeff()));
-  Eigen::Vector3d best;
+  Eigen::Vector3d best = Eigen::Vector3d::Zero();
   double best_z = INFINITY;
   for (int64_t k = n; k < g.dims[2] - n; ++k)
     for (int64_t j = n; j < g.dims[1] - n; ++j)

@@ -470,7 +470,9 @@ TEST(AreaSafetyExtrusion, ExtrusionsReachingTheUnknownStopThereNotSafe) {
       ASSERT_EQ(g.region[v], -1);
       ASSERT_LE(g.vertices[v].z(), 6.0 + 1e-9) << "extruded past the scan's edge";
     }
-    if (n.z() < 0.45) ASSERT_TRUE(g.safe[v]) << n.transpose();
+    if (n.z() < 0.45) {
+      ASSERT_TRUE(g.safe[v]) << n.transpose();
+    }
   }
   EXPECT_GT(toward, 0);
   EXPECT_GE(g.unknown_vertex_count, toward);
