@@ -35,6 +35,8 @@ std::optional<BodyExit> first_body_exit(const Volume<int32_t>& labels, const Eig
         return last_inside.has_value();
       });
   if (!s || left_within) return std::nullopt;
+  // The body reaching beyond the label map is no exit: its skin is not in the scan.
+  if (!nearest_voxel(labels, start + *s * dir)) return std::nullopt;
   BodyExit e;
   e.last_inside_s = *last_inside;
   e.first_outside_s = *s;
@@ -57,7 +59,10 @@ std::optional<Eigen::Vector3d> outermost_body_exit(const Volume<int32_t>& labels
       first_entry(from + far * u, -u, step, far + 1e-9,
                   [&](const Eigen::Vector3d& p) { return in_body(labels, p); });
   if (!c) return std::nullopt;
-  return Eigen::Vector3d(from + (far - c->outside_s) * u);
+  const Eigen::Vector3d outside(from + (far - c->outside_s) * u);
+  // The body reaching the label map's edge: its skin there is not in the scan.
+  if (!nearest_voxel(labels, outside)) return std::nullopt;
+  return outside;
 }
 
 std::vector<Eigen::Vector3d> fibonacci_sphere(int n) {

@@ -66,8 +66,9 @@ struct BodyExit {
   double last_inside_s = 0, first_outside_s = 0;
   Eigen::Vector3d last_inside = Eigen::Vector3d::Zero(), first_outside = Eigen::Vector3d::Zero();
 };
-// nullopt when the march has not left the body by max_s, or reaches a sample where `within`
-// (when given) is false before it does.
+// nullopt when the march has not left the body by max_s, reaches a sample where `within` (when
+// given) is false before it does, or leaves the label map while still in the body (the skin
+// there is not in the scan: unknown, never an entry point).
 std::optional<BodyExit> first_body_exit(
     const Volume<int32_t>& labels, const Eigen::Vector3d& start, const Eigen::Vector3d& dir,
     double step_mm, double max_s,
@@ -76,7 +77,7 @@ std::optional<BodyExit> first_body_exit(
 // Where the line from `from` along unit u finally leaves the body: the outermost crossing, on its
 // outside (within 0.001 mm of the body, by the nearest voxel), found by marching inward from
 // beyond the grid in steps of a quarter of the finest spacing. nullopt when the line never meets
-// the body.
+// the body, or meets it at the label map's edge (the skin there is not in the scan).
 std::optional<Eigen::Vector3d> outermost_body_exit(const Volume<int32_t>& labels,
                                                    const Eigen::Vector3d& from,
                                                    const Eigen::Vector3d& u);

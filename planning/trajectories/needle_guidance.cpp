@@ -47,8 +47,8 @@ void start_line_at_body_entry(const PlanData& plan, NeedleState& s) {
     const double step = 0.5 * plan.labels.geometry().spacing.minCoeff();
     const std::optional<BodyExit> exit =
         first_body_exit(plan.labels, s.tip, -s.axis, step, 1000.0);
-    // An exit beyond the grid is no outside voxel behind the tip: keep the tip.
-    if (exit && nearest_voxel(plan.labels, exit->first_outside)) {
+    // No exit (the body runs out of the scan behind the tip): keep the tip.
+    if (exit) {
       s.line_start = exit->first_outside;
       s.tip_in_body = true;
     }

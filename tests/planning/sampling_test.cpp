@@ -144,6 +144,10 @@ TEST(RayMarch, FirstBodyExitIsTheFirstOutsideSampleAfterTheBody) {
       }).has_value());
   EXPECT_TRUE(in_body(body, Eigen::Vector3d(15, 1, 1)));
   EXPECT_FALSE(in_body(body, Eigen::Vector3d(15, 5, 1)));  // outside the grid
+  // Along +y the body fills the grid to its edge (y = 2.5): the skin is not in the scan, so no
+  // exit (the edge of the scan is not a skin entry).
+  EXPECT_FALSE(first_body_exit(body, Eigen::Vector3d(15, 0, 1), Eigen::Vector3d::UnitY(), 0.5,
+                               40.0).has_value());
 }
 
 TEST(RayMarch, FirstEntryBracketsTheBoundaryToTheTolerance) {
@@ -178,6 +182,9 @@ TEST(RayMarch, OutermostExitIsOutsideTheFarSideOfTheBody) {
   // A line that misses the body (x = 5 is outside it): none.
   EXPECT_FALSE(
       outermost_body_exit(body, Eigen::Vector3d(5, 1, 1), Eigen::Vector3d::UnitY()).has_value());
+  // The body reaching the grid's edge along +y: no skin seen there.
+  EXPECT_FALSE(
+      outermost_body_exit(body, Eigen::Vector3d(15, 1, 1), Eigen::Vector3d::UnitY()).has_value());
 }
 
 TEST(RayMarch, FibonacciSphereIsUnitAndBalanced) {
