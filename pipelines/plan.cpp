@@ -50,21 +50,6 @@ void check_request(const PlanRequest& req) {
   if (!req.vulnerability.empty()) require_input(req.vulnerability, "the vulnerability table");
 }
 
-// Step 1: blocking volume, tumor and scanned volume from the inputs.
-PlanInputs read_inputs(const PlanRequest& req) {
-  PlanInputOptions o;
-  o.labels = req.labels;
-  o.vulnerability = req.vulnerability;
-  o.preset = req.preset;
-  o.ct = req.ct;
-  o.blocking = req.blocking;
-  o.margin = req.margin;
-  o.ct_thresholds = req.ct_thresholds;
-  o.tumor = req.tumor;
-  o.lesion = req.lesion;
-  o.lesion_at = req.lesion_at;
-  return read_plan_inputs(o);
-}
 
 // Step 2: path safety, with progress in steps of 10 % unless the caller reports it.
 PathSafetyResult compute(const PlanRequest& req, const PlanInputs& in) {
@@ -256,7 +241,7 @@ nlohmann::json run_plan(const PlanRequest& req) {
   nlohmann::json timings;
 
   auto t = Clock::now();
-  const PlanInputs in = read_inputs(req);
+  const PlanInputs in = read_plan_inputs(req);
   timings["read_and_preprocess_s"] = seconds_since(t);
 
   t = Clock::now();

@@ -9,26 +9,17 @@
 #include <string>
 #include <vector>
 
+#include "pipelines/plan_inputs.hpp"
 #include "planning/preprocessing/blocking.hpp"
 #include "planning/safety/area_safety.hpp"
 #include "planning/safety/path_safety.hpp"
 
 namespace crepuscular::pipelines {
 
-struct PlanRequest {
-  // Label maps, "FILE[:TABLE]" each (pipelines/plan_inputs.hpp): NIfTI/NRRD label maps or 3D
-  // Slicer segmentations; where they overlap the higher level wins.
-  std::vector<std::string> labels;
-  std::string tumor;          // "FILE" (mask) or "FILE:LABEL" (label value or segment name)
-  int lesion = 0;             // K-th largest lesion of the tumor mask (1 = largest); 0: the only
-  std::optional<Eigen::Vector3d> lesion_at;  // or the lesion at this point (LPS mm)
-  std::string vulnerability;  // vulnerability table JSON (label maps without their own)
-  std::string preset;         // built-in vulnerability table (label maps without their own)
-  std::string ct;             // CT in HU: thresholded when no labels are given
-  std::string blocking;       // ready blocking volume (risk per mm): used as is
+// The inputs (label maps, tumor and lesion, tables, CT, blocking volume, margin: PlanInputOptions)
+// and what to compute from them.
+struct PlanRequest : PlanInputOptions {
   planning::PathSafetyOptions path_safety;
-  planning::MarginOptions margin;
-  planning::CtThresholds ct_thresholds;
   planning::AreaSafetyPlanOptions area_safety;  // §3.3: area_safety.vtk for the first value
   // Voxels of the region of interest outside the scan are left out (not computed) instead of
   // being unknown.

@@ -45,24 +45,14 @@ ChosenTable table_for(const planning::FileSpec& spec, const PlanInputOptions& o)
   return choose_vulnerability_table(spec.path, o.vulnerability, o.preset);
 }
 
-// The segment of a .seg.nrrd that the tumor spec names, if the tumor comes from that file.
-std::vector<std::string> tumor_segment_in(const std::string& file, const PlanInputOptions& o) {
-  if (o.tumor.empty()) return {};
-  const planning::FileSpec t = split(o.tumor, "tumor");
-  if (!t.qualifier || parse_label_value(*t.qualifier)) return {};
-  std::error_code ec;
-  if (!std::filesystem::equivalent(t.path, file, ec)) return {};
-  return {*t.qualifier};
-}
-
-// The tumor's own label value when the tumor is a label of this very label map: that structure
-// is the target, not an obstacle.
-std::optional<int> tumor_label_in(const std::string& file, const PlanInputOptions& o) {
+// What the tumor spec names within this very label map (a label value or a segment name), when the
+// tumor is part of it: that structure is the target, not an obstacle.
+std::optional<std::string> tumor_part_of(const std::string& file, const PlanInputOptions& o) {
   if (o.tumor.empty()) return std::nullopt;
   const planning::FileSpec t = split(o.tumor, "tumor");
   std::error_code ec;
   if (!t.qualifier || !std::filesystem::equivalent(t.path, file, ec)) return std::nullopt;
-  return parse_label_value(*t.qualifier);
+  return t.qualifier;
 }
 
 struct LabelSources {
@@ -82,7 +72,10 @@ void add_label_spec(const std::string& text, const PlanInputOptions& o, LabelSou
     spdlog::info("reading segmentation {}", spec.path);
     s.segmentations.push_back(read_segmentation(spec.path));
     const Segmentation& seg = s.segmentations.back();
-    s.layer_tables.push_back(layer_tables(seg, table.table, tumor_segment_in(spec.path, o)));
+    std::vector<std::string> tumor_segment;
+    const std::optional<std::string> part = tumor_part_of(spec.path, o);
+    if (part && !parse_label_value(*part)) tumor_segment.push_back(*part);
+    s.layer_tables.push_back(layer_tables(seg, table.table, tumor_segment));
     for (const LabelMapInput& in : segmentation_label_maps(seg, s.layer_tables.back())) {
       s.inputs.push_back(in);
     }
@@ -97,7 +90,8 @@ void add_label_spec(const std::string& text, const PlanInputOptions& o, LabelSou
   spdlog::info("reading label map {}", spec.path);
   s.maps.push_back(read_label_map(spec.path));
   s.tables.push_back(table.table);
-  if (const std::optional<int> tumor_label = tumor_label_in(spec.path, o)) {
+  const std::optional<std::string> part = tumor_part_of(spec.path, o);
+  if (const std::optional<int> tumor_label = part ? parse_label_value(*part) : std::nullopt) {
     for (LabelClass& c : s.tables.back().labels) {
       if (c.value != *tumor_label) continue;
       spdlog::info("{}: label {} ('{}') is the tumor: it does not block", spec.path, c.value, c.name);
