@@ -8,9 +8,11 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <string>
 #include <thread>
 
@@ -49,12 +51,12 @@ PoseRow truth_row(const std::string& board, double z) {
   return r;
 }
 
-size_t count_lines(const fs::path& p) {
-  std::ifstream in(p);
-  size_t n = 0;
-  std::string line;
-  while (std::getline(in, line)) ++n;
-  return n;
+// Rows that end in a newline, the header excluded: a row still being written is not counted.
+size_t count_complete_rows(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const auto newlines = size_t(std::count(text.begin(), text.end(), '\n'));
+  return newlines > 0 ? newlines - 1 : 0;
 }
 
 TEST(Recording, WritesAndReadsFramesTimestampsTruthAndSession) {
@@ -151,7 +153,7 @@ TEST(Recording, KilledRecorderReplaysUpToItsLastCompleteFrame) {
   // Wait until a few frames exist, then kill.
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
   while (std::chrono::steady_clock::now() < deadline &&
-         (!fs::exists(dir / "frames.csv") || count_lines(dir / "frames.csv") < 30)) {
+         (!fs::exists(dir / "frames.csv") || count_complete_rows(dir / "frames.csv") < 30)) {
     std::this_thread::sleep_for(std::chrono::milliseconds(5));
   }
   kill(pid, SIGKILL);
