@@ -59,6 +59,13 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
       ->capture_default_str();
   cmd->add_option("--spacing", req->path_safety.spacing_mm,
                   "Output spacing in mm (default: smallest input spacing)");
+  cmd->add_option("--tumor-spacing", req->path_safety.tumor_spacing_mm,
+                  "Spacing in mm the tumor mask is resampled to before rays are cast to its "
+                  "surface (default: the output spacing, where the mask is finer; 0: the mask's "
+                  "own voxels). A plan's cost grows with the tumor's surface points, about "
+                  "(tumor size / spacing)^2")
+      ->check(CLI::NonNegativeNumber)
+      ->default_str("output spacing");
   cmd->add_option("--radius", req->path_safety.radius_mm,
                   "Region of interest radius in mm (default: reaches the farthest voxel with "
                   "blocking > 0)");

@@ -60,8 +60,10 @@ struct DirectionTable {
   int m;
   int radial;
   int64_t cells;  // m * m
-  Real dr;        // mm between stored radial samples (the output spacing)
+  Real dr;        // mm between stored radial samples (gamma: every sample stored)
   Real gamma;     // mm between blocking samples along a ray (half the output spacing)
+  Real refine;    // corner spread of the line integral above which a ray is marched exactly
+                  // (< 0: never); corners that disagree on facing always are
   float* c0;      // integral of b from t to distance j dr
   float* c1;      // integral of b s, s = distance from t (BVV only; may be null)
   float* c2;      // integral of b s^2 (BVV only; may be null)
@@ -155,20 +157,57 @@ CREPUSCULAR_HD void wrap_cell(int m, int& a, int& b) {
 }
 
 // One ray value looked up at (cell corners a0..a0+1, b0..b0+1, radial position x).
+// `spread`, when given, receives the largest difference between the four cells' values.
 template <typename Real>
 CREPUSCULAR_HD Real lookup_radial(const float* c, const DirectionTable<Real>& t, const int cells[4],
-                                  const Real w[4], int j, Real fj) {
-  Real v = 0;
+                                  const Real w[4], int j, Real fj, Real* spread = nullptr) {
+  Real v = 0, lo_v = Real(3e38), hi_v = Real(-3e38);
   const float* lo = c + int64_t(j) * t.cells;
   const float* hi = lo + t.cells;
   for (int n = 0; n < 4; ++n) {
     const Real a = lo[cells[n]];
-    v += w[n] * (a + fj * (Real(hi[cells[n]]) - a));
+    const Real corner = a + fj * (Real(hi[cells[n]]) - a);
+    v += w[n] * corner;
+    lo_v = corner < lo_v ? corner : lo_v;
+    hi_v = corner > hi_v ? corner : hi_v;
   }
+  if (spread) *spread = hi_v - lo_v;
   return v;
 }
 
-// COMBINEVALUES of the ray from output voxel p to surface point t, looked up in t's table.
+// COMBINEVALUES of the ray from p to t marched as exact mode marches it (DESIGN.md §4).
+template <typename Real, unsigned Values>
+CREPUSCULAR_HD void combine_exact_ray(VoxelState<Real>& state, const PathSafetyScene<Real>& s,
+                                      const SurfacePoint<double>& t, Vec3<Real> p) {
+  constexpr bool kWantBack = (Values & (kIvbv | kBvv)) != 0;
+  const RayGeometry<Real> ray = make_ray(s, vec_cast<double>(p), t);
+  const TumorCrossing crossing = cross_tumor(s.tumor, ray, t.offset, kWantBack);
+  const bool front = (Values & (kSvv | kIsbv)) != 0 && crossing.front_facing;
+  const bool back = kWantBack && crossing.back_facing;
+  if (!front && !back) return;
+  const GridSampler<Real> blocking_at{s.blocking};
+  Real line = 0, weighted = 0;
+  for (int k = 1; k <= ray.n; ++k) {
+    const Real b = Real(blocking_at(along(ray.q0, ray.dq, Real(k)))) * ray.step;
+    const Real f = Real(k) / Real(ray.n);
+    line += b;
+    weighted += b * f * f;
+  }
+  const RayContext<Real> context{crossing, ray.step, ray.cos_alpha, s.eps};
+  if constexpr ((Values & kSvv) != 0) SurfaceVisibility<Real>::combine(state.svv, {line}, context);
+  if constexpr ((Values & kIsbv) != 0) {
+    IntegralSurfaceBlocking<Real>::combine(state.isbv, {line}, context);
+  }
+  if constexpr ((Values & kIvbv) != 0) {
+    IntegralVolumeBlocking<Real>::combine(state.ivbv, {line}, context);
+  }
+  if constexpr ((Values & kBvv) != 0) BlockerVolume<Real>::combine(state.bvv, {weighted}, context);
+}
+
+// COMBINEVALUES of the ray from output voxel p to surface point t, looked up in t's table. Where
+// the four direction cells around the ray disagree (on facing, or on the line integral by more
+// than table.refine: the ray grazes the edge of a structure or of the tumor) the lookup would be
+// a blend of different paths, and the ray is marched exactly instead.
 template <typename Real, unsigned Values>
 CREPUSCULAR_HD void combine_from_table(VoxelState<Real>& state, const PathSafetyScene<Real>& s,
                                        const SurfacePoint<double>& t,
@@ -196,6 +235,20 @@ CREPUSCULAR_HD void combine_from_table(VoxelState<Real>& state, const PathSafety
     // between p and t (s in [l, D - l] from t) for front-facing, and s in [0, D - l] for the chord.
     const int nearest = cells[(wx >= Real(0.5) ? 1 : 0) + (wy >= Real(0.5) ? 2 : 0)];
     const Real reach = (dist - Real(0.5) * table.gamma) / table.gamma;  // last index before p
+    if (table.refine >= Real(0)) {
+      bool facing_differs = false;
+      const DirectionCrossing c0 = table.crossing[cells[0]];
+      const bool f0 = Real(c0.first_hit) > reach;
+      for (int n = 1; n < 4; ++n) {
+        const DirectionCrossing cn = table.crossing[cells[n]];
+        facing_differs |= (Real(cn.first_hit) > reach) != f0 ||
+                          ((cn.flags ^ c0.flags) & kBackFacing) != 0;
+      }
+      if (facing_differs) {
+        combine_exact_ray<Real, Values>(state, s, t, p);
+        return;
+      }
+    }
     const DirectionCrossing cell = table.crossing[nearest];
     crossing.front_facing = Real(cell.first_hit) > reach;
     crossing.back_facing = (cell.flags & kBackFacing) != 0;
@@ -211,7 +264,12 @@ CREPUSCULAR_HD void combine_from_table(VoxelState<Real>& state, const PathSafety
     int j = int(floor(rj));
     if (j > table.radial - 2) j = table.radial - 2;
     const Real fj = rj - Real(j);
-    line = lookup_radial(table.c0, table, cells, w, j, fj);
+    Real spread = 0;
+    line = lookup_radial(table.c0, table, cells, w, j, fj, &spread);
+    if (table.refine >= Real(0) && spread > table.refine) {
+      combine_exact_ray<Real, Values>(state, s, t, p);
+      return;
+    }
     if ((Values & kBvv) != 0 && back && table.c1) {
       // sum b (1 - s/D)^2 ds = C0 - 2 C1 / D + C2 / D^2, s measured from t.
       const Real c1 = lookup_radial(table.c1, table, cells, w, j, fj);
@@ -241,12 +299,14 @@ CREPUSCULAR_HD void combine_from_table(VoxelState<Real>& state, const PathSafety
 // Table size for a region of interest reaching `max_distance_mm` from any surface point at
 // output spacing h: m = angular * max_distance / h cells per side of the octahedral map (about
 // 3.5 / m rad between rays on average, so angular = 3.5 puts neighbouring rays one voxel apart
-// at the far edge), and one radial sample per output spacing.
+// at the far edge), and one radial sample per blocking sample (gamma = h / 2). Storing every
+// sample lets a lookup at distance D sum exactly the samples before the point, as exact mode
+// does; one per h mixed in half of a sample beyond it, which biased voxels beside a structure.
 CREPUSCULAR_HD void direction_table_size(double max_distance_mm, double h, int& m,
                                                int& radial, double angular) {
   m = int(ceil(angular * max_distance_mm / h));
   if (m < 8) m = 8;
-  radial = int(ceil(max_distance_mm / h)) + 2;
+  radial = int(ceil(max_distance_mm / (0.5 * h))) + 2;
 }
 
 }  // namespace crepuscular::kernels

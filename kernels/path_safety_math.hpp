@@ -216,11 +216,15 @@ CREPUSCULAR_HD Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Real> q) {
 }
 
 // Offset of the tumor voxel nearest to continuous tumor index r, or -1 when that voxel is outside
-// the grid or not tumor.
+// the grid or not tumor. A point on a face between two voxels belongs to the lower one: the tie
+// is broken by 1e-10 voxel, far above rounding noise (1e-12 at index 4096), so that it does not
+// depend on where the grid's origin lies. Ties are common where the tumor lies on the output
+// lattice (a resampled tumor, DESIGN.md §4): samples every h/2 along an axis land on faces.
 CREPUSCULAR_HD int tumor_offset_at(const TumorGrid<double>& g, Vec3<double> r) {
-  const int i = int(floor(add_rn(r.x, 0.5)));
-  const int j = int(floor(add_rn(r.y, 0.5)));
-  const int k = int(floor(add_rn(r.z, 0.5)));
+  constexpr double kHalfBelowTies = 0.5 - 1e-10;
+  const int i = int(floor(add_rn(r.x, kHalfBelowTies)));
+  const int j = int(floor(add_rn(r.y, kHalfBelowTies)));
+  const int k = int(floor(add_rn(r.z, kHalfBelowTies)));
   if (i < g.lo[0] || j < g.lo[1] || k < g.lo[2] || i > g.hi[0] || j > g.hi[1] || k > g.hi[2])
     return -1;
   const int offset = (k * g.ny + j) * g.nx + i;

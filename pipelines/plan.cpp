@@ -140,6 +140,8 @@ nlohmann::json parameters_json(const PlanRequest& req, const PathSafetyResult& r
           {"radius_mm", result.grid.radius_mm},
           {"radius_requested_mm", req.path_safety.radius_mm},
           {"gamma_mm", result.gamma_mm},
+          {"tumor_spacing_mm", result.tumor_spacing_mm},
+          {"tumor_spacing_requested_mm", req.path_safety.tumor_spacing_mm},
           {"device_requested", device_name(req.path_safety.device)},
           {"device", result.device},
           {"threads", result.threads}};
@@ -222,6 +224,9 @@ nlohmann::json plan_json(const PlanRequest& req, const PlanInputs& in,
   plan["grid"]["outside_roi"] = "NaN (not computed), 0 in roi.nii.gz";
   plan["tumor"] = {{"voxels", result.tumor_voxels},
                    {"surface_points", result.surface_points},
+                   {"resampled_to_mm",
+                    result.tumor_resampled ? nlohmann::json(result.tumor_spacing_mm) : nlohmann::json()},
+                   {"mask_surface_points", result.mask_surface_points},
                    {"s2_mm2", result.s2_mm2},
                    {"centroid_lps_mm", {c.x(), c.y(), c.z()}}};
   plan["blocking_grid"] = geometry_json(in.blocking.geometry());

@@ -361,6 +361,49 @@ kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
   return s;
 }
 
+Volume<uint8_t> resample_tumor(const Volume<uint8_t>& tumor, const TumorSurface& surface,
+                               const OutputGrid& grid, double spacing) {
+  const ImageGeometry& tg = tumor.geometry();
+  const Eigen::Matrix3d& axes = grid.geometry.direction;
+  // The mask's tumor box (voxel edges) in the output axes, in units of the new spacing from the
+  // output grid's centre.
+  Eigen::Vector3d lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
+  Eigen::Vector3d hi = -lo;
+  for (int corner = 0; corner < 8; ++corner) {
+    const Eigen::Vector3d index((corner & 1) ? surface.hi[0] + 0.5 : surface.lo[0] - 0.5,
+                                (corner & 2) ? surface.hi[1] + 0.5 : surface.lo[1] - 0.5,
+                                (corner & 4) ? surface.hi[2] + 0.5 : surface.lo[2] - 0.5);
+    const Eigen::Vector3d q =
+        axes.transpose() * (tg.index_to_physical(index) - grid.centre) / spacing;
+    lo = lo.cwiseMin(q);
+    hi = hi.cwiseMax(q);
+  }
+  ImageGeometry g;
+  g.spacing = Eigen::Vector3d::Constant(spacing);
+  g.direction = axes;
+  Eigen::Vector3d first;
+  for (int a = 0; a < 3; ++a) {
+    first[a] = std::floor(lo[a]) - 1.0;
+    g.dims[a] = int64_t(std::ceil(hi[a]) + 1.0 - first[a]) + 1;
+  }
+  g.origin = grid.centre + axes * (first * spacing);
+  if (g.voxel_count() >= int64_t(std::numeric_limits<int>::max())) {
+    throw Error("tumor spacing " + std::to_string(spacing) + " mm: the resampled tumor grid would have " +
+                std::to_string(g.voxel_count()) + " voxels; give a larger tumor spacing");
+  }
+  Volume<uint8_t> out(g, uint8_t(0));
+  const auto& d = g.dims;
+#pragma omp parallel for schedule(static)
+  for (int64_t k = 0; k < d[2]; ++k) {
+    for (int64_t j = 0; j < d[1]; ++j) {
+      for (int64_t i = 0; i < d[0]; ++i) {
+        out(i, j, k) = nearest_voxel_or(tumor, g.index_to_physical(i, j, k), uint8_t(0)) ? 1 : 0;
+      }
+    }
+  }
+  return out;
+}
+
 // ---------------------------------------------------------------------------------------------
 
 namespace {
@@ -459,7 +502,8 @@ double max_ray_length(const OutputGrid& grid, const kernels::PathSafetyScene<dou
 }
 
 void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
-                  unsigned values, int threads, double angular, PathSafetyResult& result,
+                  unsigned values, int threads, double angular, double refine,
+                  PathSafetyResult& result,
                   const std::function<void(double)>& progress) {
   const auto& g = grid.geometry;
   const VoxelCentres centre(g);
@@ -479,8 +523,9 @@ void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGri
   table.m = m;
   table.radial = radial;
   table.cells = int64_t(cells);
-  table.dr = h;
+  table.dr = 0.5 * h;  // one stored sample per blocking sample (kernels::direction_table_size)
   table.gamma = 0.5 * h;
+  table.refine = refine;
   table.c0 = c0.data();
   table.c1 = moments ? c1.data() : nullptr;
   table.c2 = moments ? c2.data() : nullptr;
@@ -583,6 +628,12 @@ void check_inputs(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
   }
   if (options.spacing_mm < 0.0 || !std::isfinite(options.spacing_mm)) {
     throw Error("output spacing: must be > 0 mm (got " + std::to_string(options.spacing_mm) + ")");
+  }
+  if (!std::isfinite(options.tumor_spacing_mm) ||
+      (options.tumor_spacing_mm < 0.0 &&
+       options.tumor_spacing_mm != PathSafetyOptions::kTumorSpacingAuto)) {
+    throw Error("tumor spacing: must be > 0 mm, or 0 for the mask's own voxels (got " +
+                std::to_string(options.tumor_spacing_mm) + ")");
   }
 }
 
@@ -718,6 +769,7 @@ class CudaBackend {
       cuda.fast_cells = m;
       cuda.fast_radial = radial;
       cuda.fast_slots = options.cuda_fast_slots;
+      cuda.fast_refine = options.fast_refine;
       result.direction_cells = m;
     }
     const kernels::CudaRunReport report =
@@ -764,8 +816,8 @@ void run_on_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid&
   result.threads = thread_count(options);
   result.device = "cpu";
   if (options.mode == Mode::kFast) {
-    run_cpu_fast(scene, grid, options.values, result.threads, options.fast_angular, result,
-                 options.progress);
+    run_cpu_fast(scene, grid, options.values, result.threads, options.fast_angular,
+                 options.fast_refine, result, options.progress);
   } else {
     run_cpu(scene, grid, options.values, result.threads, result, options.progress);
   }
@@ -796,13 +848,47 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   CudaBackend cuda(options.device);
   PhaseClock clock;
   validate_blocking(blocking, blocking_source);
-  const TumorSurface surface = extract_tumor_surface(tumor, tumor_source);
-  check_tumor_inside_blocking(blocking, tumor, surface, blocking_source, tumor_source);
-  const OutputGrid grid = make_output_grid(blocking, tumor, surface, options);
-  clock.done("prepare");
+  const TumorSurface mask_surface = extract_tumor_surface(tumor, tumor_source);
+  check_tumor_inside_blocking(blocking, tumor, mask_surface, blocking_source, tumor_source);
+  const OutputGrid grid = make_output_grid(blocking, tumor, mask_surface, options);
   check_memory(grid, options);
 
+  // Rays as dense as the output grid: a mask finer than the tumor spacing is resampled to it.
+  const double h = grid.geometry.spacing[0];
+  const double tumor_spacing = options.tumor_spacing_mm > 0.0 ? options.tumor_spacing_mm : h;
+  const bool resample =
+      options.tumor_spacing_mm > 0.0 ||
+      (options.tumor_spacing_mm < 0.0 &&
+       tumor.geometry().spacing.minCoeff() < tumor_spacing * (1.0 - 1e-6));
+  Volume<uint8_t> resampled;
+  TumorSurface surface;
+  if (resample) {
+    resampled = resample_tumor(tumor, mask_surface, grid, tumor_spacing);
+    if (std::any_of(resampled.data(), resampled.data() + resampled.geometry().voxel_count(),
+                    [](uint8_t v) { return v != 0; })) {
+      surface = extract_tumor_surface(resampled, tumor_source + " (resampled)");
+    } else {
+      spdlog::warn("{}: the tumor is smaller than one voxel of {:.2f} mm; its rays end on the "
+                   "mask's own {} surface voxels",
+                   tumor_source, tumor_spacing, mask_surface.points.size());
+      resampled = Volume<uint8_t>();
+    }
+  }
+  const bool resampled_used = resampled.geometry().voxel_count() > 0;
+  const Volume<uint8_t>& ray_tumor = resampled_used ? resampled : tumor;
+  if (!resampled_used) surface = mask_surface;
+  if (resampled_used) {
+    spdlog::info("tumor resampled from {:.2f} mm to {:.2f} mm: {} surface points instead of {}",
+                 tumor.geometry().spacing.minCoeff(), tumor_spacing, surface.points.size(),
+                 mask_surface.points.size());
+  }
+  clock.done("prepare");
+
   PathSafetyResult result = start_result(grid, surface, options);
+  result.tumor_resampled = resampled_used;
+  result.tumor_spacing_mm =
+      resampled_used ? tumor_spacing : ray_tumor.geometry().spacing.minCoeff();
+  result.mask_surface_points = int64_t(mask_surface.points.size());
   PendingVolumes volumes(grid.geometry, options.values);
   const Device device = choose_device(options.device, cuda);
   spdlog::info("path safety ({}): {} ROI voxels x {} surface points = {:.3g} rays (R = {:.1f} "
@@ -811,7 +897,8 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                double(result.rays), grid.radius_mm, grid.geometry.spacing[0],
                device == Device::kCuda ? "cuda" : "cpu");
   const std::vector<uint8_t> bricks = blocking_bricks(blocking);
-  const auto scene = make_scene(blocking, tumor, surface, result.gamma_mm, options.eps, bricks);
+  const auto scene =
+      make_scene(blocking, ray_tumor, surface, result.gamma_mm, options.eps, bricks);
   clock.done("bricks");
   if (device == Device::kCuda) {
     cuda.run(scene, grid, options, clock, volumes, result);

@@ -38,6 +38,11 @@ struct PathSafetyOptions {
   double eps = 0.5;
   double spacing_mm = 0.0;  // output spacing h; 0: the smallest spacing of the inputs
   double radius_mm = 0.0;   // region of interest R; 0: distance to the farthest voxel with b > 0
+  // Spacing the tumor mask is resampled to before its surface is taken (DESIGN.md §4, tumor
+  // sampling). kTumorSpacingAuto: the output spacing h, applied only where the mask is finer than
+  // h; 0: the mask's own voxels, never resampled.
+  static constexpr double kTumorSpacingAuto = -1.0;
+  double tumor_spacing_mm = kTumorSpacingAuto;
   Device device = Device::kAuto;
   Mode mode = Mode::kExact;
   int threads = 0;  // CPU threads; 0: all cores
@@ -48,6 +53,9 @@ struct PathSafetyOptions {
   // Fast mode: octahedral direction cells per (distance / spacing), i.e. the angular sampling of
   // the rays cast from each surface point; larger is closer to exact and slower (cost ~ square).
   double fast_angular = 5.0;
+  // Fast mode: a ray whose four neighbouring direction cells differ in line integral by more
+  // than this (or on whether t is seen) is marched exactly (< 0: never).
+  double fast_refine = 0.01;
   // Fast mode: ROI voxels recomputed exactly afterwards to report the difference (0: none).
   int fast_check_voxels = 1000;
   // Fast mode on CUDA: direction tables cast per batch (0: as many as fit, at most 16).
@@ -89,6 +97,13 @@ struct OutputGrid {
 OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                             const TumorSurface& surface, const PathSafetyOptions& options);
 
+// The tumor mask on an isotropic grid of `spacing` with the axes of the output grid and a lattice
+// through its centre (DESIGN.md §4, tumor sampling): a voxel is tumor when its centre lies in a
+// tumor voxel of the mask (nearest voxel). Covers the mask's tumor voxels with one voxel to spare.
+// `surface` is the mask's own (its index bounding box is used).
+Volume<uint8_t> resample_tumor(const Volume<uint8_t>& tumor, const TumorSurface& surface,
+                               const OutputGrid& grid, double spacing);
+
 struct PathSafetyResult {
   OutputGrid grid;
   unsigned values = 0;
@@ -99,6 +114,9 @@ struct PathSafetyResult {
   std::array<Volume<float>, kernels::kValueCount> volumes;
   int64_t tumor_voxels = 0;
   int64_t surface_points = 0;
+  double tumor_spacing_mm = 0.0;   // spacing of the tumor grid the rays end on
+  bool tumor_resampled = false;    // the mask was resampled to tumor_spacing_mm
+  int64_t mask_surface_points = 0;  // surface points of the mask as given
   double s2_mm2 = 0.0;
   double gamma_mm = 0.0;
   double eps = 0.0;

@@ -26,8 +26,13 @@ SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume) {
     std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(i), v.end());
     return v[i];
   };
-  c.safe = percentile(0.2);
-  c.dangerous = percentile(0.6);
+  // Blocking under a thousandth of the largest in the region (the far tails of a safety margin,
+  // a path grazing a structure) is no blocking: neither level sits among such values, where it
+  // would split voxels that differ by nothing a needle meets.
+  const double largest = v.empty() ? 0.0 : double(*std::max_element(v.begin(), v.end()));
+  const double insignificant = kInsignificantShare * largest;
+  c.safe = std::max(percentile(0.2), insignificant);
+  c.dangerous = std::max(percentile(0.6), c.safe);
   return c;
 }
 

@@ -33,7 +33,10 @@ struct SafetyClasses {
 // Defaults: SVV is a percentage (safe >= 90 %, dangerous < 50 %). The blocking values have no
 // absolute scale, so they are relative to the region of interest: a voxel with no blocking on any
 // path (value 0) is safe; among the voxels with some blocking, the lowest 20 % are safe too (the
-// paper's "safest 20 % of the paths") and those above the 60th percentile are dangerous.
+// paper's "safest 20 % of the paths") and those above the 60th percentile are dangerous. Both
+// levels are at least kInsignificantShare of the largest value in the region: values far below
+// it are margin tails and grazing paths, not blocking.
+constexpr double kInsignificantShare = 1e-3;
 SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume);
 
 // Difference of `other` from `reference` over the voxels both computed, per value slot.

@@ -120,11 +120,8 @@ class PlanOnRealScan : public ::testing::Test {
 Volume<int32_t>* PlanOnRealScan::labels_ = nullptr;
 Volume<uint8_t>* PlanOnRealScan::tumor_ = nullptr;
 
-// KNOWN FAILURE (issue 13): the requirement is >= 99.5 % class agreement of fast mode with exact
-// mode; on this real case fast mode reaches 99.22 % (svv) and 97.58 % (isbv) today. The case holds
-// those measured values so that a regression shows, and asserts the requirement once fast mode
-// is fixed (drop kMeasured then).
-TEST_F(PlanOnRealScan, FastModeAgreesWithExactOnTheVirtualLiverTumor_KnownFailure) {
+// The requirement: fast mode gives exact mode's safety class on >= 99.5 % of the voxels.
+TEST_F(PlanOnRealScan, FastModeAgreesWithExactOnTheVirtualLiverTumor) {
   test::TemporaryFolder dir;
   planning::write_volume(*tumor_, dir.file("tumor.nii.gz"));
   PlanRequest exact = request(dir, kData + "example_seg_fast_force_split.nii.gz", "exact");
@@ -156,12 +153,7 @@ TEST_F(PlanOnRealScan, FastModeAgreesWithExactOnTheVirtualLiverTumor_KnownFailur
     const double agreement = double(same) / double(n);
     std::printf("real scan, %s: fast vs exact class agreement %.4f over %lld voxels\n",
                 value.c_str(), agreement, static_cast<long long>(n));
-    const double measured = value == "svv" ? 0.9922 : 0.9758;  // today's values, rounded down
-    if (agreement < 0.995) {
-      std::printf("KNOWN FAILURE (issue 13): %s agreement %.4f < 0.995 required\n", value.c_str(),
-                  agreement);
-      EXPECT_GE(agreement, measured) << value << ": fast mode got worse than today";
-    }
+    EXPECT_GE(agreement, 0.995) << value;
   }
 }
 

@@ -731,6 +731,7 @@ pl::PathSafetyOptions options_for(double h, double radius, double eps, unsigned 
   o.eps = eps;
   o.spacing_mm = h;
   o.radius_mm = radius;
+  o.tumor_spacing_mm = 0.0;  // the reference casts to the mask's own voxels (resampling: path_safety_test)
   o.device = pl::Device::kCpu;
   o.mode = pl::Mode::kExact;
   o.threads = 2;

@@ -144,6 +144,93 @@ Volume<uint8_t> cube_tumor(const ImageGeometry& g, int lo, int hi) {
   return tumor;
 }
 
+// Tumor sampling (DESIGN.md §4): a fine mask of a ball of 10 mm radius resampled to 2 mm holds the
+// voxels whose centres lie in the ball, up to the fine mask's own half voxel at its boundary.
+TEST(TumorSampling, ResampledBallHasTheBallsVoxelsAtTheNewSpacing) {
+  const double radius = 10.0;
+  Volume<uint8_t> fine(centred_cube_grid(61, 0.5, Eigen::Vector3d(3.0, -2.0, 1.0)), 0);
+  const ImageGeometry& fg = fine.geometry();
+  for (int64_t k = 0; k < 61; ++k)
+    for (int64_t j = 0; j < 61; ++j)
+      for (int64_t i = 0; i < 61; ++i)
+        fine(i, j, k) = (fg.index_to_physical(i, j, k) - Eigen::Vector3d(3.0, -2.0, 1.0)).norm() <=
+                        radius;
+  const TumorSurface surface = extract_tumor_surface(fine, "ball");
+  Volume<float> blocking(centred_cube_grid(31, 2.0, Eigen::Vector3d(3.0, -2.0, 1.0)), 0.0f);
+  PathSafetyOptions o;
+  o.spacing_mm = 2.0;
+  o.radius_mm = 20.0;
+  const OutputGrid grid = make_output_grid(blocking, fine, surface, o);
+  const Volume<uint8_t> coarse = resample_tumor(fine, surface, grid, 2.0);
+  const ImageGeometry& cg = coarse.geometry();
+  EXPECT_EQ(cg.spacing, Eigen::Vector3d::Constant(2.0));
+  int64_t tumor = 0;
+  for (int64_t k = 0; k < cg.dims[2]; ++k) {
+    for (int64_t j = 0; j < cg.dims[1]; ++j) {
+      for (int64_t i = 0; i < cg.dims[0]; ++i) {
+        const Eigen::Vector3d p = cg.index_to_physical(i, j, k);
+        // The lattice is the output grid's: every centre is a centre of Θ.
+        const Eigen::Vector3d q = grid.geometry.physical_to_index(p);
+        ASSERT_NEAR((q - q.array().round().matrix()).norm(), 0.0, 1e-9);
+        const double r = (p - Eigen::Vector3d(3.0, -2.0, 1.0)).norm();
+        if (r < radius - 0.45) EXPECT_EQ(coarse(i, j, k), 1) << r;
+        if (r > radius + 0.45) EXPECT_EQ(coarse(i, j, k), 0) << r;
+        tumor += coarse(i, j, k);
+      }
+    }
+  }
+  // 4/3 pi 10^3 = 4189 mm^3 = 524 voxels of 8 mm^3.
+  EXPECT_NEAR(double(tumor) * 8.0, 4.0 / 3.0 * M_PI * radius * radius * radius, 0.08 * 4189.0);
+  // The grid covers the ball with a voxel to spare on every side.
+  for (int a = 0; a < 3; ++a) EXPECT_GE(cg.dims[a], 11);
+}
+
+// A mask at 0.5 mm that is exactly a 2 mm mask on the output lattice plans exactly like that 2 mm
+// mask: same surface points, same values, at a sixteenth of the rays.
+TEST(TumorSampling, FineMaskPlansLikeTheCoarseMaskItResamplesTo) {
+  const ImageGeometry coarse_grid = centred_cube_grid(21, 2.0);
+  Volume<uint8_t> coarse(coarse_grid, 0);
+  for (int k = 0; k < 21; ++k)
+    for (int j = 0; j < 21; ++j)
+      for (int i = 0; i < 21; ++i)
+        coarse(i, j, k) = (i - 10) * (i - 10) + (j - 10) * (j - 10) + (k - 10) * (k - 10) <= 6;
+  // Each coarse voxel split into 4^3 fine ones (centred_cube_grid of an even size: the fine
+  // voxels' faces include every coarse face).
+  Volume<uint8_t> fine(centred_cube_grid(84, 0.5), 0);
+  for (int k = 0; k < 84; ++k)
+    for (int j = 0; j < 84; ++j)
+      for (int i = 0; i < 84; ++i) fine(i, j, k) = coarse(i / 4, j / 4, k / 4);
+  Volume<float> blocking(coarse_grid, 0.02f);
+  for (int k = 0; k < 21; ++k)
+    for (int j = 0; j < 21; ++j) blocking(15, j, k) = blocking(j, 4, k) = 1.0f;
+  PathSafetyOptions o;
+  o.spacing_mm = 2.0;
+  o.radius_mm = 14.0;
+  const PathSafetyResult from_coarse = compute_path_safety(blocking, coarse, o);
+  const PathSafetyResult from_fine = compute_path_safety(blocking, fine, o);
+  EXPECT_FALSE(from_coarse.tumor_resampled);
+  EXPECT_TRUE(from_fine.tumor_resampled);
+  EXPECT_EQ(from_fine.tumor_spacing_mm, 2.0);
+  EXPECT_EQ(from_fine.surface_points, from_coarse.surface_points);
+  EXPECT_GT(from_fine.mask_surface_points, 10 * from_fine.surface_points);
+  EXPECT_DOUBLE_EQ(from_fine.s2_mm2, 4.0);
+  int64_t compared = 0;
+  for_roi(from_coarse, [&](int64_t i, int64_t j, int64_t k, const Eigen::Vector3d&) {
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      ASSERT_NEAR(from_fine.volumes[size_t(v)](i, j, k), from_coarse.volumes[size_t(v)](i, j, k),
+                  1e-4 * (1.0 + std::fabs(from_coarse.volumes[size_t(v)](i, j, k))))
+          << "value " << v << " at " << i << "," << j << "," << k;
+    }
+    ++compared;
+  });
+  EXPECT_GT(compared, 1000);
+  // --tumor-spacing 1 keeps more of the mask: four times the surface points, about.
+  o.tumor_spacing_mm = 1.0;
+  const PathSafetyResult at_1mm = compute_path_safety(blocking, fine, o);
+  EXPECT_EQ(at_1mm.tumor_spacing_mm, 1.0);
+  EXPECT_GT(at_1mm.surface_points, 3 * from_fine.surface_points);
+}
+
 // Front- and back-facing sets of the surface seen from p.
 void facing_sets(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                  const Eigen::Vector3d& p, std::vector<Index3>& front, std::vector<Index3>& back) {
