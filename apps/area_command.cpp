@@ -75,6 +75,12 @@ void add_area_command(CLI::App& app) {
   cmd->add_option("--spacing", req->spacing_mm,
                   "Edge bound h in mm: no mesh edge longer than h when fully extruded; samples "
                   "every h/2 (default: the plan's spacing; preview: the smallest input spacing)");
+  cmd->add_option("--angle", req->angular_step_deg,
+                  "Directions the mesh resolves, degrees: far from the tumor edges may grow to "
+                  "max-distance x angle (1 degree: 1.7 mm per 100 mm, about a needle's width); "
+                  "0: edges within h everywhere, as in the paper (much finer, slower)")
+      ->check(CLI::Range(0.0, 30.0))
+      ->capture_default_str();
   cmd->add_option("--out", req->out_dir,
                   "Output folder for area_safety.vtk and area.json (replaced only when complete; "
                   "never a plan folder)")

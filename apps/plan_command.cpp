@@ -108,6 +108,11 @@ void add_plan_command(CLI::App& app) {
   cmd->add_option("--area-max-distance", req->area_safety.max_distance_mm,
                   "Area safety: maximum extrusion in mm (default: the region of interest "
                   "radius R)");
+  cmd->add_option("--area-angle", req->area_safety.angular_step_deg,
+                  "Area safety: directions the mesh resolves, degrees (edges up to h near the "
+                  "tumor, max-distance x angle far from it; 0: h everywhere, much finer)")
+      ->check(CLI::Range(0.0, 30.0))
+      ->capture_default_str();
   cmd->add_flag("--crop-to-scan", req->crop_to_scan,
                 "Leave the part of the region of interest outside the scan out (not computed) "
                 "instead of marking it unknown");

@@ -415,6 +415,7 @@ struct FastLayout {
   bool moments = false;       // bvv needs the two moment tables c1, c2
   float h = 0;                // output spacing, mm
   float refine = -1.0f;       // DirectionTable::refine
+  float refine_relative = 0;  // DirectionTable::refine_relative
 };
 
 FastLayout fast_layout(const OutputGridDesc& grid, unsigned values, const CudaRunOptions& options) {
@@ -427,6 +428,7 @@ FastLayout fast_layout(const OutputGridDesc& grid, unsigned values, const CudaRu
   l.cells = size_t(l.m) * size_t(l.m);
   l.moments = (values & kBvv) != 0;
   l.refine = float(options.fast_refine);
+  l.refine_relative = float(options.fast_refine_relative);
   l.h = float(std::sqrt(grid.axes[0][0] * grid.axes[0][0] + grid.axes[0][1] * grid.axes[0][1] +
                         grid.axes[0][2] * grid.axes[0][2]));
   return l;
@@ -453,8 +455,9 @@ struct DeviceTables {
       c2.allocate(l.cells * l.radial * slots);
     }
     crossing.allocate(l.cells * slots);
-    batch.first = {l.m,      l.radial, int64_t(l.cells), 0.5f * l.h,  0.5f * l.h,
-                   l.refine, c0.ptr,   c1.ptr,           c2.ptr,      crossing.ptr};
+    batch.first = {l.m,      l.radial,          int64_t(l.cells), 0.5f * l.h, 0.5f * l.h,
+                   l.refine, l.refine_relative, c0.ptr,           c1.ptr,     c2.ptr,
+                   crossing.ptr};
     batch.value_stride = l.cells * size_t(l.radial);
     batch.cell_stride = l.cells;
   }

@@ -39,6 +39,7 @@ struct CudaRunOptions {
   int fast_cells = 0;
   int fast_radial = 0;
   double fast_refine = -1.0;  // DirectionTable::refine
+  double fast_refine_relative = 0.0;  // DirectionTable::refine_relative
   int fast_slots = 0;  // direction tables cast per batch; 0: as many as fit, at most 16
   // Called once, before the first result is written to out[]: the caller may still be
   // allocating the host arrays that out[] points to (it fills out[] here) while the kernels run.

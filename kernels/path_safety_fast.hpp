@@ -62,8 +62,10 @@ struct DirectionTable {
   int64_t cells;  // m * m
   Real dr;        // mm between stored radial samples (gamma: every sample stored)
   Real gamma;     // mm between blocking samples along a ray (half the output spacing)
-  Real refine;    // corner spread of the line integral above which a ray is marched exactly
-                  // (< 0: never); corners that disagree on facing always are
+  Real refine;    // corner spread of the line integral above which a ray is marched exactly,
+                  // plus refine_relative times the value (refine < 0: never); corners that
+                  // disagree on facing, or on the side of eps, always are
+  Real refine_relative;
   float* c0;      // integral of b from t to distance j dr
   float* c1;      // integral of b s, s = distance from t (BVV only; may be null)
   float* c2;      // integral of b s^2 (BVV only; may be null)
@@ -157,10 +159,11 @@ CREPUSCULAR_HD void wrap_cell(int m, int& a, int& b) {
 }
 
 // One ray value looked up at (cell corners a0..a0+1, b0..b0+1, radial position x).
-// `spread`, when given, receives the largest difference between the four cells' values.
+// `lowest` and `highest`, when given, receive the extremes of the four cells' values.
 template <typename Real>
 CREPUSCULAR_HD Real lookup_radial(const float* c, const DirectionTable<Real>& t, const int cells[4],
-                                  const Real w[4], int j, Real fj, Real* spread = nullptr) {
+                                  const Real w[4], int j, Real fj, Real* lowest = nullptr,
+                                  Real* highest = nullptr) {
   Real v = 0, lo_v = Real(3e38), hi_v = Real(-3e38);
   const float* lo = c + int64_t(j) * t.cells;
   const float* hi = lo + t.cells;
@@ -171,7 +174,8 @@ CREPUSCULAR_HD Real lookup_radial(const float* c, const DirectionTable<Real>& t,
     lo_v = corner < lo_v ? corner : lo_v;
     hi_v = corner > hi_v ? corner : hi_v;
   }
-  if (spread) *spread = hi_v - lo_v;
+  if (lowest) *lowest = lo_v;
+  if (highest) *highest = hi_v;
   return v;
 }
 
@@ -264,9 +268,14 @@ CREPUSCULAR_HD void combine_from_table(VoxelState<Real>& state, const PathSafety
     int j = int(floor(rj));
     if (j > table.radial - 2) j = table.radial - 2;
     const Real fj = rj - Real(j);
-    Real spread = 0;
-    line = lookup_radial(table.c0, table, cells, w, j, fj, &spread);
-    if (table.refine >= Real(0) && spread > table.refine) {
+    Real lowest = 0, highest = 0;
+    line = lookup_radial(table.c0, table, cells, w, j, fj, &lowest, &highest);
+    // The cells disagree where it matters: on which side of eps the path lies (SVV), or by more
+    // than table.refine plus table.refine_relative of the value (a structure's edge, not the
+    // texture of the tissue around it).
+    const bool straddles_eps = (Values & kSvv) != 0 && lowest <= s.eps && highest > s.eps;
+    if (table.refine >= Real(0) &&
+        (straddles_eps || highest - lowest > table.refine + table.refine_relative * line)) {
       combine_exact_ray<Real, Values>(state, s, t, p);
       return;
     }

@@ -216,6 +216,7 @@ nlohmann::json run_area(const AreaRequest& r) {
         std::min(s.blocking.geometry().spacing.minCoeff(), tumor.geometry().spacing.minCoeff());
   }
   s.info["tumor"] = fs::absolute(s.tumor_path).string();
+  s.options.angular_step_deg = r.angular_step_deg;
 
   const Ellipsoid e = fit_tumor_ellipsoid(tumor, s.tumor_path);
   AreaSafetyGeometry g = compute_area_safety(e, s.test, s.options);

@@ -24,6 +24,7 @@ struct AreaRequest {
   std::string unsafe_class = "dangerous";  // path safety: "dangerous" or "medium" (medium+)
   double max_distance_mm = 0;              // 0: the plan's R (path safety) or 120 mm (preview)
   double spacing_mm = 0;  // 0: the plan's h (path safety) or the smallest input spacing
+  double angular_step_deg = 1.0;  // planning::AreaSafetyOptions::angular_step_deg
   std::string out_dir;
 };
 

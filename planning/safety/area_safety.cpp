@@ -254,10 +254,17 @@ AreaSafetyGeometry compute_area_safety(const Ellipsoid& e, const SafetyTest& tes
   double step = o.step_mm;
   if (!(step > 0.0) || step > h / 2.0) step = h / 2.0;
 
-  const int rings = rings_for_edge_bound(e, dmax, h, o.max_vertices);
+  if (!(o.angular_step_deg >= 0.0) || !(o.angular_step_deg <= 30.0)) {
+    throw Error("area safety: angular step must be within 0 and 30 degrees (got " +
+                number(o.angular_step_deg) + ")");
+  }
+  const double edge_bound = std::max(h, dmax * o.angular_step_deg * M_PI / 180.0);
+  const int rings = rings_for_edge_bound(e, dmax, edge_bound, o.max_vertices);
   AreaSafetyGeometry g = tessellate_ellipsoid(e, rings);
   g.max_distance_mm = dmax;
   g.spacing_mm = h;
+  g.edge_bound_mm = edge_bound;
+  g.angular_step_deg = o.angular_step_deg;
   const int64_t samples = int64_t(std::ceil(dmax / step - 1e-9));
   g.step_mm = dmax / double(samples);
   const int64_t nv = int64_t(g.base.size());
@@ -509,8 +516,16 @@ void measure_regions(AreaSafetyGeometry& g) {
 
 namespace {
 
+// Legacy VTK BINARY: every value big-endian, each block followed by a newline.
+template <typename T>
+void append_be(std::string& s, T value) {
+  char bytes[sizeof(T)];
+  std::memcpy(bytes, &value, sizeof(T));
+  for (size_t i = sizeof(T); i-- > 0;) s.push_back(bytes[i]);
+}
+
 void append3(std::string& s, const Eigen::Vector3d& v) {
-  fmt::format_to(std::back_inserter(s), "{:.9g} {:.9g} {:.9g}\n", v.x(), v.y(), v.z());
+  for (int c = 0; c < 3; ++c) append_be(s, v[c]);
 }
 
 }  // namespace
@@ -521,12 +536,12 @@ void write_area_safety_vtk(const std::string& path, const AreaSafetyGeometry& g)
     throw Error(path + ": area safety geometry has per-vertex arrays of the wrong length");
   }
   std::string s;
-  s.reserve(nv * 120 + g.triangles.size() * 24 + 4096);
+  s.reserve(nv * 70 + g.triangles.size() * 16 + 4096);
   s += "# vtk DataFile Version 3.0\n";
   // The title line is the header that 3D Slicer searches for "SPACE=": without it Slicer takes
   // legacy VTK models as RAS and would mirror this LPS mesh (x and y negated).
   s += "Crepuscular area safety geometry SPACE=LPS (mm)\n";
-  s += "ASCII\nDATASET POLYDATA\n";
+  s += "BINARY\nDATASET POLYDATA\n";
   // Dataset field data: the ellipsoid, the settings and the regions (one tuple per region).
   const size_t nr = g.regions.size();
   s += "FIELD FieldData " + std::to_string(nr > 0 ? 7 : 2) + "\n";
@@ -534,48 +549,49 @@ void write_area_safety_vtk(const std::string& path, const AreaSafetyGeometry& g)
   append3(s, g.ellipsoid.centre);
   for (int c = 0; c < 3; ++c) append3(s, g.ellipsoid.axes.col(c));
   append3(s, g.ellipsoid.radii);
-  s += "area_settings 5 1 double\n";
+  s += "\narea_settings 5 1 double\n";
   for (double x : {g.max_distance_mm, g.step_mm, g.spacing_mm, g.threshold, double(g.rings)}) {
-    fmt::format_to(std::back_inserter(s), "{:.9g} ", x);
+    append_be(s, x);
   }
   s += "\n";
   if (nr > 0) {
-    const auto scalar_array = [&](const char* name, const char* type, auto get) {
-      s += std::string(name) + " 1 " + std::to_string(nr) + " " + type + "\n";
-      for (const auto& r : g.regions) fmt::format_to(std::back_inserter(s), "{:.9g}\n", double(get(r)));
-    };
-    const auto vector_array = [&](const char* name, auto get) {
-      s += std::string(name) + " 3 " + std::to_string(nr) + " double\n";
-      for (const auto& r : g.regions) append3(s, get(r));
-    };
-    scalar_array("region_size_mm3", "double", [](const AreaRegion& r) { return r.size_mm3; });
-    scalar_array("region_leeway", "double", [](const AreaRegion& r) { return r.leeway; });
-    scalar_array("region_vertex_count", "int", [](const AreaRegion& r) { return r.vertex_count; });
-    vector_array("region_centre", [](const AreaRegion& r) { return r.centre; });
-    vector_array("region_main_axis", [](const AreaRegion& r) { return r.main_axis; });
+    s += "region_size_mm3 1 " + std::to_string(nr) + " double\n";
+    for (const auto& r : g.regions) append_be(s, r.size_mm3);
+    s += "\nregion_leeway 1 " + std::to_string(nr) + " double\n";
+    for (const auto& r : g.regions) append_be(s, r.leeway);
+    s += "\nregion_vertex_count 1 " + std::to_string(nr) + " int\n";
+    for (const auto& r : g.regions) append_be(s, int32_t(r.vertex_count));
+    s += "\nregion_centre 3 " + std::to_string(nr) + " double\n";
+    for (const auto& r : g.regions) append3(s, r.centre);
+    s += "\nregion_main_axis 3 " + std::to_string(nr) + " double\n";
+    for (const auto& r : g.regions) append3(s, r.main_axis);
+    s += "\n";
   }
   s += "POINTS " + std::to_string(nv) + " double\n";
   for (const auto& v : g.vertices) append3(s, v);
-  s += "POLYGONS " + std::to_string(g.triangles.size()) + " " +
+  s += "\nPOLYGONS " + std::to_string(g.triangles.size()) + " " +
        std::to_string(4 * g.triangles.size()) + "\n";
   for (const auto& t : g.triangles) {
-    s += "3 " + std::to_string(t[0]) + " " + std::to_string(t[1]) + " " + std::to_string(t[2]) +
-         "\n";
+    append_be(s, int32_t(3));
+    for (int c = 0; c < 3; ++c) append_be(s, int32_t(t[size_t(c)]));
   }
-  s += "POINT_DATA " + std::to_string(nv) + "\n";
+  s += "\nPOINT_DATA " + std::to_string(nv) + "\n";
   if (g.normals.size() == nv) {
     s += "NORMALS normals double\n";
     for (const auto& n : g.normals) append3(s, n);
+    s += "\n";
   }
   s += "SCALARS safe unsigned_char 1\nLOOKUP_TABLE default\n";
-  for (uint8_t x : g.safe) s += x ? "1\n" : "0\n";
-  s += "SCALARS region int 1\nLOOKUP_TABLE default\n";
-  for (int x : g.region) s += std::to_string(x) + "\n";
-  s += "SCALARS leeway float 1\nLOOKUP_TABLE default\n";
-  for (float x : g.leeway) fmt::format_to(std::back_inserter(s), "{:.7g}\n", double(x));
+  for (uint8_t x : g.safe) s.push_back(char(x ? 1 : 0));
+  s += "\nSCALARS region int 1\nLOOKUP_TABLE default\n";
+  for (int x : g.region) append_be(s, int32_t(x));
+  s += "\nSCALARS leeway float 1\nLOOKUP_TABLE default\n";
+  for (float x : g.leeway) append_be(s, x);
+  s += "\n";
   if (g.extrusion.size() == nv) {
     s += "SCALARS extrusion_mm float 1\nLOOKUP_TABLE default\n";
-    for (float x : g.extrusion) fmt::format_to(std::back_inserter(s), "{:.7g}\n", double(x));
+    for (float x : g.extrusion) append_be(s, x);
+    s += "\n";
   }
   write_text_file(path, s);
 }
@@ -630,6 +646,65 @@ class Tokens {
     throw Error(path_ + ": line " + std::to_string(line_) + ": " + message);
   }
 
+  void set_binary(bool binary) { binary_ = binary; }
+  // `count` values of a VTK data type ("double", "float", "int", "unsigned_char", ...): text in an
+  // ASCII file; in a BINARY one a big-endian block that starts after the header line's newline.
+  std::vector<double> values(size_t count, const std::string& type, const char* what) {
+    std::vector<double> out(count);
+    if (!binary_) {
+      for (double& x : out) x = number(what);
+      return out;
+    }
+    const size_t size = type == "double"                       ? 8
+                        : type == "float" || type == "int" ||
+                                  type == "unsigned_int"       ? 4
+                        : type == "short" || type == "unsigned_short" ? 2
+                        : type == "unsigned_char" || type == "char" || type == "bit" ? 1
+                                                                                     : 0;
+    if (size == 0 || type == "bit") fail(std::string("unsupported binary type '") + type + "' for " + what);
+    while (pos_ < text_.size() && text_[pos_] != '\n') ++pos_;  // the header line's end
+    ++pos_;
+    ++line_;
+    if (count > (text_.size() - std::min(pos_, text_.size())) / size) {
+      fail(std::string("file ends inside the binary data of ") + what);
+    }
+    for (double& x : out) {
+      unsigned char b[8];
+      for (size_t i = 0; i < size; ++i) b[size - 1 - i] = static_cast<unsigned char>(text_[pos_ + i]);
+      pos_ += size;
+      if (type == "double") {
+        double v;
+        std::memcpy(&v, b, 8);
+        x = v;
+      } else if (type == "float") {
+        float v;
+        std::memcpy(&v, b, 4);
+        x = v;
+      } else if (type == "int") {
+        int32_t v;
+        std::memcpy(&v, b, 4);
+        x = v;
+      } else if (type == "unsigned_int") {
+        uint32_t v;
+        std::memcpy(&v, b, 4);
+        x = v;
+      } else if (type == "short") {
+        int16_t v;
+        std::memcpy(&v, b, 2);
+        x = v;
+      } else if (type == "unsigned_short") {
+        uint16_t v;
+        std::memcpy(&v, b, 2);
+        x = v;
+      } else if (type == "char") {
+        x = double(static_cast<signed char>(b[0]));
+      } else {
+        x = double(b[0]);
+      }
+    }
+    return out;
+  }
+
  private:
   void skip() {
     while (pos_ < text_.size() && std::isspace(static_cast<unsigned char>(text_[pos_]))) {
@@ -640,6 +715,7 @@ class Tokens {
   std::string path_, text_;
   size_t pos_ = 0;
   int line_ = 1;
+  bool binary_ = false;
 };
 
 // Reads the file and checks the legacy VTK header, up to 'DATASET POLYDATA'.
@@ -653,7 +729,12 @@ Tokens open_polydata(const std::string& path) {
     tok.fail("not a VTK legacy file (expected '# vtk DataFile Version ...' on line 1)");
   }
   tok.line();  // title
-  if (tok.line().rfind("ASCII", 0) != 0) tok.fail("expected ASCII (binary VTK is not read)");
+  const std::string format = tok.line();
+  if (format.rfind("BINARY", 0) == 0) {
+    tok.set_binary(true);
+  } else if (format.rfind("ASCII", 0) != 0) {
+    tok.fail("expected ASCII or BINARY on line 3");
+  }
   if (tok.word("DATASET") != "DATASET" || tok.word("POLYDATA") != "POLYDATA") {
     tok.fail("expected 'DATASET POLYDATA'");
   }
@@ -671,9 +752,11 @@ void read_field_data(Tokens& tok, VtkFieldArrays& f) {
   for (int64_t a = 0; a < arrays; ++a) {
     const std::string name = tok.word("array name");
     const int64_t comps = tok.integer("components"), tuples = tok.integer("tuples");
-    tok.word("data type");
-    std::vector<double> values(size_t(std::max<int64_t>(0, comps * tuples)));
-    for (double& x : values) x = tok.number(name.c_str());
+    if (comps < 0 || tuples < 0 || comps > 1000000 || tuples > 100000000) {
+      tok.fail("field array '" + name + "' has an impossible size");
+    }
+    const std::string type = tok.word("data type");
+    const std::vector<double> values = tok.values(size_t(comps * tuples), type, name.c_str());
     if (name == "ellipsoid")
       f.ellipsoid = values;
     else if (name == "area_settings")
@@ -694,46 +777,52 @@ void read_field_data(Tokens& tok, VtkFieldArrays& f) {
 // Returns the point count.
 int64_t read_points(Tokens& tok, AreaSafetyGeometry& g) {
   const int64_t nv = tok.integer("point count");
-  tok.word("point type");
+  if (nv < 0 || nv > 100000000) tok.fail("POINTS: impossible point count");
+  const std::string type = tok.word("point type");
+  const std::vector<double> x = tok.values(size_t(3 * nv), type, "point coordinate");
   g.vertices.resize(size_t(nv));
-  for (auto& v : g.vertices)
-    for (int c = 0; c < 3; ++c) v[c] = tok.number("point coordinate");
+  for (size_t v = 0; v < size_t(nv); ++v) g.vertices[v] = Eigen::Vector3d(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
   return nv;
 }
 
 void read_polygons(Tokens& tok, int64_t nv, AreaSafetyGeometry& g) {
   const int64_t n = tok.integer("polygon count");
-  tok.integer("polygon list size");
+  const int64_t size = tok.integer("polygon list size");
+  if (n < 0 || size != 4 * n || n > 200000000) {
+    tok.fail("POLYGONS: only triangles are read (list size 4 x count)");
+  }
+  const std::vector<double> list = tok.values(size_t(size), "int", "polygon list");
   g.triangles.resize(size_t(n));
-  for (auto& t : g.triangles) {
-    if (tok.integer("polygon size") != 3) tok.fail("POLYGONS: only triangles are read");
-    for (int c = 0; c < 3; ++c) {
-      const int64_t v = tok.integer("vertex index");
-      if (v < 0 || v >= nv) tok.fail("POLYGONS: vertex index out of range");
-      t[size_t(c)] = int(v);
+  for (size_t k = 0; k < size_t(n); ++k) {
+    if (list[4 * k] != 3) tok.fail("POLYGONS: only triangles are read");
+    for (size_t c = 0; c < 3; ++c) {
+      const double v = list[4 * k + 1 + c];
+      if (!(v >= 0 && v < double(nv))) tok.fail("POLYGONS: vertex index out of range");
+      g.triangles[k][c] = int(v);
     }
   }
 }
 
 void read_normals(Tokens& tok, int64_t nv, AreaSafetyGeometry& g) {
   tok.word("normals name");
-  tok.word("normals type");
+  const std::string type = tok.word("normals type");
+  if (nv < 0) tok.fail("NORMALS before POINTS");
+  const std::vector<double> x = tok.values(size_t(3 * nv), type, "normal component");
   g.normals.resize(size_t(nv));
-  for (auto& n : g.normals)
-    for (int c = 0; c < 3; ++c) n[c] = tok.number("normal component");
+  for (size_t v = 0; v < size_t(nv); ++v) g.normals[v] = Eigen::Vector3d(x[3 * v], x[3 * v + 1], x[3 * v + 2]);
 }
 
 // One SCALARS array of the point data: safe, region, leeway, extrusion_mm (others are skipped).
 void read_scalars(Tokens& tok, int64_t nv, AreaSafetyGeometry& g) {
   const std::string name = tok.word("scalars name");
-  tok.word("scalars type");
+  const std::string type = tok.word("scalars type");
   std::string lut = tok.word("LOOKUP_TABLE");
   if (lut != "LOOKUP_TABLE") {  // optional component count
     lut = tok.word("LOOKUP_TABLE");
   }
   tok.word("lookup table name");
-  std::vector<double> values(static_cast<size_t>(nv));
-  for (double& x : values) x = tok.number(name.c_str());
+  if (nv < 0) tok.fail("SCALARS before POINTS");
+  const std::vector<double> values = tok.values(size_t(nv), type, name.c_str());
   if (name == "safe") {
     g.safe.assign(values.begin(), values.end());
   } else if (name == "region") {
@@ -849,6 +938,8 @@ nlohmann::json area_safety_json(const AreaSafetyGeometry& g) {
           {"max_distance_mm", g.max_distance_mm},
           {"step_mm", g.step_mm},
           {"spacing_mm", g.spacing_mm},
+          {"angular_step_deg", g.angular_step_deg},
+          {"edge_bound_mm", g.edge_bound_mm},
           {"rings", g.rings},
           {"segments", g.segments},
           {"vertex_count", g.vertices.size()},
@@ -898,6 +989,7 @@ nlohmann::json plan_area_safety(const Volume<uint8_t>& tumor, const PathSafetyRe
   AreaSafetyOptions o;
   o.spacing_mm = result.grid.geometry.spacing[0];
   o.max_distance_mm = options.max_distance_mm > 0 ? options.max_distance_mm : result.grid.radius_mm;
+  o.angular_step_deg = options.angular_step_deg;
   const Ellipsoid e = fit_tumor_ellipsoid(tumor);
   AreaSafetyGeometry g =
       compute_area_safety(e, path_safety_test(volume, classes.higher_is_safer, threshold,

@@ -56,7 +56,9 @@ struct AreaSafetyGeometry {
   int segments = 0;              // spherical grid: vertices per ring of latitude
   double max_distance_mm = 0;    // the extrusion's maximum distance
   double step_mm = 0;            // sampling step along the normals
-  double spacing_mm = 0;         // h: the edge bound the tessellation was refined for
+  double spacing_mm = 0;         // h: the output spacing
+  double edge_bound_mm = 0;      // the edge bound the tessellation was refined for
+  double angular_step_deg = 0;   // AreaSafetyOptions::angular_step_deg
   std::string criterion;         // how "unsafe" was decided, in words (for area_safety_json)
   int64_t unknown_vertex_count = 0;  // extrusions stopped at the unknown (outside the scan)
   double threshold = 0;          // the unsafe threshold of that criterion
@@ -118,7 +120,12 @@ SafetyTest path_safety_test(const Volume<float>& path_safety, bool higher_is_saf
 // --- The geometry -------------------------------------------------------------------------------
 
 struct AreaSafetyOptions {
-  double spacing_mm = 0;           // h: no edge longer than h after full extrusion; required > 0
+  double spacing_mm = 0;           // h: the finest edge bound; required > 0
+  // Directions the mesh resolves, degrees: after full extrusion no edge is longer than
+  // max(h, max_distance x this angle). 1 degree is 1.7 mm per 100 mm, about a needle's width
+  // (14-17 G): a safe region narrower than that holds no needle path. 0: edges within h
+  // everywhere (the paper's rule; 2.9 M vertices for R = 179 mm at h = 0.7 mm).
+  double angular_step_deg = 1.0;
   double max_distance_mm = 0;      // extrusion limit; required > 0 (the plan uses R)
   double step_mm = 0;              // sampling step along each normal; 0 or more than h/2: h/2
   int64_t max_vertices = 4000000;  // refuse a finer mesh (memory, file size)
@@ -148,12 +155,12 @@ double enclosed_volume(const AreaSafetyGeometry& geometry);
 
 // --- Files --------------------------------------------------------------------------------------
 
-// VTK legacy POLYDATA, ASCII, LPS mm (title line carries "SPACE=LPS" for 3D Slicer): POINTS,
+// VTK legacy POLYDATA, BINARY (big-endian, as VTK and 3D Slicer read it), LPS mm (title line carries "SPACE=LPS" for 3D Slicer): POINTS,
 // POLYGONS, POINT_DATA with NORMALS (base normals) and scalars safe, region, leeway, extrusion_mm;
 // FIELD data with the ellipsoid and the regions. Written atomically (output_files.hpp).
 void write_area_safety_vtk(const std::string& path, const AreaSafetyGeometry& geometry);
 
-// Reads what write_area_safety_vtk wrote: vertices, triangles, normals, safe, region, leeway,
+// Reads what write_area_safety_vtk wrote (BINARY, and ASCII as earlier versions wrote it): vertices, triangles, normals, safe, region, leeway,
 // extrusion (base = vertex - extrusion * normal), ellipsoid, regions and max distance. Throws
 // Error naming the file and the section when it is not such a file.
 AreaSafetyGeometry read_area_safety_vtk(const std::string& path);
@@ -167,6 +174,7 @@ struct AreaSafetyPlanOptions {
   std::string unsafe_class = "dangerous";  // "dangerous" or "medium" (medium and dangerous)
   double threshold = std::numeric_limits<double>::quiet_NaN();  // NaN: from the classes
   double max_distance_mm = 0;  // 0: the plan's region of interest radius R
+  double angular_step_deg = 1.0;  // AreaSafetyOptions::angular_step_deg
 };
 
 // The plan's area safety step: for the first value computed in `result`, unsafe past the class

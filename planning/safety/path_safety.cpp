@@ -503,7 +503,7 @@ double max_ray_length(const OutputGrid& grid, const kernels::PathSafetyScene<dou
 
 void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
                   unsigned values, int threads, double angular, double refine,
-                  PathSafetyResult& result,
+                  double refine_relative, PathSafetyResult& result,
                   const std::function<void(double)>& progress) {
   const auto& g = grid.geometry;
   const VoxelCentres centre(g);
@@ -526,6 +526,7 @@ void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGri
   table.dr = 0.5 * h;  // one stored sample per blocking sample (kernels::direction_table_size)
   table.gamma = 0.5 * h;
   table.refine = refine;
+  table.refine_relative = refine_relative;
   table.c0 = c0.data();
   table.c1 = moments ? c1.data() : nullptr;
   table.c2 = moments ? c2.data() : nullptr;
@@ -770,6 +771,7 @@ class CudaBackend {
       cuda.fast_radial = radial;
       cuda.fast_slots = options.cuda_fast_slots;
       cuda.fast_refine = options.fast_refine;
+      cuda.fast_refine_relative = options.fast_refine_relative;
       result.direction_cells = m;
     }
     const kernels::CudaRunReport report =
@@ -817,7 +819,7 @@ void run_on_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid&
   result.device = "cpu";
   if (options.mode == Mode::kFast) {
     run_cpu_fast(scene, grid, options.values, result.threads, options.fast_angular,
-                 options.fast_refine, result, options.progress);
+                 options.fast_refine, options.fast_refine_relative, result, options.progress);
   } else {
     run_cpu(scene, grid, options.values, result.threads, result, options.progress);
   }

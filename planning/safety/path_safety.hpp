@@ -51,11 +51,15 @@ struct PathSafetyOptions {
   // (9-bit weights) instead of float filtering in global memory (the exact definition).
   bool cuda_texture = false;
   // Fast mode: octahedral direction cells per (distance / spacing), i.e. the angular sampling of
-  // the rays cast from each surface point; larger is closer to exact and slower (cost ~ square).
-  double fast_angular = 5.0;
+  // the rays cast from each surface point (cost ~ square). 2: neighbouring rays about 1.75
+  // voxels apart at the far edge; the rays between cells that disagree are marched exactly, so
+  // a finer table buys speed only where few rays graze structures.
+  double fast_angular = 2.0;
   // Fast mode: a ray whose four neighbouring direction cells differ in line integral by more
-  // than this (or on whether t is seen) is marched exactly (< 0: never).
+  // than fast_refine + fast_refine_relative x its value (or on whether t is seen, or on the side
+  // of eps) is marched exactly (fast_refine < 0: never).
   double fast_refine = 0.01;
+  double fast_refine_relative = 0.03;
   // Fast mode: ROI voxels recomputed exactly afterwards to report the difference (0: none).
   int fast_check_voxels = 1000;
   // Fast mode on CUDA: direction tables cast per batch (0: as many as fit, at most 16).

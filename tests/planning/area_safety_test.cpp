@@ -192,6 +192,34 @@ TEST(AreaSafetyTessellation, NoEdgeLongerThanSpacingAfterExtrusion) {
   for (float x : g.extrusion) ASSERT_FLOAT_EQ(x, 40.0f);
 }
 
+// Far from the tumor the mesh resolves directions, not voxels: with R = 179 mm at h = 0.7 mm the
+// edge bound is R x 1 degree = 3.12 mm, not h (the paper's rule would need 2.9 M vertices).
+TEST(AreaSafetyTessellation, FarExtrusionsAreBoundedByTheAngularStep) {
+  AreaSafetyOptions o;
+  o.spacing_mm = 0.7;
+  o.max_distance_mm = 179.0;
+  const AreaSafetyGeometry g = compute_area_safety(
+      sphere(10), [](const Eigen::Vector3d&) { return PointSafety::kSafe; }, o);
+  const double bound = 179.0 * M_PI / 180.0;
+  EXPECT_NEAR(g.edge_bound_mm, bound, 1e-9);
+  EXPECT_LE(max_edge_length(g), bound);
+  // The longest edges are the diagonals of the grid's cells at the equator, 189 mm from the
+  // centre: sqrt(2) pi 189 / rings <= 3.124 mm gives 269 rings, 2 x 269^2 = 144 700 vertices.
+  EXPECT_GT(max_edge_length(g), 0.98 * bound);
+  EXPECT_EQ(g.rings, 269);
+  EXPECT_NEAR(double(g.vertices.size()), 2.0 * 269 * 269, 1000.0);
+  EXPECT_EQ(area_safety_json(g)["edge_bound_mm"].get<double>(), g.edge_bound_mm);
+  // Near the tumor h is the bound: 1 degree at 30 mm is 0.52 mm < h = 2 mm.
+  o.spacing_mm = 2.0;
+  o.max_distance_mm = 30.0;
+  EXPECT_EQ(compute_area_safety(sphere(10), [](const Eigen::Vector3d&) { return PointSafety::kSafe; }, o)
+                .edge_bound_mm,
+            2.0);
+  o.angular_step_deg = -1.0;
+  EXPECT_THROW(compute_area_safety(sphere(10), [](const Eigen::Vector3d&) { return PointSafety::kSafe; }, o),
+               Error);
+}
+
 TEST(AreaSafetyTessellation, MeshBeyondTheVertexLimitIsRefused) {
   EXPECT_THROW(rings_for_edge_bound(sphere(20), 200.0, 0.5, 10000), Error);
 }
@@ -503,7 +531,7 @@ TEST_F(AreaSafetyFiles, VtkRoundTripAndHeader) {
   EXPECT_EQ(l1, "# vtk DataFile Version 3.0");
   EXPECT_NE(l2.find("SPACE=LPS"), std::string::npos) << l2;
   EXPECT_LT(l2.size(), 256u);
-  EXPECT_EQ(l3, "ASCII");
+  EXPECT_EQ(l3, "BINARY");
   EXPECT_EQ(l4, "DATASET POLYDATA");
   std::stringstream all;
   all << std::ifstream(path).rdbuf();
