@@ -57,6 +57,9 @@ int main(int argc, char** argv) {
   double radius = 100.0;
   std::string mode = "fast", device = "auto", work = "/tmp/crepuscular_plan_bench", values = "all";
   bool keep = false;
+  double fast_angular = PathSafetyOptions{}.fast_angular;
+  double fast_refine = PathSafetyOptions{}.fast_refine;
+  double fast_refine_relative = PathSafetyOptions{}.fast_refine_relative;
   app.add_option("--phantom-spacing", phantom_spacing, "phantom voxel size, mm");
   app.add_option("--tumor-diameter", tumor_diameter, "ball tumor diameter, mm");
   app.add_option("--tumor-spacing", tumor_spacing, "tumor mask voxel size, mm");
@@ -67,6 +70,9 @@ int main(int argc, char** argv) {
   app.add_option("--value", values, "values (svv,isbv,ivbv,bvv or all)");
   app.add_option("--work", work, "working folder (phantom and plan)");
   app.add_flag("--keep", keep, "keep the working folder");
+  app.add_option("--fast-angular", fast_angular, "fast mode: direction cells per distance/h");
+  app.add_option("--fast-refine", fast_refine, "fast mode: spread marched exactly (< 0: never)");
+  app.add_option("--fast-refine-relative", fast_refine_relative, "fast mode: relative spread");
   CLI11_PARSE(app, argc, argv);
   spdlog::set_level(spdlog::level::warn);
   namespace fs = std::filesystem;
@@ -91,6 +97,9 @@ int main(int argc, char** argv) {
   req.path_safety.device = parse_device(device);
   req.path_safety.spacing_mm = spacing;
   req.path_safety.radius_mm = radius;
+  req.path_safety.fast_angular = fast_angular;
+  req.path_safety.fast_refine = fast_refine;
+  req.path_safety.fast_refine_relative = fast_refine_relative;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
   const nlohmann::json plan = pipelines::run_plan(req);
@@ -106,6 +115,7 @@ int main(int argc, char** argv) {
                          {"grid", plan["grid"]["dims"]},
                          {"surface_points", plan["tumor"]["surface_points"]},
                          {"mode", mode},
+                         {"fast", {fast_angular, fast_refine, fast_refine_relative}},
                          {"device", plan["parameters"]["device"]},
                          {"setup_s_not_counted", setup_s},
                          {"wall_s", wall_s},

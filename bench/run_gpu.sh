@@ -35,15 +35,16 @@ overlay() {
 # `crepuscular plan` end to end on the headline grid (513^3 at 0.7 mm, phantom at 0.7 mm) with a
 # 2 cm tumor segmented at 0.7 mm, all four values, fast then exact (PLAN_MODES overrides).
 plan() {
-  echo "== GPU tests"
-  for t in path_safety_cuda_test path_safety_test path_safety_fast_test; do
+  [ -n "${SKIP_TESTS:-}" ] || echo "== GPU tests"
+  [ -n "${SKIP_TESTS:-}" ] || for t in path_safety_cuda_test path_safety_test path_safety_fast_test; do
     .device/bin/$t >"$out/$t.log" 2>&1
     echo "$t: exit $?"; tail -3 "$out/$t.log"
   done
   echo "== plan end to end, headline grid"
   for m in ${PLAN_MODES:-fast exact}; do
     .device/bin/bench_plan --phantom-spacing 0.7 --tumor-diameter 20 --tumor-spacing 0.7 \
-      --spacing 0.7 --radius 179.2 --mode "$m" --device cuda --work /tmp/plan_bench 2>&1 |
+      --spacing 0.7 --radius 179.2 --mode "$m" --device cuda --work /tmp/plan_bench \
+      ${PLAN_ARGS:-} 2>&1 |
       tee -a "$out/plan_headline.jsonl"
   done
   df -h /tmp | tail -1 | tee -a "$out/plan_headline.jsonl"

@@ -15,6 +15,7 @@
 #include "overlay/renderer.hpp"
 #include "overlay/volume_rendering.hpp"
 #include "planning/imaging/ray_march.hpp"
+#include "planning/safety/unknown.hpp"
 #include "planning/imaging/sampling.hpp"
 
 namespace crepuscular::overlay {
@@ -120,8 +121,10 @@ GuidanceOverlay::GuidanceOverlay(const planning::PlanData& plan, GuidanceSetup s
   build_tumor_surface();
   build_rays();
   build_entry_contours();
-  spdlog::info("guidance: {} safe or medium rays of {}, {} entry contours, {} tumor surface points",
-               rays_.size(), options_.ray_directions, contours_.size(), tumor_surface_.size());
+  spdlog::info("guidance: {} safe or medium rays of {} ({} not drawn: they reach the unknown "
+               "outside the scan), {} entry contours, {} tumor surface points",
+               rays_.size(), options_.ray_directions, unknown_rays_, contours_.size(),
+               tumor_surface_.size());
 }
 
 GuidanceOverlay::~GuidanceOverlay() = default;
@@ -187,6 +190,21 @@ void GuidanceOverlay::build_tumor_surface() {
   }
 }
 
+bool GuidanceOverlay::crosses_unknown(const Eigen::Vector3d& from, const Eigen::Vector3d& to,
+                                      double step) const {
+  if (plan_.region.empty()) return false;
+  const double length = (to - from).norm();
+  const int n = std::max(1, int(std::ceil(length / step)));
+  for (int k = 0; k <= n; ++k) {
+    const Eigen::Vector3d p = from + (to - from) * (double(k) / n);
+    if (planning::nearest_voxel_or<uint8_t>(plan_.region, p, planning::kRegionNotComputed) ==
+        planning::kRegionUnknown) {
+      return true;
+    }
+  }
+  return false;
+}
+
 void GuidanceOverlay::build_rays() {
   const auto& volume = plan_.path_safety.at(value_);
   const planning::SafetyClasses& classes = plan_.classes.at(value_);
@@ -205,6 +223,12 @@ void GuidanceOverlay::build_rays() {
     }
     const auto end = skin_exit(start, dir);
     if (!end) continue;
+    // Unknown is never safe: a ray that meets the outside of the scan (region state unknown) on
+    // its way to the skin is not drawn, even where the value at its end borrows known neighbours.
+    if (crosses_unknown(start, *end, step)) {
+      ++unknown_rays_;
+      continue;
+    }
     const double value = planning::sample_path_safety(volume, *end);
     if (!std::isfinite(value)) continue;
     const planning::SafetyClass c = classes.classify(value);

@@ -136,6 +136,7 @@ class GuidanceOverlay {
     planning::SafetyClass safety_class;
   };
   const std::vector<Ray>& rays() const { return rays_; }
+  int unknown_rays() const { return unknown_rays_; }
   struct Contour {
     int region = 0;
     double leeway = 0;  // 0..1
@@ -149,6 +150,8 @@ class GuidanceOverlay {
 
  private:
   void build_rays();
+  // Whether the segment meets a voxel of the plan's region whose state is unknown.
+  bool crosses_unknown(const Eigen::Vector3d& from, const Eigen::Vector3d& to, double step) const;
   void build_entry_contours();
   void build_tumor_surface();
   void draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
@@ -169,6 +172,7 @@ class GuidanceOverlay {
   std::unique_ptr<planning::NeedleGuide> guide_;
   std::unique_ptr<SafetyVolumeRendering> volume_;
   std::vector<Ray> rays_;
+  int unknown_rays_ = 0;  // directions not drawn because they reach the unknown
   std::vector<Contour> contours_;
   std::vector<Eigen::Vector3d> tumor_surface_;
   double tumor_voxel_mm_ = 1;

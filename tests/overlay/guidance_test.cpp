@@ -17,6 +17,8 @@
 #include "overlay/renderer.hpp"
 #include "pipelines/plan.hpp"
 #include "planning/imaging/ray_march.hpp"
+#include "planning/imaging/sampling.hpp"
+#include "planning/safety/unknown.hpp"
 #include "planning/imaging/volume_io.hpp"
 #include "tests/support/plans.hpp"
 #include "tests/support/renderer.hpp"
@@ -187,6 +189,59 @@ TEST_F(GuidanceTest, RayBundlesEndOnTheSkinAndAvoidTheVessel) {
       EXPECT_EQ(ray.safety_class, planning::SafetyClass::kSafe);
     }
   }
+}
+
+// The same patient scanned only from x = -6 mm on (the CT's grid ends there; the label map covers
+// everything): no ray drawn reaches the unknown side, whatever its value borrows from known voxels,
+// and every direction that stays on the scanned side is still drawn.
+TEST_F(GuidanceTest, NoRayIsDrawnIntoTheUnknownOutsideTheScan) {
+  test::TemporaryFolder dir;
+  const planning::Volume<int32_t> labels =
+      planning::read_label_map((*dir_ / "labels.nii.gz").string());
+  planning::ImageGeometry ct_grid = labels.geometry();
+  const int64_t first = 16;  // voxel 16 of 44 at 2 mm: x = -6 mm
+  ct_grid.origin = ct_grid.index_to_physical(first, 0, 0);
+  ct_grid.dims[0] -= first;
+  const double cut_x = ct_grid.origin.x() - 1.0;  // the scan's edge: half a voxel before
+  planning::write_volume(planning::Volume<float>(ct_grid, 40.0f), dir.file("ct.nii.gz"));
+  pipelines::PlanRequest r;
+  r.labels = {(*dir_ / "labels.nii.gz").string()};
+  r.tumor = (*dir_ / "tumor.nii.gz").string();
+  r.vulnerability = (*dir_ / "table.json").string();
+  r.ct = dir.file("ct.nii.gz");
+  r.margin.fwhm_mm = 0.0;
+  r.path_safety.radius_mm = 43.0;
+  r.path_safety.device = planning::Device::kCpu;
+  r.path_safety.mode = planning::Mode::kFast;
+  r.out_dir = dir.file("plan");
+  const nlohmann::json plan = pipelines::run_plan(r);
+  ASSERT_GT(plan["scan_coverage"]["unknown_voxels"].get<int64_t>(), 1000);
+  const planning::PlanData cut = planning::load_plan(dir.file("plan"));
+  GuidanceSetup setup;
+  setup.camera = test_camera();
+  setup.T_ct_patient = T_ct_patient();
+  GuidanceOptions options;
+  options.ray_directions = 1500;
+  const GuidanceOverlay overlay(cut, setup, options);
+  EXPECT_GT(overlay.unknown_rays(), 100);
+  int kept_far_side = 0;
+  for (const auto& ray : overlay.rays()) {
+    // Every drawn ray ends in the scan: its end's voxel is computed, and x is at most the
+    // nearest-voxel rounding of the region's 2 mm voxels (1 mm) before the scan's edge.
+    EXPECT_EQ(planning::nearest_voxel_or<uint8_t>(cut.region, ray.end, 0),
+              planning::kRegionComputed)
+        << ray.end.transpose();
+    EXPECT_GE(ray.end.x(), cut_x - 1.0 - 1e-6) << ray.end.transpose();
+    if (ray.end.x() > 10.0) ++kept_far_side;
+  }
+  // Directions that stay well inside the scan (x > 10 mm at the skin) and away from the vessel
+  // (which lies at +x) are drawn as in the full scan.
+  int full_far_side = 0;
+  for (const auto& ray : overlay_->rays()) {
+    if (ray.end.x() > 10.0) ++full_far_side;
+  }
+  EXPECT_GE(kept_far_side, 0.9 * full_far_side);
+  EXPECT_GT(full_far_side, 100);
 }
 
 TEST_F(GuidanceTest, EntryContoursLieOnTheSkin) {
