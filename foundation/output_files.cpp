@@ -1,12 +1,19 @@
 // Atomic output files and staged output folders.
 #include "foundation/output_files.hpp"
 
+#include <signal.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
+#include <cerrno>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
+#include <set>
+#include <string>
 #include <system_error>
+#include <vector>
 
 #include "foundation/error.hpp"
 
@@ -79,6 +86,72 @@ void write_text_file(const std::string& path, std::string_view text) {
 
 // ---------------------------------------------------------------------------------------------
 
+namespace {
+
+constexpr const char* kMarkerFirstLine = "crepuscular output folder";
+
+// The entries of `dir` (names), empty when it cannot be read.
+std::vector<std::string> entries_of(const fs::path& dir) {
+  std::vector<std::string> names;
+  std::error_code ec;
+  for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
+    names.push_back(it->path().filename().string());
+  }
+  std::sort(names.begin(), names.end());
+  return names;
+}
+
+// Why an existing folder may not be replaced, or "" when it may: it is empty, or this tool made
+// it and it holds nothing else (the marker lists what the tool wrote).
+std::string why_not_replaceable(const fs::path& dir) {
+  const std::vector<std::string> present = entries_of(dir);
+  if (present.empty()) return "";
+  std::ifstream marker(dir / kOutputMarker);
+  std::string line;
+  if (!marker || !std::getline(marker, line) || line != kMarkerFirstLine) {
+    return "exists and was not written by crepuscular (it has no " + std::string(kOutputMarker) +
+           "); it is left as it is: choose a new folder, or empty or remove this one yourself";
+  }
+  std::set<std::string> made = {kOutputMarker};
+  while (std::getline(marker, line)) made.insert(line);
+  std::vector<std::string> others;
+  for (const std::string& name : present) {
+    if (!made.count(name)) others.push_back(name);
+  }
+  if (others.empty()) return "";
+  std::string list;
+  for (size_t i = 0; i < others.size() && i < 5; ++i) list += (i ? ", " : "") + others[i];
+  if (others.size() > 5) list += ", ...";
+  return "holds files crepuscular did not write (" + list +
+         "); it is left as it is: choose a new folder, or move those files away";
+}
+
+// Staging folders ".NAME.partial-PID" beside `final_path` whose process no longer runs (a killed
+// run's): removed, since nothing else ever will.
+void remove_stale_staging(const fs::path& parent, const std::string& name) {
+  const std::string prefix = "." + name + ".partial-";
+  std::error_code ec;
+  for (fs::directory_iterator it(parent, ec), end; !ec && it != end; it.increment(ec)) {
+    const std::string entry = it->path().filename().string();
+    if (entry.rfind(prefix, 0) != 0) continue;
+    std::string pid_text = entry.substr(prefix.size());
+    if (pid_text.size() > 4 && pid_text.compare(pid_text.size() - 4, 4, ".old") == 0) {
+      pid_text.resize(pid_text.size() - 4);
+    }
+    if (pid_text.empty() ||
+        pid_text.find_first_not_of("0123456789") != std::string::npos || pid_text.size() > 9) {
+      continue;
+    }
+    const pid_t pid = pid_t(std::stol(pid_text));
+    if (pid == ::getpid()) continue;
+    if (::kill(pid, 0) == 0 || errno != ESRCH) continue;  // alive, or not ours to judge
+    std::error_code rm;
+    fs::remove_all(it->path(), rm);
+  }
+}
+
+}  // namespace
+
 StagedDirectory::StagedDirectory(std::string final_path, OnFailure on_failure)
     : final_(std::move(final_path)), on_failure_(on_failure) {
   while (final_.size() > 1 && final_.back() == '/') final_.pop_back();
@@ -95,6 +168,11 @@ StagedDirectory::StagedDirectory(std::string final_path, OnFailure on_failure)
     if (fs::exists(fp, ec) && !fs::is_directory(fp, ec)) {
       throw Error(final_ + ": exists and is not a folder");
     }
+    if (fs::is_directory(fp, ec)) {
+      const std::string why = why_not_replaceable(fp);
+      if (!why.empty()) throw Error(final_ + ": " + why);
+    }
+    remove_stale_staging(parent, fp.filename().string());
     staging_ = (parent / ("." + fp.filename().string() + ".partial-" + std::to_string(::getpid())))
                    .string();
   }
@@ -124,9 +202,22 @@ void StagedDirectory::commit() {
     committed_ = true;
     return;
   }
+  // The marker: what this run wrote, so that a later run may replace exactly that.
+  {
+    std::ofstream marker(fs::path(staging_) / kOutputMarker, std::ios::trunc);
+    marker << kMarkerFirstLine << "\n";
+    for (const std::string& name : entries_of(staging_)) {
+      if (name != kOutputMarker) marker << name << "\n";
+    }
+    if (!marker.flush()) {
+      throw Error(staging_ + "/" + kOutputMarker + ": cannot write");
+    }
+  }
   const std::string old = staging_ + ".old";
   const bool had_old = fs::exists(final_, ec);
   if (had_old) {
+    const std::string why = why_not_replaceable(final_);
+    if (!why.empty()) throw Error(final_ + ": " + why);
     fs::remove_all(old, ec);
     fs::rename(final_, old, ec);
     if (ec) throw Error(final_ + ": cannot replace the existing folder (" + ec.message() + ")");

@@ -54,13 +54,19 @@ class PendingFile {
   bool committed_ = false;
 };
 
+// The file a staged folder gets on commit (kRemove): it names what the tool wrote there. Only an
+// empty folder, or one whose entries are all named by its marker, is ever replaced.
+constexpr const char* kOutputMarker = ".crepuscular-output";
+
 // A folder written in full before it takes its final name.
 class StagedDirectory {
  public:
   // What becomes of a staged folder that is never committed.
   enum class OnFailure {
     // Staged as the hidden ".NAME.partial-PID" beside the final path and removed by the
-    // destructor; commit() replaces an earlier folder of the final name.
+    // destructor (and by a later run, when a killed process left it); commit() replaces an
+    // earlier folder of the final name only when it is empty or this tool wrote all of it
+    // (kOutputMarker); anything else is refused with Error, before any work.
     kRemove,
     // Staged as "FINAL.partial", which stays where it is (usable as it is, e.g. an interrupted
     // recording that replays). Neither FINAL nor FINAL.partial may exist beforehand (Error);

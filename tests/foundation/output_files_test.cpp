@@ -3,6 +3,8 @@
 #include "foundation/output_files.hpp"
 
 #include <gtest/gtest.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <filesystem>
@@ -139,7 +141,74 @@ TEST(OutputFiles, StagedDirectoryAppearsOnlyOnCommitAndReplaces) {
     out.commit();
   }
   EXPECT_EQ(entries(root), std::vector<std::string>{"plan"});
-  EXPECT_EQ(entries(final_path), std::vector<std::string>{"b.txt"});  // replaced as a whole
+  // Replaced as a whole; the marker names what was written.
+  EXPECT_EQ(entries(final_path), (std::vector<std::string>{".crepuscular-output", "b.txt"}));
+  std::ifstream marker(final_path + "/.crepuscular-output");
+  std::string first, second;
+  std::getline(marker, first);
+  std::getline(marker, second);
+  EXPECT_EQ(first, "crepuscular output folder");
+  EXPECT_EQ(second, "b.txt");
+}
+
+// --out naming a folder the user owns never deletes it: only an empty folder or one this tool
+// wrote whole is replaced; the refusal comes before any work and names the folder and the files.
+TEST(OutputFiles, StagedDirectoryNeverReplacesWhatItDidNotWrite) {
+  const fs::path root = temp_dir("owned");
+  const std::string mine = (root / "patient").string();
+  fs::create_directories(mine);
+  write_text_file(mine + "/ct.nii.gz", "scan");
+  expect_error_containing([&] { StagedDirectory out(mine); },
+                          {"patient", "not written by crepuscular"});
+  EXPECT_EQ(entries(mine), std::vector<std::string>{"ct.nii.gz"});
+  // A plan folder to which the user added a file.
+  const std::string plan = (root / "plan").string();
+  {
+    StagedDirectory out(plan);
+    write_text_file(out.file("plan.json"), "{}");
+    out.commit();
+  }
+  write_text_file(plan + "/notes.txt", "mine");
+  expect_error_containing([&] { StagedDirectory out(plan); }, {"plan", "notes.txt"});
+  // Added while a run was working: refused at commit, and the staged output goes.
+  fs::remove(plan + "/notes.txt");
+  {
+    StagedDirectory out(plan);
+    write_text_file(out.file("plan.json"), "{\"new\": 1}");
+    write_text_file(plan + "/notes.txt", "mine");
+    expect_error_containing([&] { out.commit(); }, {"notes.txt"});
+  }
+  EXPECT_EQ(entries(plan), (std::vector<std::string>{".crepuscular-output", "notes.txt", "plan.json"}));
+  for (const std::string& e : entries(root)) EXPECT_EQ(e.find(".partial"), std::string::npos) << e;
+  // An empty folder is taken.
+  const std::string empty = (root / "empty").string();
+  fs::create_directories(empty);
+  StagedDirectory out(empty);
+  write_text_file(out.file("a.txt"), "1");
+  out.commit();
+  EXPECT_EQ(entries(empty), (std::vector<std::string>{".crepuscular-output", "a.txt"}));
+}
+
+// A run killed before it committed leaves its hidden staging folder; the next run removes it
+// when its process is gone, and leaves the staging of a live process alone.
+TEST(OutputFiles, StagingOfADeadProcessIsRemovedByTheNextRun) {
+  const fs::path root = temp_dir("stale");
+  const pid_t child = fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) _exit(0);
+  int status = 0;
+  waitpid(child, &status, 0);  // a pid that no longer runs
+  const fs::path dead = root / (".plan.partial-" + std::to_string(child));
+  const fs::path alive = root / (".plan.partial-" + std::to_string(getppid()));
+  fs::create_directories(dead);
+  fs::create_directories(alive);
+  write_text_file((dead / "big.nii").string(), "x");
+  {
+    StagedDirectory out((root / "plan").string());
+    out.commit();
+  }
+  EXPECT_FALSE(fs::exists(dead));
+  EXPECT_TRUE(fs::exists(alive));
 }
 
 TEST(OutputFiles, KeptStagingFolderSurvivesAFailureAndMustNotExist) {

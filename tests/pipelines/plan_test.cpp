@@ -166,6 +166,24 @@ TEST_F(PlanTest, CommandLineReportsBadInputAndWritesNothing) {
       << err;
   EXPECT_TRUE(fs::exists(dir_ / "cli" / "path_safety_bvv.nii.gz"));
   EXPECT_FALSE(fs::exists(dir_ / "cli" / "path_safety_isbv.nii.gz"));
+  // Run again into its own plan folder: replaced.
+  EXPECT_EQ(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " +
+                        tumor_ + " --radius 10 --value svv --device cpu --out " + out,
+                    &err, test::Capture::kStderr),
+            0)
+      << err;
+  EXPECT_FALSE(fs::exists(dir_ / "cli" / "path_safety_bvv.nii.gz"));
+  // --out naming the folder of the run's own inputs: refused at once, nothing touched.
+  const auto before = std::distance(fs::directory_iterator(dir_), fs::directory_iterator());
+  EXPECT_EQ(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " +
+                        tumor_ + " --radius 10 --value svv --device cpu --out " + dir_.string(),
+                    &err, test::Capture::kStderr),
+            1);
+  EXPECT_EQ(err.rfind("error: ", 0), 0u) << err;
+  EXPECT_NE(err.find("not written by crepuscular"), std::string::npos) << err;
+  EXPECT_EQ(std::distance(fs::directory_iterator(dir_), fs::directory_iterator()), before);
+  EXPECT_TRUE(fs::exists(labels_));
+  EXPECT_TRUE(fs::exists(tumor_));
 }
 
 }  // namespace
