@@ -822,14 +822,14 @@ Phantom make_phantom(const PhantomOptions& options) {
 }
 
 void write_phantom(const Phantom& phantom, const std::string& dir) {
-  std::error_code ec;
-  std::filesystem::create_directories(dir, ec);
-  if (ec) throw Error(dir + ": cannot create the phantom folder (" + ec.message() + ")");
-  const std::filesystem::path d(dir);
-  write_volume(phantom.ct, (d / "ct.nii.gz").string());
-  write_volume(phantom.labels, (d / "labels.nii.gz").string());
-  write_volume(phantom.tumor, (d / "tumor.nii.gz").string());
-  write_text_file((d / "vulnerability.json").string(), phantom.vulnerability.dump(2) + "\n");
+  // Staged: a failed write (a full disk) leaves no folder, never one mixing two seeds; an
+  // existing folder is replaced only when this tool wrote it (foundation/output_files.hpp).
+  StagedDirectory out(dir);
+  write_volume(phantom.ct, out.file("ct.nii.gz"));
+  write_volume(phantom.labels, out.file("labels.nii.gz"));
+  write_volume(phantom.tumor, out.file("tumor.nii.gz"));
+  write_text_file(out.file("vulnerability.json"), phantom.vulnerability.dump(2) + "\n");
+  out.commit();
 }
 
 }  // namespace crepuscular::planning

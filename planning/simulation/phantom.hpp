@@ -28,8 +28,8 @@ struct Phantom {
 // [0.3, 10] mm.
 Phantom make_phantom(const PhantomOptions& options);
 
-// Writes ct.nii.gz, labels.nii.gz, tumor.nii.gz and vulnerability.json into `dir` (created if
-// missing); every file appears complete or not at all.
+// Writes ct.nii.gz, labels.nii.gz, tumor.nii.gz and vulnerability.json as the folder `dir`,
+// staged: complete or not at all; an existing `dir` is replaced only when crepuscular wrote it.
 void write_phantom(const Phantom& phantom, const std::string& dir);
 
 }  // namespace crepuscular::planning
