@@ -268,6 +268,195 @@ std::string metaimage_length_problem(const std::string& path) {
   return {};
 }
 
+// Header values the image libraries would abort on (ITK's vnl asserts finite matrices: SIGABRT)
+// or replace in silence (a NIfTI pixdim of 0 or NaN becomes 1 mm), and NRRD sizes that would be
+// allocated before the data are found missing. Checked before ITK reads the header.
+
+// NIfTI-1 and NIfTI-2: pixdim of the spatial axes finite and > 0; quaternion, offsets and the
+// sform rows finite.
+std::string nifti_header_problem(const std::string& path) {
+  const std::unique_ptr<gzFile_s, int (*)(gzFile)> file(gzopen(path.c_str(), "rb"), &gzclose);
+  if (!file) return "cannot open the file";
+  unsigned char header[540];
+  const int header_read = gzread(file.get(), header, sizeof header);
+  if (header_read < 348) return "file ends inside the NIfTI header";
+  int32_t stored_size;
+  std::memcpy(&stored_size, header, 4);
+  const bool swapped = stored_size != 348 && stored_size != 540;
+  const auto field = [&](size_t at, auto value) {
+    unsigned char bytes[sizeof value];
+    std::memcpy(bytes, header + at, sizeof value);
+    if (swapped) std::reverse(bytes, bytes + sizeof value);
+    std::memcpy(&value, bytes, sizeof value);
+    return double(value);
+  };
+  const double sizeof_hdr = field(0, int32_t{});
+  const bool v2 = sizeof_hdr == 540 && header_read == 540;
+  if (sizeof_hdr != 348 && !v2) return {};
+  const auto dim_at = [&](int d) { return v2 ? field(16 + 8 * d, int64_t{}) : field(40 + 2 * d, int16_t{}); };
+  const auto pixdim = [&](int d) { return v2 ? field(104 + 8 * d, double{}) : field(76 + 4 * d, float{}); };
+  const int spatial = int(std::clamp(dim_at(0), 1.0, 3.0));
+  for (int d = 1; d <= spatial; ++d) {
+    const double p = pixdim(d);
+    if (!std::isfinite(p) || p <= 0.0) {
+      return "NIfTI header: pixdim[" + std::to_string(d) + "] (voxel size along axis " +
+             std::to_string(d) + ") is " + value_text(p) + "; expected a finite size > 0 mm";
+    }
+  }
+  // quatern_b, c, d, qoffset_x, y, z, then srow_x, srow_y, srow_z (4 each).
+  static const char* kNames[] = {"quatern_b", "quatern_c", "quatern_d", "qoffset_x", "qoffset_y",
+                                 "qoffset_z", "srow_x[0]", "srow_x[1]", "srow_x[2]", "srow_x[3]",
+                                 "srow_y[0]", "srow_y[1]", "srow_y[2]", "srow_y[3]", "srow_z[0]",
+                                 "srow_z[1]", "srow_z[2]", "srow_z[3]"};
+  for (int k = 0; k < 18; ++k) {
+    const double v = v2 ? field(352 + 8 * size_t(k), double{}) : field(256 + 4 * size_t(k), float{});
+    if (!std::isfinite(v)) {
+      return std::string("NIfTI header: ") + kNames[k] + " (orientation and origin) is " +
+             value_text(v) + "; expected a finite number";
+    }
+  }
+  return {};
+}
+
+// Numbers of a header value ("(1.5,0,0) (0,1.5,0)", "0.7 0.7 2.5"); words such as "none" are
+// left out. `bad` receives the first token that reads as NaN or infinity.
+std::vector<double> header_numbers(const std::string& text, std::string* bad) {
+  std::vector<double> out;
+  std::string token;
+  const auto flush = [&] {
+    if (token.empty()) return;
+    char* end = nullptr;
+    const double v = std::strtod(token.c_str(), &end);
+    if (end != token.c_str() && *end == '\0') {
+      if (!std::isfinite(v) && bad && bad->empty()) *bad = token;
+      out.push_back(v);
+    }
+    token.clear();
+  };
+  for (char c : text) {
+    if (c == ' ' || c == ',' || c == '(' || c == ')' || c == '\t') {
+      flush();
+    } else {
+      token += c;
+    }
+  }
+  flush();
+  return out;
+}
+
+// The "key: value" (NRRD) or "key = value" (MetaImage) fields of a text header.
+std::map<std::string, std::string> text_header(const std::string& path, char separator,
+                                               size_t& data_start) {
+  std::ifstream in(path, std::ios::binary);
+  std::map<std::string, std::string> fields;
+  std::string line;
+  data_start = 0;
+  int lines = 0;
+  while (std::getline(in, line) && ++lines < 10000) {
+    data_start += line.size() + 1;
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    if (separator == ':' && line.empty()) break;  // NRRD: a blank line ends the header
+    const auto at = separator == ':' ? line.find(": ") : line.find('=');
+    if (at == std::string::npos) continue;
+    const std::string key = trimmed(line.substr(0, at));
+    fields[key] = trimmed(line.substr(at + (separator == ':' ? 2 : 1)));
+    if (separator == '=' && key == "ElementDataFile") break;
+  }
+  return fields;
+}
+
+std::string numbers_problem(const std::map<std::string, std::string>& fields,
+                            std::initializer_list<const char*> keys, const char* format) {
+  for (const char* key : keys) {
+    const auto f = fields.find(key);
+    if (f == fields.end()) continue;
+    std::string bad;
+    header_numbers(f->second, &bad);
+    if (!bad.empty()) {
+      return std::string(format) + " header: '" + key + "' holds " + bad +
+             "; expected finite numbers";
+    }
+  }
+  return {};
+}
+
+std::string nrrd_header_problem(const std::string& path) {
+  size_t data_start = 0;
+  const auto fields = text_header(path, ':', data_start);
+  std::string problem = numbers_problem(
+      fields, {"space origin", "space directions", "spacings", "thicknesses", "axis mins", "axis maxs"},
+      "NRRD");
+  if (!problem.empty()) return problem;
+  for (const char* key : {"spacings"}) {
+    const auto f = fields.find(key);
+    if (f == fields.end()) continue;
+    for (double v : header_numbers(f->second, nullptr)) {
+      if (!(v > 0.0)) return std::string("NRRD header: '") + key + "' holds " + value_text(v) +
+                             "; expected voxel sizes > 0 mm";
+    }
+  }
+  const auto sizes = fields.find("sizes");
+  if (sizes == fields.end()) return {};
+  double voxels = 1.0;
+  for (double v : header_numbers(sizes->second, nullptr)) {
+    if (!(v >= 1.0)) return "NRRD header: 'sizes' holds " + value_text(v) + "; expected sizes >= 1";
+    voxels *= v;
+  }
+  static const std::map<std::string, double> kBytes = {
+      {"uchar", 1}, {"unsigned char", 1}, {"uint8", 1}, {"uint8_t", 1}, {"char", 1},
+      {"signed char", 1}, {"int8", 1}, {"int8_t", 1}, {"short", 2}, {"ushort", 2},
+      {"unsigned short", 2}, {"int16", 2}, {"uint16", 2}, {"int16_t", 2}, {"uint16_t", 2},
+      {"int", 4}, {"uint", 4}, {"unsigned int", 4}, {"int32", 4}, {"uint32", 4},
+      {"int32_t", 4}, {"uint32_t", 4}, {"float", 4}, {"double", 8}, {"longlong", 8},
+      {"int64", 8}, {"uint64", 8}, {"int64_t", 8}, {"uint64_t", 8}};
+  const auto type = fields.find("type");
+  const double bytes = voxels * (type != fields.end() && kBytes.count(type->second)
+                                     ? kBytes.at(type->second)
+                                     : 1.0);
+  const auto data_file = fields.find("data file");
+  const auto datafile = data_file != fields.end() ? data_file : fields.find("datafile");
+  if (datafile != fields.end()) return {};  // detached data: ITK checks its length
+  std::error_code ec;
+  const double stored = double(fs::file_size(path, ec)) - double(data_start);
+  if (ec) return {};
+  const auto encoding = fields.find("encoding");
+  const std::string enc = encoding != fields.end() ? encoding->second : "raw";
+  // Deflate packs at most about 1032 bytes into one; raw data are stored whole.
+  const double least = enc == "raw" ? bytes : enc == "gzip" || enc == "gz" ? bytes / 1032.0 : 0.0;
+  if (least > stored + 1.0) {
+    return "NRRD header: 'sizes' declares " + value_text(voxels) + " voxels (" +
+           value_text(bytes / 1e6) + " MB) but the file holds " + value_text(stored) +
+           " bytes of data";
+  }
+  return {};
+}
+
+std::string metaimage_header_problem(const std::string& path) {
+  size_t data_start = 0;
+  const auto fields = text_header(path, '=', data_start);
+  std::string problem = numbers_problem(
+      fields, {"Offset", "Origin", "Position", "ElementSpacing", "ElementSize", "TransformMatrix",
+               "Orientation", "Rotation", "CenterOfRotation"},
+      "MetaImage");
+  if (!problem.empty()) return problem;
+  for (const char* key : {"ElementSpacing", "ElementSize"}) {
+    const auto f = fields.find(key);
+    if (f == fields.end()) continue;
+    for (double v : header_numbers(f->second, nullptr)) {
+      if (!(v > 0.0)) return std::string("MetaImage header: '") + key + "' holds " +
+                             value_text(v) + "; expected voxel sizes > 0 mm";
+    }
+  }
+  return {};
+}
+
+std::string header_problem(const std::string& path, const char* io_class) {
+  if (std::strcmp(io_class, "NiftiImageIO") == 0) return nifti_header_problem(path);
+  if (std::strcmp(io_class, "NrrdImageIO") == 0) return nrrd_header_problem(path);
+  if (std::strcmp(io_class, "MetaImageIO") == 0) return metaimage_header_problem(path);
+  return {};
+}
+
 // Checks for short data that the format's library would pass over in silence (see above).
 std::string length_problem(const std::string& path, const char* io_class) {
   if (std::strcmp(io_class, "NiftiImageIO") == 0) return nifti_length_problem(path);
@@ -410,6 +599,8 @@ auto read_native(const std::string& path, Convert&& convert) {
                   ": cannot read (not a NIfTI, NRRD, MetaImage or DICOM file, or a damaged one)");
     }
     io->SetFileName(path);
+    const std::string bad_header = header_problem(path, io->GetNameOfClass());
+    if (!bad_header.empty()) throw Error(path + ": cannot read (" + bad_header + ")");
     io->ReadImageInformation();
     const ImageGeometry geometry = geometry_of_file(*io, path);
     const std::string short_data = length_problem(path, io->GetNameOfClass());

@@ -9,12 +9,14 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <array>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -565,6 +567,82 @@ TEST_F(VolumeIoTest, NonOrthogonalDirectionsThrowNamingTheFile) {
                                    8));
   expect_error_containing([&] { read_volume<float>(file("sheared.nrrd")); },
                           {"sheared.nrrd", "direction"});
+}
+
+// Header values ITK would abort on (vnl asserts finite matrices) or replace in silence are
+// refused, naming the file and the field, before ITK reads the header.
+TEST_F(VolumeIoTest, NonFiniteOrZeroNiftiHeaderFieldsAreRefusedNotCrashes) {
+  write_volume(Volume<float>(oblique_geometry(), 1.0f), file("good.nii"));
+  std::string bytes;
+  {
+    std::ifstream in(file("good.nii"), std::ios::binary);
+    std::stringstream ss;
+    ss << in.rdbuf();
+    bytes = ss.str();
+  }
+  ASSERT_GT(bytes.size(), 348u);
+  const auto patched = [&](size_t at, float value) {
+    std::string b = bytes;
+    std::memcpy(&b[at], &value, 4);
+    return b;
+  };
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const float inf = std::numeric_limits<float>::infinity();
+  write_bytes("nan_sform.nii", patched(280 + 12, nan));  // srow_x[3]: the origin's x
+  expect_error_containing([&] { read_volume<float>(file("nan_sform.nii")); },
+                          {"nan_sform.nii", "srow_x[3]", "finite"});
+  write_bytes("nan_qoffset.nii", patched(268, nan));
+  expect_error_containing([&] { read_volume<float>(file("nan_qoffset.nii")); },
+                          {"nan_qoffset.nii", "qoffset_x"});
+  write_bytes("inf_quatern.nii", patched(256, inf));
+  expect_error_containing([&] { read_volume<float>(file("inf_quatern.nii")); },
+                          {"inf_quatern.nii", "quatern_b"});
+  for (const float pixdim : {0.0f, nan, inf, -1.0f}) {
+    write_bytes("pixdim.nii", patched(76 + 4 * 2, pixdim));  // pixdim[2]
+    expect_error_containing([&] { read_volume<float>(file("pixdim.nii")); },
+                            {"pixdim.nii", "pixdim[2]", "voxel size"});
+  }
+  EXPECT_NO_THROW(read_volume<float>(file("good.nii")));
+}
+
+TEST_F(VolumeIoTest, NonFiniteNrrdAndMetaImageHeadersAreRefusedNotCrashes) {
+  write_bytes("nan.nrrd", nrrd("dimension: 3\nspace: left-posterior-superior\nsizes: 2 2 2\n"
+                               "space directions: (1,0,0) (0,nan,0) (0,0,1)\n"
+                               "space origin: (0,0,0)\n",
+                               8));
+  expect_error_containing([&] { read_volume<float>(file("nan.nrrd")); },
+                          {"nan.nrrd", "space directions", "nan"});
+  write_bytes("inf.nrrd", nrrd("dimension: 3\nspace: left-posterior-superior\nsizes: 2 2 2\n"
+                               "space directions: (1,0,0) (0,1,0) (0,0,1)\n"
+                               "space origin: (0,inf,0)\n",
+                               8));
+  expect_error_containing([&] { read_volume<float>(file("inf.nrrd")); },
+                          {"inf.nrrd", "space origin"});
+  write_bytes("nan.mha",
+              "ObjectType = Image\nNDims = 3\nDimSize = 2 2 2\nElementSpacing = nan 1 1\n"
+              "ElementType = MET_UCHAR\nElementDataFile = LOCAL\n" +
+                  std::string(8, '\0'));
+  expect_error_containing([&] { read_volume<float>(file("nan.mha")); },
+                          {"nan.mha", "ElementSpacing"});
+  write_bytes("offset.mha",
+              "ObjectType = Image\nNDims = 3\nDimSize = 2 2 2\nOffset = 0 0 -inf\n"
+              "ElementType = MET_UCHAR\nElementDataFile = LOCAL\n" +
+                  std::string(8, '\0'));
+  expect_error_containing([&] { read_volume<float>(file("offset.mha")); },
+                          {"offset.mha", "Offset"});
+}
+
+// A 512-byte NRRD declaring 10^13 voxels is refused from its header, before any allocation.
+TEST_F(VolumeIoTest, NrrdDeclaringMoreVoxelsThanItHoldsIsRefusedAtOnce) {
+  write_bytes("huge.nrrd", nrrd("dimension: 3\nsizes: 100000 100000 1000\n", 200));
+  const auto t0 = std::chrono::steady_clock::now();
+  expect_error_containing([&] { read_volume<float>(file("huge.nrrd")); },
+                          {"huge.nrrd", "sizes", "voxels"});
+  EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(), 1.0);
+  write_bytes("huge_gz.nrrd",
+              nrrd("dimension: 3\nsizes: 100000 100000 1000\nencoding: gzip\n", 200));
+  expect_error_containing([&] { read_volume<float>(file("huge_gz.nrrd")); },
+                          {"huge_gz.nrrd", "sizes"});
 }
 
 TEST_F(VolumeIoTest, WritingIntoAMissingFolderThrowsAndCreatesNothing) {
