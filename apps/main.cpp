@@ -32,6 +32,10 @@ int main(int argc, char** argv) {
       "'crepuscular rays' method). Start with `crepuscular demo`, or see each command's --help."};
   app.set_version_flag("--version", std::string("crepuscular ") + CREPUSCULAR_VERSION);
   app.require_subcommand(1);
+  // Option errors read like every other error: "error: ..." on one line.
+  app.failure_message([](const CLI::App*, const CLI::Error& e) {
+    return std::string("error: ") + e.what() + "\nRun with --help for more information.\n";
+  });
   bool verbose = false;
   app.add_flag("-v,--verbose", verbose, "Print debug messages");
   app.parse_complete_callback([&] {

@@ -81,7 +81,9 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
                   "recomputes 1000 random voxels exactly and reports the difference in plan.json")
       ->transform(enum_names(mode_names()))
       ->default_str("exact");
-  cmd->add_option("--threads", req->path_safety.threads, "CPU threads (default: all cores)");
+  cmd->add_option("--threads", req->path_safety.threads,
+                  "CPU threads, 1 to 1024 (default: all cores)")
+      ->check(CLI::Range(1, 1024));
 }
 
 }  // namespace

@@ -695,7 +695,14 @@ Volume<uint8_t> read_mask(const std::string& path) {
   return read_native(path, [&](auto&& native) {
     Volume<uint8_t> mask(native.geometry());
     const int64_t n = native.voxel_count();
-    for (int64_t i = 0; i < n; ++i) mask[i] = double(native[i]) > 0.5 ? 1 : 0;
+    for (int64_t i = 0; i < n; ++i) {
+      const double v = double(native[i]);
+      if (!std::isfinite(v)) {  // NaN would read as background in silence
+        throw Error(path + ": " + voxel_text(native.geometry(), i) + " has value " +
+                    value_text(v) + " (expected a mask: 0 outside, 1 inside)");
+      }
+      mask[i] = v > 0.5 ? 1 : 0;
+    }
     return mask;
   });
 }

@@ -630,6 +630,10 @@ void check_inputs(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
   if (options.spacing_mm < 0.0 || !std::isfinite(options.spacing_mm)) {
     throw Error("output spacing: must be > 0 mm (got " + std::to_string(options.spacing_mm) + ")");
   }
+  if (options.threads < 0 || options.threads > 1024) {
+    throw Error("CPU threads: expected 1 to 1024, or 0 for all cores (got " +
+                std::to_string(options.threads) + ")");
+  }
   if (!std::isfinite(options.tumor_spacing_mm) ||
       (options.tumor_spacing_mm < 0.0 &&
        options.tumor_spacing_mm != PathSafetyOptions::kTumorSpacingAuto)) {

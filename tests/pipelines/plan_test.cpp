@@ -173,6 +173,12 @@ TEST_F(PlanTest, CommandLineReportsBadInputAndWritesNothing) {
             0)
       << err;
   EXPECT_FALSE(fs::exists(dir_ / "cli" / "path_safety_bvv.nii.gz"));
+  // A thread count OpenMP cannot start is an option error, before any work.
+  EXPECT_NE(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " +
+                        tumor_ + " --threads 100000 --out " + out,
+                    &err, test::Capture::kStderr),
+            0);
+  EXPECT_EQ(err.rfind("error: --threads", 0), 0u) << err;
   // --out naming the folder of the run's own inputs: refused at once, nothing touched.
   const auto before = std::distance(fs::directory_iterator(dir_), fs::directory_iterator());
   EXPECT_EQ(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " +
