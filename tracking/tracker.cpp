@@ -185,6 +185,7 @@ bool Tracker::measure(size_t b, const std::vector<Detection>& detections, int64_
   st->problem.clear();
   tr.has_pose = true;
   tr.measured_ns = timestamp_ns;
+  tr.measured_index = last_index_;
   tr.last = *st;
   return true;
 }
@@ -195,7 +196,15 @@ TrackResult Tracker::process(const Frame& frame) {
   res.timestamp_ns = frame.timestamp_ns;
   res.problem = frame.problem;
   if (last_index_ >= 0 && frame.index > last_index_ + 1) res.dropped = frame.index - last_index_ - 1;
+  if (last_index_ >= 0 && frame.index > last_index_ && frame.timestamp_ns > last_timestamp_ns_) {
+    const double per_frame =
+        double(frame.timestamp_ns - last_timestamp_ns_) / double(frame.index - last_index_);
+    frame_interval_ns_ = std::clamp(
+        interval_measured_ ? 0.9 * frame_interval_ns_ + 0.1 * per_frame : per_frame, 1e6, 1e9);
+    interval_measured_ = true;
+  }
   last_index_ = frame.index;
+  last_timestamp_ns_ = frame.timestamp_ns;
   ++frames_;
 
   res.boards.resize(boards_.size());
@@ -256,7 +265,11 @@ TrackResult Tracker::process(const Frame& frame) {
     BoardStatus& st = res.boards[b];
     if (st.problem.empty()) st.problem = res.problem.empty() ? "not searched" : res.problem;
     if (!tr.has_pose) continue;
-    st.age_ms = double(frame.timestamp_ns - tr.measured_ns) * 1e-6;
+    // The age by the source's clock, but never less than the frames since then at the frame
+    // interval: a source whose timestamps stop or go backwards cannot keep a pose current.
+    st.age_ms = std::max(double(frame.timestamp_ns - tr.measured_ns),
+                         double(frame.index - tr.measured_index) * frame_interval_ns_) *
+                1e-6;
     if (st.age_ms <= options_.max_age_ms) {
       st.tracked = true;
       st.T_cam_board = tr.last.T_cam_board;

@@ -126,6 +126,7 @@ class Tracker {
     PoseFilter filter;
     bool has_pose = false;
     int64_t measured_ns = 0;
+    int64_t measured_index = 0;  // frame index of that measurement
     bool measured_last = false;  // measured in the previous frame
     BoardStatus last;            // status carrying the last pose
   };
@@ -139,6 +140,11 @@ class Tracker {
   TagDetector detector_;
   std::vector<Track> tracks_;
   int64_t last_index_ = -1;
+  int64_t last_timestamp_ns_ = 0;
+  // Time per frame from timestamps that advance (default 30 fps): a pose's age counts frames as
+  // well as timestamps, so timestamps that stall or run backwards never make a pose current.
+  double frame_interval_ns_ = 1e9 / 30.0;
+  bool interval_measured_ = false;
   int64_t frames_ = 0;
   int64_t frames_since_full_ = 0;
   int64_t full_searches_ = 0;

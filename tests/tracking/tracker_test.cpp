@@ -329,6 +329,29 @@ TEST(Tracker, LossIsReportedAndStalePosesAreLost) {
   EXPECT_NE(text.find("\n8,133333336,patient,lost,,,,,,,,\n"), std::string::npos) << text;
 }
 
+// A source whose timestamps stop advancing, or run backwards, cannot keep a pose current: blank
+// frames after the last measurement age it by the frames that came (at the measured frame
+// interval), so the board is lost after 100 ms worth of frames, as with honest timestamps.
+TEST(Tracker, StalledOrBackwardTimestampsDoNotKeepAPoseCurrent) {
+  Rig& r = rig();
+  const Eigen::Isometry3d T = look_at_board(10, 5, 450, 15, -10, 0);
+  const cv::Mat sharp = r.renderer.render({{&r.patient, T}}, RenderOptions{});
+  const cv::Mat blank = r.renderer.render({}, RenderOptions{});
+  for (const int64_t step_ns : {int64_t(0), int64_t(-533000000)}) {
+    Tracker tracker(r.cam, {r.patient});  // max_age_ms 100
+    for (int i = 0; i < 3; ++i) ASSERT_TRUE(tracker.process(make_frame(i, sharp)).boards[0].measured);
+    const int64_t t2 = make_frame(2, sharp).timestamp_ns;
+    for (int i = 3; i < 33; ++i) {
+      Frame f = make_frame(i, blank);
+      f.timestamp_ns = t2 + (i - 2) * step_ns;  // stalled (0) or going backwards
+      const TrackResult res = tracker.process(f);
+      const double frames_age_ms = (i - 2) * kFrameNs * 1e-6;
+      EXPECT_GE(res.boards[0].age_ms, frames_age_ms - 1e-6) << "frame " << i;
+      EXPECT_EQ(res.boards[0].tracked, frames_age_ms <= 100.0) << "frame " << i << " step " << step_ns;
+    }
+  }
+}
+
 // The same requirements on frames of the other renderer (tracking/synthetic.hpp, ray traced through
 // the exact inverse distortion): the built-in guidance scene with noise, and a second pass with
 // occlusion, a corrupt JPEG and dropped frames delivered by its frame source.
