@@ -2,6 +2,11 @@
 // whatever complete frames a folder holds.
 #include "recordings/recording.hpp"
 
+#include <csetjmp>
+#include <cstdio>
+
+#include <jpeglib.h>
+
 #include <spdlog/spdlog.h>
 #include <unistd.h>
 
@@ -328,6 +333,74 @@ RecordingReader::Loaded RecordingReader::load(size_t i) const {
   return out;
 }
 
+namespace {
+
+// libjpeg's error manager: errors jump back instead of exiting; warnings ("Corrupt JPEG data",
+// "Premature end of JPEG file") are counted, since libjpeg decodes through them and a frame with
+// garbage in it would be drawn over as if it were live.
+struct JpegErrors {
+  jpeg_error_mgr mgr;
+  std::jmp_buf jump;
+  char first_warning[JMSG_LENGTH_MAX] = {0};
+};
+
+void jpeg_error_exit(j_common_ptr info) {
+  std::longjmp(reinterpret_cast<JpegErrors*>(info->err)->jump, 1);
+}
+
+void jpeg_emit_message(j_common_ptr info, int level) {
+  if (level >= 0) return;  // trace messages
+  auto* errors = reinterpret_cast<JpegErrors*>(info->err);
+  if (errors->mgr.num_warnings++ == 0) (*info->err->format_message)(info, errors->first_warning);
+}
+
+// The largest frame accepted (a 8K camera has 33 M pixels); checked from the header, before a
+// corrupt header claiming 30000 x 30000 pixels allocates gigabytes.
+constexpr int64_t kMaxFramePixels = int64_t(1) << 26;
+
+cv::Mat decode_jpeg(const std::vector<uint8_t>& bytes, std::string* problem) {
+  jpeg_decompress_struct info;
+  JpegErrors errors;
+  info.err = jpeg_std_error(&errors.mgr);
+  errors.mgr.error_exit = jpeg_error_exit;
+  errors.mgr.emit_message = jpeg_emit_message;
+  cv::Mat image;
+  if (setjmp(errors.jump)) {
+    char text[JMSG_LENGTH_MAX];
+    (*info.err->format_message)(reinterpret_cast<j_common_ptr>(&info), text);
+    jpeg_destroy_decompress(&info);
+    *problem = std::string("corrupt JPEG (") + text + ")";
+    return {};
+  }
+  jpeg_create_decompress(&info);
+  jpeg_mem_src(&info, bytes.data(), static_cast<unsigned long>(bytes.size()));
+  jpeg_read_header(&info, TRUE);
+  if (int64_t(info.image_width) * int64_t(info.image_height) > kMaxFramePixels) {
+    *problem = "JPEG header claims " + std::to_string(info.image_width) + "x" +
+               std::to_string(info.image_height) + " pixels, more than any camera frame; skipped";
+    jpeg_destroy_decompress(&info);
+    return {};
+  }
+  info.out_color_space = JCS_EXT_BGR;
+  jpeg_start_decompress(&info);
+  image.create(int(info.output_height), int(info.output_width), CV_8UC3);
+  while (info.output_scanline < info.output_height) {
+    JSAMPROW row = image.ptr<uint8_t>(int(info.output_scanline));
+    jpeg_read_scanlines(&info, &row, 1);
+  }
+  jpeg_finish_decompress(&info);
+  const long warnings = errors.mgr.num_warnings;
+  jpeg_destroy_decompress(&info);
+  if (warnings > 0) {
+    *problem = std::string("corrupt JPEG (") + errors.first_warning + ")";
+    return {};
+  }
+  problem->clear();
+  return image;
+}
+
+}  // namespace
+
 cv::Mat decode_image(const std::vector<uint8_t>& bytes, std::string* problem) {
   if (bytes.empty()) {
     *problem = "empty image data";
@@ -344,6 +417,7 @@ cv::Mat decode_image(const std::vector<uint8_t>& bytes, std::string* problem) {
       return {};
     }
   }
+  if (is_jpeg(bytes)) return decode_jpeg(bytes, problem);
   cv::Mat image;
   try {
     image = cv::imdecode(bytes, cv::IMREAD_COLOR);

@@ -8,7 +8,7 @@ packages=(
   libinsighttoolkit5-dev libeigen3-dev zlib1g-dev
   libcli11-dev libspdlog-dev libfmt-dev nlohmann-json3-dev
   libgtest-dev libgmock-dev
-  libopencv-dev libapriltag-dev libceres-dev
+  libopencv-dev libapriltag-dev libceres-dev libjpeg-dev
   libglfw3-dev libglm-dev libgl-dev libegl-dev libv4l-dev
   xvfb xauth libgl1-mesa-dri libegl-mesa0
   python3-nibabel python3-numpy

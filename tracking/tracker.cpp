@@ -211,15 +211,19 @@ TrackResult Tracker::process(const Frame& frame) {
   std::vector<bool> measured(boards_.size(), false);
   for (size_t b = 0; b < boards_.size(); ++b) res.boards[b].board = boards_[b].name;
 
-  if (frame.image.empty()) {
-    if (res.problem.empty()) res.problem = "no image";
-  } else {
-    if (frame.image.cols != camera_.width || frame.image.rows != camera_.height) {
-      throw Error("tracker: frame " + std::to_string(frame.index) + " is " +
+  // A frame of another size than the camera model's cannot be measured with it: skipped and
+  // reported (the session goes on), never measured with the wrong intrinsics.
+  const bool wrong_size = !frame.image.empty() && (frame.image.cols != camera_.width ||
+                                                   frame.image.rows != camera_.height);
+  if (wrong_size && res.problem.empty()) {
+    res.problem = "frame " + std::to_string(frame.index) + " is " +
                   std::to_string(frame.image.cols) + "x" + std::to_string(frame.image.rows) +
                   " but the camera model is " + std::to_string(camera_.width) + "x" +
-                  std::to_string(camera_.height));
-    }
+                  std::to_string(camera_.height) + ": skipped";
+  }
+  if (frame.image.empty() || wrong_size) {
+    if (res.problem.empty()) res.problem = "no image";
+  } else {
     bool full = options_.full_search_interval <= 0 ||
                 frames_since_full_ + 1 >= options_.full_search_interval;
     std::vector<cv::Rect> rois;

@@ -234,6 +234,35 @@ TEST(Recording, DecodeImageReportsCorruptData) {
   EXPECT_FALSE(problem.empty());
 }
 
+// A JPEG that libjpeg decodes only with a warning ("Corrupt JPEG data: premature end of data
+// segment": the entropy-coded data cut short but an end-of-image marker present) is a corrupt
+// frame, not a picture; a header claiming 30000 x 30000 pixels is skipped before decoding.
+TEST(Recording, JpegThatDecodesWithAWarningIsACorruptFrame) {
+  std::vector<uint8_t> jpeg;
+  cv::imencode(".jpg", test_image(3), jpeg);
+  std::string problem;
+  ASSERT_FALSE(decode_image(jpeg, &problem).empty());
+  std::vector<uint8_t> cut(jpeg.begin(), jpeg.begin() + long(jpeg.size() * 2 / 3));
+  cut.push_back(0xFF);
+  cut.push_back(0xD9);
+  EXPECT_TRUE(decode_image(cut, &problem).empty());
+  EXPECT_NE(problem.find("corrupt JPEG"), std::string::npos) << problem;
+  EXPECT_NE(problem.find("Corrupt JPEG data"), std::string::npos) << problem;
+  // OpenCV hands this frame back as an image (only printing the warning).
+  EXPECT_FALSE(cv::imdecode(cut, cv::IMREAD_COLOR).empty());
+
+  std::vector<uint8_t> huge = jpeg;
+  size_t sof = 2;
+  while (sof + 9 < huge.size() && !(huge[sof] == 0xFF && huge[sof + 1] == 0xC0)) ++sof;
+  ASSERT_LT(sof + 9, huge.size()) << "no SOF0 marker";
+  for (size_t at : {sof + 5, sof + 7}) {  // height, then width, big-endian
+    huge[at] = uint8_t(30000 >> 8);
+    huge[at + 1] = uint8_t(30000 & 0xFF);
+  }
+  EXPECT_TRUE(decode_image(huge, &problem).empty());
+  EXPECT_NE(problem.find("30000x30000"), std::string::npos) << problem;
+}
+
 TEST(Recording, PoseCsvRejectsWrongHeaderAndSkipsBadRows) {
   const fs::path dir = test::fresh_path("posecsv");
   fs::create_directories(dir);

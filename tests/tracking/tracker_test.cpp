@@ -352,6 +352,22 @@ TEST(Tracker, StalledOrBackwardTimestampsDoNotKeepAPoseCurrent) {
   }
 }
 
+// One frame of another size (a camera switching modes) is skipped and named, the session goes on.
+TEST(Tracker, FrameOfAnotherSizeIsSkippedAndReported) {
+  Rig& r = rig();
+  const Eigen::Isometry3d T = look_at_board(10, 5, 450, 15, -10, 0);
+  const cv::Mat sharp = r.renderer.render({{&r.patient, T}}, RenderOptions{});
+  Tracker tracker(r.cam, {r.patient});
+  ASSERT_TRUE(tracker.process(make_frame(0, sharp)).boards[0].measured);
+  cv::Mat small;
+  cv::resize(sharp, small, cv::Size(sharp.cols / 2, sharp.rows / 2));
+  const TrackResult odd = tracker.process(make_frame(1, small));
+  EXPECT_FALSE(odd.boards[0].measured);
+  EXPECT_NE(odd.problem.find("but the camera model is"), std::string::npos) << odd.problem;
+  EXPECT_NE(odd.problem.find("skipped"), std::string::npos) << odd.problem;
+  EXPECT_TRUE(tracker.process(make_frame(2, sharp)).boards[0].measured);
+}
+
 // The same requirements on frames of the other renderer (tracking/synthetic.hpp, ray traced through
 // the exact inverse distortion): the built-in guidance scene with noise, and a second pass with
 // occlusion, a corrupt JPEG and dropped frames delivered by its frame source.
@@ -505,8 +521,9 @@ TEST(Tracker, BadSetupIsAnError) {
   Board other = r.patient;
   other.family = "tag25h9";
   EXPECT_THROW(Tracker(r.cam, {other}), Error);
+  // A frame of the wrong size is a frame problem, not an error (FrameOfAnotherSizeIsSkipped...).
   Tracker t(r.cam, {r.patient});
-  EXPECT_THROW(t.process(make_frame(0, cv::Mat(480, 640, CV_8UC3, cv::Scalar::all(0)))), Error);
+  EXPECT_FALSE(t.process(make_frame(0, cv::Mat(480, 640, CV_8UC3, cv::Scalar::all(0)))).problem.empty());
 }
 
 }  // namespace
