@@ -46,7 +46,8 @@ void add_area_command(CLI::App& app) {
                   "label map)")
       ->check(CLI::ExistingFile);
   cmd->add_option("--preset", req->preset,
-                  "Preview: built-in vulnerability table: phantom, totalsegmentator");
+                  "Preview: built-in vulnerability table: phantom, totalsegmentator")
+      ->excludes("--vulnerability");
   cmd->add_option("--blocking", req->blocking,
                   "Preview: ready blocking volume (risk per mm) instead of --labels; needs "
                   "--threshold")

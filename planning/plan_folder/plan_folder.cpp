@@ -139,7 +139,16 @@ std::string input_path(const nlohmann::json& plan, const char* key, const std::s
   return path;
 }
 
+// A file named by plan.json: a plain name inside the plan folder. A path that leads elsewhere
+// (absolute, "..", a folder) is refused: a swapped path must not put another plan's values
+// under this plan's name.
 std::string in_plan(const std::string& plan_dir, const std::string& name) {
+  const fs::path p(name);
+  if (name.empty() || p.is_absolute() || p.has_parent_path() || name == "." || name == "..") {
+    throw Error(plan_dir + "/plan.json: output '" + name +
+                "' is not a file name inside the plan folder; plan folders name their own files "
+                "only (was plan.json edited?)");
+  }
   return (fs::path(plan_dir) / name).string();
 }
 

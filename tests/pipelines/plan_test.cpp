@@ -12,6 +12,7 @@
 #include <fstream>
 
 #include "foundation/error.hpp"
+#include "foundation/json_fields.hpp"
 #include "planning/imaging/volume_io.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
 #include "tests/support/cli.hpp"
@@ -61,6 +62,24 @@ class PlanTest : public ::testing::Test {
   test::MiniPlanInputs inputs_;
   std::string labels_, tumor_, table_;
 };
+
+// plan.json names the plan's own files: an output path that leads out of the folder (a swapped
+// or edited path putting another plan's values under this plan's name) is refused by name.
+TEST_F(PlanTest, PlanJsonOutputsOutsideTheFolderAreRefused) {
+  PlanRequest r = request("plan");
+  r.path_safety.values = kernels::kSvv;
+  r.area_safety.enabled = false;
+  run_plan(r);
+  EXPECT_NO_THROW(load_plan((dir_ / "plan").string()));
+  const std::string json_path = (dir_ / "plan" / "plan.json").string();
+  nlohmann::json j = read_json_file(json_path, "the plan");
+  for (const std::string swapped : {"../other/path_safety_svv.nii.gz", "/tmp/path_safety_svv.nii.gz"}) {
+    j["outputs"]["svv"] = swapped;
+    std::ofstream(json_path) << j.dump(2);
+    expect_error_containing([&] { load_plan((dir_ / "plan").string()); },
+                            {"plan.json", swapped, "inside the plan folder"});
+  }
+}
 
 TEST_F(PlanTest, WritesEveryValueOnTheOutputGridWithNanOutsideTheBall) {
   const nlohmann::json plan = run_plan(request("plan"));
