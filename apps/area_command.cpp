@@ -69,7 +69,8 @@ void add_area_command(CLI::App& app) {
                   "second-lowest non-zero coefficient, i.e. everything above the lowest risk "
                   "level blocks; 0.1 for the phantom). With --plan: the path safety value "
                   "(svv: unsafe below it; others: above it) (default: the plan's class "
-                  "threshold)");
+                  "threshold)")
+      ->check(finite_number());
   cmd->add_option("--max-distance", req->max_distance_mm,
                   "Maximum extrusion along the normals, mm (default: the plan's region of "
                   "interest radius R; preview: 120 mm, the reach of a long needle)");

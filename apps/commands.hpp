@@ -5,6 +5,8 @@
 
 #include <CLI/CLI.hpp>
 #include <atomic>
+#include <cmath>
+#include <cstdlib>
 #include <map>
 #include <memory>
 #include <string>
@@ -37,6 +39,20 @@ CLI::Validator enum_names(const std::map<std::string, T>& names) {
   for (const auto& entry : names) list += (list.empty() ? "" : ",") + entry.first;
   return CLI::CheckedTransformer(names, CLI::ignore_case, CLI::ignore_space)
       .description("{" + list + "}");
+}
+
+// A number option that must be finite (CLI11 reads "nan" and "inf" as numbers); `positive`: > 0.
+inline CLI::Validator finite_number(bool positive = false) {
+  return CLI::Validator(
+      [positive](std::string& text) -> std::string {
+        char* end = nullptr;
+        const double v = std::strtod(text.c_str(), &end);
+        if (end == text.c_str() || *end != '\0') return "expected a number, got '" + text + "'";
+        if (!std::isfinite(v)) return "expected a finite number, got '" + text + "'";
+        if (positive && !(v > 0.0)) return "expected a number > 0, got '" + text + "'";
+        return {};
+      },
+      positive ? "NUMBER > 0" : "NUMBER", positive ? "positive finite" : "finite");
 }
 
 }  // namespace crepuscular::apps

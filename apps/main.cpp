@@ -8,24 +8,17 @@
 
 #include "apps/commands.hpp"
 #include "foundation/error.hpp"
+#include "foundation/interruptions.hpp"
 
 namespace crepuscular::apps {
 
-namespace {
-std::atomic<bool> g_stop{false};
-extern "C" void on_stop_signal(int) { g_stop.store(true); }
-}  // namespace
-
-const std::atomic<bool>* stop_on_signals() {
-  g_stop.store(false);
-  std::signal(SIGINT, on_stop_signal);
-  std::signal(SIGTERM, on_stop_signal);
-  return &g_stop;
-}
+const std::atomic<bool>* stop_on_signals() { return stop_flag_on_interruption(); }
 
 }  // namespace crepuscular::apps
 
 int main(int argc, char** argv) {
+  // Ctrl-C and SIGTERM remove the output in progress (foundation/interruptions.hpp).
+  crepuscular::watch_interruptions();
   CLI::App app{
       "Crepuscular: how safe are the straight needle paths from every point around a tumor?\n"
       "The tumor is treated as a light source and vulnerable structures cast shadows (the\n"

@@ -52,11 +52,14 @@ void add_slices_command(CLI::App& app) {
                   "Path safety classes not drawn: any of safe,medium,dangerous (default: none)");
   cmd->add_option("--pixel", req->options.pixel_mm,
                   "Pixel size in mm (default: the finest spacing of the CT and the plan, divided "
-                  "so that each image is at least 512 pixels wide)");
+                  "so that each image is at least 512 pixels wide)")
+      ->check(finite_number(true));
   cmd->add_option("--window", req->options.window_width, "CT window width in HU")
-      ->capture_default_str();
+      ->capture_default_str()
+      ->check(finite_number(true));
   cmd->add_option("--level", req->options.window_level, "CT window level in HU")
-      ->capture_default_str();
+      ->capture_default_str()
+      ->check(finite_number());
   cmd->add_option("--opacity", req->options.overlay_opacity,
                   "Opacity of the path safety colours over the CT, 0..1")
       ->capture_default_str();

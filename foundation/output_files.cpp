@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "foundation/interruptions.hpp"
 
 namespace fs = std::filesystem;
 
@@ -52,16 +53,20 @@ void commit_file(const std::string& temporary, const std::string& path) {
 // ---------------------------------------------------------------------------------------------
 
 PendingFile::PendingFile(std::string path)
-    : path_(std::move(path)), temporary_(temporary_sibling(path_)) {}
+    : path_(std::move(path)), temporary_(temporary_sibling(path_)) {
+  register_partial_output(temporary_);
+}
 
 PendingFile::~PendingFile() {
   if (!committed_) remove_quietly(temporary_);
+  unregister_partial_output(temporary_);
 }
 
 void PendingFile::commit() {
   if (committed_) return;
   commit_file(temporary_, path_);
   committed_ = true;
+  unregister_partial_output(temporary_);
 }
 
 void write_file_atomically(const std::string& path,
@@ -181,6 +186,7 @@ StagedDirectory::StagedDirectory(std::string final_path, OnFailure on_failure)
   if (on_failure_ == OnFailure::kRemove) fs::remove_all(staging_, ec);
   fs::create_directory(staging_, ec);
   if (ec) throw Error(staging_ + ": cannot create folder (" + ec.message() + ")");
+  if (on_failure_ == OnFailure::kRemove) register_partial_output(staging_);
 }
 
 StagedDirectory::~StagedDirectory() {
@@ -188,6 +194,7 @@ StagedDirectory::~StagedDirectory() {
     std::error_code ec;
     fs::remove_all(staging_, ec);
   }
+  unregister_partial_output(staging_);
 }
 
 void StagedDirectory::commit() {
@@ -228,6 +235,7 @@ void StagedDirectory::commit() {
     throw Error(final_ + ": cannot move the finished output into place (" + ec.message() + ")");
   }
   committed_ = true;
+  unregister_partial_output(staging_);
   if (had_old) fs::remove_all(old, ec);
 }
 

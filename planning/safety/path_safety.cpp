@@ -300,6 +300,11 @@ OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>
     }
   }
   out.roi_voxels = count;
+  if (count <= 1) {
+    throw Error("region of interest: radius " + std::to_string(r) + " mm at output spacing " +
+                std::to_string(h) + " mm holds a single voxel, which says nothing about any "
+                "path; give a radius of at least one spacing (or a smaller spacing)");
+  }
   return out;
 }
 

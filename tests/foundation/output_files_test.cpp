@@ -1,8 +1,10 @@
 // Tests of foundation/output_files: a file or folder appears complete or not at all, and a failed
 // write leaves nothing behind.
 #include "foundation/output_files.hpp"
+#include "foundation/interruptions.hpp"
 
 #include <gtest/gtest.h>
+#include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -209,6 +211,38 @@ TEST(OutputFiles, StagingOfADeadProcessIsRemovedByTheNextRun) {
   }
   EXPECT_FALSE(fs::exists(dead));
   EXPECT_TRUE(fs::exists(alive));
+}
+
+// Ctrl-C or SIGTERM during a run removes its staged folder and temporary files and ends it with
+// 128 + the signal; the earlier output stays as it was.
+TEST(OutputFiles, InterruptedRunRemovesItsPartialOutput) {
+  for (const int sig : {SIGTERM, SIGINT}) {
+    const fs::path root = temp_dir(sig == SIGTERM ? "term" : "int");
+    int ready[2];
+    ASSERT_EQ(pipe(ready), 0);
+    const pid_t child = fork();
+    ASSERT_GE(child, 0);
+    if (child == 0) {
+      watch_interruptions();
+      StagedDirectory out((root / "plan").string());
+      write_text_file(out.file("half.nii"), "x");
+      PendingFile video((root / "video.mp4").string());
+      write_text_file(video.temporary(), "frames");
+      if (::write(ready[1], "r", 1) != 1) _exit(2);
+      for (;;) pause();
+    }
+    char c = 0;
+    ASSERT_EQ(::read(ready[0], &c, 1), 1);
+    EXPECT_EQ(entries(root).size(), 2u);  // the staging folder and the temporary video
+    kill(child, sig);
+    int status = 0;
+    waitpid(child, &status, 0);
+    ASSERT_TRUE(WIFEXITED(status));
+    EXPECT_EQ(WEXITSTATUS(status), 128 + sig);
+    EXPECT_TRUE(entries(root).empty()) << entries(root).front();
+    close(ready[0]);
+    close(ready[1]);
+  }
 }
 
 TEST(OutputFiles, KeptStagingFolderSurvivesAFailureAndMustNotExist) {

@@ -362,6 +362,20 @@ TEST(PathSafetyInput, RegionTooLargeForMemoryIsRefusedBeforeAllocating) {
                           "too large for memory");
 }
 
+// --spacing 1e9 or --radius 1 would leave one voxel and "every vertex safe": refused.
+TEST(PathSafetyInput, RegionOfASingleVoxelIsRefused) {
+  Volume<float> blocking(centred_cube_grid(11, 2.0), 0.1f);
+  Volume<uint8_t> tumor(centred_cube_grid(11, 2.0), 0);
+  tumor(5, 5, 5) = 1;
+  PathSafetyOptions o;
+  o.radius_mm = 1.0;
+  expect_error_containing([&] { compute_path_safety(blocking, tumor, o); },
+                          {"region of interest", "single voxel"});
+  o.radius_mm = 8.0;
+  o.spacing_mm = 1e9;
+  expect_error_containing([&] { compute_path_safety(blocking, tumor, o); }, {"single voxel"});
+}
+
 TEST(PathSafetyInput, ValueNamesParse) {
   EXPECT_EQ(parse_value_set("svv,bvv"), kSvv | kBvv);
   EXPECT_EQ(parse_value_set("all"), kAllValues);
