@@ -256,8 +256,19 @@ TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
   TrajectoryEvaluation e;
   e.trajectory = t;
   e.length_mm = (t.target - t.entry).norm();
+  if (!std::isfinite(e.length_mm) || !t.entry.allFinite() || !t.target.allFinite()) {
+    throw Error("trajectory \"" + t.name + "\": entry or target is not a finite point");
+  }
   if (!(e.length_mm > 1e-6)) {
     throw Error("trajectory \"" + t.name + "\": entry and target coincide " + point_text(t.entry));
+  }
+  // Longer than any needle by far: a typing error (metres for millimetres, a stray exponent),
+  // refused before millions of samples are taken or a sample count overflows.
+  constexpr double kLongestPathMm = 2000.0;
+  if (e.length_mm > kLongestPathMm) {
+    throw Error("trajectory \"" + t.name + "\": entry " + point_text(t.entry) + " lies " +
+                fmt::format("{:.6g}", e.length_mm) + " mm from the target; a needle path is at most " +
+                fmt::format("{:.0f}", kLongestPathMm) + " mm (coordinates are LPS millimetres)");
   }
   integrate_blocking(impl_->scene, t, e);
   find_structures_and_tumor(plan, t, e);

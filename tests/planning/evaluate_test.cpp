@@ -70,6 +70,25 @@ TEST(EvaluateTest, UniformBlockingIntegralIsCoefficientTimesLength) {
   EXPECT_LE(e.step_mm, 1.0 + 1e-12);
 }
 
+// An entry 5e9 mm away printed "-2147483648 samples" and one at 1e9 mm took 21 s: refused at
+// once, as is a point that is not finite.
+TEST(EvaluateTest, AbsurdOrNonFinitePointsAreRefusedAtOnce) {
+  const Volume<float> b(cube_grid(40, 2.0), 0.3f);
+  const PlanData plan = blocking_plan(b);
+  const TrajectoryEvaluator ev(plan);
+  Trajectory t;
+  t.name = "typo";
+  t.target = Eigen::Vector3d(61, 44, 70);
+  for (const double x : {5e9, 1e9, -3000.0}) {
+    t.entry = Eigen::Vector3d(x, 7, 9);
+    test::expect_error_containing([&] { ev.evaluate(t); }, {"typo", "mm from the target", "at most 2000"});
+  }
+  t.entry = Eigen::Vector3d(std::numeric_limits<double>::quiet_NaN(), 7, 9);
+  test::expect_error_containing([&] { ev.evaluate(t); }, {"typo", "not a finite point"});
+  t.entry = Eigen::Vector3d(5, 7, 1500);  // 1.43 m: long, but a path
+  EXPECT_NO_THROW(ev.evaluate(t));
+}
+
 TEST(EvaluateTest, SlabBlockingIntegralIsSlabCrossingLength) {
   // b = 1 per mm on voxel columns i = 15..24 (2 mm voxels), 0 elsewhere. Along x the trilinear
   // interpolant is 1 on [15, 24] and ramps to 0 over one voxel each side: its integral is 10
