@@ -1,6 +1,8 @@
 // Pivot and spin calibration of the needle (see pivot.hpp).
 #include "calibration/pivot.hpp"
 
+#include <fmt/format.h>
+
 #include <ceres/ceres.h>
 #include <spdlog/spdlog.h>
 
@@ -58,6 +60,12 @@ void check_poses(const std::vector<Eigen::Isometry3d>& poses, const char* what) 
         (R.transpose() * R - Eigen::Matrix3d::Identity()).norm() > 1e-6 || R.determinant() < 0) {
       throw Error(std::string(what) + ": pose " + std::to_string(i) +
                   " is not a rigid transform (rotation not orthonormal or not finite)");
+    }
+    // A tracked board farther than 10 m from the camera is not a measurement.
+    if (poses[i].translation().norm() > 10000.0) {
+      throw Error(std::string(what) + ": pose " + std::to_string(i) + " puts the needle board " +
+                  fmt::format("{:.3g}", poses[i].translation().norm()) +
+                  " mm from the camera (at most 10 m is plausible); remove that row");
     }
   }
 }
@@ -235,6 +243,20 @@ PivotResult calibrate_pivot(const std::vector<Eigen::Isometry3d>& T_cam_needle,
   result.rms_mm = result.inliers > 0 ? std::sqrt(sum_in / result.inliers) : 0.0;
   result.rms_all_mm = std::sqrt(sum_all / n);
   if (result.inliers > 2) result.tip_stddev_mm = tip_stddev_mm(linear.A, in_rows, sum_in);
+  // Quality gates: a tip far from its board, or poses that do not agree on one pivot point, are
+  // refused with the reason rather than written for guidance to trust.
+  if (!result.tip_needle.allFinite() || result.tip_needle.norm() > options.max_tip_mm) {
+    throw Error(fmt::format("pivot calibration: the tip comes out {:.4g} mm from the needle board "
+                            "(at most {:.0f} mm is plausible): the poses do not describe a "
+                            "needle pivoting about its tip",
+                            result.tip_needle.norm(), options.max_tip_mm));
+  }
+  if (!(result.rms_mm <= options.max_rms_mm)) {
+    throw Error(fmt::format("pivot calibration: RMS {:.3g} mm over {} inlier poses (at most {:.2g} "
+                            "mm accepted): the tip slipped in the divot or the board was tracked "
+                            "poorly; record again",
+                            result.rms_mm, result.inliers, options.max_rms_mm));
+  }
   spdlog::info("pivot calibration: tip ({:.2f}, {:.2f}, {:.2f}) mm in the needle frame, RMS {:.3f} "
                "mm over {} of {} poses, rotation spread {:.1f} deg",
                tip[0], tip[1], tip[2], result.rms_mm, result.inliers, n,

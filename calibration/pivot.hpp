@@ -18,6 +18,8 @@ struct PivotOptions {
   double min_axis_spread_deg = 8.0;       // tilt about the least moved rotation axis
   double robust_scale_mm = 1.0;           // Cauchy loss scale
   double outlier_mm = 2.0;  // residuals above max(this, 3 x robust RMS) are reported as outliers
+  double max_rms_mm = 2.0;  // refuse a result whose inlier RMS is larger
+  double max_tip_mm = 500.0;  // refuse a tip farther than this from the needle board
 };
 
 struct PivotResult {
@@ -35,8 +37,9 @@ struct PivotResult {
   std::string solver_report;
 };
 
-// Throws Error with advice when there are too few poses or the motion does not determine the tip
-// (too small, or about one axis only).
+// Throws Error with advice when there are too few poses, a pose is implausible (> 10 m away), the
+// motion does not determine the tip (too small, or about one axis only), or the result fails the
+// quality gates (inlier RMS > max_rms_mm, tip > max_tip_mm from the board).
 PivotResult calibrate_pivot(const std::vector<Eigen::Isometry3d>& T_cam_needle,
                             const PivotOptions& options = {});
 

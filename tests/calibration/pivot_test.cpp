@@ -140,6 +140,22 @@ TEST(Pivot, RefusesRotationAboutOneAxis) {
   expect_error_containing([&] { calibrate_pivot(poses); }, {"too small", "one line"});
 }
 
+// One wild pose (tx = 1e12) wrote a tip 1e10 mm away with rc 0, and guide accepted it: the pose
+// is refused by number; poses that agree on no pivot fail the RMS gate with the reason.
+TEST(Pivot, QualityGatesRefuseWildPosesAndPoorFits) {
+  auto wild = pivot_poses(40, 30.0, true, true, 0.2, 0.2, 13);
+  wild[7].translation().x() = 1e12;
+  expect_error_containing([&] { calibrate_pivot(wild); }, {"pose 7", "at most 10 m"});
+  // Every pose about its own pivot, scattered over 30 mm: no tip fits them.
+  auto scattered = pivot_poses(40, 30.0, true, true, 0.2, 0.2, 14);
+  std::mt19937 rng(15);
+  std::uniform_real_distribution<double> u(-15.0, 15.0);
+  for (auto& T : scattered) T.translation() += Eigen::Vector3d(u(rng), u(rng), u(rng));
+  expect_error_containing([&] { calibrate_pivot(scattered); }, {"pivot calibration", "RMS", "record again"});
+  // The good poses still pass at their noise.
+  EXPECT_NO_THROW(calibrate_pivot(pivot_poses(40, 30.0, true, true, 0.2, 0.2, 16)));
+}
+
 TEST(Pivot, RefusesTooFewPosesAndNonRigidPoses) {
   const auto poses = pivot_poses(5, 30.0, true, true, 0.2, 0.2, 11);
   expect_error_containing([&] { calibrate_pivot(poses); }, {"5 needle poses", "at least 8"});
