@@ -117,6 +117,9 @@ CameraModel CameraModel::from_opencv(const cv::Mat& camera_matrix, const cv::Mat
       k.at<double>(2, 1) != 0 || std::abs(k.at<double>(2, 2) - 1.0) > 1e-12) {
     throw Error(what + ": camera_matrix must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)");
   }
+  if (!cv::checkRange(k) || !(k.at<double>(0, 0) > 0) || !(k.at<double>(1, 1) > 0)) {
+    throw Error(what + ": camera_matrix needs finite values and focal lengths fx, fy > 0");
+  }
   CameraModel m;
   m.width = width;
   m.height = height;
@@ -131,6 +134,7 @@ CameraModel CameraModel::from_opencv(const cv::Mat& camera_matrix, const cv::Mat
     }
     cv::Mat d;
     distortion.reshape(1, 1).convertTo(d, CV_64F);
+    if (!cv::checkRange(d)) throw Error(what + ": distortion_coefficients are not all finite");
     const int n = d.cols;
     if (n < 4) {
       throw Error(what + ": distortion_coefficients has " + std::to_string(n) +
@@ -192,6 +196,12 @@ CameraModel CameraModel::read_yaml(const std::string& path) {
       throw Error(path + ": field " + field + " is not an OpenCV matrix (" + e.err + ")");
     }
     if (m.empty()) throw Error(path + ": field " + field + " is not an OpenCV matrix (opencv-matrix)");
+    // OpenCV stores the data in the element type `dt` names and saturates them to it: with an
+    // integer type an fx of 800 would be read as 255 (dt: u) or rounded. Only f or d are read.
+    if (m.depth() != CV_32F && m.depth() != CV_64F) {
+      throw Error(path + ": field " + field + " has an integer element type (dt other than f or d), "
+                  "which clips or rounds its values; write it with dt: d");
+    }
     return m;
   };
   const auto read_int = [&](const char* field) {

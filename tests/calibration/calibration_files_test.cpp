@@ -150,5 +150,25 @@ TEST_F(CalibrationFiles, ErrorsNameFileAndField) {
       {"needle.yaml", "cannot be written"});
 }
 
+// camera.yaml with an integer matrix type: OpenCV would saturate fx = 800 to 255 (dt: u) and the
+// camera would be used; refused. A NaN focal length is refused too.
+TEST_F(CalibrationFiles, CameraMatrixOfIntegersOrNanIsRefused) {
+  const auto camera_yaml = [&](const std::string& dt, const std::string& fx) {
+    return "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n"
+           "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: " + dt +
+           "\n   data: [ " + fx + ", 0, 320, 0, 800, 240, 0, 0, 1 ]\n"
+           "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
+           "   data: [ 0., 0., 0., 0., 0. ]\n";
+  };
+  std::ofstream(path("u.yaml")) << camera_yaml("u", "800");
+  expect_error_containing([&] { CameraModel::read_yaml(path("u.yaml")); },
+                          {"u.yaml", "camera_matrix", "integer element type"});
+  std::ofstream(path("nan.yaml")) << camera_yaml("d", ".nan");
+  expect_error_containing([&] { CameraModel::read_yaml(path("nan.yaml")); },
+                          {"nan.yaml", "camera_matrix", "finite"});
+  std::ofstream(path("good.yaml")) << camera_yaml("d", "800.");
+  EXPECT_DOUBLE_EQ(CameraModel::read_yaml(path("good.yaml")).fx, 800.0);
+}
+
 }  // namespace
 }  // namespace crepuscular::calibration
