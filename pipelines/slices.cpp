@@ -2,6 +2,10 @@
 // region) -> OUT/<plane>.png and OUT/slices.json, written as one folder.
 #include "pipelines/slices.hpp"
 
+#include <fmt/format.h>
+
+#include <Eigen/Geometry>
+
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -122,6 +126,29 @@ nlohmann::json view_json(const std::string& file, SlicePlaneKind kind, const Sli
           {"unknown_pixels", view.unknown_pixels}};
 }
 
+// The axis-aligned box (LPS mm) of a grid's voxels, edges included.
+Eigen::AlignedBox3d extent_of(const ImageGeometry& g) {
+  Eigen::AlignedBox3d box;
+  for (int corner = 0; corner < 8; ++corner) {
+    box.extend(g.index_to_physical(Eigen::Vector3d(
+        (corner & 1) ? double(g.dims[0]) - 0.5 : -0.5, (corner & 2) ? double(g.dims[1]) - 0.5 : -0.5,
+        (corner & 4) ? double(g.dims[2]) - 0.5 : -0.5)));
+  }
+  return box;
+}
+
+// A CT that does not meet the plan's grid anywhere gives black images: refused, by name.
+void check_ct_overlaps_plan(const Volume<float>& ct, const PlanData& plan, const std::string& path) {
+  const Eigen::AlignedBox3d a = extent_of(ct.geometry()), b = extent_of(plan.grid);
+  if (a.intersects(b)) return;
+  const Eigen::Vector3d gap = (a.center() - b.center()).cwiseAbs() - 0.5 * (a.sizes() + b.sizes());
+  throw Error(fmt::format("{}: the CT does not overlap the plan's region of interest (they are "
+                          "{:.0f} mm apart; CT centre ({:.1f}, {:.1f}, {:.1f}), plan centre ({:.1f}, "
+                          "{:.1f}, {:.1f}) LPS mm): is it this patient's CT, in the same frame?",
+                          path, gap.cwiseMax(0.0).norm(), a.center().x(), a.center().y(),
+                          a.center().z(), b.center().x(), b.center().y(), b.center().z()));
+}
+
 }  // namespace
 
 nlohmann::json run_slices(const SlicesRequest& req) {
@@ -140,6 +167,7 @@ nlohmann::json run_slices(const SlicesRequest& req) {
   const PlanData plan = load_plan(req.plan_dir, load);
   spdlog::info("reading CT {}", req.ct);
   const Volume<float> ct = read_volume<float>(req.ct);
+  check_ct_overlaps_plan(ct, plan, req.ct);
   const Placement place = place_planes(req, plan);
 
   SliceScene scene;

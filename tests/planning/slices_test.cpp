@@ -385,6 +385,20 @@ TEST(SlicesTest, CommandWritesOneImagePerPlaneAndRefusesBadInput) {
   EXPECT_NE(run_cli(base + " --planes axial,transverse --out " + (dir / "bad").string()), 0);
   EXPECT_NE(run_cli(base + " --value isbv --region 7 --out " + (dir / "bad").string()), 0);
   EXPECT_FALSE(fs::exists(dir / "bad"));
+  // A CT 2 m away from the plan gave black images with rc 0: refused, naming the CT.
+  planning::ImageGeometry far = centred_cube_grid(24, 2.0, Eigen::Vector3d(2003, -4, 5));
+  write_volume(Volume<float>(far, 40.0f), (dir / "far_ct.nii.gz").string());
+  std::string err;
+  EXPECT_EQ(run_cli("slices --plan " + (dir / "plan").string() + " --ct " +
+                        (dir / "far_ct.nii.gz").string() + " --out " + (dir / "bad").string(),
+                    &err, test::Capture::kStderr),
+            1);
+  EXPECT_NE(err.find("far_ct.nii.gz: the CT does not overlap"), std::string::npos) << err;
+  EXPECT_FALSE(fs::exists(dir / "bad"));
+  // Slices options that cannot be honoured are refused, not replaced.
+  EXPECT_NE(run_cli(base + " --window nan --out " + (dir / "bad").string()), 0);
+  EXPECT_NE(run_cli(base + " --pixel 0 --out " + (dir / "bad").string()), 0);
+  EXPECT_FALSE(fs::exists(dir / "bad"));
 }
 
 }  // namespace
