@@ -40,6 +40,7 @@ cv::Mat points_mat(const std::vector<Eigen::Vector3d>& p) {
 class Reader {
  public:
   explicit Reader(const std::string& path) : path_(path) {
+    check_nesting_depth(path, read_text_or_empty(path));
     try {
       in_.open(path, cv::FileStorage::READ);
     } catch (const cv::Exception& e) {

@@ -8,6 +8,7 @@
 #include <sstream>
 
 #include "foundation/error.hpp"
+#include "foundation/text.hpp"
 #include "foundation/output_files.hpp"
 
 namespace crepuscular::calibration {
@@ -176,6 +177,7 @@ CameraModel CameraModel::read_yaml(const std::string& path) {
     throw Error(path + ": camera file not found (expected OpenCV FileStorage YAML with "
                        "camera_matrix, distortion_coefficients, image_width, image_height)");
   }
+  check_nesting_depth(path, read_text_or_empty(path));
   cv::FileStorage fs;
   try {
     if (!fs.open(path, cv::FileStorage::READ)) {

@@ -1,5 +1,6 @@
 // Typed JSON field access with messages that name the source and the field.
 #include "foundation/json_fields.hpp"
+#include "foundation/text.hpp"
 
 #include <cerrno>
 #include <cmath>
@@ -188,6 +189,7 @@ json read_json_file(const std::string& path, const std::string& what) {
   }
   std::stringstream text;
   text << in.rdbuf();
+  check_nesting_depth(path, text.str());
   return parse_json_text(text.str(), path);
 }
 

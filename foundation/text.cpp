@@ -1,5 +1,9 @@
 // Timestamps and integer ranges as text.
 #include "foundation/text.hpp"
+#include "foundation/error.hpp"
+
+#include <fstream>
+#include <sstream>
 
 #include <ctime>
 
@@ -26,6 +30,41 @@ std::string format_ranges(const std::vector<int>& sorted_values) {
     i = j + 1;
   }
   return out;
+}
+
+void check_nesting_depth(const std::string& path, const std::string& text, int max_depth) {
+  int depth = 0, line = 1;
+  char quote = 0;
+  for (size_t i = 0; i < text.size(); ++i) {
+    const char c = text[i];
+    if (c == '\n') ++line;
+    if (quote) {
+      if (c == '\\' && quote == '"') {
+        ++i;
+      } else if (c == quote) {
+        quote = 0;
+      }
+      continue;
+    }
+    if (c == '"' || c == '\'') {
+      quote = c;
+    } else if (c == '[' || c == '{') {
+      if (++depth > max_depth) {
+        throw Error(path + ": line " + std::to_string(line) + ": brackets nest deeper than " +
+                    std::to_string(max_depth) + " levels; not a file this tool wrote or reads");
+      }
+    } else if ((c == ']' || c == '}') && depth > 0) {
+      --depth;
+    }
+  }
+}
+
+std::string read_text_or_empty(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return {};
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
 }
 
 }  // namespace crepuscular

@@ -13,6 +13,7 @@
 #include <opencv2/core.hpp>
 
 #include "foundation/error.hpp"
+#include "foundation/text.hpp"
 #include "tests/support/errors.hpp"
 #include "tests/support/temporary_folder.hpp"
 
@@ -148,6 +149,22 @@ TEST_F(CalibrationFiles, ErrorsNameFileAndField) {
   expect_error_containing(
       [&] { write_needle_calibration(path("no/such/folder/needle.yaml"), NeedleCalibration{}); },
       {"needle.yaml", "cannot be written"});
+}
+
+// 100 000 nested brackets (100 kB) overflowed the stack in cv::FileStorage: SIGSEGV. Refused from
+// the text, for camera, needle and registration files alike.
+TEST_F(CalibrationFiles, DeeplyNestedYamlIsRefusedNotACrash) {
+  const std::string bomb = "%YAML:1.0\n---\ntip_needle: " + std::string(100000, '[') + "\n";
+  std::ofstream(path("bomb.yaml")) << bomb;
+  expect_error_containing([&] { CameraModel::read_yaml(path("bomb.yaml")); },
+                          {"bomb.yaml", "nest deeper than 64"});
+  expect_error_containing([&] { read_needle_calibration(path("bomb.yaml")); },
+                          {"bomb.yaml", "nest deeper"});
+  expect_error_containing([&] { read_registration(path("bomb.yaml")); }, {"bomb.yaml", "nest deeper"});
+  // Brackets inside quotes do not count, nor do a few levels of real nesting.
+  std::ofstream(path("quoted.yaml")) << "%YAML:1.0\n---\nnote: \"" + std::string(200, '[') +
+                                            "\"\ntip_needle: [[1, 2, 3]]\n";
+  EXPECT_NO_THROW(check_nesting_depth(path("quoted.yaml"), read_text_or_empty(path("quoted.yaml"))));
 }
 
 // camera.yaml with an integer matrix type: OpenCV would saturate fx = 800 to 255 (dt: u) and the

@@ -98,5 +98,19 @@ TEST(JsonFields, FilesNameThePathAndTheParsePosition) {
   EXPECT_EQ(read_json_file(good, "table").at("a"), 1);
 }
 
+// Every JSON reader (tables, boards, scenes, plan.json) goes through read_json_file: a file nested
+// 100 000 deep is refused from its text, with its line, before a parser recurses into it.
+TEST(JsonFields, DeeplyNestedJsonIsRefused) {
+  const test::TemporaryFolder dir;
+  const std::string deep = (dir / "deep.json").string();
+  std::ofstream(deep) << "{\n\"a\": " << std::string(100000, '[') << std::string(100000, ']')
+                      << "}\n";
+  expect_error_containing([&] { read_json_file(deep, "table"); },
+                          {"deep.json", "line 2", "nest deeper than 64"});
+  const std::string ok = (dir / "ok.json").string();
+  std::ofstream(ok) << "{\"s\": \"[[[[ \\\" {{{\", \"a\": [[[1]]]}";
+  EXPECT_EQ(read_json_file(ok, "table").at("a")[0][0][0], 1);
+}
+
 }  // namespace
 }  // namespace crepuscular
