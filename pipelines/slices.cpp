@@ -17,6 +17,7 @@
 
 #include "foundation/error.hpp"
 #include "foundation/output_files.hpp"
+#include "planning/imaging/scan_coverage.hpp"
 #include "planning/imaging/volume_io.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
 
@@ -126,20 +127,9 @@ nlohmann::json view_json(const std::string& file, SlicePlaneKind kind, const Sli
           {"unknown_pixels", view.unknown_pixels}};
 }
 
-// The axis-aligned box (LPS mm) of a grid's voxels, edges included.
-Eigen::AlignedBox3d extent_of(const ImageGeometry& g) {
-  Eigen::AlignedBox3d box;
-  for (int corner = 0; corner < 8; ++corner) {
-    box.extend(g.index_to_physical(Eigen::Vector3d(
-        (corner & 1) ? double(g.dims[0]) - 0.5 : -0.5, (corner & 2) ? double(g.dims[1]) - 0.5 : -0.5,
-        (corner & 4) ? double(g.dims[2]) - 0.5 : -0.5)));
-  }
-  return box;
-}
-
 // A CT that does not meet the plan's grid anywhere gives black images: refused, by name.
 void check_ct_overlaps_plan(const Volume<float>& ct, const PlanData& plan, const std::string& path) {
-  const Eigen::AlignedBox3d a = extent_of(ct.geometry()), b = extent_of(plan.grid);
+  const Eigen::AlignedBox3d a = extent_box(ct.geometry()), b = extent_box(plan.grid);
   if (a.intersects(b)) return;
   const Eigen::Vector3d gap = (a.center() - b.center()).cwiseAbs() - 0.5 * (a.sizes() + b.sizes());
   throw Error(fmt::format("{}: the CT does not overlap the plan's region of interest (they are "

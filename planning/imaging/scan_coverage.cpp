@@ -1,5 +1,8 @@
 // The scanned volume: the intersection of the anatomy inputs' grid extents.
 #include "planning/imaging/scan_coverage.hpp"
+#include "foundation/error.hpp"
+
+#include <cmath>
 
 #include <limits>
 #include <string>
@@ -57,6 +60,21 @@ void for_each_voxel_coverage(const std::vector<ScanCoverage::Grid>& grids,
 
 void ScanCoverage::add(const ImageGeometry& geometry, const std::string& source) {
   geometry.validate(source);
+  // Inputs that describe the anatomy must share some space: a CT or label map elsewhere (another
+  // patient, another frame) would leave the whole plan unknown, or worse, silently unrelated.
+  if (!grids_.empty()) {
+    const Eigen::AlignedBox3d before = bounding_box(), added = extent_box(geometry);
+    if (before.isEmpty() || !before.intersects(added)) {
+      const Eigen::Vector3d gap =
+          ((before.center() - added.center()).cwiseAbs() - 0.5 * (before.sizes() + added.sizes()))
+              .cwiseMax(0.0);
+      std::string others;
+      for (const Grid& g : grids_) others += (others.empty() ? "" : ", ") + g.source;
+      throw Error(source + ": does not overlap " + others + " (" +
+                  std::to_string(int64_t(std::llround(gap.norm()))) +
+                  " mm apart in LPS): the inputs must show the same patient in the same frame");
+    }
+  }
   grids_.push_back({geometry, source});
 }
 

@@ -81,6 +81,18 @@ TEST_F(PlanTest, PlanJsonOutputsOutsideTheFolderAreRefused) {
   }
 }
 
+// A CT 2 m away from the label map (another patient, another frame) left the whole region unknown
+// with rc 0; it is refused, naming both inputs, and nothing is written.
+TEST_F(PlanTest, CtThatDoesNotOverlapTheLabelMapIsRefused) {
+  ImageGeometry far = inputs_.grid;
+  far.origin += Eigen::Vector3d(2000, 0, 0);
+  write_volume(Volume<float>(far, 40.0f), (dir_ / "far_ct.nii.gz").string());
+  PlanRequest r = request("plan");
+  r.ct = (dir_ / "far_ct.nii.gz").string();
+  expect_error_containing([&] { run_plan(r); }, {"far_ct.nii.gz", "does not overlap", "labels.nii.gz"});
+  EXPECT_FALSE(fs::exists(dir_ / "plan"));
+}
+
 TEST_F(PlanTest, WritesEveryValueOnTheOutputGridWithNanOutsideTheBall) {
   const nlohmann::json plan = run_plan(request("plan"));
   for (const char* f : {"blocking.nii.gz", "roi.nii.gz", "path_safety_svv.nii.gz", "path_safety_isbv.nii.gz",

@@ -116,16 +116,17 @@ TEST(LabelMaps, ScannedVolumeIsTheIntersectionOfTheMapsExtents) {
   EXPECT_EQ(mask(0, 5, 5), 0);
   EXPECT_EQ(mask(1, 5, 9), 1);
 
-  // No grid: everything is covered; disjoint grids: nothing.
+  // No grid: everything is covered. A grid that does not overlap the others (a CT of another
+  // patient or frame) is refused, naming both, rather than leaving the whole plan unknown.
   ScanCoverage none;
   EXPECT_TRUE(none.contains(Eigen::Vector3d(1e6, 0, 0)));
   ImageGeometry far;
   far.dims = {2, 2, 2};
   far.origin = Eigen::Vector3d(100, 0, 0);
   ScanCoverage disjoint = c.coverage;
-  disjoint.add(far, "far.nii.gz");
-  EXPECT_TRUE(disjoint.bounding_box().isEmpty());
-  EXPECT_FALSE(disjoint.contains(Eigen::Vector3d(5, 5, 5)));
+  test::expect_error_containing([&] { disjoint.add(far, "far.nii.gz"); },
+                                {"far.nii.gz", "does not overlap", "map1.nii.gz", "mm apart"});
+  EXPECT_EQ(disjoint.grids().size(), c.coverage.grids().size());
 }
 
 TEST(LabelMaps, OneMapGivesExactlyItsOwnBlocking) {
