@@ -133,35 +133,59 @@ ImageGeometry geometry_of_file(itk::ImageIOBase& io, const std::string& path) {
 // nothing, so a truncated .nii or .nii.gz would load as a partly empty volume. This checks the
 // stored length against vox_offset + dims x bitpix from the header itself (ImageIO's size may be
 // that of rescaled float values, not of the stored ones).
-std::string nifti_length_problem(const std::string& path) {
-  const std::unique_ptr<gzFile_s, int (*)(gzFile)> file(gzopen(path.c_str(), "rb"), &gzclose);
-  if (!file) return "cannot open the file";
-  unsigned char header[540];
-  const int header_read = gzread(file.get(), header, sizeof header);
-  if (header_read < 348) return "file ends inside the NIfTI header";
-  // Header fields in the file's byte order: sizeof_hdr (348 or 540) tells which order that is.
-  int32_t stored_size;
-  std::memcpy(&stored_size, header, 4);
-  const bool swapped = stored_size != 348 && stored_size != 540;
-  const auto field = [&](int at, auto value) {
-    unsigned char bytes[sizeof value];
-    std::memcpy(bytes, header + at, sizeof value);
-    if (swapped) std::reverse(bytes, bytes + sizeof value);
-    std::memcpy(&value, bytes, sizeof value);
+// The first bytes of a NIfTI-1 or NIfTI-2 file (gzip-compressed or not), its fields read in the
+// file's byte order: sizeof_hdr (348 or 540) tells which order that is. `file` stays open after
+// the header for a reader of the data.
+struct NiftiHeader {
+  std::unique_ptr<gzFile_s, int (*)(gzFile)> file{nullptr, &gzclose};
+  unsigned char bytes[540] = {};
+  int read = 0;
+  bool swapped = false;
+
+  // "" when at least a NIfTI-1 header's 348 bytes were read, else why not.
+  std::string open(const std::string& path) {
+    file.reset(gzopen(path.c_str(), "rb"));
+    if (!file) return "cannot open the file";
+    read = gzread(file.get(), bytes, sizeof bytes);
+    if (read < 348) return "file ends inside the NIfTI header";
+    int32_t stored_size;
+    std::memcpy(&stored_size, bytes, 4);
+    swapped = stored_size != 348 && stored_size != 540;
+    return {};
+  }
+  template <typename T>
+  T field(size_t at) const {
+    unsigned char b[sizeof(T)];
+    std::memcpy(b, bytes + at, sizeof(T));
+    if (swapped) std::reverse(b, b + sizeof(T));
+    T value;
+    std::memcpy(&value, b, sizeof(T));
     return value;
-  };
-  const int32_t sizeof_hdr = field(0, int32_t{});
+  }
+  bool nifti1() const {
+    return field<int32_t>(0) == 348 && std::memcmp(bytes + 344, "n+1", 4) == 0;
+  }
+  bool nifti2() const {
+    return field<int32_t>(0) == 540 && read == 540 && std::memcmp(bytes + 4, "n+2", 4) == 0;
+  }
+};
+
+std::string nifti_length_problem(const std::string& path) {
+  NiftiHeader header;
+  const std::string unreadable = header.open(path);
+  if (!unreadable.empty()) return unreadable;
+  const int32_t sizeof_hdr = header.field<int32_t>(0);
   double vox_offset = 0.0;
   int64_t bitpix = 0;
   std::array<int64_t, 8> dim{};
-  if (sizeof_hdr == 348 && std::memcmp(header + 344, "n+1", 4) == 0) {
-    vox_offset = field(108, float{});
-    bitpix = field(72, int16_t{});
-    for (int d = 0; d < 8; ++d) dim[d] = field(40 + 2 * d, int16_t{});
-  } else if (sizeof_hdr == 540 && header_read == 540 && std::memcmp(header + 4, "n+2", 4) == 0) {
-    vox_offset = double(field(168, int64_t{}));
-    bitpix = field(14, int16_t{});
-    for (int d = 0; d < 8; ++d) dim[d] = field(16 + 8 * d, int64_t{});
+  if (header.nifti1()) {
+    vox_offset = header.field<float>(108);
+    bitpix = header.field<int16_t>(72);
+    for (int d = 0; d < 8; ++d) dim[d] = header.field<int16_t>(40 + 2 * size_t(d));
+  } else if (header.nifti2()) {
+    vox_offset = double(header.field<int64_t>(168));
+    bitpix = header.field<int16_t>(14);
+    for (int d = 0; d < 8; ++d) dim[d] = header.field<int64_t>(16 + 8 * size_t(d));
   } else {
     return {};  // header and data in separate files (.hdr/.img), or Analyze: not checked here
   }
@@ -193,10 +217,11 @@ std::string nifti_length_problem(const std::string& path) {
     }
   }
   // Slow path (several gzip members, trailing bytes, or a damaged file): count what is there.
-  uint64_t total = uint64_t(header_read);
+  uint64_t total = uint64_t(header.read);
   std::vector<char> buffer(1 << 20);
   int got = 0;
-  while (total < needed && (got = gzread(file.get(), buffer.data(), unsigned(buffer.size()))) > 0) {
+  while (total < needed &&
+         (got = gzread(header.file.get(), buffer.data(), unsigned(buffer.size()))) > 0) {
     total += uint64_t(got);
   }
   if (total < needed) {
@@ -212,20 +237,33 @@ std::string trimmed(const std::string& text) {
   return text.substr(first, text.find_last_not_of(" \t\r") - first + 1);
 }
 
+// The "key: value" (NRRD) or "key = value" (MetaImage) fields of a text header.
+std::map<std::string, std::string> text_header(const std::string& path, char separator,
+                                               size_t& data_start) {
+  std::ifstream in(path, std::ios::binary);
+  std::map<std::string, std::string> fields;
+  std::string line;
+  data_start = 0;
+  int lines = 0;
+  while (std::getline(in, line) && ++lines < 10000) {
+    data_start += line.size() + 1;
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    if (separator == ':' && line.empty()) break;  // NRRD: a blank line ends the header
+    const auto at = separator == ':' ? line.find(": ") : line.find('=');
+    if (at == std::string::npos) continue;
+    const std::string key = trimmed(line.substr(0, at));
+    fields[key] = trimmed(line.substr(at + (separator == ':' ? 2 : 1)));
+    if (separator == '=' && key == "ElementDataFile") break;
+  }
+  return fields;
+}
+
 // MetaIO (ITK 5.2) only prints "data not read completely" for short data, raw or compressed, and
 // ITK returns the volume padded with zeros. This checks the stored data length from the header:
 // the image size, or CompressedDataSize for compressed data.
 std::string metaimage_length_problem(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  std::map<std::string, std::string> fields;
-  std::string line;
-  while (std::getline(in, line)) {
-    const auto eq = line.find('=');
-    if (eq == std::string::npos) continue;
-    const std::string key = trimmed(line.substr(0, eq));
-    fields[key] = trimmed(line.substr(eq + 1));
-    if (key == "ElementDataFile") break;  // the last header field; data follow
-  }
+  size_t data_start = 0;  // ElementDataFile is the last header field; data follow
+  std::map<std::string, std::string> fields = text_header(path, '=', data_start);
   if (fields.count("ElementDataFile") == 0 || fields["BinaryData"] == "False") return {};
   uint64_t needed = 0;
   if (fields["CompressedData"] == "True") {
@@ -249,9 +287,8 @@ std::string metaimage_length_problem(const std::string& path) {
   uint64_t available = 0;
   const std::string& data_file = fields["ElementDataFile"];
   if (data_file == "LOCAL") {
-    const auto data_start = in.tellg();
     const uintmax_t size = fs::file_size(path, ec);
-    if (ec || data_start < 0) return {};
+    if (ec) return {};
     available = size > uintmax_t(data_start) ? size - uintmax_t(data_start) : 0;
   } else if (data_file.find_first_of(" %") == std::string::npos && data_file != "LIST") {
     const uintmax_t size = fs::file_size(fs::path(path).parent_path() / data_file, ec);
@@ -275,28 +312,20 @@ std::string metaimage_length_problem(const std::string& path) {
 // NIfTI-1 and NIfTI-2: pixdim of the spatial axes finite and > 0; quaternion, offsets and the
 // sform rows finite.
 std::string nifti_header_problem(const std::string& path) {
-  const std::unique_ptr<gzFile_s, int (*)(gzFile)> file(gzopen(path.c_str(), "rb"), &gzclose);
-  if (!file) return "cannot open the file";
-  unsigned char header[540];
-  const int header_read = gzread(file.get(), header, sizeof header);
-  if (header_read < 348) return "file ends inside the NIfTI header";
-  int32_t stored_size;
-  std::memcpy(&stored_size, header, 4);
-  const bool swapped = stored_size != 348 && stored_size != 540;
-  const auto field = [&](size_t at, auto value) {
-    unsigned char bytes[sizeof value];
-    std::memcpy(bytes, header + at, sizeof value);
-    if (swapped) std::reverse(bytes, bytes + sizeof value);
-    std::memcpy(&value, bytes, sizeof value);
-    return double(value);
-  };
-  const double sizeof_hdr = field(0, int32_t{});
-  const bool v2 = sizeof_hdr == 540 && header_read == 540;
+  NiftiHeader header;
+  const std::string unreadable = header.open(path);
+  if (!unreadable.empty()) return unreadable;
+  const double sizeof_hdr = header.field<int32_t>(0);
+  const bool v2 = sizeof_hdr == 540 && header.read == 540;
   if (sizeof_hdr != 348 && !v2) return {};
-  const auto dim_at = [&](int d) { return v2 ? field(16 + 8 * d, int64_t{}) : field(40 + 2 * d, int16_t{}); };
-  const auto pixdim = [&](int d) { return v2 ? field(104 + 8 * d, double{}) : field(76 + 4 * d, float{}); };
-  const int spatial = int(std::clamp(dim_at(0), 1.0, 3.0));
-  for (int d = 1; d <= spatial; ++d) {
+  const auto dim_at = [&](size_t d) {
+    return v2 ? double(header.field<int64_t>(16 + 8 * d)) : double(header.field<int16_t>(40 + 2 * d));
+  };
+  const auto pixdim = [&](size_t d) {
+    return v2 ? header.field<double>(104 + 8 * d) : double(header.field<float>(76 + 4 * d));
+  };
+  const size_t spatial = size_t(std::clamp(dim_at(0), 1.0, 3.0));
+  for (size_t d = 1; d <= spatial; ++d) {
     const double p = pixdim(d);
     if (!std::isfinite(p) || p <= 0.0) {
       return "NIfTI header: pixdim[" + std::to_string(d) + "] (voxel size along axis " +
@@ -309,7 +338,8 @@ std::string nifti_header_problem(const std::string& path) {
                                  "srow_y[0]", "srow_y[1]", "srow_y[2]", "srow_y[3]", "srow_z[0]",
                                  "srow_z[1]", "srow_z[2]", "srow_z[3]"};
   for (int k = 0; k < 18; ++k) {
-    const double v = v2 ? field(352 + 8 * size_t(k), double{}) : field(256 + 4 * size_t(k), float{});
+    const double v = v2 ? header.field<double>(352 + 8 * size_t(k))
+                        : double(header.field<float>(256 + 4 * size_t(k)));
     if (!std::isfinite(v)) {
       return std::string("NIfTI header: ") + kNames[k] + " (orientation and origin) is " +
              value_text(v) + "; expected a finite number";
@@ -342,27 +372,6 @@ std::vector<double> header_numbers(const std::string& text, std::string* bad) {
   }
   flush();
   return out;
-}
-
-// The "key: value" (NRRD) or "key = value" (MetaImage) fields of a text header.
-std::map<std::string, std::string> text_header(const std::string& path, char separator,
-                                               size_t& data_start) {
-  std::ifstream in(path, std::ios::binary);
-  std::map<std::string, std::string> fields;
-  std::string line;
-  data_start = 0;
-  int lines = 0;
-  while (std::getline(in, line) && ++lines < 10000) {
-    data_start += line.size() + 1;
-    if (!line.empty() && line.back() == '\r') line.pop_back();
-    if (separator == ':' && line.empty()) break;  // NRRD: a blank line ends the header
-    const auto at = separator == ':' ? line.find(": ") : line.find('=');
-    if (at == std::string::npos) continue;
-    const std::string key = trimmed(line.substr(0, at));
-    fields[key] = trimmed(line.substr(at + (separator == ':' ? 2 : 1)));
-    if (separator == '=' && key == "ElementDataFile") break;
-  }
-  return fields;
 }
 
 std::string numbers_problem(const std::map<std::string, std::string>& fields,
