@@ -73,15 +73,17 @@ void add_area_command(CLI::App& app) {
       ->check(finite_number());
   cmd->add_option("--max-distance", req->max_distance_mm,
                   "Maximum extrusion along the normals, mm (default: the plan's region of "
-                  "interest radius R; preview: 120 mm, the reach of a long needle)");
+                  "interest radius R; preview: 120 mm, the reach of a long needle)")
+      ->check(in_range(0.1, 2000));
   cmd->add_option("--spacing", req->spacing_mm,
                   "Edge bound h in mm: no mesh edge longer than h when fully extruded; samples "
-                  "every h/2 (default: the plan's spacing; preview: the smallest input spacing)");
+                  "every h/2 (default: the plan's spacing; preview: the smallest input spacing)")
+      ->check(in_range(0.05, 20));
   cmd->add_option("--angle", req->angular_step_deg,
                   "Directions the mesh resolves, degrees: far from the tumor edges may grow to "
                   "max-distance x angle (1 degree: 1.7 mm per 100 mm, about a needle's width); "
                   "0: edges within h everywhere, as in the paper (much finer, slower)")
-      ->check(CLI::Range(0.0, 30.0))
+      ->check(in_range(0.0, 30.0))
       ->capture_default_str();
   cmd->add_option("--out", req->out_dir,
                   "Output folder for area_safety.vtk and area.json (replaced only when complete; "

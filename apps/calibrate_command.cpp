@@ -34,17 +34,17 @@ void add_calibrate_command(CLI::App& app) {
   camera->add_option("--out", c->out, "Camera file to write (OpenCV YAML)")->capture_default_str();
   camera->add_option("--max-views", c->max_views, "Views kept from a recording")
       ->capture_default_str()
-      ->check(CLI::Range(4, 500));
+      ->check(in_range(4, 500, true));
   camera->add_option("--min-views", c->min_views, "Fewer usable views are refused")
       ->capture_default_str()
-      ->check(CLI::Range(3, 100));
+      ->check(in_range(3, 100, true));
   camera->add_flag("--fix-k3", c->fix_k3,
                    "Keep k3 at 0 (narrow lenses, or few views near the image corners)");
   camera
       ->add_option("--decimate", c->decimate,
                    "AprilTag quad detection on an image decimated by this factor")
       ->capture_default_str()
-      ->check(CLI::Range(1.0, 4.0));
+      ->check(in_range(1.0, 4.0));
   camera->callback([c] { pipelines::run_camera_calibration(*c); });
 
   auto p = std::make_shared<pipelines::PivotCalibrationRequest>();

@@ -9,6 +9,7 @@
 #include <cstdlib>
 #include <map>
 #include <memory>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -53,6 +54,31 @@ inline CLI::Validator finite_number(bool positive = false) {
         return {};
       },
       positive ? "NUMBER > 0" : "NUMBER", positive ? "positive finite" : "finite");
+}
+
+// A list of safety classes (any of safe,medium,dangerous), checked when the option is read so
+// that the message names the option.
+CLI::Validator safety_class_list();
+
+// A number option within [lo, hi] (NaN and infinities refused; CLI11's own ranges let NaN pass
+// and print their bounds in full); `integer`: a whole number.
+inline CLI::Validator in_range(double lo, double hi, bool integer = false) {
+  const auto shown = [](double v) {
+    std::ostringstream s;
+    s << v;
+    return s.str();
+  };
+  const std::string range = shown(lo) + " to " + shown(hi);
+  return CLI::Validator(
+      [=](std::string& text) -> std::string {
+        char* end = nullptr;
+        const double v = std::strtod(text.c_str(), &end);
+        if (end == text.c_str() || *end != '\0') return "expected a number, got '" + text + "'";
+        if (!(v >= lo && v <= hi)) return "'" + text + "' is not a number from " + range;
+        if (integer && v != std::floor(v)) return "expected a whole number, got '" + text + "'";
+        return {};
+      },
+      (integer ? "INT in " : "NUMBER in ") + range);
 }
 
 }  // namespace crepuscular::apps

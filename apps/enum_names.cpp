@@ -1,6 +1,8 @@
 // Names of the enums that the commands take as flags.
 #include "apps/enum_names.hpp"
 
+#include "apps/commands.hpp"
+#include "foundation/error.hpp"
 #include "overlay/guidance.hpp"
 #include "planning/safety/path_safety.hpp"
 #include "planning/views/palette.hpp"
@@ -48,6 +50,19 @@ const std::map<std::string, overlay::GuidanceLayer>& guidance_layer_names() {
     return m;
   }();
   return names;
+}
+
+CLI::Validator safety_class_list() {
+  return CLI::Validator(
+      [](std::string& text) -> std::string {
+        try {
+          planning::parse_hidden_classes(text);
+        } catch (const Error& e) {
+          return e.what();
+        }
+        return {};
+      },
+      "CLASSES");
 }
 
 }  // namespace crepuscular::apps

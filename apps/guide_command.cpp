@@ -81,7 +81,7 @@ void add_guide_command(CLI::App& app) {
       ->each([&r](const std::string& s) { r.snapshots.push_back(pipelines::parse_snapshot(s)); });
   cmd->add_option("--snapshot-every", r.snapshot_every, "Snapshot every N-th frame (0: never)")
       ->capture_default_str()
-      ->check(CLI::NonNegativeNumber);
+      ->check(in_range(0, 1e9, true));
   cmd->add_option("--log", r.log,
                   "Per-frame CSV (tracking, needle safety, latency); default: the video's name "
                   "with .csv");
@@ -98,6 +98,7 @@ void add_guide_command(CLI::App& app) {
       ->default_str("default");
   cmd->add_option("--volume-classes", a->volume_classes,
                   "Classes the volume rendering shows: any of safe,medium,dangerous")
+      ->check(safety_class_list())
       ->capture_default_str();
   cmd->add_option("--value", r.options.value,
                   "Path safety value of the ray bundles (svv, isbv, ivbv, bvv); default: the "
@@ -105,17 +106,17 @@ void add_guide_command(CLI::App& app) {
   cmd->add_option("--rays", r.options.ray_directions,
                   "Directions sampled around the tumor for the ray bundles")
       ->capture_default_str()
-      ->check(CLI::Range(1, 200000));
+      ->check(in_range(1, 200000, true));
   cmd->add_option("--max-age-ms", r.tracker.max_age_ms,
                   "A marker pose older than this is lost: nothing is drawn from it")
       ->capture_default_str()
-      ->check(CLI::PositiveNumber);
+      ->check(in_range(1, 10000));
   cmd->add_option("--max-frames", r.max_frames,
                   "Stop after this many frames (-1: the whole source)")
       ->capture_default_str();
   cmd->add_option("--video-fps", r.video_fps, "Frame rate written into the video")
       ->capture_default_str()
-      ->check(CLI::PositiveNumber);
+      ->check(in_range(1, 240));
   cmd->callback([a] { run(*a); });
 }
 

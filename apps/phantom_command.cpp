@@ -35,7 +35,7 @@ void add_phantom_command(CLI::App& app) {
   cmd->add_option("--seed", options->seed,
                   "Random seed: changes the liver vessel tree, the bowel and the CT noise")
       ->capture_default_str()
-      ->check(CLI::NonNegativeNumber);
+      ->check(in_range(0, 4294967295.0, true));
   cmd->callback([out, options] { pipelines::run_phantom(*options, *out); });
 }
 

@@ -25,7 +25,7 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
   cmd->add_option("--lesion", req->lesion,
                   "Plan for the K-th largest lesion of the tumor mask (1 = largest); with several "
                   "lesions and neither --lesion nor --lesion-at, plan lists them and stops")
-      ->check(CLI::PositiveNumber);
+      ->check(in_range(1, 100000, true));
   auto lesion_at = std::make_shared<std::string>();
   cmd->add_option("--lesion-at", *lesion_at,
                   "Plan for the lesion at (or nearest to) this point: X,Y,Z in LPS mm");
@@ -58,20 +58,23 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
          "clear (0.5: 25 mm of muscle at 0.02/mm, or 0.5 mm of a vessel at 1/mm)")
       ->capture_default_str();
   cmd->add_option("--spacing", req->path_safety.spacing_mm,
-                  "Output spacing in mm (default: smallest input spacing)");
+                  "Output spacing in mm (default: smallest input spacing)")
+      ->check(in_range(0.05, 20));
   cmd->add_option("--tumor-spacing", req->path_safety.tumor_spacing_mm,
                   "Spacing in mm the tumor mask is resampled to before rays are cast to its "
                   "surface (default: the output spacing, where the mask is finer; 0: the mask's "
                   "own voxels). A plan's cost grows with the tumor's surface points, about "
                   "(tumor size / spacing)^2")
-      ->check(CLI::NonNegativeNumber)
+      ->check(in_range(0, 20))
       ->default_str("output spacing");
   cmd->add_option("--radius", req->path_safety.radius_mm,
                   "Region of interest radius in mm (default: reaches the farthest voxel with "
-                  "blocking > 0)");
+                  "blocking > 0)")
+      ->check(in_range(0.1, 2000));
   cmd->add_option("--margin", req->margin.fwhm_mm,
                   "Safety margin: FWHM in mm of the Gaussian added around each structure (0: none)")
-      ->capture_default_str();
+      ->capture_default_str()
+      ->check(in_range(0, 50));
   cmd->add_option("--device", req->path_safety.device, "auto, cpu or cuda")
       ->transform(enum_names(device_names()))
       ->default_str("auto");
@@ -83,7 +86,7 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
       ->default_str("exact");
   cmd->add_option("--threads", req->path_safety.threads,
                   "CPU threads, 1 to 1024 (default: all cores)")
-      ->check(CLI::Range(1, 1024));
+      ->check(in_range(1, 1024, true));
 }
 
 }  // namespace
@@ -109,11 +112,12 @@ void add_plan_command(CLI::App& app) {
                   "(svv: below it; isbv, ivbv, bvv: above it) (default: the class threshold)");
   cmd->add_option("--area-max-distance", req->area_safety.max_distance_mm,
                   "Area safety: maximum extrusion in mm (default: the region of interest "
-                  "radius R)");
+                  "radius R)")
+      ->check(in_range(0.1, 2000));
   cmd->add_option("--area-angle", req->area_safety.angular_step_deg,
                   "Area safety: directions the mesh resolves, degrees (edges up to h near the "
                   "tumor, max-distance x angle far from it; 0: h everywhere, much finer)")
-      ->check(CLI::Range(0.0, 30.0))
+      ->check(in_range(0.0, 30.0))
       ->capture_default_str();
   cmd->add_flag("--crop-to-scan", req->crop_to_scan,
                 "Leave the part of the region of interest outside the scan out (not computed) "

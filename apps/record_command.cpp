@@ -28,17 +28,17 @@ void add_record_command(CLI::App& app) {
   cmd->add_option("--source", args->source, "Frame source URI (see above)")->required();
   cmd->add_option("--out", args->out, "Output recording folder (DIR); must not exist")->required();
   cmd->add_option("--frames", args->frames, "Stop after this many frames (default: no limit)")
-      ->check(CLI::PositiveNumber);
+      ->check(in_range(1, 1e9, true));
   cmd->add_option("--seconds", args->seconds,
                   "Stop after this much capture time in seconds (default: no limit)")
-      ->check(CLI::PositiveNumber);
+      ->check(in_range(0.001, 86400));
   cmd->add_option("--format", args->format,
                   "Frame image format: jpg (camera MJPEG stored as received) or png (lossless)")
       ->capture_default_str()
       ->check(CLI::IsMember({"jpg", "png"}));
   cmd->add_option("--quality", args->quality, "JPEG quality for frames that are encoded here")
       ->capture_default_str()
-      ->check(CLI::Range(1, 100));
+      ->check(in_range(1, 100, true));
   cmd->add_option("--boards", args->boards,
                   "boards.json of the marker boards in view, stored with the recording "
                   "(default: none)")

@@ -42,14 +42,14 @@ void add_register_command(CLI::App& app) {
   cmd->add_option("--fle-mm", a->fle_mm,
                   "Fiducial localisation error for the expected TRE (0: estimated from the FRE)")
       ->capture_default_str()
-      ->check(CLI::NonNegativeNumber);
+      ->check(in_range(0, 100));
   cmd->add_option("--threshold", a->threshold_hu,
                   "Automatic bead detection: beads are brighter than this (HU)")
       ->capture_default_str();
   cmd->add_option("--tolerance-mm", a->tolerance_mm,
                   "Pairing tolerance: fiducial distances and fitted positions agree this well")
       ->capture_default_str()
-      ->check(CLI::PositiveNumber);
+      ->check(in_range(0.001, 1000));
   cmd->add_option("--still-mm", a->still_mm,
                   "Digitising: the tip counts as resting while it stays within this distance")
       ->capture_default_str();

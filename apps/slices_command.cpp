@@ -49,11 +49,12 @@ void add_slices_command(CLI::App& app) {
       ->transform(enum_names(palette_names()))
       ->default_str("default");
   cmd->add_option("--hide", *hide,
-                  "Path safety classes not drawn: any of safe,medium,dangerous (default: none)");
+                  "Path safety classes not drawn: any of safe,medium,dangerous (default: none)")
+      ->check(safety_class_list());
   cmd->add_option("--pixel", req->options.pixel_mm,
                   "Pixel size in mm (default: the finest spacing of the CT and the plan, divided "
                   "so that each image is at least 512 pixels wide)")
-      ->check(finite_number(true));
+      ->check(in_range(0.01, 20));
   cmd->add_option("--window", req->options.window_width, "CT window width in HU")
       ->capture_default_str()
       ->check(finite_number(true));

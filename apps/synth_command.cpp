@@ -44,10 +44,10 @@ void add_synth_command(CLI::App& app) {
       ->check(CLI::IsMember({"jpg", "png"}));
   cmd->add_option("--quality", args->quality, "JPEG quality, 1 to 100")
       ->capture_default_str()
-      ->check(CLI::Range(1, 100));
+      ->check(in_range(1, 100, true));
   cmd->add_option("--frames", args->frames,
                   "Render at most this many frames (default: all frames of the scene)")
-      ->check(CLI::PositiveNumber);
+      ->check(in_range(1, 1e7, true));
   cmd->callback([args] { pipelines::run_synth(*args); });
 }
 

@@ -27,20 +27,20 @@ void add_track_command(CLI::App& app) {
                   "Longest time a board's last pose is still reported while the board is not "
                   "seen; older poses are reported lost")
       ->capture_default_str()
-      ->check(CLI::PositiveNumber);
+      ->check(in_range(1, 10000));
   cmd->add_option("--decimate", a->decimate,
                   "AprilTag quad detection on the image decimated by this factor (1 = full "
                   "resolution: smaller tags, slower)")
       ->capture_default_str()
-      ->check(CLI::Range(1.0, 8.0));
+      ->check(in_range(1.0, 8.0));
   cmd->add_option("--threads", a->threads, "Worker threads of the AprilTag detector")
       ->capture_default_str()
-      ->check(CLI::Range(1, 64));
+      ->check(in_range(1, 64, true));
   cmd->add_option("--full-search-every", a->full_search_interval,
                   "Search the whole frame at least every this many frames while all boards are "
                   "tracked (in between only where their poses predict the tags); 0 = every frame")
       ->capture_default_str()
-      ->check(CLI::NonNegativeNumber);
+      ->check(in_range(0, 1e9, true));
   cmd->add_option("--family", a->family, "AprilTag family of the boards")->capture_default_str();
   cmd->add_flag("!--no-smoothing", a->smoothing,
                 "Report each frame's measured pose without the temporal filter");

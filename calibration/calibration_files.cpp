@@ -39,15 +39,7 @@ cv::Mat points_mat(const std::vector<Eigen::Vector3d>& p) {
 
 class Reader {
  public:
-  explicit Reader(const std::string& path) : path_(path) {
-    check_nesting_depth(path, read_text_or_empty(path));
-    try {
-      in_.open(path, cv::FileStorage::READ);
-    } catch (const cv::Exception& e) {
-      throw Error(path + ": not a readable YAML file (" + e.what() + ")");
-    }
-    if (!in_.isOpened()) throw Error(path + ": cannot be opened (missing or not YAML)");
-  }
+  explicit Reader(const std::string& path) : path_(path) { open_file_storage(in_, path); }
   cv::FileNode node(const std::string& key, bool required = true) const {
     cv::FileNode n = in_[key];
     if (required && n.empty()) throw Error(path_ + ": field '" + key + "' is missing");
@@ -57,7 +49,16 @@ class Reader {
   double number(const std::string& key) const {
     const cv::FileNode n = node(key);
     if (!n.isReal() && !n.isInt()) throw Error(path_ + ": field '" + key + "' must be a number");
-    return double(n);
+    const double v = double(n);
+    if (!std::isfinite(v)) throw Error(path_ + ": field '" + key + "' is not finite");
+    return v;
+  }
+  int count(const std::string& key) const {
+    const double v = has(key) ? number(key) : 0.0;
+    if (!(v >= 0 && v <= 1e9) || v != std::floor(v)) {
+      throw Error(path_ + ": field '" + key + "' must be a whole number from 0 to 1e9");
+    }
+    return int(v);
   }
   std::string text(const std::string& key) const {
     const cv::FileNode n = node(key, false);
@@ -72,12 +73,11 @@ class Reader {
     return out;
   }
   cv::Mat matrix(const std::string& key, int rows, int cols) const {
-    cv::Mat m;
-    try {
-      node(key) >> m;
-    } catch (const cv::Exception&) {
-      m.release();
-    }
+    const std::string shape = (rows >= 0 ? std::to_string(rows) : std::string("N")) + " x " +
+                              std::to_string(cols) + " opencv-matrix of doubles";
+    const cv::FileNode n = node(key);
+    if (!n.isMap()) throw Error(path_ + ": field '" + key + "' must be a " + shape);
+    const cv::Mat m = read_opencv_matrix(n, path_, "'" + key + "'");
     if ((rows >= 0 && m.rows != rows) || m.cols != cols || m.type() != CV_64F) {
       throw Error(path_ + ": field '" + key + "' must be a " +
                   (rows >= 0 ? std::to_string(rows) : std::string("N")) + " x " +
@@ -175,8 +175,8 @@ NeedleCalibration read_needle_calibration(const std::string& path) {
   n.tip_needle = in.vector3("tip_needle");
   if (in.has("tip_stddev_mm")) n.tip_stddev_mm = in.vector3("tip_stddev_mm");
   n.pivot_rms_mm = in.has("pivot_rms_mm") ? in.number("pivot_rms_mm") : 0.0;
-  n.poses_used = in.has("poses_used") ? int(in.number("poses_used")) : 0;
-  n.poses_total = in.has("poses_total") ? int(in.number("poses_total")) : 0;
+  n.poses_used = in.count("poses_used");
+  n.poses_total = in.count("poses_total");
   n.rotation_spread_deg = in.has("rotation_spread_deg") ? in.number("rotation_spread_deg") : 0.0;
   if (in.has("axis_needle")) {
     const Eigen::Vector3d a = in.vector3("axis_needle");
@@ -245,8 +245,8 @@ RegistrationRecord read_registration(const std::string& path) {
   }
   r.fre_rms_mm = in.has("fre_rms_mm") ? in.number("fre_rms_mm") : 0.0;
   r.fle_mm = in.has("fle_estimate_mm") ? in.number("fle_estimate_mm") : 0.0;
-  r.fiducials_in_board = in.has("fiducials_in_board") ? int(in.number("fiducials_in_board")) : 0;
-  r.fiducials_in_ct = in.has("fiducials_in_ct") ? int(in.number("fiducials_in_ct")) : 0;
+  r.fiducials_in_board = in.count("fiducials_in_board");
+  r.fiducials_in_ct = in.count("fiducials_in_ct");
   if (in.has("tre_target_ct")) {
     r.target_ct = in.vector3("tre_target_ct");
     r.expected_tre_mm = in.has("expected_tre_mm") ? in.number("expected_tre_mm") : 0.0;

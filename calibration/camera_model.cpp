@@ -2,7 +2,13 @@
 #include "calibration/camera_model.hpp"
 
 #include <Eigen/LU>  // 2x2 inverse
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
 #include <cmath>
+#include <thread>
 #include <cstdio>
 #include <filesystem>
 #include <sstream>
@@ -172,31 +178,116 @@ void CameraModel::validate(const std::string& what) const {
   }
 }
 
+namespace {
+
+int storage_format(const std::string& path) {
+  const std::string ext = std::filesystem::path(path).extension().string();
+  if (ext == ".xml") return cv::FileStorage::FORMAT_XML;
+  if (ext == ".json") return cv::FileStorage::FORMAT_JSON;
+  return cv::FileStorage::FORMAT_YAML;
+}
+
+// Parses `text` in a child process: "" when OpenCV parses it there within the deadline, else why
+// not. The child leaves through _exit (no exit handlers of this process run twice).
+std::string parse_in_child(const std::string& text, int flags) {
+  const pid_t child = ::fork();
+  if (child < 0) return {};  // no child to spare: parse here as before
+  if (child == 0) {
+    int code = 3;
+    try {
+      cv::FileStorage storage(text, flags);
+      code = storage.isOpened() ? 0 : 3;
+    } catch (...) {
+      code = 4;
+    }
+    ::_exit(code);
+  }
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(3);
+  int status = 0;
+  for (;;) {
+    const pid_t done = ::waitpid(child, &status, WNOHANG);
+    if (done == child) break;
+    if (done < 0) return {};
+    if (std::chrono::steady_clock::now() > deadline) {
+      ::kill(child, SIGKILL);
+      ::waitpid(child, &status, 0);
+      return "the parser did not finish within 3 s on it";
+    }
+    std::this_thread::sleep_for(std::chrono::microseconds(200));
+  }
+  if (WIFSIGNALED(status)) return "the parser failed on it (signal " + std::to_string(WTERMSIG(status)) + ")";
+  if (WIFEXITED(status) && WEXITSTATUS(status) != 0) return "it cannot be parsed";
+  return {};
+}
+
+}  // namespace
+
+void open_file_storage(cv::FileStorage& storage, const std::string& path) {
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(path, ec)) {
+    throw Error(path + (std::filesystem::exists(path, ec) ? ": cannot be opened (not a file)"
+                                                          : ": cannot be opened (not found)"));
+  }
+  const std::string text = read_text_or_empty(path);
+  if (text.size() > (64u << 20)) throw Error(path + ": over 64 MB, not a calibration file");
+  check_nesting_depth(path, text);
+  const int flags = cv::FileStorage::READ | cv::FileStorage::MEMORY | storage_format(path);
+  const std::string why = parse_in_child(text, flags);
+  if (!why.empty()) throw Error(path + ": not a valid OpenCV FileStorage file (" + why + ")");
+  try {
+    if (!storage.open(text, flags)) throw Error(path + ": cannot be read as OpenCV FileStorage");
+  } catch (const cv::Exception& e) {
+    throw Error(path + ": not a valid OpenCV FileStorage file (" + e.err + ")");
+  }
+  // Fields are looked up by name: a top level that is a list or a value has none (and OpenCV
+  // asserts on the lookup).
+  if (!storage.root().isMap()) throw Error(path + ": expected named fields at the top of the file");
+}
+
+cv::Mat read_opencv_matrix(const cv::FileNode& node, const std::string& path,
+                           const std::string& field) {
+  const std::string at = path + ": field " + field;
+  if (!node.isMap()) throw Error(at + " is not an OpenCV matrix (opencv-matrix)");
+  const cv::FileNode rows = node["rows"], cols = node["cols"], dt = node["dt"], data = node["data"];
+  if (!rows.isInt() || !cols.isInt() || !dt.isString() || !data.isSeq()) {
+    throw Error(at + " needs rows, cols (integers), dt and data (a list)");
+  }
+  const int r = int(rows), c = int(cols);
+  if (r < 0 || c < 0 || r > 100000 || c > 100000) {
+    throw Error(at + ": rows and cols must be 0 to 100000");
+  }
+  const std::string type = std::string(dt);
+  // One channel of any type (d, f, u, ...; the callers check the type), or 2-4 channels ("3d").
+  const int channels = type.size() == 2 && type[0] >= '1' && type[0] <= '4' ? type[0] - '0' : 1;
+  if (int64_t(data.size()) != int64_t(r) * c * channels) {
+    throw Error(at + ": data holds " + std::to_string(data.size()) + " values, rows x cols is " +
+                std::to_string(int64_t(r) * c * channels));
+  }
+  for (const auto& value : data) {
+    if (!value.isInt() && !value.isReal()) throw Error(at + ": data holds a value that is not a number");
+  }
+  cv::Mat m;
+  try {
+    node >> m;
+  } catch (const cv::Exception& e) {
+    throw Error(at + " is not an OpenCV matrix (" + e.err + ")");
+  }
+  return m;
+}
+
 CameraModel CameraModel::read_yaml(const std::string& path) {
   if (!std::filesystem::exists(path)) {
     throw Error(path + ": camera file not found (expected OpenCV FileStorage YAML with "
                        "camera_matrix, distortion_coefficients, image_width, image_height)");
   }
-  check_nesting_depth(path, read_text_or_empty(path));
   cv::FileStorage fs;
-  try {
-    if (!fs.open(path, cv::FileStorage::READ)) {
-      throw Error(path + ": cannot be read as OpenCV FileStorage YAML");
-    }
-  } catch (const cv::Exception& e) {
-    throw Error(path + ": not a valid OpenCV FileStorage YAML file (" + e.err + ")");
-  }
+  open_file_storage(fs, path);
   const auto read_mat = [&](const char* field) {
     const cv::FileNode node = fs[field];
     if (node.empty() || node.isNone()) {
       throw Error(path + ": field " + field + " is missing (expected an OpenCV matrix)");
     }
-    cv::Mat m;
-    try {
-      node >> m;
-    } catch (const cv::Exception& e) {
-      throw Error(path + ": field " + field + " is not an OpenCV matrix (" + e.err + ")");
-    }
+    const cv::Mat m = read_opencv_matrix(node, path, field);
     if (m.empty()) throw Error(path + ": field " + field + " is not an OpenCV matrix (opencv-matrix)");
     // OpenCV stores the data in the element type `dt` names and saturates them to it: with an
     // integer type an fx of 800 would be read as 255 (dt: u) or rounded. Only f or d are read.

@@ -65,6 +65,18 @@ struct CameraModel {
   }
 };
 
+// Opens an OpenCV FileStorage file (YAML; XML or JSON by extension) for reading. OpenCV's parser
+// hangs or reads out of bounds on some malformed files (found by fuzzing), so the text is parsed
+// first in a child process under a deadline: a file the parser fails on there is refused with
+// Error "PATH: ..." and never parsed here. Also refuses a top level without named fields.
+void open_file_storage(cv::FileStorage& storage, const std::string& path);
+
+// An "!!opencv-matrix" node read as cv::Mat after checking what OpenCV would trust (rows, cols,
+// dt, and as many data values as they announce: OpenCV allocates from rows and cols first).
+// Throws Error "PATH: field FIELD ..." otherwise.
+cv::Mat read_opencv_matrix(const cv::FileNode& node, const std::string& path,
+                           const std::string& field);
+
 // Writes an OpenCV FileStorage file through a temporary sibling (foundation's atomic output):
 // `body` writes the fields. format: cv::FileStorage::FORMAT_AUTO (from the extension) or
 // FORMAT_YAML, ... Throws Error "PATH: cannot be written (reason)"; nothing is left behind then.

@@ -54,6 +54,16 @@ void commit_file(const std::string& temporary, const std::string& path) {
 
 PendingFile::PendingFile(std::string path)
     : path_(std::move(path)), temporary_(temporary_sibling(path_)) {
+  // Said before any work: the rename at the end could never replace a folder.
+  std::error_code ec;
+  if (fs::is_directory(path_, ec)) {
+    throw Error(path_ + ": cannot be written (it is a folder; give the name of a file)");
+  }
+  const fs::path parent = fs::path(path_).has_parent_path() ? fs::path(path_).parent_path()
+                                                            : fs::path(".");
+  if (!fs::is_directory(parent, ec)) {
+    throw Error(path_ + ": cannot be written (its folder " + parent.string() + " does not exist)");
+  }
   register_partial_output(temporary_);
 }
 

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <filesystem>
 #include <limits>
 #include <cmath>
 #include <map>
@@ -553,7 +554,16 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
   info.frame = frame.index;
   info.timestamp_ns = frame.timestamp_ns;
   info.problem = frame.problem.empty() ? track.problem : frame.problem;
-  info.image = !frame.image.empty();
+  // A frame of another size (or kind) than the camera's cannot be shown under this overlay.
+  const bool fits = frame.image.cols == cam.width && frame.image.rows == cam.height &&
+                    frame.image.type() == CV_8UC3;
+  info.image = !frame.image.empty() && fits;
+  if (!frame.image.empty() && !fits && info.problem.empty()) {
+    info.problem = "frame " + std::to_string(frame.index) + " is " +
+                   std::to_string(frame.image.cols) + "x" + std::to_string(frame.image.rows) +
+                   ", not the camera's " + std::to_string(cam.width) + "x" +
+                   std::to_string(cam.height) + ": skipped";
+  }
 
   for (int i = 0; i < kGuidanceLayerCount; ++i) {
     const char* name = kLayerNames[size_t(i)];
@@ -587,6 +597,12 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
   }
   if (track.dropped > 0) {
     info.warnings.push_back(std::to_string(track.dropped) + " FRAME(S) DROPPED");
+  }
+  // A plan whose inputs changed since planning is shown as such on every frame.
+  for (const planning::ChangedInput& c : plan_.changed_inputs) {
+    info.warnings.push_back("PLAN INPUT CHANGED: " +
+                            std::filesystem::path(c.path).filename().string() + " (" + c.role +
+                            "), RE-PLAN");
   }
 
   info.upload_ms = ms_since(t);

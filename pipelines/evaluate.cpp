@@ -37,7 +37,11 @@ std::string run_evaluate(const EvaluateRequest& r) {
   for (size_t i = 0; i < trajectories.size(); ++i) {
     const auto e = evaluator.evaluate(trajectories[i]);
     if (r.json) {
-      all.push_back(planning::evaluation_json(e));
+      nlohmann::json one = planning::evaluation_json(e);
+      // Inputs changed since planning travel with every answer, not only on stderr.
+      one["changed_inputs"] = nlohmann::json::array();
+      for (const auto& c : plan.changed_inputs) one["changed_inputs"].push_back(c.message);
+      all.push_back(std::move(one));
     } else if (!r.batch.empty()) {
       if (i == 0) text += planning::evaluation_csv_header(e) + "\n";
       text += planning::evaluation_csv_row(e) + "\n";
@@ -46,6 +50,9 @@ std::string run_evaluate(const EvaluateRequest& r) {
     }
   }
   if (r.json) text = (r.batch.empty() ? all[0] : all).dump(2) + "\n";
+  if (!r.json && r.batch.empty()) {
+    for (const auto& c : plan.changed_inputs) text = "WARNING: " + c.message + "\n" + text;
+  }
   if (!r.out.empty()) {
     write_text_file(r.out, text);
     spdlog::info("{} trajectories evaluated: {}", trajectories.size(), r.out);

@@ -66,7 +66,11 @@ GuideFrameResult GuideLoop::process(const tracking::Frame& frame, Clock::time_po
   // upload needs no pose; the OpenGL context stays on this thread).
   std::future<tracking::TrackResult> tracking =
       std::async(std::launch::async, [this, &frame] { return tracker_.process(frame); });
-  const bool uploaded = !frame.image.empty();
+  // A frame of another size than the camera's is no picture of this camera: not shown (the
+  // overlay says so), never an end of the session.
+  const calibration::CameraModel& camera = renderer_.camera();
+  const bool uploaded = !frame.image.empty() && frame.image.cols == camera.width &&
+                        frame.image.rows == camera.height && frame.image.type() == CV_8UC3;
   if (uploaded) renderer_.set_frame(frame.image);
   const tracking::TrackResult track = tracking.get();
   r.dropped = track.dropped;

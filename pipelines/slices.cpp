@@ -127,17 +127,6 @@ nlohmann::json view_json(const std::string& file, SlicePlaneKind kind, const Sli
           {"unknown_pixels", view.unknown_pixels}};
 }
 
-// A CT that does not meet the plan's grid anywhere gives black images: refused, by name.
-void check_ct_overlaps_plan(const Volume<float>& ct, const PlanData& plan, const std::string& path) {
-  const Eigen::AlignedBox3d a = extent_box(ct.geometry()), b = extent_box(plan.grid);
-  if (a.intersects(b)) return;
-  const Eigen::Vector3d gap = (a.center() - b.center()).cwiseAbs() - 0.5 * (a.sizes() + b.sizes());
-  throw Error(fmt::format("{}: the CT does not overlap the plan's region of interest (they are "
-                          "{:.0f} mm apart; CT centre ({:.1f}, {:.1f}, {:.1f}), plan centre ({:.1f}, "
-                          "{:.1f}, {:.1f}) LPS mm): is it this patient's CT, in the same frame?",
-                          path, gap.cwiseMax(0.0).norm(), a.center().x(), a.center().y(),
-                          a.center().z(), b.center().x(), b.center().y(), b.center().z()));
-}
 
 }  // namespace
 
@@ -157,7 +146,7 @@ nlohmann::json run_slices(const SlicesRequest& req) {
   const PlanData plan = load_plan(req.plan_dir, load);
   spdlog::info("reading CT {}", req.ct);
   const Volume<float> ct = read_volume<float>(req.ct);
-  check_ct_overlaps_plan(ct, plan, req.ct);
+  require_overlap_with_plan(ct.geometry(), plan.grid, req.ct, "the CT");
   const Placement place = place_planes(req, plan);
 
   SliceScene scene;
@@ -209,6 +198,8 @@ nlohmann::json run_slices(const SlicesRequest& req) {
        "pixel (x, y) shows pixel_0_0 + x pixel_mm right + y pixel_mm down; the "
        "view occupies columns [0, view_width), the legend the rest"},
       {"views", views}};
+  j["changed_inputs"] = nlohmann::json::array();
+  for (const auto& c : plan.changed_inputs) j["changed_inputs"].push_back(c.message);
   write_text_file(out.file("slices.json"), j.dump(2) + "\n");
   out.commit();
   spdlog::info("slices written to {} ({:.2f} s)", req.out_dir,

@@ -322,9 +322,14 @@ RecordingReader::Loaded RecordingReader::load(size_t i) const {
   }
   const Entry& e = entries_[i];
   const fs::path path = fs::path(dir_) / e.file;
+  std::error_code ec;
+  if (!fs::is_regular_file(path, ec)) {
+    out.problem = path.string() + (fs::exists(path, ec) ? ": not a file" : ": frame file missing");
+    return out;
+  }
   std::ifstream in(path, std::ios::binary);
   if (!in) {
-    out.problem = path.string() + ": frame file missing";
+    out.problem = path.string() + ": frame file cannot be read";
     return out;
   }
   out.bytes.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());

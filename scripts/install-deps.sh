@@ -5,6 +5,7 @@ set -euo pipefail
 
 packages=(
   build-essential cmake ninja-build pkg-config git ca-certificates
+  clang libclang-rt-dev libomp-dev  # the fuzz build (scripts/fuzz.sh): libFuzzer, sanitizers
   libinsighttoolkit5-dev libeigen3-dev zlib1g-dev
   libcli11-dev libspdlog-dev libfmt-dev nlohmann-json3-dev
   libgtest-dev libgmock-dev

@@ -70,8 +70,9 @@ void SyntheticScene::validate(const std::string& what) const {
   }
   if (!(fps > 0) || fps > 10000) throw Error(what + ": fps must be > 0");
   if (frame_count < 1) throw Error(what + ": frames must be >= 1");
-  if (noise_sigma < 0 || blur_sigma < 0) {
-    throw Error(what + ": noise_sigma and blur_sigma must be >= 0");
+  // Blur beyond 50 px (a picture with no tag left) would only exhaust memory in its kernel.
+  if (!(noise_sigma >= 0 && noise_sigma <= 255) || !(blur_sigma >= 0 && blur_sigma <= 50)) {
+    throw Error(what + ": noise_sigma must be 0 to 255 and blur_sigma 0 to 50 (pixels)");
   }
   if (supersampling < 1 || supersampling > 32) {
     throw Error(what + ": supersampling " + std::to_string(supersampling) + ", expected 1 to 32");
@@ -476,8 +477,8 @@ void read_scene_camera(const json& c, const JsonPath& at,
     return;
   }
   if (!c.is_object()) at.fail("must be an object or the path of a camera.yaml");
-  s.camera.width = int(optional_number(c, "width", at, s.camera.width));
-  s.camera.height = int(optional_number(c, "height", at, s.camera.height));
+  s.camera.width = int(optional_integer(c, "width", at, s.camera.width, 1, 100000));
+  s.camera.height = int(optional_integer(c, "height", at, s.camera.height, 1, 100000));
   s.camera.fx = optional_number(c, "fx", at, 1000.0);
   s.camera.fy = optional_number(c, "fy", at, s.camera.fx);
   s.camera.cx = optional_number(c, "cx", at, (s.camera.width - 1) / 2.0);
@@ -611,15 +612,15 @@ SyntheticScene read_scene(const std::string& path) {
   }
   s.boards = read_scene_boards(j, root, relative);
   s.fps = optional_number(j, "fps", root, s.fps);
-  s.frame_count = int64_t(optional_number(j, "frames", root, double(s.frame_count)));
+  s.frame_count = optional_integer(j, "frames", root, s.frame_count, 1, 10000000);
   s.noise_sigma = optional_number(j, "noise_sigma", root, s.noise_sigma);
   s.blur_sigma = optional_number(j, "blur_sigma", root, s.blur_sigma);
   s.gain = optional_number(j, "gain", root, s.gain);
   s.offset = optional_number(j, "offset", root, s.offset);
   s.black = optional_number(j, "black", root, s.black);
   s.white = optional_number(j, "white", root, s.white);
-  s.seed = uint64_t(optional_number(j, "seed", root, double(s.seed)));
-  s.supersampling = int(optional_number(j, "supersampling", root, s.supersampling));
+  s.seed = uint64_t(optional_integer(j, "seed", root, int64_t(s.seed), 0, int64_t(1) << 53));
+  s.supersampling = int(optional_integer(j, "supersampling", root, s.supersampling, 1, 32));
   s.dropped_frames = frame_list(j, "dropped_frames", root);
   s.corrupt_frames = frame_list(j, "corrupt_frames", root);
   if (j.contains("occlusions")) s.occlusions = read_occlusions(j["occlusions"], root.key("occlusions"));

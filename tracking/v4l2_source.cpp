@@ -297,7 +297,9 @@ cv::Mat mjpeg_to_bgr(const uint8_t* data, size_t size, std::string* problem) {
 V4l2Options parse_v4l2_options(const std::string& uri,
                                const std::vector<std::pair<std::string, std::string>>& options) {
   V4l2Options o;
-  for (const auto& [key, value] : options) {
+  for (const auto& option : options) {
+    const std::string& key = option.first;  // named, not bound: lambdas capture them (C++17)
+    const std::string& value = option.second;
     const auto number = [&](double lo, double hi) {
       char* end = nullptr;
       const double v = std::strtod(value.c_str(), &end);

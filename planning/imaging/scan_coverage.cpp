@@ -2,6 +2,8 @@
 #include "planning/imaging/scan_coverage.hpp"
 #include "foundation/error.hpp"
 
+#include <fmt/format.h>
+
 #include <cmath>
 
 #include <limits>
@@ -102,6 +104,19 @@ Eigen::AlignedBox3d extent_box(const ImageGeometry& g) {
     box.extend(g.index_to_physical(corner));
   }
   return box;
+}
+
+void require_overlap_with_plan(const ImageGeometry& input, const ImageGeometry& plan_grid,
+                               const std::string& path, const std::string& what) {
+  const Eigen::AlignedBox3d a = extent_box(input), b = extent_box(plan_grid);
+  if (a.intersects(b)) return;
+  const Eigen::Vector3d gap = (a.center() - b.center()).cwiseAbs() - 0.5 * (a.sizes() + b.sizes());
+  throw Error(fmt::format("{}: {} does not overlap the plan's region of interest (they are "
+                          "{:.0f} mm apart; its centre ({:.1f}, {:.1f}, {:.1f}), the plan's "
+                          "({:.1f}, {:.1f}, {:.1f}) LPS mm): is it this patient's, in the same "
+                          "frame?",
+                          path, what, gap.cwiseMax(0.0).norm(), a.center().x(), a.center().y(),
+                          a.center().z(), b.center().x(), b.center().y(), b.center().z()));
 }
 
 Eigen::AlignedBox3d ScanCoverage::bounding_box() const {

@@ -45,4 +45,9 @@ class ScanCoverage {
 // The LPS bounding box of a grid's extent (the footprints of all its voxels).
 Eigen::AlignedBox3d extent_box(const ImageGeometry& g);
 
+// Throws Error naming `path` (what it is: "the CT", "the label map") when its grid does not meet
+// the plan's grid anywhere: black images or "no structures" would follow, not an answer.
+void require_overlap_with_plan(const ImageGeometry& input, const ImageGeometry& plan_grid,
+                               const std::string& path, const std::string& what);
+
 }  // namespace crepuscular::planning

@@ -20,6 +20,7 @@
 #include <regex>
 #include <sstream>
 #include <string>
+#include <tuple>
 #include <system_error>
 #include <type_traits>
 #include <utility>
@@ -237,7 +238,11 @@ std::string trimmed(const std::string& text) {
   return text.substr(first, text.find_last_not_of(" \t\r") - first + 1);
 }
 
-// The "key: value" (NRRD) or "key = value" (MetaImage) fields of a text header.
+// Names the first key a text header repeats (its readers act on every occurrence).
+constexpr const char* kRepeatedKey = " repeated";
+
+// The "key: value" (NRRD) or "key = value" (MetaImage) fields of a text header; a repeated key
+// is named under kRepeatedKey.
 std::map<std::string, std::string> text_header(const std::string& path, char separator,
                                                size_t& data_start) {
   std::ifstream in(path, std::ios::binary);
@@ -252,6 +257,7 @@ std::map<std::string, std::string> text_header(const std::string& path, char sep
     const auto at = separator == ':' ? line.find(": ") : line.find('=');
     if (at == std::string::npos) continue;
     const std::string key = trimmed(line.substr(0, at));
+    if (fields.count(key) && !fields.count(kRepeatedKey)) fields[kRepeatedKey] = key;
     fields[key] = trimmed(line.substr(at + (separator == ':' ? 2 : 1)));
     if (separator == '=' && key == "ElementDataFile") break;
   }
@@ -440,6 +446,35 @@ std::string nrrd_header_problem(const std::string& path) {
   return {};
 }
 
+// A header field of whole numbers, each within [lo, hi], `count` of them (0: any number of
+// them, at least one); "" when the field is absent or fine.
+std::string integers_problem(const std::map<std::string, std::string>& fields, const char* key,
+                             double lo, double hi, size_t count, const char* format) {
+  const auto f = fields.find(key);
+  if (f == fields.end()) return {};
+  // Every token must be a number: MetaIO reads "8888\xf5..." as 8888 where a word is skipped here.
+  std::vector<double> values;
+  std::istringstream tokens(f->second);
+  for (std::string token; tokens >> token;) {
+    char* end = nullptr;
+    const double v = std::strtod(token.c_str(), &end);
+    values.push_back(end != token.c_str() && *end == '\0' ? v : std::nan(""));
+  }
+  const std::string expected = "; expected " + (count > 0 ? std::to_string(count) : std::string("")) +
+                               (count == 1 ? " whole number" : " whole numbers") + " from " +
+                               value_text(lo) + " to " + value_text(hi);
+  if (values.empty() || (count > 0 && values.size() != count)) {
+    return std::string(format) + " header: '" + key + "' is \"" + f->second.substr(0, 40) + "\"" +
+           expected;
+  }
+  for (double v : values) {
+    if (!(v >= lo && v <= hi) || v != std::floor(v)) {
+      return std::string(format) + " header: '" + key + "' holds " + value_text(v) + expected;
+    }
+  }
+  return {};
+}
+
 std::string metaimage_header_problem(const std::string& path) {
   size_t data_start = 0;
   const auto fields = text_header(path, '=', data_start);
@@ -448,6 +483,22 @@ std::string metaimage_header_problem(const std::string& path) {
                "Orientation", "Rotation", "CenterOfRotation"},
       "MetaImage");
   if (!problem.empty()) return problem;
+  if (fields.count(kRepeatedKey)) {
+    return "MetaImage header: '" + fields.at(kRepeatedKey) + "' appears more than once";
+  }
+  // Counts MetaIO trusts for its loops and allocations (NDims of 10^96 hung it).
+  size_t ndims = 0;
+  problem = integers_problem(fields, "NDims", 1, 4, 1, "MetaImage");
+  if (!problem.empty()) return problem;
+  if (fields.count("NDims")) ndims = size_t(std::stod(fields.at("NDims")));
+  for (const auto& [key, lo, hi, count] :
+       {std::tuple<const char*, double, double, size_t>{"DimSize", 1, 1e6, ndims},
+        {"ElementNumberOfChannels", 1, 64, 1},
+        {"HeaderSize", -1, 1e15, 1},
+        {"CompressedDataSize", 0, 1e15, 1}}) {
+    problem = integers_problem(fields, key, lo, hi, count, "MetaImage");
+    if (!problem.empty()) return problem;
+  }
   for (const char* key : {"ElementSpacing", "ElementSize"}) {
     const auto f = fields.find(key);
     if (f == fields.end()) continue;

@@ -12,6 +12,7 @@
 
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
+#include "planning/imaging/scan_coverage.hpp"
 #include "planning/imaging/volume_io.hpp"
 
 namespace fs = std::filesystem;
@@ -266,6 +267,7 @@ void read_inputs(PlanData& plan, const PlanLoadOptions& options, const std::stri
     }
     if (!path.empty()) {
       plan.labels = read_label_map(path);
+      require_overlap_with_plan(plan.labels.geometry(), plan.grid, path, "the label map");
       plan.labels_path = path;
     }
   }
@@ -282,6 +284,71 @@ void read_inputs(PlanData& plan, const PlanLoadOptions& options, const std::stri
       spdlog::warn("{}: the plan's tumor mask {} no longer exists", json_path, path);
     }
   }
+}
+
+// What a changed input means for the user, by its role.
+std::string change_consequence(const std::string& role) {
+  if (role == "tumor") return "the plan was computed for another tumor: re-plan";
+  if (role == "labels" || role.rfind("label_maps", 0) == 0 || role == "vulnerability" ||
+      role == "blocking" || role == "ct") {
+    return "the plan's safety was computed from the earlier file: re-plan before trusting it";
+  }
+  return "re-plan before trusting it";
+}
+
+// Every input of plan.json that still exists, checked against its recorded checksum; the label
+// map given instead of the plan's, against the plan's.
+void check_inputs(PlanData& plan, const PlanLoadOptions& options, const std::string& json_path) {
+  const nlohmann::json& j = plan.json;
+  if (!j.contains("inputs") || !j["inputs"].is_object()) return;
+  const JsonPath root(json_path);
+  std::vector<std::pair<std::string, const nlohmann::json*>> recorded;
+  for (const auto& [key, value] : j["inputs"].items()) {
+    if (value.is_object()) {
+      recorded.emplace_back(key, &value);
+    } else if (value.is_array()) {
+      for (size_t i = 0; i < value.size(); ++i) {
+        if (value[i].is_object()) recorded.emplace_back(key + "[" + std::to_string(i) + "]", &value[i]);
+      }
+    }
+  }
+  std::error_code ec;
+  for (const auto& [role, entry] : recorded) {
+    if (!entry->contains("md5") || !(*entry)["md5"].is_string() || !entry->contains("path")) continue;
+    const JsonPath at = root.key("inputs").key(role);
+    std::string path = required_string(*entry, "path", at);
+    const std::string relative = optional_string(*entry, "relative_path", at, "");
+    if (!fs::exists(path, ec) && !relative.empty()) path = (fs::path(plan.dir) / relative).string();
+    if (!fs::exists(path, ec)) continue;  // moved away: the readers say so where they need it
+    const std::string recorded_md5 = (*entry)["md5"].get<std::string>();
+    const bool reported = std::any_of(plan.changed_inputs.begin(), plan.changed_inputs.end(),
+                                      [&](const ChangedInput& c) { return c.path == path; });
+    if (!reported && file_checksum(path) != recorded_md5) {
+      plan.changed_inputs.push_back(
+          {role, path,
+           path + " (" + role + ") changed since planning (checksum differs from " + json_path +
+               "): " + change_consequence(role)});
+    }
+  }
+  // A label map given instead of the plan's: it must be one of the maps planned with.
+  if (!options.labels_override.empty() && fs::exists(options.labels_override, ec)) {
+    const std::string md5 = file_checksum(options.labels_override);
+    bool planned = false;
+    for (const auto& [role, entry] : recorded) {
+      if ((role == "labels" || role.rfind("label_maps", 0) == 0) && entry->contains("md5") &&
+          (*entry)["md5"] == md5) {
+        planned = true;
+      }
+    }
+    if (!planned) {
+      plan.changed_inputs.push_back(
+          {"labels", options.labels_override,
+           options.labels_override + " (labels) is not the label map the plan was computed from "
+                                     "(its checksum matches none in " + json_path +
+               "): structures shown may not match the plan's safety"});
+    }
+  }
+  for (const ChangedInput& c : plan.changed_inputs) spdlog::warn("{}", c.message);
 }
 
 // area_safety.vtk; its regions from plan.json when the mesh file carries only per-vertex data.
@@ -337,6 +404,7 @@ PlanData load_plan(const std::string& plan_dir, const PlanLoadOptions& options) 
   read_parameters(plan, json_path);
   read_volumes(plan, options, json_path);
   read_inputs(plan, options, json_path);
+  if (options.check_inputs) check_inputs(plan, options, json_path);
   if (options.area_safety) read_area(plan, json_path);
   return plan;
 }

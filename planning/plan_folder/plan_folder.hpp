@@ -47,6 +47,14 @@ struct PlanLoadOptions {
   std::string labels_override;
   bool tumor = true;        // the tumor mask of plan.json inputs.tumor (skipped if missing)
   bool area_safety = true;  // PLAN_DIR/area_safety.vtk when present
+  bool check_inputs = true; // compare every input still present with its checksum in plan.json
+};
+
+// An input of the plan (plan.json "inputs") whose file is no longer the one planned with.
+struct ChangedInput {
+  std::string role;  // "tumor", "labels", "label_maps[1]", "ct", "vulnerability", ...
+  std::string path;
+  std::string message;  // one line for the user: what changed and what it means
 };
 
 // A plan folder as the plan pipeline wrote it. Optional parts are empty when absent.
@@ -69,11 +77,15 @@ struct PlanData {
   std::optional<VulnerabilityTable> table;  // plan.json preprocessing.vulnerability
   Volume<uint8_t> tumor;                    // empty when the mask is not found
   std::optional<AreaSafetyGeometry> area;   // area_safety.vtk, when the plan has one
+  // Inputs whose checksum differs from plan.json's (each also logged as a warning); a label map
+  // given instead of the plan's counts when it differs from the one planned with.
+  std::vector<ChangedInput> changed_inputs;
 };
 
 // Reads plan.json and the files asked for. Throws Error naming the file and the field when
 // plan.json is missing or malformed or a required volume cannot be read. A label map or tumor
-// mask that moved since planning is skipped with a warning (give labels_override instead).
+// mask that moved since planning is skipped with a warning (give labels_override instead). An
+// input that changed since planning is reported in changed_inputs, never silently used.
 PlanData load_plan(const std::string& plan_dir, const PlanLoadOptions& options = {});
 
 // A grid as geometry_json wrote it; throws Error naming `where` and the field.

@@ -640,6 +640,7 @@ class Tokens {
   int64_t integer(const char* what) {
     const double x = number(what);
     if (x != std::floor(x)) fail(std::string("expected an integer for ") + what);
+    if (!(std::abs(x) <= 9e15)) fail(std::string("impossible integer for ") + what);
     return int64_t(x);
   }
   [[noreturn]] void fail(const std::string& message) const {
@@ -650,8 +651,13 @@ class Tokens {
   // `count` values of a VTK data type ("double", "float", "int", "unsigned_char", ...): text in an
   // ASCII file; in a BINARY one a big-endian block that starts after the header line's newline.
   std::vector<double> values(size_t count, const std::string& type, const char* what) {
-    std::vector<double> out(count);
+    // A count the file cannot hold is refused before anything is allocated for it.
+    const size_t remaining = text_.size() - std::min(pos_, text_.size());
     if (!binary_) {
+      if (count > remaining / 2 + 1) {
+        fail("the file is too short for " + std::to_string(count) + " values of " + what);
+      }
+      std::vector<double> out(count);
       for (double& x : out) x = number(what);
       return out;
     }
@@ -668,6 +674,7 @@ class Tokens {
     if (count > (text_.size() - std::min(pos_, text_.size())) / size) {
       fail(std::string("file ends inside the binary data of ") + what);
     }
+    std::vector<double> out(count);
     for (double& x : out) {
       unsigned char b[8];
       for (size_t i = 0; i < size; ++i) b[size - 1 - i] = static_cast<unsigned char>(text_[pos_ + i]);
@@ -823,9 +830,16 @@ void read_scalars(Tokens& tok, int64_t nv, AreaSafetyGeometry& g) {
   tok.word("lookup table name");
   if (nv < 0) tok.fail("SCALARS before POINTS");
   const std::vector<double> values = tok.values(size_t(nv), type, name.c_str());
+  const auto all = [&](auto valid, const char* expected) {
+    if (!std::all_of(values.begin(), values.end(), valid)) {
+      tok.fail("SCALARS " + name + ": a value that is not " + expected);
+    }
+  };
   if (name == "safe") {
+    all([](double x) { return x == 0 || x == 1; }, "0 or 1");
     g.safe.assign(values.begin(), values.end());
   } else if (name == "region") {
+    all([](double x) { return x >= -1 && x <= 1e9 && x == std::floor(x); }, "a region number");
     g.region.assign(values.begin(), values.end());
   } else if (name == "leeway") {
     g.leeway.assign(values.begin(), values.end());
@@ -859,7 +873,7 @@ void apply_field_arrays(const VtkFieldArrays& f, AreaSafetyGeometry& g) {
     g.step_mm = f.settings[1];
     g.spacing_mm = f.settings[2];
     g.threshold = f.settings[3];
-    g.rings = int(f.settings[4]);
+    g.rings = f.settings[4] >= 0 && f.settings[4] <= 1e6 ? int(f.settings[4]) : 0;
     g.segments = 2 * g.rings;
   }
   const size_t nr = f.sizes.size();
@@ -870,7 +884,7 @@ void apply_field_arrays(const VtkFieldArrays& f, AreaSafetyGeometry& g) {
       region.id = int(r);
       region.size_mm3 = f.sizes[r];
       region.leeway = f.leeways[r];
-      region.vertex_count = int(f.counts[r]);
+      region.vertex_count = f.counts[r] >= 0 && f.counts[r] <= 2e9 ? int(f.counts[r]) : 0;
       region.centre = Eigen::Vector3d(f.centres[3 * r], f.centres[3 * r + 1], f.centres[3 * r + 2]);
       region.main_axis = Eigen::Vector3d(f.axes[3 * r], f.axes[3 * r + 1], f.axes[3 * r + 2]);
       g.regions.push_back(region);

@@ -108,6 +108,18 @@ TEST(OutputFiles, MissingFolderIsAnErrorNamingTheFile) {
   EXPECT_TRUE(entries(dir).empty());
 }
 
+// `track --out DIR` tracked a whole recording before the rename onto the folder failed: a file
+// that cannot take its name is refused when it is opened, before any work.
+TEST(OutputFiles, PendingFileOntoAFolderOrIntoNoFolderIsRefusedAtOnce) {
+  const fs::path dir = temp_dir("pending_folder");
+  fs::create_directories(dir / "poses");
+  expect_error_containing([&] { PendingFile f((dir / "poses").string()); },
+                          {"poses", "it is a folder"});
+  expect_error_containing([&] { PendingFile f((dir / "none" / "poses.csv").string()); },
+                          {"poses.csv", "does not exist"});
+  EXPECT_EQ(entries(dir), std::vector<std::string>{"poses"});
+}
+
 TEST(OutputFiles, PendingFileIsRemovedUnlessCommitted) {
   const fs::path dir = temp_dir("pending");
   {

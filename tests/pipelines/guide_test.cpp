@@ -11,6 +11,7 @@
 #include <filesystem>
 #include <fstream>
 #include <memory>
+#include <set>
 #include <sstream>
 
 #include <opencv2/imgcodecs.hpp>
@@ -201,6 +202,110 @@ TEST_F(GuideTest, HeadlessRunShowsSafeThenDangerousAndWritesEveryOutput) {
   for (const auto& e : fs::directory_iterator(out)) {
     EXPECT_EQ(e.path().filename().string().rfind(".tmp", 0), std::string::npos) << e.path();
   }
+}
+
+// A recording with every fault a camera gives: blank frames whose timestamps stop advancing, then
+// go backwards; a corrupt JPEG (it decodes, with libjpeg's warning); a frame of another size.
+// Frame by frame, the log shows that nothing is drawn from a pose that is not current.
+TEST_F(GuideTest, FaultsNeverDrawFromAPoseThatIsNotCurrent) {
+  const fs::path faulty = *dir_ / "faulty_recording";
+  fs::remove_all(faulty);
+  fs::copy(*dir_ / "recording", faulty, fs::copy_options::recursive);
+  auto rows = read_csv((faulty / "frames.csv").string());
+  ASSERT_GT(rows.size(), 60u);
+  // Faults in the safe approach, after the corrupt and dropped frames of the scenario.
+  const size_t first_blank = size_t(corrupt_) + 6;  // row index = frame + 1 before the drop
+  size_t row_of_blank = 0;
+  for (size_t i = 1; i < rows.size(); ++i) {
+    if (std::stoll(rows[i][0]) == int64_t(first_blank)) row_of_blank = i;
+  }
+  ASSERT_GT(row_of_blank, 1u);
+  const int64_t frozen = std::stoll(rows[row_of_blank - 1][1]);
+  const cv::Mat gray(720, 1280, CV_8UC3, cv::Scalar(128, 128, 128));
+  std::set<int64_t> blank, corrupt, wrong_size;
+  for (size_t n = 0; n < 12; ++n) {
+    auto& row = rows[row_of_blank + n];
+    blank.insert(std::stoll(row[0]));
+    // Six frames with the last good frame's timestamp, then six 533 ms before it.
+    row[1] = std::to_string(n < 6 ? frozen : frozen - 533000000);
+    cv::imwrite((faulty / row[2]).string(), gray);
+  }
+  {
+    auto& row = rows[row_of_blank + 14];
+    corrupt.insert(std::stoll(row[0]));
+    std::ifstream in(faulty / row[2], std::ios::binary);
+    std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    bytes.resize(bytes.size() * 6 / 10);  // "Premature end of JPEG file": decodes, grey below
+    std::ofstream(faulty / row[2], std::ios::binary) << bytes;
+  }
+  {
+    auto& row = rows[row_of_blank + 16];
+    wrong_size.insert(std::stoll(row[0]));
+    cv::imwrite((faulty / row[2]).string(), cv::Mat(480, 640, CV_8UC3, cv::Scalar(90, 90, 90)));
+  }
+  {
+    std::ofstream csv(faulty / "frames.csv");
+    for (const auto& row : rows) csv << row[0] << ',' << row[1] << ',' << row[2] << '\n';
+  }
+
+  const std::string out = (*dir_ / "faulty").string();
+  fs::create_directories(out);
+  GuideRequest g = request(out);
+  g.source = "recording:" + faulty.string();
+  g.video.clear();
+  g.snapshot_dir.clear();
+  g.record.clear();
+  try {
+    run_guide(*plan_, g);
+  } catch (const Error& e) {
+    if (std::string(e.what()).find("OpenGL") != std::string::npos) GTEST_SKIP() << e.what();
+    throw;
+  }
+  const auto log = read_csv(out + "/overlay.csv");
+  ASSERT_EQ(log.size(), rows.size());  // one row per frame: none ended the session
+  const auto& header = log[0];
+  auto col = [&](const std::string& name) {
+    const size_t c = size_t(std::find(header.begin(), header.end(), name) - header.begin());
+    EXPECT_LT(c, header.size()) << name;
+    return c;
+  };
+  const double max_age_ms = g.tracker.max_age_ms;
+  int blank_seen = 0, drawn_after = 0;
+  for (size_t i = 1; i < log.size(); ++i) {
+    const auto& row = log[i];
+    const int64_t frame = std::stoll(row[col("frame")]);
+    SCOPED_TRACE("frame " + std::to_string(frame));
+    // Whatever is drawn comes from a current pose of a frame that has a picture.
+    if (row[col("anatomy_drawn")] == "1") {
+      EXPECT_EQ(row[col("image")], "1");
+      EXPECT_EQ(row[col("patient_tracked")], "1");
+      EXPECT_LE(std::stod(row[col("patient_age_ms")]), max_age_ms);
+    }
+    if (!row[col("needle_safety")].empty()) {
+      EXPECT_EQ(row[col("anatomy_drawn")], "1");
+      EXPECT_EQ(row[col("needle_tracked")], "1");
+      EXPECT_LE(std::stod(row[col("needle_age_ms")]), max_age_ms);
+    }
+    if (blank.count(frame)) {
+      // The first blank frame may still use the pose of the frame before (one frame old).
+      if (blank_seen++ > 0) {
+        EXPECT_EQ(row[col("anatomy_drawn")], "0");
+        EXPECT_EQ(row[col("needle_safety")], "");
+        EXPECT_NE(row[col("warnings")].find("PATIENT MARKER LOST"), std::string::npos);
+      }
+    }
+    if (corrupt.count(frame) || wrong_size.count(frame)) {
+      EXPECT_EQ(row[col("image")], "0");
+      EXPECT_EQ(row[col("anatomy_drawn")], "0");
+      EXPECT_EQ(row[col("needle_safety")], "");
+      EXPECT_NE(row[col("warnings")].find("NO CAMERA IMAGE"), std::string::npos);
+    }
+    if (corrupt.count(frame)) EXPECT_NE(row[col("problem")].find("corrupt"), std::string::npos);
+    if (wrong_size.count(frame)) EXPECT_NE(row[col("problem")].find("640x480"), std::string::npos);
+    if (frame > *wrong_size.begin() + 3 && row[col("anatomy_drawn")] == "1") ++drawn_after;
+  }
+  EXPECT_EQ(blank_seen, 12);
+  EXPECT_GT(drawn_after, 10);  // guidance comes back once the camera does
 }
 
 TEST_F(GuideTest, UnusableInputLeavesNoOutput) {

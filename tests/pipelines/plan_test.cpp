@@ -210,6 +210,20 @@ TEST_F(PlanTest, CommandLineReportsBadInputAndWritesNothing) {
                     &err, test::Capture::kStderr),
             0);
   EXPECT_EQ(err.rfind("error: --threads", 0), 0u) << err;
+  // Numbers out of their sensible range, NaN among them, are refused by the option that names
+  // them, with short bounds (CLI11's own ranges printed 1.79769e+308 in full and let NaN pass).
+  for (const std::string option : {"--spacing 1e9", "--spacing nan", "--radius 1e308",
+                                   "--margin -1", "--threads 2.5", "--tumor-spacing inf"}) {
+    EXPECT_NE(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " +
+                          tumor_ + " " + option + " --out " + out,
+                      &err, test::Capture::kStderr),
+              0)
+        << option;
+    const std::string name = option.substr(0, option.find(' '));
+    EXPECT_EQ(err.rfind("error: " + name + ":", 0), 0u) << option << ": " << err;
+    EXPECT_EQ(err.find("000000"), std::string::npos) << option << ": " << err;
+    EXPECT_LT(err.size(), 200u) << err;
+  }
   // --out naming the folder of the run's own inputs: refused at once, nothing touched.
   const auto before = std::distance(fs::directory_iterator(dir_), fs::directory_iterator());
   EXPECT_EQ(run_cli("plan --labels " + labels_ + " --vulnerability " + table_ + " --tumor " +

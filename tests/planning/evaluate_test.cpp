@@ -484,3 +484,69 @@ TEST(EvaluateTest, CommandEvaluatesPointsMarkupsAndBatchesOfARealPlan) {
 
 }  // namespace
 }  // namespace crepuscular::planning
+
+namespace crepuscular::planning {
+namespace {
+
+TEST(EvaluateTest, InputsChangedSincePlanningAreReportedInEveryAnswer) {
+  const test::TemporaryFolder dir;
+  const test::MiniPlanInputs inputs = test::write_mini_plan_inputs(dir);
+  run_plan(inputs.request((dir / "plan").string()));
+  const std::string plan_dir = (dir / "plan").string();
+  EXPECT_TRUE(load_plan(plan_dir).changed_inputs.empty());
+
+  // The tumor file replaced by another lesion (one voxel further along i): the plan is stale.
+  Volume<uint8_t> tumor = read_mask(inputs.tumor);
+  Volume<uint8_t> moved(tumor.geometry(), 0);
+  for (int k = 0; k < 24; ++k)
+    for (int j = 0; j < 24; ++j)
+      for (int i = 1; i < 24; ++i) moved(i, j, k) = tumor(i - 1, j, k);
+  write_volume(moved, inputs.tumor);
+  const PlanData stale = load_plan(plan_dir);
+  ASSERT_EQ(stale.changed_inputs.size(), 1u);
+  EXPECT_EQ(stale.changed_inputs[0].role, "tumor");
+  EXPECT_NE(stale.changed_inputs[0].message.find("another tumor"), std::string::npos);
+
+  const ImageGeometry g = inputs.grid;
+  const auto pt = [](const Eigen::Vector3d& p) {
+    return std::to_string(p.x()) + "," + std::to_string(p.y()) + "," + std::to_string(p.z());
+  };
+  const std::string points = " --entry " + pt(g.index_to_physical(4, 11, 11)) + " --target " +
+                             pt(g.index_to_physical(11, 11, 11));
+  std::string out;
+  ASSERT_EQ(run_cli("evaluate --plan " + plan_dir + points + " --json", &out), 0) << out;
+  const auto j = nlohmann::json::parse(out.substr(out.find('{')));
+  ASSERT_EQ(j["changed_inputs"].size(), 1u) << out;
+  EXPECT_NE(j["changed_inputs"][0].get<std::string>().find(inputs.tumor), std::string::npos);
+  ASSERT_EQ(run_cli("evaluate --plan " + plan_dir + points, &out), 0) << out;
+  EXPECT_NE(out.find("WARNING: " + inputs.tumor + " (tumor) changed since planning"),
+            std::string::npos)
+      << out;
+
+  // A label map given instead of the plan's that is not one it was planned from.
+  Volume<int32_t> labels = read_label_map(inputs.labels);
+  labels(0, 0, 0) = 2;
+  const std::string other = (dir / "other_labels.nii.gz").string();
+  write_volume(labels, other);
+  PlanLoadOptions with_other;
+  with_other.labels_override = other;
+  const PlanData overridden = load_plan(plan_dir, with_other);
+  ASSERT_EQ(overridden.changed_inputs.size(), 2u);
+  EXPECT_EQ(overridden.changed_inputs[1].path, other);
+  // The plan's own label map given explicitly is no change.
+  with_other.labels_override = inputs.labels;
+  EXPECT_EQ(load_plan(plan_dir, with_other).changed_inputs.size(), 1u);
+
+  // A label map 2 m away would show "no structures": refused, naming it.
+  ImageGeometry far_grid = labels.geometry();
+  far_grid.origin += Eigen::Vector3d(2000, 0, 0);
+  const std::string far = (dir / "far_labels.nii.gz").string();
+  write_volume(Volume<int32_t>(far_grid, 2), far);
+  std::string err;
+  EXPECT_NE(run_cli("evaluate --plan " + plan_dir + points + " --labels " + far, &err), 0);
+  EXPECT_NE(err.find("far_labels.nii.gz: the label map does not overlap"), std::string::npos)
+      << err;
+}
+
+}  // namespace
+}  // namespace crepuscular::planning

@@ -398,6 +398,18 @@ TEST(SlicesTest, CommandWritesOneImagePerPlaneAndRefusesBadInput) {
   // Slices options that cannot be honoured are refused, not replaced.
   EXPECT_NE(run_cli(base + " --window nan --out " + (dir / "bad").string()), 0);
   EXPECT_NE(run_cli(base + " --pixel 0 --out " + (dir / "bad").string()), 0);
+  // Each refused by its own name (an unknown class was blamed on no option, and --pixel 1e308
+  // printed its 309 digits into a 1-pixel image).
+  EXPECT_NE(run_cli(base + " --hide foo --out " + (dir / "bad").string(), &err,
+                    test::Capture::kStderr),
+            0);
+  EXPECT_EQ(err.rfind("error: --hide:", 0), 0u) << err;
+  EXPECT_NE(err.find("\"foo\""), std::string::npos) << err;
+  EXPECT_NE(run_cli(base + " --pixel 1e308 --out " + (dir / "bad").string(), &err,
+                    test::Capture::kStderr),
+            0);
+  EXPECT_EQ(err.rfind("error: --pixel:", 0), 0u) << err;
+  EXPECT_LT(err.size(), 200u) << err;
   EXPECT_FALSE(fs::exists(dir / "bad"));
 }
 

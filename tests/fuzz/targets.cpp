@@ -1,0 +1,132 @@
+#include "tests/fuzz/targets.hpp"
+
+#include <unistd.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <cstdlib>
+#include <exception>
+#include <filesystem>
+#include <fstream>
+
+#include "calibration/calibration_files.hpp"
+#include "calibration/camera_model.hpp"
+#include "foundation/error.hpp"
+#include "planning/imaging/fiducials.hpp"
+#include "planning/imaging/segmentation.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "planning/plan_folder/plan_folder.hpp"
+#include "planning/preprocessing/vulnerability.hpp"
+#include "planning/safety/area_safety.hpp"
+#include "planning/trajectories/evaluate.hpp"
+#include "planning/trajectories/markups.hpp"
+#include "recordings/recording.hpp"
+#include "tracking/board.hpp"
+#include "tracking/poses_csv.hpp"
+#include "tracking/synthetic.hpp"
+
+namespace crepuscular::fuzz {
+namespace {
+
+namespace fs = std::filesystem;
+
+void read_float_volume(const std::string& path) { planning::read_volume<float>(path); }
+void read_label_map(const std::string& path) { planning::read_label_map(path); }
+
+void read_recording(const std::string& path) {
+  recordings::RecordingReader reader(fs::path(path).parent_path().string());
+  const size_t n = std::min<size_t>(reader.entries().size(), 4);
+  for (size_t i = 0; i < n; ++i) reader.load(i);
+  if (reader.has_ground_truth() && !reader.entries().empty()) {
+    reader.ground_truth(reader.entries().front().frame);
+  }
+}
+
+void read_plan_json(const std::string& path) {
+  planning::PlanLoadOptions only_the_json;
+  only_the_json.blocking = false;
+  only_the_json.path_safety = false;
+  only_the_json.labels = false;
+  only_the_json.tumor = false;
+  only_the_json.area_safety = false;
+  planning::load_plan(fs::path(path).parent_path().string(), only_the_json);
+}
+
+// The scratch folder of this process, emptied of what an earlier input left (frames, ...).
+const fs::path& scratch_folder() {
+  static const fs::path folder = [] {
+    fs::path p = fs::temp_directory_path() / ("crepuscular-fuzz-" + std::to_string(getpid()));
+    fs::remove_all(p);
+    fs::create_directories(p);
+    std::atexit([] { std::error_code ignored; fs::remove_all(scratch_folder(), ignored); });
+    return p;
+  }();
+  return folder;
+}
+
+}  // namespace
+
+const std::vector<FuzzTarget>& fuzz_targets() {
+  static const std::vector<FuzzTarget> targets = {
+      {"nifti", "image.nii", read_float_volume},
+      {"nrrd", "image.nrrd", read_float_volume},
+      {"metaimage", "image.mha", read_label_map},
+      {"segmentation", "segmentation.seg.nrrd",
+       [](const std::string& path) { planning::read_segmentation(path); }},
+      {"vulnerability", "vulnerability.json",
+       [](const std::string& path) { planning::VulnerabilityTable::load(path); }},
+      {"boards", "boards.json", [](const std::string& path) { tracking::read_boards(path); }},
+      {"scene", "scene.json", [](const std::string& path) { tracking::read_scene(path); }},
+      {"camera_yaml", "camera.yaml",
+       [](const std::string& path) { calibration::CameraModel::read_yaml(path); }},
+      {"needle_yaml", "needle.yaml",
+       [](const std::string& path) { calibration::read_needle_calibration(path); }},
+      {"registration_yaml", "registration.yaml",
+       [](const std::string& path) { calibration::read_registration(path); }},
+      {"frames_csv", "frames.csv", read_recording},
+      {"truth_csv", "truth.csv", [](const std::string& path) { recordings::read_pose_csv(path); }},
+      {"poses_csv", "poses.csv", [](const std::string& path) { tracking::read_poses_csv(path); }},
+      {"line_markup", "line.mrk.json",
+       [](const std::string& path) { planning::read_line_markup(path); }},
+      {"fiducial_markups", "fiducials.mrk.json",
+       [](const std::string& path) { planning::read_fiducial_markups(path); }},
+      {"batch_csv", "trajectories.csv",
+       [](const std::string& path) { planning::read_trajectories_csv(path); }},
+      {"plan_json", "plan.json", read_plan_json},
+      {"area_mesh", "area_safety.vtk",
+       [](const std::string& path) { planning::read_area_safety_vtk(path); }},
+  };
+  return targets;
+}
+
+const FuzzTarget* find_fuzz_target(const std::string& name) {
+  for (const FuzzTarget& target : fuzz_targets()) {
+    if (name == target.name) return &target;
+  }
+  return nullptr;
+}
+
+std::string run_fuzz_input(const FuzzTarget& target, const uint8_t* data, size_t size) {
+  const fs::path& folder = scratch_folder();
+  for (const auto& entry : fs::directory_iterator(folder)) fs::remove_all(entry.path());
+  const fs::path path = folder / target.file_name;
+  {
+    std::ofstream out(path, std::ios::binary);
+    out.write(reinterpret_cast<const char*>(data), static_cast<std::streamsize>(size));
+  }
+  try {
+    target.read(path.string());
+    return "";
+  } catch (const Error& e) {
+    return e.what();  // refused with a message naming the file: what bad input must get
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "fuzz %s: not a crepuscular::Error escaped the reader: %s\n", target.name,
+                 e.what());
+    std::abort();
+  } catch (...) {
+    std::fprintf(stderr, "fuzz %s: an unknown exception escaped the reader\n", target.name);
+    std::abort();
+  }
+}
+
+}  // namespace crepuscular::fuzz
