@@ -171,6 +171,11 @@ struct NiftiHeader {
   }
 };
 
+bool path_ends_with(const std::string& path, const std::string& suffix) {
+  return path.size() >= suffix.size() &&
+         path.compare(path.size() - suffix.size(), suffix.size(), suffix) == 0;
+}
+
 std::string nifti_length_problem(const std::string& path) {
   NiftiHeader header;
   const std::string unreadable = header.open(path);
@@ -187,6 +192,10 @@ std::string nifti_length_problem(const std::string& path) {
     vox_offset = double(header.field<int64_t>(168));
     bitpix = header.field<int16_t>(14);
     for (int d = 0; d < 8; ++d) dim[d] = header.field<int64_t>(16 + 8 * size_t(d));
+  } else if (path_ends_with(path, ".nii") || path_ends_with(path, ".nii.gz")) {
+    // A single-file NIfTI always says so; without the magic ITK takes it for Analyze 7.5 and
+    // trusts its sizes (12 GB for a 364-byte file).
+    return "not a NIfTI file: its header lacks the magic \"n+1\" or \"n+2\"";
   } else {
     return {};  // header and data in separate files (.hdr/.img), or Analyze: not checked here
   }
@@ -257,6 +266,9 @@ std::map<std::string, std::string> text_header(const std::string& path, char sep
     const auto at = separator == ':' ? line.find(": ") : line.find('=');
     if (at == std::string::npos) continue;
     const std::string key = trimmed(line.substr(0, at));
+    if (line.find('\0') != std::string::npos && !fields.count(kRepeatedKey)) {
+      fields[kRepeatedKey] = key.substr(0, key.find('\0'));  // its readers end the key there
+    }
     if (fields.count(key) && !fields.count(kRepeatedKey)) fields[kRepeatedKey] = key;
     fields[key] = trimmed(line.substr(at + (separator == ':' ? 2 : 1)));
     if (separator == '=' && key == "ElementDataFile") break;
@@ -484,7 +496,8 @@ std::string metaimage_header_problem(const std::string& path) {
       "MetaImage");
   if (!problem.empty()) return problem;
   if (fields.count(kRepeatedKey)) {
-    return "MetaImage header: '" + fields.at(kRepeatedKey) + "' appears more than once";
+    return "MetaImage header: '" + fields.at(kRepeatedKey) +
+           "' appears more than once (or holds a NUL byte)";
   }
   // Counts MetaIO trusts for its loops and allocations (NDims of 10^96 hung it).
   size_t ndims = 0;
