@@ -85,6 +85,12 @@ void add_guide_command(CLI::App& app) {
   cmd->add_option("--log", r.log,
                   "Per-frame CSV (tracking, needle safety, latency); default: the video's name "
                   "with .csv");
+  cmd->add_option("--igtl-server", r.igtl_port,
+                  "Serve OpenIGTLink on this TCP port (Slicer's default: 18944) to 3D Slicer's "
+                  "OpenIGTLinkIF and other clients: NeedleToCT, PatientToCT, NeedleTipToNeedle "
+                  "(TRANSFORM), NeedleSafety (STRING), Target (POINT), PlannedTrajectory (TRAJ), "
+                  "STATUS for a lost marker; 0: any free port")
+      ->check(in_range(0, 65535, true));
   cmd->add_option("--record", r.record,
                   "Also record the incoming frames to this recording folder (replay it later "
                   "with --source recording:DIR)");

@@ -174,8 +174,13 @@ json parse_json_text(const std::string& text, const std::string& source) {
   try {
     return json::parse(text);
   } catch (const json::exception& e) {
-    // e.what() names the position: "parse error at line 3, column 5: syntax error ...".
-    throw Error(source + ": not valid JSON (" + e.what() + ")");
+    // e.what() names the position ("parse error at line 3, column 5: syntax error ...") after
+    // the library's own tag ("[json.exception.parse_error.101] "), which says nothing to a user.
+    std::string why = e.what();
+    const size_t tag_end = why.rfind("] ", why.find(' ') == std::string::npos ? 0 : why.find(' '));
+    if (!why.empty() && why.front() == '[' && tag_end != std::string::npos) why.erase(0, tag_end + 2);
+    if (why.rfind("number overflow", 0) == 0) why += " (a number beyond +-1.8e308)";
+    throw Error(source + ": not valid JSON (" + why + ")");
   }
 }
 

@@ -19,6 +19,7 @@
 #include "foundation/error.hpp"
 #include "foundation/output_files.hpp"
 #include "pipelines/guide_loop.hpp"
+#include "pipelines/guide_igtl.hpp"
 #include "tracking/board.hpp"
 #include "tracking/frame_source.hpp"
 
@@ -370,6 +371,13 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
   RendererOptions ro = request.renderer;
   ro.visible = request.window;
   GuideLoop loop(plan, request.setup, request.boards, request.options, request.tracker, ro);
+  std::unique_ptr<GuidanceBroadcast> broadcast;
+  if (request.igtl_port >= 0) {
+    igtlink::Server::Options io;
+    io.port = request.igtl_port;
+    broadcast = std::make_unique<GuidanceBroadcast>(io, plan, request.setup);
+    loop.set_broadcast(broadcast.get());
+  }
 
   GuideSummary summary;
   summary.gl = loop.renderer().gl_description();
@@ -403,6 +411,17 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
     }
   }
   summary.seconds = std::chrono::duration<double>(Clock::now() - t0).count();
+  if (broadcast) {
+    const igtlink::Server::Stats st = broadcast->server().stats();
+    summary.igtl_connections = st.connections;
+    summary.igtl_messages = st.messages_sent;
+    summary.igtl_latency_median_ms = st.latency_median_ms;
+    summary.igtl_latency_p95_ms = st.latency_p95_ms;
+    spdlog::info("guide: OpenIGTLink: {} client(s) served, {} messages, pose to socket {:.3f} ms "
+                 "median, {:.3f} ms p95; {} dropped",
+                 st.connections, st.messages_sent, st.latency_median_ms, st.latency_p95_ms,
+                 st.dropped);
+  }
   summary.fps = summary.seconds > 0 ? double(summary.frames) / summary.seconds : 0;
   timings.summarise(summary);
   outputs.commit(summary);

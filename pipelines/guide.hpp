@@ -40,6 +40,8 @@ struct GuideRequest {
   // as FOLDER.partial while guiding (replayable at any moment), renamed at the end.
   std::string record;
   int64_t max_frames = -1;
+  // OpenIGTLink server port for the operating room's tools (guide_igtl.hpp); -1: none.
+  int igtl_port = -1;
   overlay::GuidanceOptions options;
   tracking::TrackerOptions tracker;
   overlay::RendererOptions renderer;
@@ -59,6 +61,9 @@ struct GuideSummary {
   bool latency_from_capture = false;
   double track_median_ms = 0, overlay_median_ms = 0, render_median_ms = 0, render_p95_ms = 0;
   std::string gl;                                       // the OpenGL implementation
+  // OpenIGTLink (with igtl_port): clients served, and publish-to-socket latency of the poses.
+  int64_t igtl_connections = 0, igtl_messages = 0;
+  double igtl_latency_median_ms = 0, igtl_latency_p95_ms = 0;
   std::vector<overlay::GuidanceFrameInfo> frame_infos;  // one per frame shown
   std::vector<std::string> snapshots_written;
   std::string video;  // the video written, if any

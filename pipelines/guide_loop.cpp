@@ -6,6 +6,7 @@
 #include <future>
 
 #include "foundation/error.hpp"
+#include "pipelines/guide_igtl.hpp"
 
 namespace crepuscular::pipelines {
 
@@ -73,10 +74,12 @@ GuideFrameResult GuideLoop::process(const tracking::Frame& frame, Clock::time_po
                         frame.image.rows == camera.height && frame.image.type() == CV_8UC3;
   if (uploaded) renderer_.set_frame(frame.image);
   const tracking::TrackResult track = tracking.get();
+  if (broadcast_) broadcast_->poses(frame, track);
   r.dropped = track.dropped;
   const auto tracked = Clock::now();
   timing_.track_ms = ms_between(arrival, tracked);
   r.info = overlay_.update(renderer_, frame, track, timing_, uploaded);
+  if (broadcast_) broadcast_->safety(r.info);
   const auto overlaid = Clock::now();
   if (want_image) {
     r.image = renderer_.render();

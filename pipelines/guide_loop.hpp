@@ -18,6 +18,8 @@
 
 namespace crepuscular::pipelines {
 
+class GuidanceBroadcast;
+
 struct GuideFrameResult {
   overlay::GuidanceFrameInfo info;
   cv::Mat image;  // the overlay image (when asked for), CV_8UC3 BGR
@@ -47,6 +49,8 @@ class GuideLoop {
   overlay::GuidanceOverlay& overlay() { return overlay_; }
   overlay::OverlayRenderer& renderer() { return renderer_; }
   bool window_closed() const { return window_closed_; }
+  // OpenIGTLink out (guide_igtl.hpp): poses right after tracking, safety after the overlay.
+  void set_broadcast(GuidanceBroadcast* broadcast) { broadcast_ = broadcast; }
 
  private:
   tracking::Tracker tracker_;
@@ -55,6 +59,7 @@ class GuideLoop {
   overlay::GuidanceTiming timing_;
   std::deque<Clock::time_point> shown_;
   bool window_closed_ = false;
+  GuidanceBroadcast* broadcast_ = nullptr;
 };
 
 // Nearest-rank percentile (p in 0..100) of the values; 0 for none.

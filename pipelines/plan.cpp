@@ -18,6 +18,7 @@
 #include "planning/imaging/volume_io.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
 #include "planning/safety/unknown.hpp"
+#include "planning/trajectories/markups.hpp"
 
 namespace crepuscular::pipelines {
 
@@ -269,10 +270,25 @@ nlohmann::json run_plan(const PlanRequest& req) {
   nlohmann::json area_safety;
   if (req.area_safety.enabled) {
     t = Clock::now();
+    AreaSafetyGeometry geometry;
     area_safety = plan_area_safety(in.tumor, result, req.area_safety, out.file("area_safety.vtk"),
-                                   &region);
+                                   &region, &geometry);
     written.outputs["area_safety"] = "area_safety.vtk";
     timings["area_safety_s"] = seconds_since(t);
+    // The planned trajectories for 3D Slicer: one line per safe region, and their entries.
+    const std::string value = area_safety["value"].get<std::string>();
+    const std::vector<RegionTrajectory> planned = region_trajectories(
+        geometry, result.grid.centre, in.labels,
+        result.volumes[size_t(kernels::value_slot(parse_value_set(value)))], result.grid.radius_mm);
+    write_text_file(out.file("trajectories.mrk.json"),
+                    trajectories_markups_json(planned, value).dump(2) + "\n");
+    write_text_file(out.file("entries.mrk.json"), entries_markups_json(planned, value).dump(2) + "\n");
+    written.outputs["trajectories"] = "trajectories.mrk.json";
+    written.outputs["entries"] = "entries.mrk.json";
+    spdlog::info("{} planned trajectories (one per safe region whose line reaches the skin "
+                 "within the region of interest): "
+                 "trajectories.mrk.json, entries.mrk.json",
+                 planned.size());
   }
   timings["total_s"] = seconds_since(t_start);
 

@@ -112,10 +112,12 @@ void blocking_from_label_specs(const PlanInputOptions& o, PlanInputs& in) {
     const LabelMapInput& only = s.inputs.front();
     in.blocking = blocking_from_labels(*only.labels, *only.table, o.margin, only.source);
     in.coverage.add(only.labels->geometry(), only.source);
+    in.labels = *only.labels;
   } else {
     const CombinedLabels c = combine_label_maps(s.inputs);
     in.blocking = blocking_from_labels(c.labels, c.table, o.margin, "the label maps");
     in.coverage = c.coverage;
+    in.labels = c.labels;
   }
   in.blocking_source = s.inputs.front().source;
   in.preprocessing = {{"mode", "labels"}, {"label_maps", s.description},

@@ -40,6 +40,7 @@ struct PlanInputs {
   planning::Volume<uint8_t> tumor;    // the chosen lesion
   nlohmann::json tumor_source;        // plan.json "tumor_source": file, label, lesion
   planning::ScanCoverage coverage;    // the scanned volume: the anatomy inputs' grids
+  planning::Volume<int32_t> labels;   // the (combined) label map, for the skin; empty without one
 };
 
 // Reads and combines the inputs. Throws Error naming the file and the problem.

@@ -12,7 +12,8 @@ packages=(
   libopencv-dev libapriltag-dev libceres-dev libjpeg-dev
   libglfw3-dev libglm-dev libgl-dev libegl-dev libv4l-dev
   xvfb xauth libgl1-mesa-dri libegl-mesa0
-  python3-nibabel python3-numpy
+  libopenigtlink-dev openigtlink-examples  # OpenIGTLink; tests build two of its examples
+  python3-nibabel python3-numpy python3-jsonschema
   python3-vtk9  # tests: area_safety.vtk read back by VTK's own reader
 )
 

@@ -979,7 +979,8 @@ nlohmann::json area_safety_json(const AreaSafetyGeometry& g) {
 
 nlohmann::json plan_area_safety(const Volume<uint8_t>& tumor, const PathSafetyResult& result,
                                 const AreaSafetyPlanOptions& options, const std::string& vtk_path,
-                                const Volume<uint8_t>* region_state) {
+                                const Volume<uint8_t>* region_state,
+                                AreaSafetyGeometry* geometry) {
   const auto t0 = Clock::now();
   int slot = -1;
   for (int v = 0; v < kernels::kValueCount; ++v) {
@@ -1019,6 +1020,7 @@ nlohmann::json plan_area_safety(const Volume<uint8_t>& tumor, const PathSafetyRe
   j["unsafe_class"] = options.unsafe_class;
   j["file"] = fs::path(vtk_path).filename().string();
   j["seconds"] = seconds_since(t0);
+  if (geometry) *geometry = std::move(g);
   return j;
 }
 

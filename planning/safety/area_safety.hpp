@@ -181,8 +181,10 @@ struct AreaSafetyPlanOptions {
 // threshold of options.unsafe_class (default_classes of that volume) or options.threshold; maximum
 // distance R; edge bound h. `region_state`: the voxel states of the plan (extrusions stop unsafe
 // at unknown voxels). Writes the mesh to `vtk_path` and returns plan.json's "area_safety".
+// `geometry`, when given, receives the mesh as written.
 nlohmann::json plan_area_safety(const Volume<uint8_t>& tumor, const PathSafetyResult& result,
                                 const AreaSafetyPlanOptions& options, const std::string& vtk_path,
-                                const Volume<uint8_t>* region_state = nullptr);
+                                const Volume<uint8_t>* region_state = nullptr,
+                                AreaSafetyGeometry* geometry = nullptr);
 
 }  // namespace crepuscular::planning

@@ -1,11 +1,18 @@
 // 3D Slicer markups files (.mrk.json): line markups in LPS or RAS.
 #include "planning/trajectories/markups.hpp"
 
+#include <fmt/format.h>
 #include <nlohmann/json.hpp>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
 
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
 #include "foundation/output_files.hpp"
+#include "planning/imaging/ray_march.hpp"
+#include "planning/imaging/sampling.hpp"
 
 namespace crepuscular::planning {
 
@@ -130,6 +137,125 @@ nlohmann::json line_markup_json(const LineMarkup& line, const std::string& coord
 void write_line_markup(const std::string& path, const LineMarkup& line,
                        const std::string& coordinate_system) {
   write_text_file(path, line_markup_json(line, coordinate_system).dump(2) + "\n");
+}
+
+// ---------------------------------------------------------------------------------------------
+
+std::vector<RegionTrajectory> region_trajectories(const AreaSafetyGeometry& g,
+                                                  const Eigen::Vector3d& target,
+                                                  const Volume<int32_t>& labels,
+                                                  const Volume<float>& path_safety,
+                                                  double max_distance_mm) {
+  std::vector<RegionTrajectory> out;
+  for (const AreaRegion& r : g.regions) {
+    // The region's extruded vertex nearest to its centre.
+    int best = -1;
+    double best_d = std::numeric_limits<double>::infinity();
+    for (size_t v = 0; v < g.vertices.size() && v < g.region.size(); ++v) {
+      if (g.region[v] != r.id || (v < g.safe.size() && !g.safe[v])) continue;
+      const double d = (g.vertices[v] - r.centre).squaredNorm();
+      if (d < best_d) {
+        best_d = d;
+        best = int(v);
+      }
+    }
+    if (best < 0) continue;
+    const Eigen::Vector3d far = g.vertices[size_t(best)];
+    const Eigen::Vector3d u = (far - target).normalized();
+    if (!u.allFinite()) continue;
+    RegionTrajectory t;
+    t.region = r.id;
+    t.leeway = r.leeway;
+    t.size_mm3 = r.size_mm3;
+    t.target = target;
+    t.entry = far;
+    if (labels.voxel_count() > 0) {
+      const std::optional<Eigen::Vector3d> skin = outermost_body_exit(labels, target, u);
+      if (!skin) continue;  // the skin on this line is not in the scan: no entry to offer
+      if ((*skin - target).norm() > max_distance_mm) continue;  // beyond what was computed
+      t.entry = *skin;
+      t.on_skin = true;
+    }
+    t.value = path_safety.voxel_count() > 0
+                  ? trilinear_finite(path_safety, path_safety.physical_to_index(t.entry))
+                                            : std::numeric_limits<double>::quiet_NaN();
+    out.push_back(t);
+  }
+  return out;
+}
+
+namespace {
+
+std::string value_text(const std::string& value_name, double value) {
+  if (!std::isfinite(value)) return value_name + " not computed at the entry";
+  return value_name == "svv" ? fmt::format("svv {:.0f} %", value)
+                             : fmt::format("{} {:.3g}", value_name, value);
+}
+
+nlohmann::json position(const Eigen::Vector3d& p, bool ras) {
+  const Eigen::Vector3d q = ras ? flip_xy(p) : p;
+  return {q.x(), q.y(), q.z()};
+}
+
+void check_system(const std::string& coordinate_system) {
+  if (coordinate_system != "LPS" && coordinate_system != "RAS") {
+    throw Error("markups: coordinate system \"" + coordinate_system +
+                "\" is not supported (expected \"LPS\" or \"RAS\")");
+  }
+}
+
+}  // namespace
+
+nlohmann::json trajectories_markups_json(const std::vector<RegionTrajectory>& trajectories,
+                                         const std::string& value_name,
+                                         const std::string& coordinate_system) {
+  check_system(coordinate_system);
+  const bool ras = coordinate_system == "RAS";
+  nlohmann::json markups = nlohmann::json::array();
+  for (const RegionTrajectory& t : trajectories) {
+    const std::string name = fmt::format("Region {}: leeway {:.2f}, {}", t.region + 1, t.leeway,
+                                         value_text(value_name, t.value));
+    markups.push_back(
+        {{"type", "Line"},
+         {"name", name},
+         {"coordinateSystem", coordinate_system},
+         {"coordinateUnits", "mm"},
+         {"controlPoints",
+          {{{"id", "1"},
+            {"label", fmt::format("R{} entry", t.region + 1)},
+            {"description", t.on_skin ? "on the skin" : "extruded safe direction (no skin found)"},
+            {"position", position(t.entry, ras)},
+            {"positionStatus", "defined"}},
+           {{"id", "2"},
+            {"label", "tumor centre"},
+            {"position", position(t.target, ras)},
+            {"positionStatus", "defined"}}}},
+         {"measurements", {{{"name", "length"}, {"enabled", true}}}}});
+  }
+  return {{"@schema", kSchema}, {"markups", markups}};
+}
+
+nlohmann::json entries_markups_json(const std::vector<RegionTrajectory>& trajectories,
+                                    const std::string& value_name,
+                                    const std::string& coordinate_system) {
+  check_system(coordinate_system);
+  const bool ras = coordinate_system == "RAS";
+  nlohmann::json points = nlohmann::json::array();
+  for (size_t i = 0; i < trajectories.size(); ++i) {
+    const RegionTrajectory& t = trajectories[i];
+    points.push_back({{"id", std::to_string(i + 1)},
+                      {"label", fmt::format("R{} entry", t.region + 1)},
+                      {"description", fmt::format("leeway {:.2f}, {}", t.leeway,
+                                                  value_text(value_name, t.value))},
+                      {"position", position(t.entry, ras)},
+                      {"positionStatus", "defined"}});
+  }
+  nlohmann::json markup = {{"type", "Fiducial"},
+                           {"name", "Safe entries"},
+                           {"coordinateSystem", coordinate_system},
+                           {"coordinateUnits", "mm"},
+                           {"controlPoints", points}};
+  return {{"@schema", kSchema}, {"markups", nlohmann::json::array({markup})}};
 }
 
 }  // namespace crepuscular::planning

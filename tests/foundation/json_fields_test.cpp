@@ -26,6 +26,21 @@ const json kDoc = json::parse(R"({
   "origin": [1, 2, 3]
 })");
 
+// A coefficient of 1e400 gave the library's exception text; now the file and a plain reason.
+TEST(JsonFields, ParseErrorsNameTheSourceWithoutTheLibrarysTag) {
+  try {
+    parse_json_text("{\"blocking_per_mm\": 1e400}", "table.json");
+    FAIL() << "1e400 accepted";
+  } catch (const Error& e) {
+    const std::string message = e.what();
+    EXPECT_EQ(message.rfind("table.json: not valid JSON (number overflow parsing '1e400'", 0), 0u)
+        << message;
+    EXPECT_EQ(message.find("json.exception"), std::string::npos) << message;
+  }
+  expect_error_containing([] { parse_json_text("{\"a\": [1, 2", "t.json"); },
+                          {"t.json: not valid JSON (parse error at line 1"});
+}
+
 TEST(JsonFields, PathsJoinKeysAndIndices) {
   const JsonPath root("t.json");
   EXPECT_EQ(root.describe(), "t.json");

@@ -11,9 +11,18 @@
 #include <filesystem>
 #include <fstream>
 #include <memory>
+#include <map>
+#include <thread>
+#include <atomic>
 #include <set>
 #include <sstream>
 
+#include <arpa/inet.h>
+#include <igtlClientSocket.h>
+#include <igtlMessageHeader.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/videoio.hpp>
 
@@ -306,6 +315,76 @@ TEST_F(GuideTest, FaultsNeverDrawFromAPoseThatIsNotCurrent) {
   }
   EXPECT_EQ(blank_seen, 12);
   EXPECT_GT(drawn_after, 10);  // guidance comes back once the camera does
+}
+
+// `guide --igtl-server`: a client connected before the first frame receives, per frame, the
+// needle in the CT (or a STATUS while a marker is lost) and the needle's safety, and first the
+// on-connect messages.
+TEST_F(GuideTest, OpenIgtLinkClientGetsEveryFramesNeedlePoseAndSafety) {
+  // A free port: bound by the system, released, then served by guide.
+  const int probe = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  ASSERT_EQ(::bind(probe, reinterpret_cast<sockaddr*>(&address), sizeof(address)), 0);
+  socklen_t length = sizeof(address);
+  ::getsockname(probe, reinterpret_cast<sockaddr*>(&address), &length);
+  const int port = ntohs(address.sin_port);
+  ::close(probe);
+
+  const std::string out = (*dir_ / "igtl").string();
+  fs::create_directories(out);
+  GuideRequest g = request(out);
+  g.video.clear();
+  g.snapshot_dir.clear();
+  g.igtl_port = port;
+  // Replayed at its recorded timing (10 fps): the client, connecting as soon as the server
+  // listens, misses at most the first frame or two.
+  g.source += "?realtime=1";
+  std::map<std::string, int> names;
+  std::atomic<bool> stop{false};
+  std::thread client([&] {
+    igtl::ClientSocket::Pointer socket;
+    for (int attempt = 0; !stop && attempt < 1000; ++attempt) {
+      socket = igtl::ClientSocket::New();  // a fresh socket per attempt (a failed one is spent)
+      if (socket->ConnectToServer("127.0.0.1", port) == 0) break;
+      socket = nullptr;
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    if (socket.IsNull()) return;
+    igtl::MessageHeader::Pointer header = igtl::MessageHeader::New();
+    for (;;) {
+      header->InitPack();
+      if (socket->Receive(header->GetPackPointer(), header->GetPackSize()) !=
+          header->GetPackSize()) {
+        break;  // guide ended: the server closed
+      }
+      header->Unpack();
+      ++names[std::string(header->GetDeviceType()) + " " + header->GetDeviceName()];
+      socket->Skip(int(header->GetBodySizeToRead()), 1);
+    }
+  });
+  GuideSummary s;
+  try {
+    s = run_guide(*plan_, g);
+  } catch (const Error& e) {
+    stop = true;
+    client.join();
+    if (std::string(e.what()).find("OpenGL") != std::string::npos) GTEST_SKIP() << e.what();
+    throw;
+  }
+  client.join();
+  EXPECT_EQ(s.igtl_connections, 1);
+  EXPECT_EQ(names["TRANSFORM NeedleTipToNeedle"], 1);
+  EXPECT_EQ(names["POINT Target"], 1);
+  // Every frame: PatientToCT and NeedleToCT as TRANSFORM or STATUS, and NeedleSafety. The client
+  // may have connected a frame or two after the first one was shown.
+  const int frames = int(s.frames);
+  EXPECT_GE(names["TRANSFORM NeedleToCT"] + names["STATUS NeedleToCT"], frames - 3);
+  EXPECT_LE(names["TRANSFORM NeedleToCT"] + names["STATUS NeedleToCT"], frames);
+  EXPECT_GE(names["STRING NeedleSafety"], frames - 3);
+  EXPECT_GE(names["TRANSFORM NeedleToCT"], int(s.needle_evaluated) - 3);
+  EXPECT_LE(s.igtl_latency_median_ms, 1.0);
 }
 
 TEST_F(GuideTest, UnusableInputLeavesNoOutput) {
