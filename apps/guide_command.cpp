@@ -21,8 +21,15 @@ struct GuideArgs {
 
 void run(GuideArgs& a) {
   pipelines::GuideRequest& req = a.req;
+  if (req.source.empty() == req.poses.empty()) {
+    throw Error("guide: give --source (video; the camera tracks the markers) or --poses (a "
+                "tracking server's poses over OpenIGTLink, drawn from a virtual camera)");
+  }
+  if (!req.source.empty() && a.camera.empty()) throw Error("guide: --camera is required with --source");
   req.setup = pipelines::read_guidance_setup(a.camera, a.registration, a.needle);
-  req.boards = tracking::read_boards(pipelines::session_boards_file(a.boards, req.source, "guide"));
+  if (!req.source.empty() || !a.boards.empty()) {
+    req.boards = tracking::read_boards(pipelines::session_boards_file(a.boards, req.source, "guide"));
+  }
   req.window = !a.headless;
   if (req.log.empty() && !req.video.empty()) {
     req.log = std::filesystem::path(req.video).replace_extension(".csv").string();
@@ -58,7 +65,9 @@ void add_guide_command(CLI::App& app) {
       "  --registration demo/setup/registration.yaml --needle demo/setup/needle.yaml\n"
       "  --source recording:demo/recording --headless --out demo/overlay.mp4");
   cmd->add_option("--plan", a->plan, "Plan folder (crepuscular plan)")->required();
-  cmd->add_option("--camera", a->camera, "Camera calibration (camera.yaml)")->required();
+  cmd->add_option("--camera", a->camera,
+                  "Camera calibration (camera.yaml); with --poses: the virtual camera's (default "
+                  "1280x720, 1000 px focal length)");
   cmd->add_option("--registration", a->registration,
                   "Patient registration (registration.yaml from crepuscular register)")
       ->required();
@@ -68,8 +77,7 @@ void add_guide_command(CLI::App& app) {
                   "Marker boards (boards.json); default: the recording's boards.json");
   cmd->add_option("--source", r.source,
                   "Frames: v4l2:/dev/video0?width=1280&height=720&fps=60, "
-                  "recording:DIR[?realtime=1], synthetic:SCENE.json")
-      ->required();
+                  "recording:DIR[?realtime=1], synthetic:SCENE.json (or --poses instead)");
   cmd->add_flag("--headless", a->headless,
                 "No window: write the overlay to --out and snapshots only (no display needed "
                 "where EGL is available; else run under xvfb-run -a)");
@@ -85,6 +93,20 @@ void add_guide_command(CLI::App& app) {
   cmd->add_option("--log", r.log,
                   "Per-frame CSV (tracking, needle safety, latency); default: the video's name "
                   "with .csv");
+  cmd->add_option("--poses", r.poses,
+                  "Take the needle and patient poses from a tracking server (PLUS, ...) over "
+                  "OpenIGTLink instead of the camera: igtl://HOST:PORT connects to it, "
+                  "igtl-server:PORT lets it connect; TRANSFORM or TDATA. Without --source: no "
+                  "video, a virtual camera looks at the plan from the front");
+  cmd->add_option("--poses-needle", r.poses_needle, "Device name of the needle's pose")
+      ->capture_default_str();
+  cmd->add_option("--poses-patient", r.poses_patient,
+                  "Device name of the patient reference's pose (\"\": the tracker's frame is the "
+                  "patient board's)")
+      ->capture_default_str();
+  cmd->add_option("--poses-fps", r.poses_fps, "Frame rate of the virtual camera")
+      ->check(in_range(1, 240))
+      ->capture_default_str();
   cmd->add_option("--igtl-server", r.igtl_port,
                   "Serve OpenIGTLink on this TCP port (Slicer's default: 18944) to 3D Slicer's "
                   "OpenIGTLinkIF and other clients: NeedleToCT, PatientToCT, NeedleTipToNeedle "

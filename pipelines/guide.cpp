@@ -287,13 +287,37 @@ void check_source(const tracking::FrameSource& source, const GuideRequest& reque
   }
 }
 
+// Boards for a session whose poses come over OpenIGTLink: named as the setup's, never detected.
+std::vector<tracking::Board> placeholder_boards(const overlay::GuidanceSetup& setup) {
+  std::vector<tracking::Board> boards(2);
+  boards[0].name = setup.patient_board;
+  boards[1].name = setup.needle_board;
+  for (size_t b = 0; b < 2; ++b) {
+    tracking::BoardTag tag;
+    tag.id = int(b);
+    tag.corners = {Eigen::Vector3d(-5, 5, 0), Eigen::Vector3d(5, 5, 0), Eigen::Vector3d(5, -5, 0),
+                   Eigen::Vector3d(-5, -5, 0)};
+    boards[b].tags = {tag};
+  }
+  return boards;
+}
+
 }  // namespace
 
 GuidanceSetup read_guidance_setup(const std::string& camera_yaml,
                                   const std::string& registration_yaml,
                                   const std::string& needle_yaml) {
   GuidanceSetup setup;
-  setup.camera = calibration::CameraModel::read_yaml(camera_yaml);
+  if (camera_yaml.empty()) {
+    // No camera (poses over OpenIGTLink): the virtual camera, 1280x720, 1000 px focal length.
+    setup.camera.width = 1280;
+    setup.camera.height = 720;
+    setup.camera.fx = setup.camera.fy = 1000.0;
+    setup.camera.cx = 639.5;
+    setup.camera.cy = 359.5;
+  } else {
+    setup.camera = calibration::CameraModel::read_yaml(camera_yaml);
+  }
   const calibration::RegistrationRecord reg = calibration::read_registration(registration_yaml);
   setup.T_ct_patient = reg.T_ct_patient;
   if (!reg.board.empty()) setup.patient_board = reg.board;
@@ -366,11 +390,27 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
       request.snapshot_every <= 0 && request.log.empty()) {
     throw Error("guide: nothing to show: open a window, or give a video, snapshots or a log");
   }
-  std::unique_ptr<tracking::FrameSource> source = tracking::open_frame_source(request.source);
-  check_source(*source, request);
+  std::unique_ptr<PoseInput> pose_input;
+  std::unique_ptr<tracking::FrameSource> source;
+  std::vector<tracking::Board> boards = request.boards;
+  if (!request.poses.empty()) {
+    if (!request.source.empty()) {
+      throw Error("guide: poses from " + request.poses + " cannot be drawn over the video of " +
+                  request.source + " (that needs the tracker-to-camera calibration); give one");
+    }
+    pose_input = std::make_unique<PoseInput>(request.poses, request.poses_needle,
+                                             request.poses_patient, request.tracker.max_age_ms,
+                                             request.setup, plan.tumor_centre);
+    source = virtual_camera_source(request.setup.camera, request.poses_fps);
+    if (boards.empty()) boards = placeholder_boards(request.setup);
+  } else {
+    source = tracking::open_frame_source(request.source);
+    check_source(*source, request);
+  }
   RendererOptions ro = request.renderer;
   ro.visible = request.window;
-  GuideLoop loop(plan, request.setup, request.boards, request.options, request.tracker, ro);
+  GuideLoop loop(plan, request.setup, boards, request.options, request.tracker, ro);
+  if (pose_input) loop.set_pose_input(pose_input.get());
   std::unique_ptr<GuidanceBroadcast> broadcast;
   if (request.igtl_port >= 0) {
     igtlink::Server::Options io;
@@ -411,6 +451,13 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
     }
   }
   summary.seconds = std::chrono::duration<double>(Clock::now() - t0).count();
+  if (pose_input) {
+    const igtlink::PoseReceiver::Stats st = pose_input->receiver().stats();
+    spdlog::info("guide: OpenIGTLink poses: {} connection(s), {} messages, {} poses, {} skipped, "
+                 "{} dropped{}",
+                 st.connections, st.messages, st.poses, st.skipped, st.dropped,
+                 st.last_problem.empty() ? "" : " (last: " + st.last_problem + ")");
+  }
   if (broadcast) {
     const igtlink::Server::Stats st = broadcast->server().stats();
     summary.igtl_connections = st.connections;

@@ -42,6 +42,12 @@ struct GuideRequest {
   int64_t max_frames = -1;
   // OpenIGTLink server port for the operating room's tools (guide_igtl.hpp); -1: none.
   int igtl_port = -1;
+  // OpenIGTLink in (guide_igtl.hpp): "igtl://HOST:PORT" or "igtl-server:PORT" gives the poses
+  // instead of the camera (then without video: source empty, the virtual camera's frames).
+  std::string poses;
+  std::string poses_needle = "NeedleToTracker";
+  std::string poses_patient = "ReferenceToTracker";  // "": the tracker's frame is the patient's
+  double poses_fps = 30;
   overlay::GuidanceOptions options;
   tracking::TrackerOptions tracker;
   overlay::RendererOptions renderer;

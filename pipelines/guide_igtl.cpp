@@ -4,6 +4,9 @@
 #include <spdlog/spdlog.h>
 
 #include <filesystem>
+#include <thread>
+
+#include <opencv2/core.hpp>
 
 #include "foundation/error.hpp"
 #include "planning/trajectories/markups.hpp"
@@ -78,6 +81,100 @@ void GuidanceBroadcast::safety(const overlay::GuidanceFrameInfo& info) {
     for (const std::string& line : overlay::needle_text(s)) text += "; " + line;
   }
   server_.publish({igtlink::string_message("NeedleSafety", text, info.timestamp_ns)});
+}
+
+namespace {
+
+Eigen::Isometry3d anterior_view(const Eigen::Vector3d& centre) {
+  // Camera axes in LPS: x = +L (patient's left on the image's right), y = -S (image down is
+  // toward the feet), z = +P (looking posterior, from in front of the patient).
+  Eigen::Isometry3d T_ct_cam = Eigen::Isometry3d::Identity();
+  T_ct_cam.linear().col(0) = Eigen::Vector3d(1, 0, 0);
+  T_ct_cam.linear().col(1) = Eigen::Vector3d(0, 0, -1);
+  T_ct_cam.linear().col(2) = Eigen::Vector3d(0, 1, 0);
+  T_ct_cam.translation() = centre - 400.0 * Eigen::Vector3d(0, 1, 0);
+  return T_ct_cam.inverse();
+}
+
+class VirtualCameraSource : public tracking::FrameSource {
+ public:
+  VirtualCameraSource(const calibration::CameraModel& camera, double fps)
+      : camera_(camera), interval_(std::chrono::duration<double>(1.0 / fps)) {}
+  std::optional<tracking::Frame> next() override {
+    const auto now = std::chrono::steady_clock::now();
+    if (index_ == 0) start_ = now;
+    const auto due = start_ + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                  interval_ * double(index_));
+    if (due > now) std::this_thread::sleep_until(due);
+    tracking::Frame f;
+    f.index = index_++;
+    f.timestamp_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                         std::chrono::steady_clock::now().time_since_epoch())
+                         .count();
+    f.image = cv::Mat(camera_.height, camera_.width, CV_8UC3, cv::Scalar(32, 32, 32));
+    return f;
+  }
+  std::string describe() const override { return "virtual camera (poses over OpenIGTLink)"; }
+  std::optional<calibration::CameraModel> camera() const override { return camera_; }
+
+ private:
+  calibration::CameraModel camera_;
+  std::chrono::duration<double> interval_;
+  std::chrono::steady_clock::time_point start_;
+  int64_t index_ = 0;
+};
+
+}  // namespace
+
+PoseInput::PoseInput(const std::string& uri, std::string needle, std::string patient,
+                     double max_age_ms, const overlay::GuidanceSetup& setup,
+                     const Eigen::Vector3d& tumor_centre)
+    : receiver_(uri), needle_(std::move(needle)), patient_(std::move(patient)),
+      max_age_ms_(max_age_ms), setup_(setup), T_cam_ct_(anterior_view(tumor_centre)) {}
+
+tracking::TrackResult PoseInput::track(const tracking::Frame& frame) const {
+  tracking::TrackResult r;
+  r.frame = frame.index;
+  r.timestamp_ns = frame.timestamp_ns;
+  const auto now = igtlink::PoseReceiver::Clock::now();
+  const auto current = [&](const std::string& name, Eigen::Isometry3d* T, double* age_ms) {
+    const std::optional<igtlink::PoseReceiver::Pose> p = receiver_.latest(name);
+    if (!p) return false;
+    *age_ms = std::chrono::duration<double, std::milli>(now - p->received).count();
+    *T = p->transform;
+    return *age_ms <= max_age_ms_;
+  };
+  tracking::BoardStatus patient, needle;
+  patient.board = setup_.patient_board;
+  needle.board = setup_.needle_board;
+  Eigen::Isometry3d T_tracker_patient = Eigen::Isometry3d::Identity(), T_tracker_needle;
+  double patient_age = 0, needle_age = 0;
+  patient.tracked = patient_.empty() || current(patient_, &T_tracker_patient, &patient_age);
+  // The virtual camera sees the CT from a fixed place: the patient board is where the
+  // registration puts it.
+  const Eigen::Isometry3d T_cam_patient = T_cam_ct_ * setup_.T_ct_patient;
+  if (patient.tracked) {
+    patient.T_cam_board = T_cam_patient;
+    patient.measured = true;
+    patient.age_ms = patient_age;
+  } else {
+    patient.problem = "no current " + patient_ + " pose from " + receiver_.uri();
+  }
+  needle.tracked = current(needle_, &T_tracker_needle, &needle_age);
+  if (needle.tracked) {
+    needle.T_cam_board = T_cam_patient * T_tracker_patient.inverse() * T_tracker_needle;
+    needle.measured = true;
+    needle.age_ms = needle_age;
+  } else {
+    needle.problem = "no current " + needle_ + " pose from " + receiver_.uri();
+  }
+  r.boards = {patient, needle};
+  return r;
+}
+
+std::unique_ptr<tracking::FrameSource> virtual_camera_source(const calibration::CameraModel& camera,
+                                                             double fps) {
+  return std::make_unique<VirtualCameraSource>(camera, fps);
 }
 
 }  // namespace crepuscular::pipelines

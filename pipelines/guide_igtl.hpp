@@ -10,6 +10,7 @@
 #include <memory>
 #include <optional>
 
+#include "igtl/pose_receiver.hpp"
 #include "igtl/server.hpp"
 #include "overlay/guidance.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
@@ -32,6 +33,34 @@ class GuidanceBroadcast {
   overlay::GuidanceSetup setup_;
   igtlink::Server server_;
 };
+
+// OpenIGTLink in: the boards' poses from a tracking server (PLUS, ...), as the camera tracker
+// would report them, seen by a virtual camera 400 mm anterior of the tumor centre looking
+// posterior (patient's left on the right, head up), where no video is given.
+//   needle: the needle tool's device name (e.g. NeedleToTracker); patient: the patient
+//   reference's (e.g. ReferenceToTracker), "" when the tracker's frame is the patient board's.
+// A pose older than max_age_ms (by its arrival here) is lost, as for the camera.
+class PoseInput {
+ public:
+  PoseInput(const std::string& uri, std::string needle, std::string patient, double max_age_ms,
+            const overlay::GuidanceSetup& setup, const Eigen::Vector3d& tumor_centre);
+
+  tracking::TrackResult track(const tracking::Frame& frame) const;
+  igtlink::PoseReceiver& receiver() { return receiver_; }
+  // The virtual camera's view of the CT (LPS mm to camera).
+  const Eigen::Isometry3d& T_cam_ct() const { return T_cam_ct_; }
+
+ private:
+  igtlink::PoseReceiver receiver_;
+  std::string needle_, patient_;
+  double max_age_ms_;
+  overlay::GuidanceSetup setup_;
+  Eigen::Isometry3d T_cam_ct_;
+};
+
+// Frames of the virtual camera: a dark picture at `fps`, paced in real time.
+std::unique_ptr<tracking::FrameSource> virtual_camera_source(const calibration::CameraModel& camera,
+                                                             double fps);
 
 // The on-connect messages: NeedleTipToNeedle, Target, and PlannedTrajectory when `plan_dir`
 // holds trajectories.mrk.json.

@@ -19,6 +19,7 @@
 namespace crepuscular::pipelines {
 
 class GuidanceBroadcast;
+class PoseInput;
 
 struct GuideFrameResult {
   overlay::GuidanceFrameInfo info;
@@ -51,6 +52,9 @@ class GuideLoop {
   bool window_closed() const { return window_closed_; }
   // OpenIGTLink out (guide_igtl.hpp): poses right after tracking, safety after the overlay.
   void set_broadcast(GuidanceBroadcast* broadcast) { broadcast_ = broadcast; }
+  // OpenIGTLink in (guide_igtl.hpp): the boards' poses come from a tracking server instead of
+  // the camera; frames are then the virtual camera's (no video).
+  void set_pose_input(const PoseInput* input) { pose_input_ = input; }
 
  private:
   tracking::Tracker tracker_;
@@ -60,6 +64,7 @@ class GuideLoop {
   std::deque<Clock::time_point> shown_;
   bool window_closed_ = false;
   GuidanceBroadcast* broadcast_ = nullptr;
+  const PoseInput* pose_input_ = nullptr;
 };
 
 // Nearest-rank percentile (p in 0..100) of the values; 0 for none.
