@@ -21,9 +21,9 @@ struct GuideArgs {
 
 void run(GuideArgs& a) {
   pipelines::GuideRequest& req = a.req;
-  if (req.source.empty() == req.poses.empty()) {
-    throw Error("guide: give --source (video; the camera tracks the markers) or --poses (a "
-                "tracking server's poses over OpenIGTLink, drawn from a virtual camera)");
+  if (req.source.empty() && req.poses.empty()) {
+    throw Error("guide: give --source (video; the camera tracks the markers), --poses (a "
+                "tracking server's poses over OpenIGTLink, drawn from a virtual camera) or both");
   }
   if (!req.source.empty() && a.camera.empty()) throw Error("guide: --camera is required with --source");
   req.setup = pipelines::read_guidance_setup(a.camera, a.registration, a.needle);
@@ -97,7 +97,8 @@ void add_guide_command(CLI::App& app) {
                   "Take the needle and patient poses from a tracking server (PLUS, ...) over "
                   "OpenIGTLink instead of the camera: igtl://HOST:PORT connects to it, "
                   "igtl-server:PORT lets it connect; TRANSFORM or TDATA. Without --source: no "
-                  "video, a virtual camera looks at the plan from the front");
+                  "video, a virtual camera looks at the plan from the front. With --source: the "
+                  "camera tracks the patient board, the tracker the needle relative to it");
   cmd->add_option("--poses-needle", r.poses_needle, "Device name of the needle's pose")
       ->capture_default_str();
   cmd->add_option("--poses-patient", r.poses_patient,

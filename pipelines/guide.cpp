@@ -394,13 +394,11 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
   std::unique_ptr<tracking::FrameSource> source;
   std::vector<tracking::Board> boards = request.boards;
   if (!request.poses.empty()) {
-    if (!request.source.empty()) {
-      throw Error("guide: poses from " + request.poses + " cannot be drawn over the video of " +
-                  request.source + " (that needs the tracker-to-camera calibration); give one");
-    }
     pose_input = std::make_unique<PoseInput>(request.poses, request.poses_needle,
                                              request.poses_patient, request.tracker.max_age_ms,
                                              request.setup, plan.tumor_centre);
+  }
+  if (pose_input && request.source.empty()) {
     source = virtual_camera_source(request.setup.camera, request.poses_fps);
     if (boards.empty()) boards = placeholder_boards(request.setup);
   } else {
@@ -410,7 +408,7 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
   RendererOptions ro = request.renderer;
   ro.visible = request.window;
   GuideLoop loop(plan, request.setup, boards, request.options, request.tracker, ro);
-  if (pose_input) loop.set_pose_input(pose_input.get());
+  if (pose_input) loop.set_pose_input(pose_input.get(), request.source.empty());
   std::unique_ptr<GuidanceBroadcast> broadcast;
   if (request.igtl_port >= 0) {
     igtlink::Server::Options io;

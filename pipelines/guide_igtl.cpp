@@ -3,6 +3,7 @@
 #include <fmt/format.h>
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <thread>
 
@@ -170,6 +171,44 @@ tracking::TrackResult PoseInput::track(const tracking::Frame& frame) const {
   }
   r.boards = {patient, needle};
   return r;
+}
+
+void PoseInput::replace_needle(tracking::TrackResult& camera) const {
+  const auto now = igtlink::PoseReceiver::Clock::now();
+  const auto current = [&](const std::string& name, Eigen::Isometry3d* T, double* age_ms) {
+    const std::optional<igtlink::PoseReceiver::Pose> p = receiver_.latest(name);
+    if (!p) return false;
+    *age_ms = std::chrono::duration<double, std::milli>(now - p->received).count();
+    *T = p->transform;
+    return *age_ms <= max_age_ms_;
+  };
+  const tracking::BoardStatus* patient = nullptr;
+  for (const auto& b : camera.boards) {
+    if (b.board == setup_.patient_board) patient = &b;
+  }
+  tracking::BoardStatus needle;
+  needle.board = setup_.needle_board;
+  Eigen::Isometry3d T_tracker_patient = Eigen::Isometry3d::Identity(), T_tracker_needle;
+  double patient_age = 0, needle_age = 0;
+  const bool reference = patient_.empty() || current(patient_, &T_tracker_patient, &patient_age);
+  needle.tracked = patient && patient->tracked && reference &&
+                   current(needle_, &T_tracker_needle, &needle_age);
+  if (needle.tracked) {
+    needle.T_cam_board = patient->T_cam_board * T_tracker_patient.inverse() * T_tracker_needle;
+    needle.measured = true;
+    needle.age_ms = std::max({needle_age, patient_age, patient->age_ms});
+  } else {
+    needle.problem = "no current " + needle_ + " pose from " + receiver_.uri() +
+                     " with the patient board in view";
+  }
+  bool replaced = false;
+  for (auto& b : camera.boards) {
+    if (b.board == setup_.needle_board) {
+      b = needle;
+      replaced = true;
+    }
+  }
+  if (!replaced) camera.boards.push_back(needle);
 }
 
 std::unique_ptr<tracking::FrameSource> virtual_camera_source(const calibration::CameraModel& camera,

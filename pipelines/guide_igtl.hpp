@@ -35,8 +35,11 @@ class GuidanceBroadcast {
 };
 
 // OpenIGTLink in: the boards' poses from a tracking server (PLUS, ...), as the camera tracker
-// would report them, seen by a virtual camera 400 mm anterior of the tumor centre looking
-// posterior (patient's left on the right, head up), where no video is given.
+// would report them. Without video, seen by a virtual camera 400 mm anterior of the tumor centre
+// looking posterior (patient's left on the right, head up). Over the video, the camera tracks
+// the patient board and the patient reference is that board (or the tracker's frame is, with
+// patient ""): the needle is placed by T_cam_needle = T_cam_patient T_tracker_patient^-1
+// T_tracker_needle, so no separate tracker-to-camera calibration is needed.
 //   needle: the needle tool's device name (e.g. NeedleToTracker); patient: the patient
 //   reference's (e.g. ReferenceToTracker), "" when the tracker's frame is the patient board's.
 // A pose older than max_age_ms (by its arrival here) is lost, as for the camera.
@@ -46,6 +49,8 @@ class PoseInput {
             const overlay::GuidanceSetup& setup, const Eigen::Vector3d& tumor_centre);
 
   tracking::TrackResult track(const tracking::Frame& frame) const;
+  // Over the video: the camera's result with its needle replaced by the tracker's.
+  void replace_needle(tracking::TrackResult& camera) const;
   igtlink::PoseReceiver& receiver() { return receiver_; }
   // The virtual camera's view of the CT (LPS mm to camera).
   const Eigen::Isometry3d& T_cam_ct() const { return T_cam_ct_; }

@@ -66,9 +66,13 @@ GuideFrameResult GuideLoop::process(const tracking::Frame& frame, Clock::time_po
   // Tracking runs on another thread while this one uploads the video frame to the GPU (the
   // upload needs no pose; the OpenGL context stays on this thread).
   std::future<tracking::TrackResult> tracking =
-      pose_input_ ? std::async(std::launch::deferred,
-                               [this, &frame] { return pose_input_->track(frame); })
-                  : std::async(std::launch::async, [this, &frame] { return tracker_.process(frame); });
+      pose_input_ && virtual_camera_
+          ? std::async(std::launch::deferred, [this, &frame] { return pose_input_->track(frame); })
+          : std::async(std::launch::async, [this, &frame] {
+              tracking::TrackResult r = tracker_.process(frame);
+              if (pose_input_) pose_input_->replace_needle(r);  // over the video
+              return r;
+            });
   // A frame of another size than the camera's is no picture of this camera: not shown (the
   // overlay says so), never an end of the session.
   const calibration::CameraModel& camera = renderer_.camera();

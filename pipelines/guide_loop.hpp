@@ -54,7 +54,10 @@ class GuideLoop {
   void set_broadcast(GuidanceBroadcast* broadcast) { broadcast_ = broadcast; }
   // OpenIGTLink in (guide_igtl.hpp): the boards' poses come from a tracking server instead of
   // the camera; frames are then the virtual camera's (no video).
-  void set_pose_input(const PoseInput* input) { pose_input_ = input; }
+  void set_pose_input(const PoseInput* input, bool virtual_camera) {
+    pose_input_ = input;
+    virtual_camera_ = virtual_camera;
+  }
 
  private:
   tracking::Tracker tracker_;
@@ -65,6 +68,7 @@ class GuideLoop {
   bool window_closed_ = false;
   GuidanceBroadcast* broadcast_ = nullptr;
   const PoseInput* pose_input_ = nullptr;
+  bool virtual_camera_ = false;
 };
 
 // Nearest-rank percentile (p in 0..100) of the values; 0 for none.

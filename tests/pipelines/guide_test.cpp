@@ -29,6 +29,8 @@
 #include <opencv2/videoio.hpp>
 
 #include "foundation/error.hpp"
+#include "igtl/messages.hpp"
+#include "igtl/server.hpp"
 #include "pipelines/demo_scenario.hpp"
 #include "planning/simulation/phantom.hpp"
 #include "pipelines/plan.hpp"
@@ -453,6 +455,61 @@ TEST_F(GuideTest, PosesFromATrackingServerDriveGuidanceWithoutVideoAndStaleOnesA
     }
   }
   EXPECT_TRUE(lost_after_tracked);
+}
+
+// `guide --source ... --poses ...`: over the video the camera tracks the patient board and the
+// tracker gives the needle relative to it (here our own OpenIGTLink server sends a fixed
+// NeedleToTracker pose, the tracker's frame being the patient board's): the needle in the CT is
+// then T_ct_patient * NeedleToTracker in every frame, whatever the camera sees of the needle.
+TEST_F(GuideTest, TrackerPosesOverTheVideoPlaceTheNeedleRelativeToThePatientBoard) {
+  Eigen::Isometry3d T_patient_needle = Eigen::Isometry3d::Identity();
+  T_patient_needle.linear() = Eigen::AngleAxisd(0.4, Eigen::Vector3d::UnitX()).toRotationMatrix();
+  T_patient_needle.translation() = Eigen::Vector3d(20, -30, 150);
+  igtlink::Server tracker(igtlink::Server::Options{0, 500});
+  std::atomic<bool> stop{false};
+  std::thread sending([&] {
+    while (!stop) {
+      tracker.publish({igtlink::transform_message("NeedleToTracker", T_patient_needle, 0)});
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+  });
+  const std::string out = (*dir_ / "poses_over_video").string();
+  fs::create_directories(out);
+  GuideRequest g = request(out);
+  g.video.clear();
+  g.snapshot_dir.clear();
+  g.poses = "igtl://127.0.0.1:" + std::to_string(tracker.port());
+  g.poses_patient = "";
+  g.tracker.max_age_ms = 200;
+  GuideSummary s;
+  try {
+    s = run_guide(*plan_, g);
+  } catch (const Error& e) {
+    stop = true;
+    sending.join();
+    if (std::string(e.what()).find("OpenGL") != std::string::npos) GTEST_SKIP() << e.what();
+    throw;
+  }
+  stop = true;
+  sending.join();
+  const auto rows = read_csv(out + "/overlay.csv");
+  const auto& header = rows[0];
+  auto col = [&](const std::string& name) {
+    return size_t(std::find(header.begin(), header.end(), name) - header.begin());
+  };
+  std::vector<double> tip_to_target;
+  for (size_t i = 1; i < rows.size(); ++i) {
+    if (rows[i][col("needle_safety")].empty()) continue;
+    tip_to_target.push_back(std::stod(rows[i][col("tip_to_target_mm")]));
+  }
+  // Once the receiver is connected (within a few frames), every frame with the anatomy has it.
+  EXPECT_GE(int64_t(tip_to_target.size()), s.patient_tracked - 10);
+  ASSERT_FALSE(tip_to_target.empty());
+  const Eigen::Vector3d tip =
+      g.setup.T_ct_patient * T_patient_needle * g.setup.tip_in_needle;
+  for (double d : tip_to_target) {
+    EXPECT_NEAR(d, (tip - plan_->tumor_centre).norm(), 0.05);
+  }
 }
 
 TEST_F(GuideTest, UnusableInputLeavesNoOutput) {
