@@ -11,6 +11,7 @@
 #include <igtlMessageHeader.h>
 #include <igtlStatusMessage.h>
 #include <igtlStringMessage.h>
+#include <igtlTrackingDataMessage.h>
 #include <igtlTransformMessage.h>
 #include <sys/socket.h>
 #include <netinet/in.h>
@@ -358,6 +359,37 @@ class FakeTracker {
 
 void put_u64(std::string& bytes, size_t at, uint64_t v) {
   for (int i = 0; i < 8; ++i) bytes[at + size_t(i)] = char((v >> (56 - 8 * i)) & 0xff);
+}
+
+// igtl-server:PORT: the tracker connects to us; a TRANSFORM and a TDATA message arrive.
+TEST(IgtlPoses, InServerModeTheTrackerConnectsAndItsTransformsAndTrackingDataArrive) {
+  PoseReceiver receiver("igtl-server:0");
+  ASSERT_GT(receiver.port(), 0);
+  igtl::ClientSocket::Pointer tracker = connect(receiver.port());
+  const Eigen::Isometry3d T = pose(1.1, Eigen::Vector3d(-40, 15, 220));
+  const std::string bytes = transform_message("StylusToTracker", T, 42).bytes;
+  ASSERT_EQ(tracker->Send(bytes.data(), int(bytes.size())), 1);
+  igtl::TrackingDataMessage::Pointer tdata = igtl::TrackingDataMessage::New();
+  tdata->SetDeviceName("Tracker");
+  igtl::TrackingDataElement::Pointer e = igtl::TrackingDataElement::New();
+  e->SetName("ReferenceToTracker");
+  igtl::Matrix4x4 m;
+  const Eigen::Isometry3d R = pose(-0.2, Eigen::Vector3d(1, 2, 3));
+  for (int r = 0; r < 4; ++r)
+    for (int c = 0; c < 4; ++c) m[r][c] = float(R.matrix()(r, c));
+  e->SetMatrix(m);
+  tdata->AddTrackingDataElement(e);
+  tdata->Pack();
+  ASSERT_EQ(tracker->Send(tdata->GetPackPointer(), tdata->GetPackSize()), 1);
+  ASSERT_TRUE(wait_until([&] { return receiver.latest("ReferenceToTracker").has_value(); }));
+  ASSERT_TRUE(receiver.latest("StylusToTracker").has_value());
+  EXPECT_LT((receiver.latest("StylusToTracker")->transform.matrix() - T.matrix()).cwiseAbs().maxCoeff(),
+            1e-4);
+  EXPECT_LT((receiver.latest("ReferenceToTracker")->transform.matrix() - R.matrix())
+                .cwiseAbs()
+                .maxCoeff(),
+            1e-4);
+  EXPECT_EQ(receiver.stats().dropped, 0);
 }
 
 TEST(IgtlPoses, MalformedMessagesDropTheConnectionUnknownTypesAreSkipped) {
