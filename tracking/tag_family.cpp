@@ -20,6 +20,20 @@ namespace crepuscular::tracking {
 
 namespace {
 
+// Kalibr's aprilgrid targets print tag36h11 with a black border 2 cells wide: the same codes,
+// a detected square of 10 cells (6 data cells and two border cells on each side) in a white ring
+// of 12. The data cells move one cell inward.
+apriltag_family_t* tag36h11b2_create() {
+  apriltag_family_t* f = tag36h11_create();
+  f->width_at_border = 10;
+  f->total_width = 12;
+  for (uint32_t i = 0; i < f->nbits; ++i) {
+    f->bit_x[i] += 1;
+    f->bit_y[i] += 1;
+  }
+  return f;
+}
+
 struct FamilyEntry {
   const char* name;
   apriltag_family_t* (*create)();
@@ -28,6 +42,7 @@ struct FamilyEntry {
 
 constexpr FamilyEntry kFamilies[] = {
     {"tag36h11", tag36h11_create, tag36h11_destroy},
+    {"tag36h11b2", tag36h11b2_create, tag36h11_destroy},  // Kalibr aprilgrid (2-cell border)
     {"tag36h10", tag36h10_create, tag36h10_destroy},
     {"tag25h9", tag25h9_create, tag25h9_destroy},
     {"tag16h5", tag16h5_create, tag16h5_destroy},

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <map>
 #include <opencv2/aruco.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "foundation/error.hpp"
 #include "tests/tracking/tag_scene.hpp"
@@ -213,6 +214,77 @@ TEST(TagDetector, RegionSearchMatchesFullFrameSearch) {
   EXPECT_EQ(one[0].id, truth.begin()->first);
   // A crop of background and one reaching outside the image: nothing, no crash.
   EXPECT_TRUE(det.detect(image, {cv::Rect(0, 0, 60, 60), cv::Rect(1250, 690, 100, 100)}).empty());
+}
+
+}  // namespace
+}  // namespace crepuscular::tracking
+
+namespace crepuscular::tracking {
+namespace {
+
+// A Kalibr aprilgrid as Kalibr prints it: 6 x 6 tag36h11 tags with a black border two cells wide
+// (the square: 10 cells), tags 0.3 x their size apart, and black corner squares of the gap's size
+// at every tag corner. Family "tag36h11b2" finds all 36 tags, each corner where it was drawn.
+TEST(TagDetector, KalibrAprilgridWithATwoCellBorderIsDetectedWithAllItsTags) {
+  const int cell = 8;                  // pixels per cell
+  const int square = 10 * cell;        // the tag's black square
+  const int gap = 3 * cell;            // tagSpacing 0.3
+  const int margin = 2 * gap;
+  const int n = 6;
+  const int size = 2 * margin + n * square + (n - 1) * gap;
+  cv::Mat image(size, size, CV_8U, cv::Scalar(255));
+  std::map<int, cv::Point> origin;  // top-left pixel of each tag's square
+  for (int row = 0; row < n; ++row) {
+    for (int col = 0; col < n; ++col) {
+      const int id = row * n + col;
+      const TagPattern p = tag_pattern("tag36h11b2", id);
+      ASSERT_EQ(p.width_at_border, 10);
+      cv::Mat scaled;
+      cv::resize(p.cells, scaled, cv::Size(), cell, cell, cv::INTER_NEAREST);
+      const cv::Point at(margin + col * (square + gap), margin + row * (square + gap));
+      const int b = p.border_start() * cell;
+      scaled(cv::Rect(b, b, square, square)).copyTo(image(cv::Rect(at.x, at.y, square, square)));
+      origin[id] = at;
+      // Kalibr's corner squares, in the gaps at the four corners of the tag.
+      for (int dy : {-gap, square})
+        for (int dx : {-gap, square}) {
+          image(cv::Rect(at.x + dx, at.y + dy, gap, gap)).setTo(0);
+        }
+    }
+  }
+  // As a camera sees the print: slightly blurred (the corner squares then no longer touch the
+  // tags' corners in the thresholded image).
+  cv::GaussianBlur(image, image, cv::Size(0, 0), 1.0);
+  DetectorOptions o;
+  o.family = "tag36h11b2";
+  o.decimate = 1.0;
+  TagDetector detector(o);
+  const std::vector<Detection> found = detector.detect(image);
+  std::map<int, const Detection*> by_id;
+  for (const Detection& d : found) by_id[d.id] = &d;
+  EXPECT_EQ(found.size(), 36u);
+  for (int id = 0; id < 36; ++id) {
+    ASSERT_TRUE(by_id.count(id)) << "tag " << id << " not found";
+    // The centre of the square (pixel centres at integers in cv; libapriltag's at +0.5).
+    const Eigen::Vector2d expected(origin[id].x + square / 2.0 - 0.5,
+                                   origin[id].y + square / 2.0 - 0.5);
+    EXPECT_LT((by_id[id]->center - expected).norm(), 0.75) << "tag " << id;
+    for (const Eigen::Vector2d& c : by_id[id]->corners) {
+      const double dx = std::abs(c.x() - expected.x()), dy = std::abs(c.y() - expected.y());
+      EXPECT_NEAR(dx, square / 2.0, 0.75) << "tag " << id;
+      EXPECT_NEAR(dy, square / 2.0, 0.75) << "tag " << id;
+    }
+  }
+  // The one-cell-border family reads none of them as the right tag.
+  o.family = "tag36h11";
+  TagDetector standard(o);
+  int right = 0;
+  for (const Detection& d : standard.detect(image)) {
+    const Eigen::Vector2d expected(origin[d.id % 36].x + square / 2.0 - 0.5,
+                                   origin[d.id % 36].y + square / 2.0 - 0.5);
+    if (d.id < 36 && (d.center - expected).norm() < 2) ++right;
+  }
+  EXPECT_EQ(right, 0);
 }
 
 }  // namespace
