@@ -19,6 +19,7 @@
 #include "foundation/error.hpp"
 #include "foundation/output_files.hpp"
 #include "planning/imaging/ray_march.hpp"
+#include "planning/imaging/volume_io.hpp"
 
 namespace crepuscular::pipelines {
 
@@ -802,6 +803,45 @@ void write_guidance_setup(const GuidanceScenario& sc, const std::string& dir) {
 
   write_text_file((base / "scene.json").string(),
                   scene_json_text(sc.scene, "camera.yaml", "boards.json") + "\n");
+}
+
+// The patient board's CT-visible fiducials, as a CT shows metal beads of 3 mm radius: painted
+// into the phantom's CT where the scenario puts the board (partial volume from 4^3 subsamples
+// per voxel), so that `register` has something to find.
+int paint_board_beads(const GuidanceScenario& scenario, const std::string& ct_path) {
+  planning::Volume<int16_t> ct = planning::read_volume<int16_t>(ct_path);
+  const planning::ImageGeometry& g = ct.geometry();
+  constexpr double kRadius = 3.0, kBeadHu = 6000.0;
+  int painted = 0;
+  for (const tracking::SceneBoard& b : scenario.scene.boards) {
+    if (b.board.name != "patient") continue;
+    for (const Eigen::Vector3d& f : b.board.fiducials) {
+      const Eigen::Vector3d p = scenario.T_ct_patient * f;
+      const Eigen::Vector3d c = g.physical_to_index(p);
+      const Eigen::Vector3d reach = (kRadius / g.spacing.array() + 1.0).matrix();
+      bool inside = false;
+      for (int64_t k = int64_t(std::floor(c.z() - reach.z())); k <= int64_t(std::ceil(c.z() + reach.z())); ++k)
+        for (int64_t j = int64_t(std::floor(c.y() - reach.y())); j <= int64_t(std::ceil(c.y() + reach.y())); ++j)
+          for (int64_t i = int64_t(std::floor(c.x() - reach.x())); i <= int64_t(std::ceil(c.x() + reach.x())); ++i) {
+            if (!g.contains(i, j, k)) continue;
+            int in = 0;
+            for (int s = 0; s < 64; ++s) {
+              const Eigen::Vector3d q(double(i) + ((s & 3) + 0.5) / 4 - 0.5,
+                                      double(j) + (((s >> 2) & 3) + 0.5) / 4 - 0.5,
+                                      double(k) + (((s >> 4) & 3) + 0.5) / 4 - 0.5);
+              if ((g.index_to_physical(q) - p).norm() <= kRadius) ++in;
+            }
+            if (in == 0) continue;
+            inside = true;
+            const double frac = in / 64.0;
+            int16_t& v = ct(i, j, k);
+            v = int16_t(std::lround(frac * kBeadHu + (1 - frac) * double(v)));
+          }
+      painted += inside ? 1 : 0;
+    }
+  }
+  planning::write_volume(ct, ct_path);
+  return painted;
 }
 
 }  // namespace crepuscular::pipelines

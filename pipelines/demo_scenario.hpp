@@ -119,4 +119,9 @@ std::string scene_json_text(const tracking::SyntheticScene& scene, const std::st
 // True for the vulnerability table names of blood vessels ("liver_vessels", "vena_cava", ...).
 bool is_vessel_name(const std::string& structure_name);
 
+// Paints the patient board's fiducials into the CT at `ct_path` (rewritten) as metal beads of
+// 3 mm radius (6000 HU, partial volume from 4^3 subsamples per voxel) where the scenario puts
+// the board, so that `register` finds them. Returns how many lie in the CT's grid.
+int paint_board_beads(const GuidanceScenario& scenario, const std::string& ct_path);
+
 }  // namespace crepuscular::pipelines

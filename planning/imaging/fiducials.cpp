@@ -164,7 +164,9 @@ std::optional<Fiducial> measure_bead(const Volume<T>& ct, const Component& c,
   }
   const Window window = component_window(c, g, options.margin_voxels);
   const double background = local_background(ct, window, options.threshold);
-  const Moments m = window_moments(ct, window, background, 0.05 * (c.peak - background));
+  // Voxels of less than a fifth of the peak above the background are left out: a bead on the
+  // skin has tissue beside it that the border median (air, mostly) would weigh in.
+  const Moments m = window_moments(ct, window, background, 0.2 * (c.peak - background));
   if (m.wsum <= 0) return std::nullopt;
   const double stretch = elongation(m, g);
   if (stretch > options.max_elongation) {
