@@ -15,6 +15,7 @@
 #include <cstring>
 
 #include "foundation/error.hpp"
+#include "igtl/socket_close.hpp"
 
 namespace crepuscular::igtlink {
 
@@ -84,7 +85,7 @@ PoseReceiver::PoseReceiver(const std::string& uri) : uri_(uri) {
 PoseReceiver::~PoseReceiver() {
   stop_ = true;
   if (thread_.joinable()) thread_.join();
-  if (listener_) listener_->socket->CloseSocket();
+  if (listener_) close_socket(*listener_->socket);
 }
 
 std::optional<PoseReceiver::Pose> PoseReceiver::latest(const std::string& device) const {
@@ -116,7 +117,7 @@ void PoseReceiver::run() {
     } else {
       c.socket = igtl::ClientSocket::New();
       if (c.socket->ConnectToServer(host_.c_str(), port_) != 0) {
-        c.socket->CloseSocket();
+        close_socket(*c.socket);
         const auto until = Clock::now() + std::chrono::duration<double>(backoff_s);
         while (!stop_ && Clock::now() < until) std::this_thread::sleep_for(std::chrono::milliseconds(10));
         backoff_s = std::min(2.0, backoff_s * 2);
@@ -132,7 +133,11 @@ void PoseReceiver::run() {
     }
     spdlog::info("OpenIGTLink poses: connected ({})", uri_);
     const std::string why = read_connection(c);
-    c.socket->CloseSocket();
+    close_socket(*c.socket);
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.ended;
+    }
     if (!why.empty()) spdlog::warn("OpenIGTLink poses: {}: {}; connection dropped", uri_, why);
   }
 }

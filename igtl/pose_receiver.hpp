@@ -35,6 +35,7 @@ class PoseReceiver {
   };
   struct Stats {
     int64_t connections = 0;  // connections made (or accepted)
+    int64_t ended = 0;        // connections over (closed by the sender, or dropped)
     int64_t messages = 0;     // messages read whole
     int64_t poses = 0;        // poses taken from them
     int64_t skipped = 0;      // messages of types not read (skipped by their body size)

@@ -8,6 +8,7 @@
 #include <csignal>
 
 #include "foundation/error.hpp"
+#include "igtl/socket_close.hpp"
 
 namespace crepuscular::igtlink {
 
@@ -57,9 +58,9 @@ Server::~Server() {
   for (const auto& c : clients) {
     c->wake.notify_all();
     if (c->thread.joinable()) c->thread.join();
-    c->socket->CloseSocket();
+    close_socket(*c->socket);
   }
-  listener_->socket->CloseSocket();
+  close_socket(*listener_->socket);
 }
 
 void Server::set_on_connect(std::vector<Message> messages) {
@@ -86,7 +87,7 @@ void Server::accept_loop() {
     }
     for (const auto& c : ended) {
       if (c->thread.joinable()) c->thread.join();
-      c->socket->CloseSocket();
+      close_socket(*c->socket);
     }
     if (socket.IsNull() || stop_) continue;
     auto client = std::make_shared<Client>();

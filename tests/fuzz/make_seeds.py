@@ -3,6 +3,10 @@
 
 Small valid files of each format (named valid-*: the readers must accept them) and a few
 near-valid ones. Run from anywhere: python3 tests/fuzz/make_seeds.py
+
+The igtl_stream seeds were packed by the OpenIGTLink library itself (TransformMessage,
+TrackingDataMessage, StringMessage; a version-2 header built by hand around a TRANSFORM body;
+one with a flipped body bit, the CRC no longer matching).
 """
 import json
 import os

@@ -1,5 +1,8 @@
 #include "tests/fuzz/targets.hpp"
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -8,10 +11,13 @@
 #include <exception>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
+#include <thread>
 
 #include "calibration/calibration_files.hpp"
 #include "calibration/camera_model.hpp"
 #include "foundation/error.hpp"
+#include "igtl/pose_receiver.hpp"
 #include "planning/imaging/fiducials.hpp"
 #include "planning/imaging/segmentation.hpp"
 #include "planning/imaging/volume_io.hpp"
@@ -40,6 +46,37 @@ void read_recording(const std::string& path) {
   if (reader.has_ground_truth() && !reader.entries().empty()) {
     reader.ground_truth(reader.entries().front().frame);
   }
+}
+
+using PoseReceiverStats = igtlink::PoseReceiver::Stats;
+
+// An OpenIGTLink stream from a tracking server: the file's bytes sent to a receiver listening on
+// a local port, then the connection closed; returns once the receiver is done with it.
+void read_igtl_stream(const std::string& path) {
+  static igtlink::PoseReceiver receiver("igtl-server:0");
+  std::ifstream in(path, std::ios::binary);
+  const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const int64_t before = receiver.stats().ended, dropped = receiver.stats().dropped;
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in address{};
+  address.sin_family = AF_INET;
+  address.sin_port = htons(uint16_t(receiver.port()));
+  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  if (::connect(fd, reinterpret_cast<sockaddr*>(&address), sizeof(address)) != 0) {
+    ::close(fd);
+    throw Error("igtl stream: cannot connect to the receiver");
+  }
+  size_t sent = 0;
+  while (sent < bytes.size()) {
+    const ssize_t n = ::send(fd, bytes.data() + sent, bytes.size() - sent, MSG_NOSIGNAL);
+    if (n <= 0) break;  // the receiver dropped the connection: a malformed message
+    sent += size_t(n);
+  }
+  ::close(fd);
+  while (receiver.stats().ended == before) std::this_thread::sleep_for(std::chrono::microseconds(50));
+  // A malformed message dropped the connection: the stream was refused, with its reason.
+  const PoseReceiverStats after = receiver.stats();
+  if (after.dropped != dropped) throw Error(path + ": " + after.last_problem);
 }
 
 void read_plan_json(const std::string& path) {
@@ -95,6 +132,7 @@ const std::vector<FuzzTarget>& fuzz_targets() {
       {"plan_json", "plan.json", read_plan_json},
       {"area_mesh", "area_safety.vtk",
        [](const std::string& path) { planning::read_area_safety_vtk(path); }},
+      {"igtl_stream", "stream.igtl", read_igtl_stream},
   };
   return targets;
 }

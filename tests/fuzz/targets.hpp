@@ -1,6 +1,7 @@
 // Fuzz targets: every reader of data from outside (image headers, vulnerability tables, boards,
 // scenes, camera/needle/registration YAML, frames.csv and poses CSV, markups, batch CSV,
-// plan.json, area safety meshes), each behind one function of the bytes of one file.
+// plan.json, area safety meshes, OpenIGTLink streams from a tracking server), each behind one
+// function of the bytes of one file.
 //
 // The contract they check is DESIGN.md §3's: a reader either accepts its file or refuses it with
 // crepuscular::Error (a message naming the file). Any other exception, a crash, a hang or an
