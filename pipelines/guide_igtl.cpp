@@ -133,24 +133,27 @@ PoseInput::PoseInput(const std::string& uri, std::string needle, std::string pat
     : receiver_(uri), needle_(std::move(needle)), patient_(std::move(patient)),
       max_age_ms_(max_age_ms), setup_(setup), T_cam_ct_(anterior_view(tumor_centre)) {}
 
+bool PoseInput::current_pose(const std::string& device, Eigen::Isometry3d* T,
+                             double* age_ms) const {
+  const std::optional<igtlink::PoseReceiver::Pose> p = receiver_.latest(device);
+  if (!p) return false;
+  *age_ms = std::chrono::duration<double, std::milli>(igtlink::PoseReceiver::Clock::now() -
+                                                      p->received)
+                .count();
+  *T = p->transform;
+  return *age_ms <= max_age_ms_;
+}
+
 tracking::TrackResult PoseInput::track(const tracking::Frame& frame) const {
   tracking::TrackResult r;
   r.frame = frame.index;
   r.timestamp_ns = frame.timestamp_ns;
-  const auto now = igtlink::PoseReceiver::Clock::now();
-  const auto current = [&](const std::string& name, Eigen::Isometry3d* T, double* age_ms) {
-    const std::optional<igtlink::PoseReceiver::Pose> p = receiver_.latest(name);
-    if (!p) return false;
-    *age_ms = std::chrono::duration<double, std::milli>(now - p->received).count();
-    *T = p->transform;
-    return *age_ms <= max_age_ms_;
-  };
   tracking::BoardStatus patient, needle;
   patient.board = setup_.patient_board;
   needle.board = setup_.needle_board;
   Eigen::Isometry3d T_tracker_patient = Eigen::Isometry3d::Identity(), T_tracker_needle;
   double patient_age = 0, needle_age = 0;
-  patient.tracked = patient_.empty() || current(patient_, &T_tracker_patient, &patient_age);
+  patient.tracked = patient_.empty() || current_pose(patient_, &T_tracker_patient, &patient_age);
   // The virtual camera sees the CT from a fixed place: the patient board is where the
   // registration puts it.
   const Eigen::Isometry3d T_cam_patient = T_cam_ct_ * setup_.T_ct_patient;
@@ -161,7 +164,7 @@ tracking::TrackResult PoseInput::track(const tracking::Frame& frame) const {
   } else {
     patient.problem = "no current " + patient_ + " pose from " + receiver_.uri();
   }
-  needle.tracked = current(needle_, &T_tracker_needle, &needle_age);
+  needle.tracked = current_pose(needle_, &T_tracker_needle, &needle_age);
   if (needle.tracked) {
     needle.T_cam_board = T_cam_patient * T_tracker_patient.inverse() * T_tracker_needle;
     needle.measured = true;
@@ -174,14 +177,6 @@ tracking::TrackResult PoseInput::track(const tracking::Frame& frame) const {
 }
 
 void PoseInput::replace_needle(tracking::TrackResult& camera) const {
-  const auto now = igtlink::PoseReceiver::Clock::now();
-  const auto current = [&](const std::string& name, Eigen::Isometry3d* T, double* age_ms) {
-    const std::optional<igtlink::PoseReceiver::Pose> p = receiver_.latest(name);
-    if (!p) return false;
-    *age_ms = std::chrono::duration<double, std::milli>(now - p->received).count();
-    *T = p->transform;
-    return *age_ms <= max_age_ms_;
-  };
   const tracking::BoardStatus* patient = nullptr;
   for (const auto& b : camera.boards) {
     if (b.board == setup_.patient_board) patient = &b;
@@ -190,9 +185,9 @@ void PoseInput::replace_needle(tracking::TrackResult& camera) const {
   needle.board = setup_.needle_board;
   Eigen::Isometry3d T_tracker_patient = Eigen::Isometry3d::Identity(), T_tracker_needle;
   double patient_age = 0, needle_age = 0;
-  const bool reference = patient_.empty() || current(patient_, &T_tracker_patient, &patient_age);
+  const bool reference = patient_.empty() || current_pose(patient_, &T_tracker_patient, &patient_age);
   needle.tracked = patient && patient->tracked && reference &&
-                   current(needle_, &T_tracker_needle, &needle_age);
+                   current_pose(needle_, &T_tracker_needle, &needle_age);
   if (needle.tracked) {
     needle.T_cam_board = patient->T_cam_board * T_tracker_patient.inverse() * T_tracker_needle;
     needle.measured = true;

@@ -56,6 +56,10 @@ class PoseInput {
   const Eigen::Isometry3d& T_cam_ct() const { return T_cam_ct_; }
 
  private:
+  // The latest pose of `device` and its age (by its arrival here); true when not older than
+  // max_age_ms.
+  bool current_pose(const std::string& device, Eigen::Isometry3d* T, double* age_ms) const;
+
   igtlink::PoseReceiver receiver_;
   std::string needle_, patient_;
   double max_age_ms_;

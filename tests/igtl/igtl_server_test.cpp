@@ -27,13 +27,13 @@
 #include <thread>
 
 #include <igtl_util.h>
-#include <signal.h>
 
 #include "igtl/messages.hpp"
 #include "igtl/pose_receiver.hpp"
 #include "igtl/socket_close.hpp"
 #include "igtl/server.hpp"
 #include "pipelines/guide_igtl.hpp"
+#include "tests/support/network.hpp"
 #include "tests/support/temporary_folder.hpp"
 
 namespace crepuscular::igtlink {
@@ -289,27 +289,10 @@ TEST(IgtlServer, AClientThatNeverReadsIsDroppedAndNeverSlowsPublishing) {
 namespace crepuscular::igtlink {
 namespace {
 
-int free_port() {
-  const int probe = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  ::bind(probe, reinterpret_cast<sockaddr*>(&address), sizeof(address));
-  socklen_t length = sizeof(address);
-  ::getsockname(probe, reinterpret_cast<sockaddr*>(&address), &length);
-  ::close(probe);
-  return ntohs(address.sin_port);
-}
-
 TEST(IgtlPoses, TheLibrarysTrackerServerExampleDrivesOurReceiver) {
-  const int port = free_port();
-  const std::string command = std::string(CREPUSCULAR_IGTL_TRACKER_SERVER) + " " +
-                              std::to_string(port) + " 100 > /dev/null 2>&1 & echo $!";
-  FILE* pipe = ::popen(command.c_str(), "r");
-  ASSERT_NE(pipe, nullptr);
-  int pid = 0;
-  ASSERT_EQ(std::fscanf(pipe, "%d", &pid), 1);
-  ::pclose(pipe);
+  const int port = test::free_loopback_port();
+  const test::BackgroundProcess tracker(std::string(CREPUSCULAR_IGTL_TRACKER_SERVER) + " " +
+                                        std::to_string(port) + " 100");
   {
     PoseReceiver receiver("igtl://127.0.0.1:" + std::to_string(port));
     // The example sends 100 poses at 100 Hz: (50 cos phi, 50 sin phi, 50 cos phi), phi += 0.2.
@@ -323,7 +306,6 @@ TEST(IgtlPoses, TheLibrarysTrackerServerExampleDrivesOurReceiver) {
     EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff(), 1e-4);
     EXPECT_EQ(receiver.stats().dropped, 0);
   }
-  ::kill(pid, SIGKILL);
 }
 
 // A hostile or broken sender: our fake tracking server speaks raw bytes.

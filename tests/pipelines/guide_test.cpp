@@ -14,17 +14,11 @@
 #include <map>
 #include <thread>
 #include <atomic>
-#include <csignal>
-#include <cstdio>
 #include <set>
 #include <sstream>
 
-#include <arpa/inet.h>
 #include <igtlClientSocket.h>
 #include <igtlMessageHeader.h>
-#include <netinet/in.h>
-#include <sys/socket.h>
-#include <unistd.h>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/videoio.hpp>
 
@@ -35,6 +29,7 @@
 #include "planning/simulation/phantom.hpp"
 #include "pipelines/plan.hpp"
 #include "tests/support/errors.hpp"
+#include "tests/support/network.hpp"
 #include "tests/support/plans.hpp"
 #include "tests/support/temporary_folder.hpp"
 #include "tracking/board.hpp"
@@ -313,8 +308,12 @@ TEST_F(GuideTest, FaultsNeverDrawFromAPoseThatIsNotCurrent) {
       EXPECT_EQ(row[col("needle_safety")], "");
       EXPECT_NE(row[col("warnings")].find("NO CAMERA IMAGE"), std::string::npos);
     }
-    if (corrupt.count(frame)) EXPECT_NE(row[col("problem")].find("corrupt"), std::string::npos);
-    if (wrong_size.count(frame)) EXPECT_NE(row[col("problem")].find("640x480"), std::string::npos);
+    if (corrupt.count(frame)) {
+      EXPECT_NE(row[col("problem")].find("corrupt"), std::string::npos);
+    }
+    if (wrong_size.count(frame)) {
+      EXPECT_NE(row[col("problem")].find("640x480"), std::string::npos);
+    }
     if (frame > *wrong_size.begin() + 3 && row[col("anatomy_drawn")] == "1") ++drawn_after;
   }
   EXPECT_EQ(blank_seen, 12);
@@ -325,16 +324,7 @@ TEST_F(GuideTest, FaultsNeverDrawFromAPoseThatIsNotCurrent) {
 // needle in the CT (or a STATUS while a marker is lost) and the needle's safety, and first the
 // on-connect messages.
 TEST_F(GuideTest, OpenIgtLinkClientGetsEveryFramesNeedlePoseAndSafety) {
-  // A free port: bound by the system, released, then served by guide.
-  const int probe = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  ASSERT_EQ(::bind(probe, reinterpret_cast<sockaddr*>(&address), sizeof(address)), 0);
-  socklen_t length = sizeof(address);
-  ::getsockname(probe, reinterpret_cast<sockaddr*>(&address), &length);
-  const int port = ntohs(address.sin_port);
-  ::close(probe);
+  const int port = test::free_loopback_port();  // served by guide
 
   const std::string out = (*dir_ / "igtl").string();
   fs::create_directories(out);
@@ -395,22 +385,9 @@ TEST_F(GuideTest, OpenIgtLinkClientGetsEveryFramesNeedlePoseAndSafety) {
 // (100 poses at 100 Hz, then silence) drives the needle; guidance draws it from the virtual
 // camera while poses arrive, and calls it lost once they stop (older than --max-age-ms).
 TEST_F(GuideTest, PosesFromATrackingServerDriveGuidanceWithoutVideoAndStaleOnesAreLost) {
-  const int probe = ::socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in address{};
-  address.sin_family = AF_INET;
-  address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  ASSERT_EQ(::bind(probe, reinterpret_cast<sockaddr*>(&address), sizeof(address)), 0);
-  socklen_t length = sizeof(address);
-  ::getsockname(probe, reinterpret_cast<sockaddr*>(&address), &length);
-  const int port = ntohs(address.sin_port);
-  ::close(probe);
-  const std::string command = std::string(CREPUSCULAR_IGTL_TRACKER_SERVER) + " " +
-                              std::to_string(port) + " 100 > /dev/null 2>&1 & echo $!";
-  FILE* pipe = ::popen(command.c_str(), "r");
-  ASSERT_NE(pipe, nullptr);
-  int pid = 0;
-  ASSERT_EQ(std::fscanf(pipe, "%d", &pid), 1);
-  ::pclose(pipe);
+  const int port = test::free_loopback_port();
+  const test::BackgroundProcess tracker(std::string(CREPUSCULAR_IGTL_TRACKER_SERVER) + " " +
+                                       std::to_string(port) + " 100");
 
   const std::string out = (*dir_ / "poses").string();
   fs::create_directories(out);
@@ -428,11 +405,9 @@ TEST_F(GuideTest, PosesFromATrackingServerDriveGuidanceWithoutVideoAndStaleOnesA
   try {
     s = run_guide(*plan_, g);
   } catch (const Error& e) {
-    ::kill(pid, SIGKILL);
     if (std::string(e.what()).find("OpenGL") != std::string::npos) GTEST_SKIP() << e.what();
     throw;
   }
-  ::kill(pid, SIGKILL);
   EXPECT_EQ(s.frames, 60);
   EXPECT_EQ(s.patient_tracked, 60);  // the tracker's frame: always there
   EXPECT_GE(s.needle_evaluated, 15);  // about 1 s of poses (the connection takes up to 0.2 s)
