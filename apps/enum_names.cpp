@@ -19,7 +19,8 @@ const std::map<std::string, planning::Device>& device_names() {
 
 const std::map<std::string, planning::Mode>& mode_names() {
   static const std::map<std::string, planning::Mode> names = {{"exact", planning::Mode::kExact},
-                                                              {"fast", planning::Mode::kFast}};
+                                                              {"fast", planning::Mode::kFast},
+                                                              {"tables", planning::Mode::kTables}};
   return names;
 }
 

@@ -79,9 +79,12 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
       ->transform(enum_names(device_names()))
       ->default_str("auto");
   cmd->add_option("--mode", req->path_safety.mode,
-                  "exact: every ray marched (the reference); fast: rays cast once from each "
-                  "tumor surface point and looked up by direction and distance. Fast mode "
-                  "recomputes 1000 random voxels exactly and reports the difference in plan.json")
+                  "exact: every ray marched (the reference). fast: the grid sampled coarse to "
+                  "fine, every 4th voxel first; voxels where the safety classes change are "
+                  "computed exactly, the inside of a region of one class is interpolated "
+                  "(about 10x faster on large grids). tables: rays cast once from each tumor "
+                  "surface point and looked up by direction and distance. fast and tables "
+                  "recompute 1000 random voxels exactly and report the difference in plan.json")
       ->transform(enum_names(mode_names()))
       ->default_str("exact");
   cmd->add_option("--threads", req->path_safety.threads,

@@ -60,19 +60,23 @@ int main(int argc, char** argv) {
   double fast_angular = PathSafetyOptions{}.fast_angular;
   double fast_refine = PathSafetyOptions{}.fast_refine;
   double fast_refine_relative = PathSafetyOptions{}.fast_refine_relative;
+  int fast_stride = PathSafetyOptions{}.fast_stride;
+  bool no_dilate = false;
   app.add_option("--phantom-spacing", phantom_spacing, "phantom voxel size, mm");
   app.add_option("--tumor-diameter", tumor_diameter, "ball tumor diameter, mm");
   app.add_option("--tumor-spacing", tumor_spacing, "tumor mask voxel size, mm");
   app.add_option("--spacing", spacing, "output spacing h, mm (0: the smallest input spacing)");
   app.add_option("--radius", radius, "region of interest R, mm");
-  app.add_option("--mode", mode, "exact or fast");
+  app.add_option("--mode", mode, "exact, fast or tables");
+  app.add_option("--fast-stride", fast_stride, "fast mode: coarsest lattice stride");
+  app.add_flag("--fast-no-dilate", no_dilate, "fast mode: refine only cells that disagree");
   app.add_option("--device", device, "auto, cpu or cuda");
   app.add_option("--value", values, "values (svv,isbv,ivbv,bvv or all)");
   app.add_option("--work", work, "working folder (phantom and plan)");
   app.add_flag("--keep", keep, "keep the working folder");
-  app.add_option("--fast-angular", fast_angular, "fast mode: direction cells per distance/h");
-  app.add_option("--fast-refine", fast_refine, "fast mode: spread marched exactly (< 0: never)");
-  app.add_option("--fast-refine-relative", fast_refine_relative, "fast mode: relative spread");
+  app.add_option("--fast-angular", fast_angular, "tables mode: direction cells per distance/h");
+  app.add_option("--fast-refine", fast_refine, "tables mode: spread marched exactly (< 0: never)");
+  app.add_option("--fast-refine-relative", fast_refine_relative, "tables mode: relative spread");
   CLI11_PARSE(app, argc, argv);
   spdlog::set_level(spdlog::level::warn);
   namespace fs = std::filesystem;
@@ -100,6 +104,8 @@ int main(int argc, char** argv) {
   req.path_safety.fast_angular = fast_angular;
   req.path_safety.fast_refine = fast_refine;
   req.path_safety.fast_refine_relative = fast_refine_relative;
+  req.path_safety.fast_stride = fast_stride;
+  req.path_safety.fast_dilate = !no_dilate;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
   const nlohmann::json plan = pipelines::run_plan(req);
@@ -115,7 +121,10 @@ int main(int argc, char** argv) {
                          {"grid", plan["grid"]["dims"]},
                          {"surface_points", plan["tumor"]["surface_points"]},
                          {"mode", mode},
-                         {"fast", {fast_angular, fast_refine, fast_refine_relative}},
+                         {"tables", {fast_angular, fast_refine, fast_refine_relative}},
+                         {"fast_stride", fast_stride},
+                         {"fast_dilate", !no_dilate},
+                         {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},
                          {"device", plan["parameters"]["device"]},
                          {"setup_s_not_counted", setup_s},
                          {"wall_s", wall_s},

@@ -9,6 +9,7 @@
 #include <exception>
 #include <functional>
 #include <limits>
+#include <memory>
 #include <mutex>
 #include <string>
 #include <thread>
@@ -706,7 +707,122 @@ void exact_on_device(int d, int z0, int z1, const PathSafetyScene<double>& host_
   outputs.download(out, size_t(z0) * size_t(n) * size_t(n), slab);
 }
 
+// ---------------------------------------------------------------------------------------------
+// Listed points (fast mode): one thread per point.
+
+struct PointFrame {
+  double origin[3];
+  double axes[3][3];
+};
+
+template <unsigned Values, typename Sampler>
+__global__ void path_safety_points_kernel(PathSafetyScene<float> scene, PointFrame frame,
+                                          const int32_t* __restrict__ ijk, int count,
+                                          Sampler sampler, float* __restrict__ out) {
+  const int p = blockIdx.x * blockDim.x + threadIdx.x;
+  if (p >= count) return;
+  const Vec3<double> x =
+      grid_point(frame.origin, frame.axes, ijk[3 * p], ijk[3 * p + 1], ijk[3 * p + 2]);
+  float res[kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
+  path_safety_at<float, Values>(scene, x, res, sampler);
+  for (int v = 0; v < kValueCount; ++v) out[size_t(p) * kValueCount + v] = res[v];
+}
+
 }  // namespace
+
+struct CudaPointEvaluator::Impl {
+  PointFrame frame{};
+  unsigned values = 0;
+  BlockingStorage storage = BlockingStorage::kGlobal;
+  int devices = 0;
+  std::string names;
+  std::vector<std::unique_ptr<DeviceScene>> scenes;
+  double setup_s = 0.0, kernel_s = 0.0;
+};
+
+CudaPointEvaluator::CudaPointEvaluator(const PathSafetyScene<double>& scene,
+                                       const OutputGridDesc& grid, unsigned values,
+                                       BlockingStorage storage, int max_devices)
+    : impl_(new Impl) {
+  const auto t0 = std::chrono::steady_clock::now();
+  try {
+    int devices = cuda_device_count();
+    if (devices == 0) throw Error("CUDA: no device found");
+    if (max_devices > 0) devices = std::min(devices, max_devices);
+    impl_->devices = devices;
+    impl_->values = values;
+    impl_->storage = storage;
+    impl_->names = last_device_name(devices);
+    for (int a = 0; a < 3; ++a) {
+      impl_->frame.origin[a] = grid.origin[a];
+      for (int b = 0; b < 3; ++b) impl_->frame.axes[a][b] = grid.axes[a][b];
+    }
+    impl_->scenes.resize(size_t(devices));
+    on_every_device(devices, [&](int d) {
+      check(cudaSetDevice(d), "cudaSetDevice");
+      impl_->scenes[size_t(d)] = std::make_unique<DeviceScene>(scene, storage);
+      check(cudaDeviceSynchronize(), "upload scene");
+    });
+  } catch (...) {
+    delete impl_;
+    throw;
+  }
+  impl_->setup_s = seconds_since(t0);
+}
+
+CudaPointEvaluator::~CudaPointEvaluator() {
+  for (int d = 0; d < impl_->devices; ++d) {
+    if (cudaSetDevice(d) == cudaSuccess) impl_->scenes[size_t(d)].reset();
+  }
+  delete impl_;
+}
+
+void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const int devices = impl_->devices;
+  on_every_device(devices, [&](int d) {
+    const int64_t p0 = count * d / devices, p1 = count * (d + 1) / devices;
+    if (p1 <= p0) return;
+    check(cudaSetDevice(d), "cudaSetDevice");
+    const DeviceScene& ds = *impl_->scenes[size_t(d)];
+    // Launches of at most kChunk points keep each under a second or so on the largest grids.
+    constexpr int64_t kChunk = 1 << 20;
+    const int64_t most = std::min<int64_t>(kChunk, p1 - p0);
+    DeviceBuffer<int32_t> points(size_t(3 * most));
+    DeviceBuffer<float> values(size_t(kValueCount * most));
+    for (int64_t c0 = p0; c0 < p1; c0 += kChunk) {
+      const int m = int(std::min(kChunk, p1 - c0));
+      check(cudaMemcpy(points.ptr, ijk + 3 * c0, size_t(3 * m) * sizeof(int32_t),
+                       cudaMemcpyHostToDevice),
+            "upload points");
+      const unsigned blocks = unsigned((m + 127) / 128);
+      with_value_set(impl_->values, [&](auto tag) {
+        constexpr unsigned kValues = decltype(tag)::value;
+        if (impl_->storage == BlockingStorage::kTexture) {
+          path_safety_points_kernel<kValues><<<blocks, 128>>>(
+              ds.scene, impl_->frame, points.ptr, m,
+              TextureSampler{ds.texture, ds.scene.blocking}, values.ptr);
+        } else {
+          path_safety_points_kernel<kValues><<<blocks, 128>>>(
+              ds.scene, impl_->frame, points.ptr, m, GridSampler<float>{ds.scene.blocking},
+              values.ptr);
+        }
+      });
+      check(cudaGetLastError(), "points kernel launch");
+      check(cudaMemcpy(out + kValueCount * c0, values.ptr,
+                       size_t(kValueCount * m) * sizeof(float), cudaMemcpyDeviceToHost),
+            "download values");
+    }
+  });
+  impl_->kernel_s += seconds_since(t0);
+}
+
+std::string CudaPointEvaluator::devices() const {
+  return "cuda:" + impl_->names + " x" + std::to_string(impl_->devices);
+}
+int CudaPointEvaluator::device_count() const { return impl_->devices; }
+double CudaPointEvaluator::setup_seconds() const { return impl_->setup_s; }
+double CudaPointEvaluator::kernel_seconds() const { return impl_->kernel_s; }
 
 CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& host_scene,
                                    const OutputGridDesc& grid, unsigned values,

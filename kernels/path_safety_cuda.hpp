@@ -64,6 +64,29 @@ struct CudaRunReport {
 // costs a good part of a second; callers overlap it with other work).
 int cuda_warm_up();
 
+// Exact values at listed points of an output grid (fast mode's coarse-to-fine sampling): the
+// scene is uploaded once to every device (up to max_devices; 0: all visible) and kept for every
+// call; each call splits its points between the devices.
+class CudaPointEvaluator {
+ public:
+  CudaPointEvaluator(const PathSafetyScene<double>& scene, const OutputGridDesc& grid,
+                     unsigned values, BlockingStorage storage, int max_devices);
+  ~CudaPointEvaluator();
+  CudaPointEvaluator(const CudaPointEvaluator&) = delete;
+  CudaPointEvaluator& operator=(const CudaPointEvaluator&) = delete;
+  // ijk: 3 * count output grid indices (may lie outside the grid); out: kValueCount floats per
+  // point, slot order (requested values only).
+  void evaluate(const int32_t* ijk, int64_t count, float* out);
+  std::string devices() const;
+  int device_count() const;
+  double setup_seconds() const;   // uploads
+  double kernel_seconds() const;  // all evaluate calls, wall time
+
+ private:
+  struct Impl;
+  Impl* impl_;
+};
+
 CudaRunReport run_path_safety_cuda(const PathSafetyScene<double>& scene,
                                    const OutputGridDesc& grid, unsigned values,
                                    float* const out[kValueCount], const CudaRunOptions& options);

@@ -150,9 +150,15 @@ nlohmann::json parameters_json(const PlanRequest& req, const PathSafetyResult& r
 
 // Fast mode's check against the exact method on random voxels.
 nlohmann::json fast_check_json(const PlanRequest& req, const PathSafetyResult& result) {
-  nlohmann::json check = {{"voxels", result.check_voxels},
-                          {"direction_cells", result.direction_cells},
-                          {"angular_oversampling", req.path_safety.fast_angular}};
+  nlohmann::json check = {{"voxels", result.check_voxels}, {"mode", mode_name(result.mode)}};
+  if (result.mode == Mode::kTables) {
+    check["direction_cells"] = result.direction_cells;
+    check["angular_oversampling"] = req.path_safety.fast_angular;
+  } else {
+    check["coarsest_stride"] = req.path_safety.fast_stride;
+    check["points_computed_exactly"] = result.evaluated_points;
+    check["voxels_interpolated"] = result.interpolated_voxels;
+  }
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (!(result.values & (1u << v))) continue;
     check[value_name(1u << v)] = {{"relative_l2", result.check_relative_l2[size_t(v)]},
@@ -217,7 +223,7 @@ nlohmann::json plan_json(const PlanRequest& req, const PlanInputs& in,
   plan["preprocessing"] = in.preprocessing;
   plan["tumor_source"] = in.tumor_source;
   plan["parameters"] = parameters_json(req, result);
-  if (result.mode == Mode::kFast) plan["fast_mode_vs_exact"] = fast_check_json(req, result);
+  if (result.mode != Mode::kExact) plan["fast_mode_vs_exact"] = fast_check_json(req, result);
   const Eigen::Vector3d& c = result.grid.centre;
   plan["grid"] = geometry_json(result.grid.geometry);
   plan["grid"]["centre_lps_mm"] = {c.x(), c.y(), c.z()};
@@ -253,6 +259,7 @@ nlohmann::json run_plan(const PlanRequest& req) {
   t = Clock::now();
   PathSafetyResult result = compute(req, in);
   timings["path_safety_s"] = seconds_since(t);
+  for (const auto& [phase, seconds] : result.phases) timings["path_safety_phases"][phase] = seconds;
 
   // Unknown is never safe: the region outside the scan gets no value.
   t = Clock::now();

@@ -20,6 +20,7 @@
 #include "kernels/value_set.hpp"
 #include "planning/imaging/sampling.hpp"
 #include "planning/preprocessing/blocking.hpp"
+#include "planning/safety/adaptive_sampling.hpp"
 #include "planning/safety/safety_classes.hpp"
 #include <random>
 
@@ -139,10 +140,13 @@ Device parse_device(const std::string& text) {
 Mode parse_mode(const std::string& text) {
   if (text == "exact") return Mode::kExact;
   if (text == "fast") return Mode::kFast;
-  throw Error("path safety mode: unknown mode '" + text + "' (expected exact or fast)");
+  if (text == "tables") return Mode::kTables;
+  throw Error("path safety mode: unknown mode '" + text + "' (expected exact, fast or tables)");
 }
 
-const char* mode_name(Mode mode) { return mode == Mode::kFast ? "fast" : "exact"; }
+const char* mode_name(Mode mode) {
+  return mode == Mode::kFast ? "fast" : mode == Mode::kTables ? "tables" : "exact";
+}
 
 const char* device_name(Device device) {
   switch (device) {
@@ -576,30 +580,72 @@ void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGri
   }
 }
 
-// Recomputes `count` random ROI voxels exactly and compares them with the fast result.
-void check_fast_against_exact(const kernels::PathSafetyScene<double>& scene,
-                              const OutputGrid& grid, unsigned values, int count, int threads,
-                              PathSafetyResult& result) {
-  const VoxelCentres centre(grid.geometry);
+// Fast mode: the output grid sampled coarse to fine (adaptive_sampling.hpp), each point's values
+// computed by `evaluate` (exact rays on the CPU or the GPU).
+void run_adaptive(const OutputGrid& grid, const PathSafetyOptions& options,
+                  const PointEvaluator& evaluate, PathSafetyResult& result) {
+  AdaptiveOptions adaptive;
+  adaptive.values = options.values;
+  adaptive.stride = options.fast_stride;
+  adaptive.svv_margin = options.fast_svv_margin;
+  adaptive.blocking_margin = options.fast_blocking_margin;
+  adaptive.dilate = options.fast_dilate;
+  adaptive.progress = options.progress;
+  float* out[kernels::kValueCount] = {};
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (options.values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
+  }
+  const AdaptiveReport report = sample_adaptively(grid, adaptive, evaluate, out);
+  result.evaluated_points = report.evaluated;
+  result.interpolated_voxels = report.interpolated;
+  std::string levels;
+  for (const auto& [stride, count] : report.levels) {
+    levels += (levels.empty() ? "" : ", ") + std::to_string(count) + " at stride " +
+              std::to_string(stride);
+  }
+  spdlog::info("fast mode: {} points computed exactly ({}), {} of {} ROI voxels interpolated",
+               report.evaluated, levels, report.interpolated, grid.roi_voxels);
+}
+
+// The exact values at listed points, on the CPU.
+PointEvaluator cpu_point_evaluator(const kernels::PathSafetyScene<double>& scene,
+                                   const OutputGrid& grid, unsigned values, int threads) {
+  return [&scene, &grid, values, threads](const std::vector<GridPoint>& points,
+                                          std::vector<float>& out) {
+    const VoxelCentres centre(grid.geometry);
+    kernels::with_value_set(values, [&](auto tag) {
+      constexpr unsigned kValues = decltype(tag)::value;
+#pragma omp parallel for schedule(dynamic, 8) num_threads(threads)
+      for (int64_t p = 0; p < int64_t(points.size()); ++p) {
+        const GridPoint& g = points[size_t(p)];
+        kernels::path_safety_at<double, kValues>(scene, centre(g.i, g.j, g.k),
+                                                 &out[size_t(p) * kernels::kValueCount]);
+      }
+    });
+  };
+}
+
+// Recomputes `count` random ROI voxels exactly (`evaluate`) and compares them with the fast
+// result.
+void check_fast_against_exact(const OutputGrid& grid, unsigned values, int count,
+                              const PointEvaluator& evaluate, PathSafetyResult& result) {
   std::mt19937_64 rng(20111);
   const int64_t n = grid.geometry.dims[0];
   std::uniform_int_distribution<int64_t> u(0, n - 1);
   std::vector<int64_t> offsets;
+  std::vector<GridPoint> points;
   while (int64_t(offsets.size()) < std::min<int64_t>(count, grid.roi_voxels)) {
     const int64_t i = u(rng), j = u(rng), k = u(rng);
-    if (grid.in_roi(i, j, k)) offsets.push_back(grid.geometry.offset(i, j, k));
+    if (!grid.in_roi(i, j, k)) continue;
+    offsets.push_back(grid.geometry.offset(i, j, k));
+    points.push_back({int32_t(i), int32_t(j), int32_t(k)});
   }
+  std::vector<float> flat(points.size() * kernels::kValueCount, 0.0f);
+  if (!points.empty()) evaluate(points, flat);
   std::vector<std::array<float, kernels::kValueCount>> exact(offsets.size());
-  kernels::with_value_set(values, [&](auto tag) {
-    constexpr unsigned kValues = decltype(tag)::value;
-#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
-    for (int64_t s = 0; s < int64_t(offsets.size()); ++s) {
-      const Index3 idx = grid.geometry.index_of_offset(offsets[size_t(s)]);
-      exact[size_t(s)].fill(0.0f);
-      kernels::path_safety_at<double, kValues>(scene, centre(idx[0], idx[1], idx[2]),
-                                               exact[size_t(s)].data());
-    }
-  });
+  for (size_t p = 0; p < points.size(); ++p) {
+    std::copy_n(&flat[p * kernels::kValueCount], kernels::kValueCount, exact[p].begin());
+  }
   result.check_voxels = int64_t(offsets.size());
   for (int v = 0; v < kernels::kValueCount; ++v) {
     const unsigned bit = 1u << v;
@@ -616,6 +662,19 @@ void check_fast_against_exact(const kernels::PathSafetyScene<double>& scene,
     result.check_relative_l2[size_t(v)] = ref2 > 0.0 ? std::sqrt(diff2 / ref2) : std::sqrt(diff2);
     result.check_class_agreement[size_t(v)] =
         offsets.empty() ? 1.0 : double(same) / double(offsets.size());
+  }
+}
+
+// Fast mode's self-check (options.fast_check_voxels voxels recomputed exactly), logged.
+void check_fast_mode(const OutputGrid& grid, const PathSafetyOptions& options,
+                     const PointEvaluator& evaluate, PathSafetyResult& result) {
+  check_fast_against_exact(grid, options.values, options.fast_check_voxels, evaluate, result);
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (options.values & (1u << v)) {
+      spdlog::info("fast mode vs exact at {} voxels: {} relative L2 {:.2e}, same class {:.2f} %",
+                   result.check_voxels, value_name(1u << v), result.check_relative_l2[size_t(v)],
+                   100.0 * result.check_class_agreement[size_t(v)]);
+    }
   }
 }
 
@@ -756,6 +815,10 @@ class CudaBackend {
     desc.n = int(grid.geometry.dims[0]);
     desc.half = int(grid.half);
     desc.max_sq = grid.max_sq;
+    if (options.mode == Mode::kFast) {
+      run_fast(scene, grid, desc, options, clock, volumes, result);
+      return;
+    }
     float* out[kernels::kValueCount] = {};
     kernels::CudaRunOptions cuda;
     cuda.wait_for_outputs = [&] {
@@ -772,7 +835,7 @@ class CudaBackend {
                                         : kernels::BlockingStorage::kGlobal;
     cuda.max_devices = options.max_gpus;
     cuda.progress = options.progress;
-    if (options.mode == Mode::kFast) {
+    if (options.mode == Mode::kTables) {
       int m = 0, radial = 0;
       kernels::direction_table_size(max_ray_length(grid, scene), grid.geometry.spacing[0], m,
                                     radial, options.fast_angular);
@@ -792,6 +855,30 @@ class CudaBackend {
   }
 
  private:
+  // Fast mode: the scene uploaded once to every device, the grid sampled coarse to fine.
+  void run_fast(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
+                const kernels::OutputGridDesc& desc, const PathSafetyOptions& options,
+                PhaseClock& clock, PendingVolumes& volumes, PathSafetyResult& result) {
+    const auto storage = options.cuda_texture ? kernels::BlockingStorage::kTexture
+                                              : kernels::BlockingStorage::kGlobal;
+    kernels::CudaPointEvaluator evaluator(scene, desc, options.values, storage, options.max_gpus);
+    volumes.collect(result);
+    clock.done("upload_and_allocate");
+    const PointEvaluator evaluate = [&evaluator](const std::vector<GridPoint>& points,
+                                                 std::vector<float>& out) {
+      evaluator.evaluate(&points.front().i, int64_t(points.size()), out.data());
+    };
+    run_adaptive(grid, options, evaluate, result);
+    clock.done("adaptive_sampling");
+    if (options.fast_check_voxels > 0) {
+      check_fast_mode(grid, options, evaluate, result);
+      clock.done("self_check");
+    }
+    result.device = evaluator.devices() + (options.cuda_texture ? " (texture)" : "");
+    result.phases = clock.phases;
+    result.phases.emplace_back("gpu_kernels", evaluator.kernel_seconds());
+  }
+
   Device device_;
   std::future<int> warm_up_;
   std::optional<int> count_;
@@ -827,24 +914,13 @@ void run_on_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid&
   result.threads = thread_count(options);
   result.device = "cpu";
   if (options.mode == Mode::kFast) {
+    run_adaptive(grid, options,
+                 cpu_point_evaluator(scene, grid, options.values, result.threads), result);
+  } else if (options.mode == Mode::kTables) {
     run_cpu_fast(scene, grid, options.values, result.threads, options.fast_angular,
                  options.fast_refine, options.fast_refine_relative, result, options.progress);
   } else {
     run_cpu(scene, grid, options.values, result.threads, result, options.progress);
-  }
-}
-
-// Fast mode's self-check (options.fast_check_voxels voxels recomputed exactly), logged.
-void check_fast_mode(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
-                     const PathSafetyOptions& options, PathSafetyResult& result) {
-  check_fast_against_exact(scene, grid, options.values, options.fast_check_voxels,
-                           thread_count(options), result);
-  for (int v = 0; v < kernels::kValueCount; ++v) {
-    if (options.values & (1u << v)) {
-      spdlog::info("fast mode vs exact at {} voxels: {} relative L2 {:.2e}, same class {:.2f} %",
-                   result.check_voxels, value_name(1u << v), result.check_relative_l2[size_t(v)],
-                   100.0 * result.check_class_agreement[size_t(v)]);
-    }
   }
 }
 
@@ -919,8 +995,14 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   }
   result.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  if (options.mode == Mode::kFast && options.fast_check_voxels > 0) {
-    check_fast_mode(scene, grid, options, result);
+  // Fast mode on the GPU checked itself there; otherwise the CPU recomputes the sample.
+  if (options.mode != Mode::kExact && options.fast_check_voxels > 0 && result.check_voxels == 0) {
+    const auto t = std::chrono::steady_clock::now();
+    check_fast_mode(grid, options,
+                    cpu_point_evaluator(scene, grid, options.values, thread_count(options)),
+                    result);
+    result.phases.emplace_back(
+        "self_check", std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count());
   }
   return result;
 }

@@ -16,9 +16,11 @@
 namespace crepuscular::planning {
 
 enum class Device { kAuto, kCpu, kCuda };
-// exact: every ray marched (DESIGN.md §4, the reference); fast: rays cast once per surface point
-// and looked up by direction and distance (kernels/path_safety_fast.hpp).
-enum class Mode { kExact, kFast };
+// exact: every ray marched (DESIGN.md §4, the reference); fast: the grid sampled coarse to fine,
+// exact values where the classes change and interpolated inside regions of one class
+// (adaptive_sampling.hpp); tables: rays cast once per surface point and looked up by direction
+// and distance (kernels/path_safety_fast.hpp).
+enum class Mode { kExact, kFast, kTables };
 
 // Parses "svv,isbv,ivbv,bvv" (any subset, any order, or "all") into PathSafetyValue bits; throws
 // Error on an unknown name.
@@ -50,19 +52,25 @@ struct PathSafetyOptions {
   // CUDA only: sample the blocking volume through a 3D texture with hardware trilinear filtering
   // (9-bit weights) instead of float filtering in global memory (the exact definition).
   bool cuda_texture = false;
-  // Fast mode: octahedral direction cells per (distance / spacing), i.e. the angular sampling of
+  // Fast mode: the coarsest lattice (every fast_stride-th voxel, a power of two), and how close
+  // to a class threshold a corner may lie before its cell is refined (adaptive_sampling.hpp).
+  int fast_stride = 4;
+  double fast_svv_margin = 3.0;
+  double fast_blocking_margin = 0.25;
+  bool fast_dilate = true;  // refine the neighbours of refined coarsest cells too
+  // Tables mode: octahedral direction cells per (distance / spacing), i.e. the angular sampling of
   // the rays cast from each surface point (cost ~ square). 2: neighbouring rays about 1.75
   // voxels apart at the far edge; the rays between cells that disagree are marched exactly, so
   // a finer table buys speed only where few rays graze structures.
   double fast_angular = 2.0;
-  // Fast mode: a ray whose four neighbouring direction cells differ in line integral by more
+  // Tables mode: a ray whose four neighbouring direction cells differ in line integral by more
   // than fast_refine + fast_refine_relative x its value (or on whether t is seen, or on the side
   // of eps) is marched exactly (fast_refine < 0: never).
   double fast_refine = 0.01;
   double fast_refine_relative = 0.03;
-  // Fast mode: ROI voxels recomputed exactly afterwards to report the difference (0: none).
+  // Fast and tables mode: ROI voxels recomputed exactly afterwards to report the difference (0: none).
   int fast_check_voxels = 1000;
-  // Fast mode on CUDA: direction tables cast per batch (0: as many as fit, at most 16).
+  // Tables mode on CUDA: direction tables cast per batch (0: as many as fit, at most 16).
   int cuda_fast_slots = 0;
   // Memory the output may take, bytes; 0: 80 % of the memory available now.
   uint64_t memory_limit_bytes = 0;
@@ -112,7 +120,9 @@ struct PathSafetyResult {
   OutputGrid grid;
   unsigned values = 0;
   Mode mode = Mode::kExact;
-  int direction_cells = 0;  // fast mode: octahedral map side
+  int direction_cells = 0;  // tables mode: octahedral map side
+  int64_t evaluated_points = 0;     // fast mode: points computed exactly (lattice corners)
+  int64_t interpolated_voxels = 0;  // fast mode: ROI voxels interpolated
   // One volume per value slot (svv, isbv, ivbv, bvv); only requested ones are filled. Voxels
   // outside the region of interest are NaN (not computed).
   std::array<Volume<float>, kernels::kValueCount> volumes;

@@ -3,11 +3,22 @@
 
 #include <algorithm>
 #include <cmath>
+#include <utility>
 #include <vector>
 
 namespace crepuscular::planning {
 
 SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume) {
+  std::vector<float> positive;
+  if (value_bit != kernels::kSvv) {
+    for (const float x : volume.values()) {
+      if (std::isfinite(x) && x > 0.0f) positive.push_back(x);
+    }
+  }
+  return default_classes_of(value_bit, std::move(positive));
+}
+
+SafetyClasses default_classes_of(unsigned value_bit, std::vector<float> values) {
   SafetyClasses c;
   if (value_bit == kernels::kSvv) {
     c.higher_is_safer = true;
@@ -15,11 +26,10 @@ SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume) {
     c.dangerous = 50.0;
     return c;
   }
-  std::vector<float> v;
-  v.reserve(volume.values().size());
-  for (float x : volume.values()) {
-    if (std::isfinite(x) && x > 0.0f) v.push_back(x);
-  }
+  std::vector<float>& v = values;
+  v.erase(std::remove_if(v.begin(), v.end(),
+                         [](float x) { return !(std::isfinite(x) && x > 0.0f); }),
+          v.end());
   const auto percentile = [&](double q) -> double {
     if (v.empty()) return 0.0;
     const size_t i = std::min(v.size() - 1, size_t(q * double(v.size() - 1) + 0.5));

@@ -5,6 +5,7 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <vector>
 
 #include "kernels/path_safety_math.hpp"
 #include "planning/imaging/volume.hpp"
@@ -38,6 +39,8 @@ struct SafetyClasses {
 // it are margin tails and grazing paths, not blocking.
 constexpr double kInsignificantShare = 1e-3;
 SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume);
+// The same rule over a sample of the region's values (NaN and values <= 0 are left out).
+SafetyClasses default_classes_of(unsigned value_bit, std::vector<float> values);
 
 // Difference of `other` from `reference` over the voxels both computed, per value slot.
 struct ModeDifference {

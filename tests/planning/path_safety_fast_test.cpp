@@ -1,4 +1,4 @@
-// Fast mode against exact mode on random vessel scenes: safety class agreement (the requirement:
+// Fast mode (coarse to fine) and tables mode against exact mode on random vessel scenes: safety class agreement (the requirement:
 // the same class on at least 99.5 % of the region of interest, on every scene) and relative L2.
 #include <gtest/gtest.h>
 
@@ -54,8 +54,10 @@ Scene vessel_scene(uint32_t seed) {
 // The requirement: fast mode gives exact mode's safety class on >= 99.5 % of the voxels.
 constexpr double kRequiredAgreement = 0.995;
 
-// Fast mode against exact mode on the scene of `seed`: relative L2 <= 0.01 and class agreement
-// >= kRequiredAgreement for every value, and its own check (300 voxels recomputed exactly) agrees.
+// Fast and tables mode against exact mode on the scene of `seed`: relative L2 (<= 0.01 for tables,
+// 0.06 for fast, 0.05 for svv) and class
+// agreement >= kRequiredAgreement for every value, and each one's own check (300 voxels
+// recomputed exactly) agrees.
 void expect_fast_agrees_with_exact(uint32_t seed) {
   const Scene s = vessel_scene(seed);
   PathSafetyOptions o;
@@ -63,24 +65,38 @@ void expect_fast_agrees_with_exact(uint32_t seed) {
   o.eps = 0.5;
   o.device = Device::kCpu;
   const PathSafetyResult exact = compute_path_safety(s.blocking, s.tumor, o);
-  o.mode = Mode::kFast;
-  o.fast_check_voxels = 300;
-  const PathSafetyResult fast = compute_path_safety(s.blocking, s.tumor, o);
-  const ModeDifference d = compare_volumes(exact.volumes, fast.volumes, kernels::kAllValues);
-  EXPECT_EQ(d.voxels, exact.grid.roi_voxels);
-  for (int v = 0; v < kernels::kValueCount; ++v) {
-    const std::string name = value_name(1u << v);
-    const double agreement = d.class_agreement[size_t(v)];
-    std::printf("seed %u %s: relative L2 %.3e, class agreement %.4f (check at %lld voxels: "
-                "%.3e, %.4f)\n",
-                seed, name.c_str(), d.relative_l2[size_t(v)], agreement,
-                (long long)fast.check_voxels, fast.check_relative_l2[size_t(v)],
-                fast.check_class_agreement[size_t(v)]);
-    EXPECT_LE(d.relative_l2[size_t(v)], v == 0 ? 0.05 : 0.01) << name;
-    EXPECT_GE(agreement, kRequiredAgreement) << name;
-    EXPECT_GE(fast.check_class_agreement[size_t(v)], 0.99) << name;
+  for (const Mode mode : {Mode::kFast, Mode::kTables}) {
+    o.mode = mode;
+    o.fast_check_voxels = 300;
+    const PathSafetyResult fast = compute_path_safety(s.blocking, s.tumor, o);
+    const ModeDifference d = compare_volumes(exact.volumes, fast.volumes, kernels::kAllValues);
+    EXPECT_EQ(d.voxels, exact.grid.roi_voxels);
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      const std::string name = std::string(mode_name(mode)) + " " + value_name(1u << v);
+      const double agreement = d.class_agreement[size_t(v)];
+      std::printf("seed %u %s: relative L2 %.3e, class agreement %.4f (check at %lld voxels: "
+                  "%.3e, %.4f)\n",
+                  seed, name.c_str(), d.relative_l2[size_t(v)], agreement,
+                  (long long)fast.check_voxels, fast.check_relative_l2[size_t(v)],
+                  fast.check_class_agreement[size_t(v)]);
+      // Fast mode interpolates inside regions of one class, where the blocking values of the
+      // dangerous class vary steeply (beside impassable tubes): its values are near, its
+      // classes agree.
+      const double l2_bound = v == 0 ? 0.05 : mode == Mode::kFast ? 0.06 : 0.01;
+      EXPECT_LE(d.relative_l2[size_t(v)], l2_bound) << name;
+      EXPECT_GE(agreement, kRequiredAgreement) << name;
+      EXPECT_GE(fast.check_class_agreement[size_t(v)], 0.99) << name;
+    }
+    EXPECT_EQ(fast.check_voxels, 300);
+    if (mode == Mode::kFast) {
+      // Coarse to fine fills part of the region by interpolation (in these small, dense scenes
+      // it computes about as many points as exact mode; on a real grid a small fraction).
+      std::printf("seed %u fast: %lld points exact, %lld interpolated of %lld\n", seed,
+                  (long long)fast.evaluated_points, (long long)fast.interpolated_voxels,
+                  (long long)fast.grid.roi_voxels);
+      EXPECT_GT(fast.interpolated_voxels, fast.grid.roi_voxels / 8);
+    }
   }
-  EXPECT_EQ(fast.check_voxels, 300);
 }
 
 // The harshest scenes of the first 16 seeds: impassable tubes close to the tumor.

@@ -1,0 +1,285 @@
+// Coarse-to-fine sampling of the output grid (fast mode): see adaptive_sampling.hpp.
+#include "planning/safety/adaptive_sampling.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <unordered_map>
+
+#include "foundation/error.hpp"
+
+namespace crepuscular::planning {
+
+namespace {
+
+constexpr uint8_t kPending = 0, kEvaluated = 1, kInterpolated = 2, kQueued = 3;
+constexpr int kSlots = kernels::kValueCount;
+
+// The values of every point evaluated so far: voxels of the grid in the output arrays (all four
+// slots kept here), lattice corners beyond the grid's edge in a map.
+class SampleStore {
+ public:
+  SampleStore(const OutputGrid& grid, float* const out[kSlots])
+      : n_(grid.geometry.dims[0]), state_(size_t(n_ * n_ * n_), kPending) {
+    for (int s = 0; s < kSlots; ++s) out_[s] = out[s];
+  }
+
+  bool inside(int64_t i, int64_t j, int64_t k) const {
+    return i >= 0 && j >= 0 && k >= 0 && i < n_ && j < n_ && k < n_;
+  }
+  int64_t offset(int64_t i, int64_t j, int64_t k) const { return (k * n_ + j) * n_ + i; }
+  uint8_t& state(int64_t i, int64_t j, int64_t k) { return state_[size_t(offset(i, j, k))]; }
+
+  // Queues a point for evaluation unless it has values already or is queued.
+  void request(int64_t i, int64_t j, int64_t k, std::vector<GridPoint>& queue) {
+    if (inside(i, j, k)) {
+      uint8_t& s = state(i, j, k);
+      if (s == kEvaluated || s == kQueued) return;
+      s = kQueued;
+    } else {
+      auto [it, added] = outside_.try_emplace(key(i, j, k));
+      if (!added) return;
+      it->second.fill(std::numeric_limits<float>::quiet_NaN());
+    }
+    queue.push_back({int32_t(i), int32_t(j), int32_t(k)});
+  }
+
+  void store(const GridPoint& p, const float* values) {
+    if (inside(p.i, p.j, p.k)) {
+      const int64_t off = offset(p.i, p.j, p.k);
+      state_[size_t(off)] = kEvaluated;
+      for (int s = 0; s < kSlots; ++s) {
+        if (out_[s]) out_[s][off] = values[s];
+      }
+    } else {
+      std::copy(values, values + kSlots, outside_[key(p.i, p.j, p.k)].begin());
+    }
+  }
+
+  float value(int64_t i, int64_t j, int64_t k, int slot) const {
+    if (inside(i, j, k)) return out_[slot][offset(i, j, k)];
+    return outside_.at(key(i, j, k))[size_t(slot)];
+  }
+
+  void set(int64_t off, int slot, float v) { out_[slot][off] = v; }
+  float* out(int slot) const { return out_[slot]; }
+
+ private:
+  static uint64_t key(int64_t i, int64_t j, int64_t k) {
+    constexpr int64_t kBias = 1 << 20;  // corners lie at most one cell beyond the grid
+    return (uint64_t(i + kBias) << 42) | (uint64_t(j + kBias) << 21) | uint64_t(k + kBias);
+  }
+
+  int64_t n_;
+  std::vector<uint8_t> state_;
+  float* out_[kSlots] = {};
+  std::unordered_map<uint64_t, std::array<float, kSlots>> outside_;
+};
+
+// A lattice cell: lower corner and edge, in output voxels.
+struct Cell {
+  int32_t i, j, k, size;
+};
+
+bool near_threshold(const SafetyClasses& c, double v, const AdaptiveOptions& o) {
+  if (c.higher_is_safer) {
+    return std::abs(v - c.safe) < o.svv_margin || std::abs(v - c.dangerous) < o.svv_margin;
+  }
+  const double f = 1.0 + o.blocking_margin;
+  for (const double t : {c.safe, c.dangerous}) {
+    if (t > 0.0 && v > t / f && v < t * f) return true;
+  }
+  return false;
+}
+
+}  // namespace
+
+AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& options,
+                                 const PointEvaluator& evaluate,
+                                 float* const out[kernels::kValueCount]) {
+  const int s0 = options.stride;
+  if (s0 < 2 || (s0 & (s0 - 1)) != 0 || s0 > 64) {
+    throw Error("fast mode: the coarsest sampling stride must be a power of two from 2 to 64 "
+                "(got " + std::to_string(s0) + ")");
+  }
+  const int64_t n = grid.geometry.dims[0];
+  const int64_t half = grid.half;
+  const double radius_sq = double(grid.max_sq);
+  AdaptiveReport report;
+  SampleStore store(grid, out);
+  std::vector<int> slots;
+  for (int s = 0; s < kSlots; ++s) {
+    if (options.values & (1u << s)) slots.push_back(s);
+  }
+
+  // Does the box [lo, lo + size]^3 meet the grid and the ball of the region of interest?
+  const auto meets_roi = [&](int64_t i, int64_t j, int64_t k, int64_t size) {
+    double d2 = 0.0;
+    for (const int64_t lo : {i, j, k}) {
+      if (lo > n - 1 || lo + size < 0) return false;
+      const double c = double(half);
+      const double nearest = std::clamp(c, double(lo), double(lo + size));
+      d2 += (nearest - c) * (nearest - c);
+    }
+    return d2 <= radius_sq;
+  };
+
+  // The coarsest cells, lattice through the centre voxel, as a dense array for dilation.
+  const int64_t a_lo = -((half + s0 - 1) / s0), a_hi = (n - 1 - half + s0 - 1) / s0 - 1;
+  const int64_t na = a_hi - a_lo + 1;
+  std::vector<Cell> cells;
+  std::vector<int32_t> cell_at(size_t(na * na * na), -1);
+  for (int64_t c = a_lo; c <= a_hi; ++c) {
+    for (int64_t b = a_lo; b <= a_hi; ++b) {
+      for (int64_t a = a_lo; a <= a_hi; ++a) {
+        const int64_t i = half + a * s0, j = half + b * s0, k = half + c * s0;
+        if (!meets_roi(i, j, k, s0)) continue;
+        cell_at[size_t(((c - a_lo) * na + (b - a_lo)) * na + (a - a_lo))] = int32_t(cells.size());
+        cells.push_back({int32_t(i), int32_t(j), int32_t(k), s0});
+      }
+    }
+  }
+
+  int levels = 1;
+  for (int s = s0; s > 1; s /= 2) ++levels;
+  int level = 0;
+  std::vector<GridPoint> queue;
+  std::vector<float> values;
+  bool classes_known = false;
+  while (!cells.empty()) {
+    const int size = cells.front().size;
+    // Evaluate every corner not known yet.
+    queue.clear();
+    for (const Cell& c : cells) {
+      for (int corner = 0; corner < 8; ++corner) {
+        store.request(c.i + (corner & 1) * size, c.j + ((corner >> 1) & 1) * size,
+                      c.k + ((corner >> 2) & 1) * size, queue);
+      }
+    }
+    values.assign(queue.size() * kSlots, 0.0f);
+    if (!queue.empty()) evaluate(queue, values);
+    for (size_t p = 0; p < queue.size(); ++p) store.store(queue[p], &values[p * kSlots]);
+    report.evaluated += int64_t(queue.size());
+    report.levels.emplace_back(size, int64_t(queue.size()));
+
+    // Thresholds from the coarsest lattice's samples inside the region (a uniform sample of it).
+    if (!classes_known) {
+      for (const int s : slots) {
+        std::vector<float> sample;
+        for (size_t p = 0; p < queue.size(); ++p) {
+          const GridPoint& g = queue[p];
+          const double di = g.i - half, dj = g.j - half, dk = g.k - half;
+          if (di * di + dj * dj + dk * dk <= radius_sq) sample.push_back(values[p * kSlots + s]);
+        }
+        report.classes[size_t(s)] = default_classes_of(1u << s, std::move(sample));
+      }
+      classes_known = true;
+    }
+
+    // One class at all corners, none near a threshold: uniform.
+    std::vector<uint8_t> refine(cells.size(), 0);
+    for (size_t c = 0; c < cells.size(); ++c) {
+      const Cell& cell = cells[c];
+      if (size == 1) break;
+      bool split = false;
+      for (const int s : slots) {
+        const SafetyClasses& classes = report.classes[size_t(s)];
+        SafetyClass first = SafetyClass::kUnknown;
+        for (int corner = 0; corner < 8 && !split; ++corner) {
+          const double v = store.value(cell.i + (corner & 1) * size,
+                                       cell.j + ((corner >> 1) & 1) * size,
+                                       cell.k + ((corner >> 2) & 1) * size, s);
+          const SafetyClass k = classes.classify(v);
+          if (corner == 0) first = k;
+          split = k != first || k == SafetyClass::kUnknown || near_threshold(classes, v, options);
+        }
+        if (split) break;
+      }
+      refine[c] = split ? 1 : 0;
+    }
+    if (level == 0 && options.dilate && size > 1) {
+      std::vector<uint8_t> grown = refine;
+      for (size_t c = 0; c < cells.size(); ++c) {
+        if (!refine[c]) continue;
+        const int64_t a = (cells[c].i - half) / s0 - a_lo, b = (cells[c].j - half) / s0 - a_lo,
+                      cc = (cells[c].k - half) / s0 - a_lo;
+        for (int64_t dc = -1; dc <= 1; ++dc)
+          for (int64_t db = -1; db <= 1; ++db)
+            for (int64_t da = -1; da <= 1; ++da) {
+              const int64_t x = a + da, y = b + db, z = cc + dc;
+              if (x < 0 || y < 0 || z < 0 || x >= na || y >= na || z >= na) continue;
+              const int32_t other = cell_at[size_t((z * na + y) * na + x)];
+              if (other >= 0) grown[size_t(other)] = 1;
+            }
+      }
+      refine.swap(grown);
+    }
+
+    // Fill the uniform cells; split the others.
+    std::vector<Cell> next;
+    for (size_t c = 0; c < cells.size(); ++c) {
+      const Cell& cell = cells[c];
+      if (refine[c]) {
+        const int h = size / 2;
+        for (int child = 0; child < 8; ++child) {
+          const Cell sub{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
+                         cell.k + ((child >> 2) & 1) * h, h};
+          if (meets_roi(sub.i, sub.j, sub.k, h)) next.push_back(sub);
+        }
+        continue;
+      }
+      if (size == 1) continue;  // every voxel of it is a corner: evaluated
+      float corner[8][kSlots];
+      for (int q = 0; q < 8; ++q) {
+        for (const int s : slots) {
+          corner[q][s] = store.value(cell.i + (q & 1) * size, cell.j + ((q >> 1) & 1) * size,
+                                     cell.k + ((q >> 2) & 1) * size, s);
+        }
+      }
+      const float inv = 1.0f / float(size);
+      for (int64_t k = std::max<int64_t>(cell.k, 0); k <= std::min<int64_t>(cell.k + size, n - 1);
+           ++k) {
+        const float wz = float(k - cell.k) * inv;
+        for (int64_t j = std::max<int64_t>(cell.j, 0);
+             j <= std::min<int64_t>(cell.j + size, n - 1); ++j) {
+          const float wy = float(j - cell.j) * inv;
+          for (int64_t i = std::max<int64_t>(cell.i, 0);
+               i <= std::min<int64_t>(cell.i + size, n - 1); ++i) {
+            if (!grid.in_roi(i, j, k)) continue;
+            uint8_t& st = store.state(i, j, k);
+            if (st == kEvaluated) continue;
+            if (st != kInterpolated) ++report.interpolated;
+            st = kInterpolated;
+            const float wx = float(i - cell.i) * inv;
+            const int64_t off = store.offset(i, j, k);
+            for (const int s : slots) {
+              const float c00 = corner[0][s] + wx * (corner[1][s] - corner[0][s]);
+              const float c10 = corner[2][s] + wx * (corner[3][s] - corner[2][s]);
+              const float c01 = corner[4][s] + wx * (corner[5][s] - corner[4][s]);
+              const float c11 = corner[6][s] + wx * (corner[7][s] - corner[6][s]);
+              const float c0 = c00 + wy * (c10 - c00), c1 = c01 + wy * (c11 - c01);
+              store.set(off, s, c0 + wz * (c1 - c0));
+            }
+          }
+        }
+      }
+    }
+    cells.swap(next);
+    ++level;
+    if (options.progress) options.progress(std::min(1.0, double(level) / double(levels)));
+  }
+
+  // Corners evaluated outside the region are not part of the result.
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  for (int64_t k = 0; k < n; ++k)
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < n; ++i) {
+        if (store.state(i, j, k) == kEvaluated && !grid.in_roi(i, j, k)) {
+          for (const int s : slots) store.set(store.offset(i, j, k), s, nan);
+        }
+      }
+  if (options.progress) options.progress(1.0);
+  return report;
+}
+
+}  // namespace crepuscular::planning

@@ -1,0 +1,60 @@
+// Fast mode of the path safety values: the output grid sampled coarse to fine. The values are
+// computed exactly (every ray marched, DESIGN.md §4) on a lattice of every `stride`-th voxel;
+// a cell of that lattice whose eight corners fall in the same safety class, none of them near a
+// class threshold, is filled by trilinear interpolation of its corners, and every other cell is
+// split in eight and sampled again at half the stride, down to single voxels. Where the classes
+// change (the edges of shadows, of the region's safe bundles) every voxel is exact; inside a
+// region of one class the values are interpolated. The cost follows the area of the class
+// boundaries rather than the volume of the region.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <vector>
+
+#include "kernels/path_safety_math.hpp"
+#include "planning/safety/path_safety.hpp"
+#include "planning/safety/safety_classes.hpp"
+
+namespace crepuscular::planning {
+
+// Output grid indices of one point to evaluate; may lie outside the grid (a lattice corner
+// beyond its edge), where the values are still defined.
+struct GridPoint {
+  int32_t i, j, k;
+};
+
+// Computes the values of `points` into values[4 * n + slot] (slot order svv, isbv, ivbv, bvv;
+// only the requested slots are read back).
+using PointEvaluator =
+    std::function<void(const std::vector<GridPoint>& points, std::vector<float>& values)>;
+
+struct AdaptiveOptions {
+  unsigned values = kernels::kAllValues;
+  int stride = 4;  // coarsest lattice, a power of two >= 2
+  // A corner this close to a class threshold makes its cell refined: SVV within `svv_margin`
+  // percentage points; a blocking value within a factor (1 + blocking_margin) of a threshold.
+  double svv_margin = 3.0;
+  double blocking_margin = 0.25;
+  // Cells beside a refined cell of the coarsest lattice are refined as well, so that a shadow
+  // thinner than a cell, seen by the corners of only one of the cells it crosses, is found.
+  bool dilate = true;
+  std::function<void(double)> progress;
+};
+
+struct AdaptiveReport {
+  int64_t evaluated = 0;     // voxels (and lattice corners) whose values were computed
+  int64_t interpolated = 0;  // ROI voxels filled by interpolation
+  // Points evaluated per lattice level, coarsest first.
+  std::vector<std::pair<int, int64_t>> levels;
+  std::array<SafetyClasses, kernels::kValueCount> classes{};  // the thresholds refinement used
+};
+
+// Fills out[slot] (n^3 floats of the output grid; requested values only) for every voxel of the
+// region of interest; voxels outside it are left as they are.
+AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& options,
+                                 const PointEvaluator& evaluate,
+                                 float* const out[kernels::kValueCount]);
+
+}  // namespace crepuscular::planning
