@@ -70,6 +70,7 @@ struct SlabGrid {
   int z_slab;          // first slice of this device's slab
   int half;
   long long max_sq;
+  const uint8_t* known;  // device, this slab's voxels (offset as the outputs); null: all
 };
 
 template <unsigned Values, typename Sampler>
@@ -83,9 +84,10 @@ __global__ void path_safety_kernel(PathSafetyScene<float> scene, SlabGrid grid, 
   const Vec3<double> p = grid_point(grid.origin, grid.axes, i, j, k);
   const long long di = i - grid.half, dj = j - grid.half, dk = k - grid.half;
   if (di * di + dj * dj + dk * dk > grid.max_sq) return;
+  const size_t off = (size_t(k - grid.z_slab) * grid.n + j) * grid.n + i;
+  if (grid.known && !grid.known[off]) return;  // outside the scan: unknown, stays NaN
   float res[kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
   path_safety_at<float, Values>(scene, p, res, sampler);
-  const size_t off = (size_t(k - grid.z_slab) * grid.n + j) * grid.n + i;
   if constexpr ((Values & kSvv) != 0) out0[off] = res[0];
   if constexpr ((Values & kIsbv) != 0) out1[off] = res[1];
   if constexpr ((Values & kIvbv) != 0) out2[off] = res[2];
@@ -699,6 +701,14 @@ void exact_on_device(int d, int z0, int z1, const PathSafetyScene<double>& host_
   const DeviceOutputs outputs(values, slab);
   SlabGrid g = slab_grid(grid);
   g.z_slab = z0;
+  DeviceBuffer<uint8_t> known;
+  if (grid.known) {
+    known.allocate(slab);
+    check(cudaMemcpy(known.ptr, grid.known + size_t(z0) * size_t(n) * size_t(n), slab,
+                     cudaMemcpyHostToDevice),
+          "upload scan coverage");
+    g.known = known.ptr;
+  }
   with_value_set(values, [&](auto tag) {
     constexpr unsigned kValues = decltype(tag)::value;
     launch_slab<kValues>(ds, g, z0, z1, outputs, options.storage, progress);

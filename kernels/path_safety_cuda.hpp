@@ -24,6 +24,9 @@ struct OutputGridDesc {
   int n;
   int half;
   int64_t max_sq;
+  // Optional, host memory, n^3 bytes: 0 where a voxel lies outside the scan (unknown) and is
+  // not computed (left NaN); null: every voxel of the ball is computed. Exact mode only.
+  const uint8_t* known = nullptr;
 };
 
 // Where the blocking volume lives on the device: global memory with trilinear filtering in float

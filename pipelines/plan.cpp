@@ -55,6 +55,7 @@ void check_request(const PlanRequest& req) {
 // Step 2: path safety, with progress in steps of 10 % unless the caller reports it.
 PathSafetyResult compute(const PlanRequest& req, const PlanInputs& in) {
   PathSafetyOptions ps = req.path_safety;
+  ps.coverage = &in.coverage;  // voxels outside the scan are unknown: not computed
   if (!ps.progress) {
     ps.progress = [last = -1](double f) mutable {
       const int pct = int(f * 100.0);

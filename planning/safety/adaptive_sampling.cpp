@@ -12,7 +12,7 @@ namespace crepuscular::planning {
 
 namespace {
 
-constexpr uint8_t kPending = 0, kEvaluated = 1, kInterpolated = 2, kQueued = 3;
+constexpr uint8_t kPending = 0, kEvaluated = 1, kInterpolated = 2, kQueued = 3, kUnknown = 4;
 constexpr int kSlots = kernels::kValueCount;
 
 // The values of every point evaluated so far: voxels of the grid in the output arrays (all four
@@ -30,16 +30,27 @@ class SampleStore {
   int64_t offset(int64_t i, int64_t j, int64_t k) const { return (k * n_ + j) * n_ + i; }
   uint8_t& state(int64_t i, int64_t j, int64_t k) { return state_[size_t(offset(i, j, k))]; }
 
-  // Queues a point for evaluation unless it has values already or is queued.
-  void request(int64_t i, int64_t j, int64_t k, std::vector<GridPoint>& queue) {
+  // Queues a point for evaluation unless it has values already, is queued, or is unknown (its
+  // values stay NaN).
+  void request(int64_t i, int64_t j, int64_t k,
+               const std::function<bool(int64_t, int64_t, int64_t)>& known,
+               std::vector<GridPoint>& queue) {
     if (inside(i, j, k)) {
       uint8_t& s = state(i, j, k);
-      if (s == kEvaluated || s == kQueued) return;
+      if (s == kEvaluated || s == kQueued || s == kUnknown) return;
+      if (known && !known(i, j, k)) {
+        s = kUnknown;
+        for (int v = 0; v < kSlots; ++v) {
+          if (out_[v]) out_[v][offset(i, j, k)] = std::numeric_limits<float>::quiet_NaN();
+        }
+        return;
+      }
       s = kQueued;
     } else {
       auto [it, added] = outside_.try_emplace(key(i, j, k));
       if (!added) return;
       it->second.fill(std::numeric_limits<float>::quiet_NaN());
+      if (known && !known(i, j, k)) return;
     }
     queue.push_back({int32_t(i), int32_t(j), int32_t(k)});
   }
@@ -153,7 +164,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     for (const Cell& c : cells) {
       for (int corner = 0; corner < 8; ++corner) {
         store.request(c.i + (corner & 1) * size, c.j + ((corner >> 1) & 1) * size,
-                      c.k + ((corner >> 2) & 1) * size, queue);
+                      c.k + ((corner >> 2) & 1) * size, options.known, queue);
       }
     }
     values.assign(queue.size() * kSlots, 0.0f);
@@ -247,7 +258,13 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
                i <= std::min<int64_t>(cell.i + size, n - 1); ++i) {
             if (!grid.in_roi(i, j, k)) continue;
             uint8_t& st = store.state(i, j, k);
-            if (st == kEvaluated) continue;
+            if (st == kEvaluated || st == kUnknown) continue;
+            // A voxel between known corners may itself lie outside the scan (a thin gap):
+            // unknown too, never interpolated.
+            if (options.known && !options.known(i, j, k)) {
+              st = kUnknown;
+              continue;
+            }
             if (st != kInterpolated) ++report.interpolated;
             st = kInterpolated;
             const float wx = float(i - cell.i) * inv;

@@ -40,6 +40,10 @@ struct AdaptiveOptions {
   // Cells beside a refined cell of the coarsest lattice are refined as well, so that a shadow
   // thinner than a cell, seen by the corners of only one of the cells it crosses, is found.
   bool dilate = true;
+  // Whether a point (output grid indices, possibly beyond the grid) lies in the scan; points
+  // that do not are never computed (NaN), and a cell with such a corner is always refined, so
+  // nothing is interpolated from the unknown. Null: every point is known.
+  std::function<bool(int64_t i, int64_t j, int64_t k)> known;
   std::function<void(double)> progress;
 };
 

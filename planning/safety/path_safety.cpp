@@ -458,7 +458,7 @@ struct VoxelCentres {
 };
 
 void run_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
-             unsigned values, int threads, PathSafetyResult& result,
+             const uint8_t* known, unsigned values, int threads, PathSafetyResult& result,
              const std::function<void(double)>& progress) {
   const auto& g = grid.geometry;
   const VoxelCentres centre(g);
@@ -478,6 +478,7 @@ void run_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& gr
         int64_t row_done = 0;
         for (int64_t i = 0; i < n; ++i) {
           if (!grid.in_roi(i, j, k)) continue;
+          if (known && !known[g.offset(i, j, k)]) continue;  // unknown: stays NaN
           float res[kernels::kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
           kernels::path_safety_at<double, kValues>(scene, centre(i, j, k), res);
           const int64_t off = g.offset(i, j, k);
@@ -582,9 +583,18 @@ void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGri
 
 // Fast mode: the output grid sampled coarse to fine (adaptive_sampling.hpp), each point's values
 // computed by `evaluate` (exact rays on the CPU or the GPU).
-void run_adaptive(const OutputGrid& grid, const PathSafetyOptions& options,
+void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafetyOptions& options,
                   const PointEvaluator& evaluate, PathSafetyResult& result) {
   AdaptiveOptions adaptive;
+  if (known) {
+    const ImageGeometry& g = grid.geometry;
+    adaptive.known = [known, &g, coverage = options.coverage](int64_t i, int64_t j, int64_t k) {
+      if (i >= 0 && j >= 0 && k >= 0 && i < g.dims[0] && j < g.dims[1] && k < g.dims[2]) {
+        return known[g.offset(i, j, k)] != 0;
+      }
+      return coverage->contains(g.index_to_physical(Eigen::Vector3d(double(i), double(j), double(k))));
+    };
+  }
   adaptive.values = options.values;
   adaptive.stride = options.fast_stride;
   adaptive.svv_margin = options.fast_svv_margin;
@@ -627,16 +637,21 @@ PointEvaluator cpu_point_evaluator(const kernels::PathSafetyScene<double>& scene
 
 // Recomputes `count` random ROI voxels exactly (`evaluate`) and compares them with the fast
 // result.
-void check_fast_against_exact(const OutputGrid& grid, unsigned values, int count,
-                              const PointEvaluator& evaluate, PathSafetyResult& result) {
+void check_fast_against_exact(const OutputGrid& grid, const uint8_t* known, unsigned values,
+                              int count, const PointEvaluator& evaluate,
+                              PathSafetyResult& result) {
   std::mt19937_64 rng(20111);
   const int64_t n = grid.geometry.dims[0];
   std::uniform_int_distribution<int64_t> u(0, n - 1);
   std::vector<int64_t> offsets;
   std::vector<GridPoint> points;
-  while (int64_t(offsets.size()) < std::min<int64_t>(count, grid.roi_voxels)) {
+  // Voxels of the region inside the scan (the others have no value), a bounded number of draws.
+  for (int64_t draw = 0; int64_t(offsets.size()) < std::min<int64_t>(count, grid.roi_voxels) &&
+                         draw < 1000 * int64_t(count);
+       ++draw) {
     const int64_t i = u(rng), j = u(rng), k = u(rng);
     if (!grid.in_roi(i, j, k)) continue;
+    if (known && !known[grid.geometry.offset(i, j, k)]) continue;
     offsets.push_back(grid.geometry.offset(i, j, k));
     points.push_back({int32_t(i), int32_t(j), int32_t(k)});
   }
@@ -666,9 +681,11 @@ void check_fast_against_exact(const OutputGrid& grid, unsigned values, int count
 }
 
 // Fast mode's self-check (options.fast_check_voxels voxels recomputed exactly), logged.
-void check_fast_mode(const OutputGrid& grid, const PathSafetyOptions& options,
-                     const PointEvaluator& evaluate, PathSafetyResult& result) {
-  check_fast_against_exact(grid, options.values, options.fast_check_voxels, evaluate, result);
+void check_fast_mode(const OutputGrid& grid, const uint8_t* known,
+                     const PathSafetyOptions& options, const PointEvaluator& evaluate,
+                     PathSafetyResult& result) {
+  check_fast_against_exact(grid, known, options.values, options.fast_check_voxels, evaluate,
+                           result);
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (options.values & (1u << v)) {
       spdlog::info("fast mode vs exact at {} voxels: {} relative L2 {:.2e}, same class {:.2f} %",
@@ -804,8 +821,8 @@ class CudaBackend {
   }
 
   void run(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
-           const PathSafetyOptions& options, PhaseClock& clock, PendingVolumes& volumes,
-           PathSafetyResult& result) {
+           const uint8_t* known, const PathSafetyOptions& options, PhaseClock& clock,
+           PendingVolumes& volumes, PathSafetyResult& result) {
     kernels::OutputGridDesc desc{};
     const Eigen::Matrix3d axes = grid.geometry.index_to_physical_matrix();
     for (int a = 0; a < 3; ++a) {
@@ -815,8 +832,9 @@ class CudaBackend {
     desc.n = int(grid.geometry.dims[0]);
     desc.half = int(grid.half);
     desc.max_sq = grid.max_sq;
+    if (options.mode == Mode::kExact) desc.known = known;
     if (options.mode == Mode::kFast) {
-      run_fast(scene, grid, desc, options, clock, volumes, result);
+      run_fast(scene, grid, known, desc, options, clock, volumes, result);
       return;
     }
     float* out[kernels::kValueCount] = {};
@@ -857,7 +875,7 @@ class CudaBackend {
  private:
   // Fast mode: the scene uploaded once to every device, the grid sampled coarse to fine.
   void run_fast(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
-                const kernels::OutputGridDesc& desc, const PathSafetyOptions& options,
+                const uint8_t* known, const kernels::OutputGridDesc& desc, const PathSafetyOptions& options,
                 PhaseClock& clock, PendingVolumes& volumes, PathSafetyResult& result) {
     const auto storage = options.cuda_texture ? kernels::BlockingStorage::kTexture
                                               : kernels::BlockingStorage::kGlobal;
@@ -868,10 +886,10 @@ class CudaBackend {
                                                  std::vector<float>& out) {
       evaluator.evaluate(&points.front().i, int64_t(points.size()), out.data());
     };
-    run_adaptive(grid, options, evaluate, result);
+    run_adaptive(grid, known, options, evaluate, result);
     clock.done("adaptive_sampling");
     if (options.fast_check_voxels > 0) {
-      check_fast_mode(grid, options, evaluate, result);
+      check_fast_mode(grid, known, options, evaluate, result);
       clock.done("self_check");
     }
     result.device = evaluator.devices() + (options.cuda_texture ? " (texture)" : "");
@@ -890,8 +908,8 @@ class CudaBackend {
       "path safety device cuda: this build has no CUDA backend (rebuild with nvcc available)";
   explicit CudaBackend(Device) {}
   int device_count() { return 0; }
-  void run(const kernels::PathSafetyScene<double>&, const OutputGrid&, const PathSafetyOptions&,
-           PhaseClock&, PendingVolumes&, PathSafetyResult&) {
+  void run(const kernels::PathSafetyScene<double>&, const OutputGrid&, const uint8_t*,
+           const PathSafetyOptions&, PhaseClock&, PendingVolumes&, PathSafetyResult&) {
     throw Error("path safety: this build has no CUDA backend");
   }
 };
@@ -910,17 +928,18 @@ int thread_count(const PathSafetyOptions& options) {
 }
 
 void run_on_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
-                const PathSafetyOptions& options, PathSafetyResult& result) {
+                const uint8_t* known, const PathSafetyOptions& options,
+                PathSafetyResult& result) {
   result.threads = thread_count(options);
   result.device = "cpu";
   if (options.mode == Mode::kFast) {
-    run_adaptive(grid, options,
+    run_adaptive(grid, known, options,
                  cpu_point_evaluator(scene, grid, options.values, result.threads), result);
   } else if (options.mode == Mode::kTables) {
     run_cpu_fast(scene, grid, options.values, result.threads, options.fast_angular,
                  options.fast_refine, options.fast_refine_relative, result, options.progress);
   } else {
-    run_cpu(scene, grid, options.values, result.threads, result, options.progress);
+    run_cpu(scene, grid, known, options.values, result.threads, result, options.progress);
   }
 }
 
@@ -987,18 +1006,25 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   const auto scene =
       make_scene(blocking, ray_tumor, surface, result.gamma_mm, options.eps, bricks);
   clock.done("bricks");
+  // Unknown is never computed: voxels outside the scan stay NaN (the plan marks them unknown).
+  Volume<uint8_t> known_mask;
+  if (options.coverage && !options.coverage->empty() && options.mode != Mode::kTables) {
+    known_mask = options.coverage->mask(grid.geometry);
+    clock.done("scan_mask");
+  }
+  const uint8_t* known = known_mask.geometry().voxel_count() > 0 ? known_mask.data() : nullptr;
   if (device == Device::kCuda) {
-    cuda.run(scene, grid, options, clock, volumes, result);
+    cuda.run(scene, grid, known, options, clock, volumes, result);
   } else {
     volumes.collect(result);
-    run_on_cpu(scene, grid, options, result);
+    run_on_cpu(scene, grid, known, options, result);
   }
   result.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   // Fast mode on the GPU checked itself there; otherwise the CPU recomputes the sample.
   if (options.mode != Mode::kExact && options.fast_check_voxels > 0 && result.check_voxels == 0) {
     const auto t = std::chrono::steady_clock::now();
-    check_fast_mode(grid, options,
+    check_fast_mode(grid, known, options,
                     cpu_point_evaluator(scene, grid, options.values, thread_count(options)),
                     result);
     result.phases.emplace_back(

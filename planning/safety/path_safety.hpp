@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "kernels/path_safety_math.hpp"
+#include "planning/imaging/scan_coverage.hpp"
 #include "planning/imaging/volume.hpp"
 
 namespace crepuscular::planning {
@@ -74,6 +75,9 @@ struct PathSafetyOptions {
   int cuda_fast_slots = 0;
   // Memory the output may take, bytes; 0: 80 % of the memory available now.
   uint64_t memory_limit_bytes = 0;
+  // The scanned volume (DESIGN.md §4): output voxels outside it are unknown and not computed
+  // (left NaN) in exact and fast mode. Null or empty: every voxel of the ball is computed.
+  const ScanCoverage* coverage = nullptr;
   // Called from the computing thread with the fraction done (0..1), about every 2 % of the work.
   std::function<void(double)> progress;
 };
