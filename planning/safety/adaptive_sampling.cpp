@@ -45,6 +45,7 @@ class SampleStore {
         }
         return;
       }
+      if (s == kInterpolated) ++reclaimed_;  // filled from a coarser cell, now computed
       s = kQueued;
     } else {
       auto [it, added] = outside_.try_emplace(key(i, j, k));
@@ -74,6 +75,7 @@ class SampleStore {
 
   void set(int64_t off, int slot, float v) { out_[slot][off] = v; }
   float* out(int slot) const { return out_[slot]; }
+  int64_t reclaimed() const { return reclaimed_; }
 
  private:
   static uint64_t key(int64_t i, int64_t j, int64_t k) {
@@ -85,6 +87,7 @@ class SampleStore {
   std::vector<uint8_t> state_;
   float* out_[kSlots] = {};
   std::unordered_map<uint64_t, std::array<float, kSlots>> outside_;
+  int64_t reclaimed_ = 0;
 };
 
 // A lattice cell: lower corner and edge, in output voxels.
@@ -286,6 +289,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     if (options.progress) options.progress(std::min(1.0, double(level) / double(levels)));
   }
 
+  report.interpolated -= store.reclaimed();
   // Corners evaluated outside the region are not part of the result.
   const float nan = std::numeric_limits<float>::quiet_NaN();
   for (int64_t k = 0; k < n; ++k)

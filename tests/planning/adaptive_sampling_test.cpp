@@ -1,0 +1,127 @@
+// Coarse-to-fine sampling of fast mode against fields known in closed form: where the sampler
+// interpolates, where it computes, and that it never computes nor interpolates the unknown.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <set>
+#include <tuple>
+
+#include "foundation/error.hpp"
+#include "planning/safety/adaptive_sampling.hpp"
+
+namespace crepuscular::planning {
+namespace {
+
+OutputGrid ball_grid(int half) {
+  OutputGrid g;
+  const int n = 2 * half + 1;
+  g.geometry.dims = {n, n, n};
+  g.geometry.spacing = Eigen::Vector3d::Ones();
+  g.geometry.origin = Eigen::Vector3d::Constant(-half);
+  g.half = half;
+  g.max_sq = int64_t(half) * half;
+  for (int k = 0; k < n; ++k)
+    for (int j = 0; j < n; ++j)
+      for (int i = 0; i < n; ++i) g.roi_voxels += g.in_roi(i, j, k);
+  g.radius_mm = half;
+  return g;
+}
+
+// SVV of a scene with one shadow: 20 % inside a ball of radius 7 voxels centred at (8, 0, 0)
+// from the centre, 95 % elsewhere (two classes, a sharp boundary).
+float shadow_svv(int64_t i, int64_t j, int64_t k, int half) {
+  const double x = double(i - half) - 8.0, y = double(j - half), z = double(k - half);
+  return x * x + y * y + z * z <= 49.0 ? 20.0f : 95.0f;
+}
+
+struct Sampled {
+  std::vector<float> svv;
+  std::set<std::tuple<int, int, int>> evaluated;
+  AdaptiveReport report;
+};
+
+Sampled sample(const OutputGrid& g, const AdaptiveOptions& o) {
+  Sampled run;
+  const int64_t n = g.geometry.dims[0];
+  run.svv.assign(size_t(n * n * n), std::nanf(""));
+  float* out[kernels::kValueCount] = {run.svv.data(), nullptr, nullptr, nullptr};
+  const int half = int(g.half);
+  const PointEvaluator evaluate = [&](const std::vector<GridPoint>& points,
+                                      std::vector<float>& values) {
+    for (size_t p = 0; p < points.size(); ++p) {
+      const auto key = std::make_tuple(points[p].i, points[p].j, points[p].k);
+      EXPECT_TRUE(run.evaluated.insert(key).second) << "a point computed twice";
+      values[p * kernels::kValueCount] = shadow_svv(points[p].i, points[p].j, points[p].k, half);
+    }
+  };
+  run.report = sample_adaptively(g, o, evaluate, out);
+  return run;
+}
+
+TEST(AdaptiveSampling, EveryVoxelHasTheClassOfTheFieldAndMostAreInterpolated) {
+  const OutputGrid g = ball_grid(24);
+  AdaptiveOptions o;
+  o.values = kernels::kSvv;
+  const Sampled run = sample(g, o);
+  const int64_t n = g.geometry.dims[0];
+  int64_t wrong = 0, exact = 0;
+  for (int64_t k = 0; k < n; ++k)
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < n; ++i) {
+        const float v = run.svv[size_t((k * n + j) * n + i)];
+        if (!g.in_roi(i, j, k)) {
+          EXPECT_TRUE(std::isnan(v)) << "outside the region: " << i << "," << j << "," << k;
+          continue;
+        }
+        // A constant field inside each class: interpolation between corners of one class is
+        // exact, so every voxel must hold the field's value.
+        wrong += v != shadow_svv(i, j, k, int(g.half));
+        exact += run.evaluated.count({int(i), int(j), int(k)});
+      }
+  EXPECT_EQ(wrong, 0);
+  EXPECT_EQ(run.report.interpolated + exact, g.roi_voxels);
+  // The shadow's surface, not the region's volume, is computed voxel by voxel.
+  EXPECT_LT(run.report.evaluated, g.roi_voxels / 3);
+  EXPECT_GT(run.report.interpolated, g.roi_voxels / 2);
+  ASSERT_EQ(run.report.levels.size(), 3u);  // strides 4, 2, 1
+  EXPECT_EQ(run.report.levels[0].first, 4);
+}
+
+TEST(AdaptiveSampling, UnknownVoxelsAreNeitherComputedNorInterpolated) {
+  const OutputGrid g = ball_grid(24);
+  AdaptiveOptions o;
+  o.values = kernels::kSvv;
+  // The scan ends 5 voxels left of the centre (as a slab scan's last slice would).
+  const int64_t edge = g.half - 5;
+  o.known = [edge](int64_t i, int64_t, int64_t) { return i >= edge; };
+  const Sampled run = sample(g, o);
+  for (const auto& [i, j, k] : run.evaluated) EXPECT_GE(i, edge) << "computed an unknown point";
+  const int64_t n = g.geometry.dims[0];
+  int64_t unknown_nan = 0, unknown = 0, known_wrong = 0;
+  for (int64_t k = 0; k < n; ++k)
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < n; ++i) {
+        if (!g.in_roi(i, j, k)) continue;
+        const float v = run.svv[size_t((k * n + j) * n + i)];
+        if (i < edge) {
+          ++unknown;
+          unknown_nan += std::isnan(v);
+        } else {
+          known_wrong += v != shadow_svv(i, j, k, int(g.half));
+        }
+      }
+  EXPECT_GT(unknown, 1000);
+  EXPECT_EQ(unknown_nan, unknown);
+  EXPECT_EQ(known_wrong, 0);
+}
+
+TEST(AdaptiveSampling, RefusesAStrideThatIsNotAPowerOfTwo) {
+  const OutputGrid g = ball_grid(8);
+  AdaptiveOptions o;
+  o.stride = 3;
+  float* out[kernels::kValueCount] = {};
+  EXPECT_THROW(sample_adaptively(g, o, [](const auto&, auto&) {}, out), Error);
+}
+
+}  // namespace
+}  // namespace crepuscular::planning
