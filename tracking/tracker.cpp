@@ -378,8 +378,11 @@ void Tracker::search_with_worker(const Frame& frame, TrackResult& res,
   rois = TagDetector::merge_regions(std::move(rois));
   double area = 0;
   for (const cv::Rect& r : rois) area += r.area();
-  if (area > options_.max_roi_fraction * camera_.width * camera_.height) {
-    // Regions that large cost what the whole frame does.
+  const bool nothing_to_search = rois.empty();
+  if (area > options_.max_roi_fraction * camera_.width * camera_.height ||
+      (nothing_to_search && options_.full_search_mode == FullSearchMode::kBackgroundWait)) {
+    // Regions that large cost what the whole frame does; and a replay with nothing to search
+    // would only wait for the worker in the next frame: the whole frame now.
     res.full_search = true;
     ++full_searches_;
     res.detections = detector_.detect(frame.image);
@@ -450,7 +453,8 @@ TrackResult Tracker::process(const Frame& frame) {
   // Boards without a measurement now: their last pose while it is young enough, else lost.
   for (size_t b = 0; b < boards_.size(); ++b) {
     Track& tr = tracks_[b];
-    tr.measured_last = measured[b];
+    // A frame without an image says nothing of where the boards are: the one before still counts.
+    if (!frame.image.empty() && !wrong_size) tr.measured_last = measured[b];
     if (measured[b]) continue;
     BoardStatus& st = res.boards[b];
     if (st.problem.empty()) st.problem = res.problem.empty() ? "not searched" : res.problem;
