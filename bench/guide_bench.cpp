@@ -5,7 +5,8 @@
 // Frames are handed over back to back; latency counts from the hand-over to the finished image.
 //
 // Prints one JSON line per image size and volume-layer setting: latency median / p95 / max, the
-// medians of tracking, overlay and rendering, and the OpenGL implementation.
+// medians of tracking, overlay and rendering, and the OpenGL implementation. `--full-search`
+// picks where full-frame tag searches run (default: on a worker, as `guide` with a camera).
 #include <CLI/CLI.hpp>
 #include <chrono>
 #include <cstdio>
@@ -38,6 +39,7 @@ int main(int argc, char** argv) {
   std::string backend = "auto";
   std::string device = "auto";
   double volume_scale = 0;
+  std::string full_search = "background";
   app.add_option("--spacing", spacing, "Phantom voxel size, mm")->capture_default_str();
   app.add_option("--frames", frames, "Frames per configuration (the first 5 are warm-up)")
       ->capture_default_str();
@@ -47,6 +49,12 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--volume-scale", volume_scale,
                  "Volume rendering resolution (0: automatic, 1 on a GPU, 0.25 on Mesa)")
+      ->capture_default_str();
+  app.add_option("--full-search", full_search,
+                 "Where full-frame tag searches run: background (a worker no frame waits for, "
+                 "as `guide` with a camera), wait (the worker, the next frame waiting) or "
+                 "in-frame (the frame that needs one waits for it)")
+      ->check(CLI::IsMember({"background", "wait", "in-frame"}))
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   spdlog::set_level(spdlog::level::warn);
@@ -113,6 +121,9 @@ int main(int argc, char** argv) {
         tracking::TrackerOptions to;
         // Frames are spread over the recording: allow the gaps between them.
         to.max_age_ms = 1000;
+        to.full_search_mode = full_search == "in-frame" ? tracking::FullSearchMode::kInFrame
+                              : full_search == "wait"   ? tracking::FullSearchMode::kBackgroundWait
+                                                        : tracking::FullSearchMode::kBackground;
         overlay::RendererOptions ro;
         ro.backend = backend == "egl"    ? overlay::RendererBackend::kEgl
                      : backend == "glfw" ? overlay::RendererBackend::kGlfw
@@ -138,6 +149,7 @@ int main(int argc, char** argv) {
         j["bench"] = "guide";
         j["size"] = size;
         j["volume_layer"] = volume;
+        j["full_search"] = full_search;
         j["frames"] = latency.size();
         j["needle_evaluated"] = needle;
         j["latency_median_ms"] = pipelines::percentile(latency, 50);

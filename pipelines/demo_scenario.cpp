@@ -20,6 +20,7 @@
 #include "foundation/output_files.hpp"
 #include "planning/imaging/ray_march.hpp"
 #include "planning/imaging/volume_io.hpp"
+#include "pipelines/scene_meshes.hpp"
 
 namespace crepuscular::pipelines {
 
@@ -484,24 +485,74 @@ std::string build_scene(GuidanceScenario& sc, const planning::PlanData& plan, co
   return check_view(s, o.image_margin_px);
 }
 
-// The scene with the first camera axis that keeps both boards in view and apart: the nominal
-// axis, the bisector of the two approaches, then the bisector turned about the body axis (CT z)
-// and tilted toward the head or the feet.
+// Smallest angle (degrees) over the frames of the scene between the needle's axis and the ray
+// from the camera to the approach's skin entry, within [start_s, end_s].
+double min_view_obliquity_deg(const GuidanceScenario& sc, const Eigen::Vector3d& entry_ct,
+                              double start_s, double end_s) {
+  const tracking::SyntheticScene& s = sc.scene;
+  const tracking::SceneBoard& patient = s.boards.at(0);
+  const tracking::SceneBoard& needle = s.boards.at(1);
+  double best = 180;
+  for (int64_t f = 0; f < s.frame_count; ++f) {
+    const double t = double(f) / s.fps;
+    if (t < start_s - 1e-9 || t > end_s + 1e-9) continue;
+    const Eigen::Isometry3d T_cam_patient = tracking::pose_at(patient, t);
+    const Eigen::Vector3d entry = T_cam_patient * (sc.T_ct_patient.inverse() * entry_ct);
+    const Eigen::Vector3d axis = tracking::pose_at(needle, t).linear().col(2);
+    best = std::min(best, angle_deg(axis, entry));
+  }
+  return best;
+}
+
+// Camera axes that see both approaches obliquely, as an OR camera above the table and to one
+// side would: within 60 degrees of looking straight down (+y), 25 degrees or more off vertical
+// and 20 or more across the body (x), 36 to 54 degrees from both needle directions; the most even (nearest 44 degrees to both) first.
+std::vector<Eigen::Vector3d> oblique_axes(const Candidate& safe, const Candidate& danger) {
+  const Eigen::Vector3d ds = -safe.u, dd = -danger.u;
+  std::vector<std::pair<double, Eigen::Vector3d>> ranked;
+  for (const Eigen::Vector3d& v : fibonacci_cap(3000, Eigen::Vector3d::UnitY(), 60.0)) {
+    // To the patient's left or right: 20 degrees or more of the tilt across the body.
+    if (angle_deg(v, Eigen::Vector3d::UnitY()) < 25.0 || std::abs(v.x()) < 0.34) continue;
+    const double as = angle_deg(v, ds), ad = angle_deg(v, dd);
+    if (as < 33 || as > 48 || ad < 33 || ad > 48) continue;
+    ranked.emplace_back(std::abs(as - 38) + std::abs(ad - 38), v);
+  }
+  std::sort(ranked.begin(), ranked.end(),
+            [](const auto& a, const auto& b) { return a.first < b.first; });
+  std::vector<Eigen::Vector3d> out;
+  for (const auto& [score, v] : ranked) {
+    // Spread the tries: skip axes within 4 degrees of one already listed.
+    const bool near = std::any_of(out.begin(), out.end(),
+                                  [&](const Eigen::Vector3d& w) { return angle_deg(v, w) < 4.0; });
+    if (!near) out.push_back(v);
+    if (out.size() >= 24) break;
+  }
+  return out;
+}
+
+// The scene with the first oblique camera axis (oblique_axes) that keeps both boards in view and
+// apart and sees each needle at kMinObliquityDeg or more from its viewing ray.
+constexpr double kMinObliquityDeg = 30.0;
+
 std::string build_scene_any_view(GuidanceScenario& sc, const planning::PlanData& plan,
                                  const Candidate& safe, const Candidate& danger,
                                  const GuidanceScenarioOptions& o) {
-  const Eigen::Vector3d bisector = (-safe.u - danger.u).normalized();
-  std::vector<Eigen::Vector3d> axes = {o.view_axis_ct.normalized(), bisector};
-  for (double deg : {10.0, -10.0, 20.0, -20.0, 30.0, -30.0}) {
-    axes.push_back(Eigen::AngleAxisd(deg * kDeg, Eigen::Vector3d::UnitZ()) * bisector);
-  }
-  for (double deg : {10.0, -10.0, 20.0, -20.0}) {
-    axes.push_back(Eigen::AngleAxisd(deg * kDeg, Eigen::Vector3d::UnitX()) * bisector);
-  }
+  const std::vector<Eigen::Vector3d> axes = oblique_axes(safe, danger);
+  if (axes.empty()) return "no camera axis sees both approaches obliquely";
   std::string first_problem;
+  const double t_safe0 = o.hold_s, t_safe1 = o.hold_s + o.approach_s;
+  const double t_danger0 = t_safe1 + o.switch_s, t_danger1 = t_danger0 + o.approach_s;
   for (const Eigen::Vector3d& v : axes) {
     GuidanceScenario trial = sc;
-    const std::string problem = build_scene(trial, plan, safe, danger, o, v);
+    std::string problem = build_scene(trial, plan, safe, danger, o, v);
+    if (problem.empty()) {
+      const double os = min_view_obliquity_deg(trial, safe.entry, t_safe0, t_safe1);
+      const double od = min_view_obliquity_deg(trial, danger.entry, t_danger0, t_danger1);
+      if (os < kMinObliquityDeg || od < kMinObliquityDeg) {
+        problem = "a needle is seen within " + std::to_string(int(kMinObliquityDeg)) +
+                  " deg of its viewing ray";
+      }
+    }
     if (problem.empty()) {
       sc = std::move(trial);
       return "";
@@ -642,12 +693,31 @@ std::vector<Danger> dangerous_partners(const Searcher& searcher, const std::vect
   return danger;
 }
 
+// The body on its table (skin in a field around the entries and the board, drape elsewhere) and
+// the needle's shaft and hub.
+void add_scene_meshes(GuidanceScenario& sc, const planning::PlanData& plan, const Candidate& s,
+                      const Candidate& d) {
+  BodyMeshOptions bo;
+  const Eigen::Vector3d mid = 0.5 * (s.entry + d.entry);
+  const Eigen::Vector3d board = sc.T_ct_patient.translation();
+  bo.field_centre_ct = 0.5 * (mid + board);
+  bo.field_half_x_mm = 0.5 * std::abs(board.x() - mid.x()) + 110.0;
+  bo.field_half_z_mm = 0.5 * std::abs(board.z() - mid.z()) + 110.0;
+  bo.step_mm = std::max(3.0, plan.labels.geometry().spacing.minCoeff());
+  sc.scene.meshes = {body_mesh(plan.labels, sc.T_ct_patient, bo),
+                     needle_mesh(tracking::kNeedleTipInNeedle.z())};
+  sc.scene.validate("guidance scene");
+}
+
 // A built scene's approaches and needle calibration, logged.
 void complete_scenario(GuidanceScenario& sc, const Candidate& s, const Candidate& d,
                        const GuidanceScenarioOptions& o) {
   const Eigen::Vector3d view = sc.T_cam_ct_nominal.linear().row(2).transpose();
   sc.safe = make_approach("safe", s, o, view, o.hold_s);
   sc.dangerous = make_approach("dangerous", d, o, view, o.hold_s + o.approach_s + o.switch_s);
+  for (GuidanceApproach* a : {&sc.safe, &sc.dangerous}) {
+    a->view_obliquity_deg = min_view_obliquity_deg(sc, a->entry_ct, a->start_s, a->end_s);
+  }
   sc.needle.date = calibration::utc_timestamp();
   sc.needle.inputs = {"synthetic guidance scene (ground truth)"};
   sc.needle.board = "needle";
@@ -655,9 +725,14 @@ void complete_scenario(GuidanceScenario& sc, const Candidate& s, const Candidate
   sc.needle.axis_needle = Eigen::Vector3d::UnitZ();
   spdlog::info("guidance scenario: {}", describe(sc.safe));
   spdlog::info("guidance scenario: {}", describe(sc.dangerous));
-  spdlog::info("guidance scenario: {:.1f} deg between the approaches; {} frames at {} fps",
+  const Eigen::Vector3d cam_ct = sc.T_cam_ct_nominal.inverse().translation();
+  spdlog::info("guidance scenario: {:.1f} deg between the approaches; {} frames at {} fps; the "
+               "camera {:.0f} deg off vertical, {:.0f} mm from the board, sees the needles at "
+               "{:.0f} and {:.0f} deg from their viewing rays",
                angle_deg(sc.safe.direction_ct, sc.dangerous.direction_ct), sc.scene.frame_count,
-               sc.scene.fps);
+               sc.scene.fps, angle_deg(view, Eigen::Vector3d::UnitY()),
+               (cam_ct - sc.T_ct_patient.translation()).norm(), sc.safe.view_obliquity_deg,
+               sc.dangerous.view_obliquity_deg);
 }
 
 }  // namespace
@@ -713,6 +788,7 @@ GuidanceScenario make_guidance_scenario(const planning::PlanData& plan,
         last_problem = problem;
         continue;
       }
+      add_scene_meshes(trial, plan, *s, *dg.c);
       complete_scenario(trial, *s, *dg.c, o);
       return trial;
     }
@@ -731,10 +807,28 @@ GuidanceScenario make_guidance_scenario(const planning::PlanData& plan,
 // ---------------------------------------------------------------------------------------------
 // Files
 
+std::string meshes_json_text(const tracking::SyntheticScene& s) {
+  using nlohmann::json;
+  json list = json::array();
+  for (const tracking::SceneMesh& m : s.meshes) {
+    std::vector<float> v, c;
+    std::vector<int> t;
+    for (const Eigen::Vector3f& p : m.vertices) v.insert(v.end(), {p.x(), p.y(), p.z()});
+    for (const Eigen::Vector3f& p : m.colours) c.insert(c.end(), {p.x(), p.y(), p.z()});
+    for (const Eigen::Vector3i& p : m.triangles) t.insert(t.end(), {p.x(), p.y(), p.z()});
+    list.push_back({{"name", m.name}, {"board", m.board}, {"vertices_mm", v}, {"colours", c},
+                    {"triangles", t}});
+  }
+  return list.dump();
+}
+
 std::string scene_json_text(const tracking::SyntheticScene& s, const std::string& camera_file,
-                            const std::string& boards_file) {
+                            const std::string& boards_file, const std::string& meshes_file) {
   using nlohmann::json;
   json j;
+  if (!s.meshes.empty()) {
+    j["meshes"] = meshes_file.empty() ? json::parse(meshes_json_text(s)) : json(meshes_file);
+  }
   j["camera"] = camera_file;
   j["boards"] = boards_file;
   j["background"] = {{"type", s.background},
@@ -801,8 +895,13 @@ void write_guidance_setup(const GuidanceScenario& sc, const std::string& dir) {
   for (const tracking::SceneBoard& b : sc.scene.boards) boards.push_back(b.board);
   tracking::write_boards((base / "boards.json").string(), boards);
 
+  if (!sc.scene.meshes.empty()) {
+    write_text_file((base / "meshes.json").string(), meshes_json_text(sc.scene) + "\n");
+  }
   write_text_file((base / "scene.json").string(),
-                  scene_json_text(sc.scene, "camera.yaml", "boards.json") + "\n");
+                  scene_json_text(sc.scene, "camera.yaml", "boards.json",
+                                  sc.scene.meshes.empty() ? "" : "meshes.json") +
+                      "\n");
 }
 
 // The patient board's CT-visible fiducials, as a CT shows metal beads of 3 mm radius: painted

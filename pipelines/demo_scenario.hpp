@@ -31,6 +31,9 @@ struct GuidanceApproach {
   // (-y), and between direction_ct and the camera's nominal optical axis (degrees).
   double angle_from_anterior_deg = 0;
   double angle_to_view_axis_deg = 0;
+  // Smallest angle over the approach's frames between the needle's axis and the ray from the
+  // camera to the entry (degrees): 30 or more, the needle is seen from the side, not end-on.
+  double view_obliquity_deg = 0;
   // Names of the vessels (structures named vessel / vein / artery / aorta / cava / portal) the
   // line from the entry to the centroid crosses.
   std::vector<std::string> vessels;
@@ -55,12 +58,11 @@ struct GuidanceScenarioOptions {
   double robust_deg = 6;
   // The dangerous approach lies this far from the safe one.
   double min_separation_deg = 15, max_separation_deg = 35;
-  // Camera: nominal optical axis in CT (the direction the camera looks, into the body); the safe
-  // approach nearest to it is chosen so the needle board faces the camera. Default: from anterior
-  // and the patient's right (the tumor lies in the right lobe), 25 degrees off vertical. When the
-  // boards do not stay in view and apart with this axis, the camera looks along the bisector of
-  // the two approaches instead, or that bisector turned by 10 to 30 degrees about the body axis or
-  // tilted 10 to 20 degrees toward head or feet (the first that works; T_cam_ct_nominal tells).
+  // Preferred needle direction in CT: the safe approach nearest to it is tried first (default:
+  // from anterior and the patient's right, 25 degrees off vertical; the tumor lies in the right
+  // lobe). The camera then sits where an OR camera would: above the table and to one side, its
+  // axis 25 to 60 degrees off vertical and 36 to 54 degrees from both needle directions, so that
+  // each needle is seen at 30 degrees or more from its viewing ray (T_cam_ct_nominal tells).
   Eigen::Vector3d view_axis_ct = Eigen::Vector3d(0.42, 0.906, 0.0);
   double camera_distance_mm = 540;  // mean distance camera -> patient board centre (500..580)
   double camera_drift_mm = 25;      // the camera drifts this much over the recording
@@ -74,7 +76,8 @@ struct GuidanceScenario {
   Eigen::Vector3d target_ct = Eigen::Vector3d::Zero();  // tumor centroid (plan.json), LPS mm
   GuidanceApproach safe, dangerous;
   // Boards "patient" (2 x 3 tags of 40 mm, ids 0-5, 5 CT fiducials) and "needle" (2 x 2 tags of
-  // 20 mm, ids 10-13); the camera of tracking::builtin_scene(); a needle keyframe every frame.
+  // 20 mm, ids 10-13); the camera of tracking::builtin_scene(); a needle keyframe every frame;
+  // meshes "body" (on the patient board: skin, drape, table) and "needle" (shaft and hub).
   tracking::SyntheticScene scene;
   // Tip kNeedleTipInNeedle, axis +z, board "needle".
   calibration::NeedleCalibration needle;
@@ -106,15 +109,18 @@ struct GuidanceScenario {
 GuidanceScenario make_guidance_scenario(const planning::PlanData& plan,
                                         const GuidanceScenarioOptions& options = {});
 
-// Writes camera.yaml, needle.yaml, registration.yaml, boards.json and scene.json (the scene for
-// `--source synthetic:DIR/scene.json`; it names camera.yaml and boards.json) into dir (created if
-// missing), each through a temporary file and a rename.
+// Writes camera.yaml, needle.yaml, registration.yaml, boards.json, meshes.json (the body and the
+// needle) and scene.json (the scene for `--source synthetic:DIR/scene.json`; it names the other
+// files) into dir (created if missing), each through a temporary file and a rename.
 void write_guidance_setup(const GuidanceScenario& scenario, const std::string& dir);
 
 // The scene JSON text of tracking::read_scene for a scene whose camera and boards are written
-// beside it as camera_file and boards_file (poses as translation_mm + quaternion keyframes).
+// beside it as camera_file and boards_file (poses as translation_mm + quaternion keyframes); its
+// meshes inline, or named as meshes_file (written with meshes_json_text).
 std::string scene_json_text(const tracking::SyntheticScene& scene, const std::string& camera_file,
-                            const std::string& boards_file);
+                            const std::string& boards_file, const std::string& meshes_file = "");
+// The scene's meshes as the JSON array of read_scene's "meshes".
+std::string meshes_json_text(const tracking::SyntheticScene& scene);
 
 // True for the vulnerability table names of blood vessels ("liver_vessels", "vena_cava", ...).
 bool is_vessel_name(const std::string& structure_name);

@@ -407,7 +407,16 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
   }
   RendererOptions ro = request.renderer;
   ro.visible = request.window;
-  GuideLoop loop(plan, request.setup, boards, request.options, request.tracker, ro);
+  tracking::TrackerOptions to = request.tracker;
+  if (request.full_search_mode) {
+    to.full_search_mode = *request.full_search_mode;
+  } else {
+    const bool live = request.source.rfind("v4l2:", 0) == 0 ||
+                      request.source.find("realtime=1") != std::string::npos;
+    to.full_search_mode = live ? tracking::FullSearchMode::kBackground
+                               : tracking::FullSearchMode::kBackgroundWait;
+  }
+  GuideLoop loop(plan, request.setup, boards, request.options, to, ro);
   if (pose_input) loop.set_pose_input(pose_input.get(), request.source.empty());
   std::unique_ptr<GuidanceBroadcast> broadcast;
   if (request.igtl_port >= 0) {

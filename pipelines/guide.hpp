@@ -10,6 +10,7 @@
 
 #include <atomic>
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -50,6 +51,11 @@ struct GuideRequest {
   double poses_fps = 30;
   overlay::GuidanceOptions options;
   tracking::TrackerOptions tracker;
+  // Where full-frame tag searches run (tracker.full_search_mode is not used): unset, on a worker
+  // that no frame waits for when the source is live (a camera, a realtime replay), and on the
+  // worker with the next frame waiting for it when frames are replayed as fast as they come (the
+  // same overlay on every run).
+  std::optional<tracking::FullSearchMode> full_search_mode;
   overlay::RendererOptions renderer;
   const std::atomic<bool>* stop = nullptr;  // set (e.g. by Ctrl-C) to end cleanly
 };

@@ -90,6 +90,27 @@ void SyntheticScene::validate(const std::string& what) const {
     }
     for (const BoardTag& t : b.board.tags) tag_pattern(b.board.family, t.id);
   }
+  for (const SceneMesh& mesh : meshes) {
+    const std::string name = what + ": mesh '" + mesh.name + "'";
+    const bool known = std::any_of(boards.begin(), boards.end(),
+                                   [&](const SceneBoard& b) { return b.board.name == mesh.board; });
+    if (!known) throw Error(name + " is attached to '" + mesh.board + "', which is no board");
+    if (mesh.colours.size() != mesh.vertices.size()) {
+      throw Error(name + ": " + std::to_string(mesh.colours.size()) + " colours for " +
+                  std::to_string(mesh.vertices.size()) + " vertices, expected one per vertex");
+    }
+    for (const Eigen::Vector3f& v : mesh.vertices) {
+      if (!v.allFinite()) throw Error(name + ": a vertex is not finite");
+    }
+    for (const Eigen::Vector3i& t : mesh.triangles) {
+      for (int i = 0; i < 3; ++i) {
+        if (t[i] < 0 || size_t(t[i]) >= mesh.vertices.size()) {
+          throw Error(name + ": triangle vertex index " + std::to_string(t[i]) + ", expected 0 to " +
+                      std::to_string(int64_t(mesh.vertices.size()) - 1));
+        }
+      }
+    }
+  }
 }
 
 Eigen::Isometry3d pose_at(const SceneBoard& board, double time_s) {
@@ -237,8 +258,8 @@ std::vector<std::pair<double, double>> edge_lattice(int supersampling) {
 // The value seen along the camera ray d (camera frame) among the candidate surfaces: the nearest
 // one's ink or paper level; NaN = background.
 double shade_ray(const std::vector<const Surface*>& cands, const Eigen::Vector3d& d, double black,
-                 double white) {
-  double best = std::numeric_limits<double>::infinity();
+                 double white, double mesh_depth) {
+  double best = mesh_depth;  // a mesh nearer than a surface hides it
   double value = std::numeric_limits<double>::quiet_NaN();
   for (const Surface* s : cands) {
     const double nd = s->N.dot(d);
@@ -263,15 +284,17 @@ double shade_ray(const std::vector<const Surface*>& cands, const Eigen::Vector3d
   return value;
 }
 
-// Traces every pixel that a surface may cover into img (CV_32F, holding the background): a 3 x 3
-// probe, and the whole lattice where the probe sees more than one value.
+// Traces every pixel that a surface may cover into img (CV_32FC3, holding the background and the
+// meshes, whose camera depth is in mesh_depth, CV_32F): a 3 x 3 probe, and the whole lattice
+// where the probe sees more than one value.
 void trace_surfaces(const RenderTables& m, const std::vector<Surface>& surfaces,
                     const std::vector<std::pair<double, double>>& lattice, double black,
-                    double white, cv::Mat& img) {
+                    double white, const cv::Mat& mesh_depth, cv::Mat& img) {
   cv::parallel_for_(cv::Range(0, m.h), [&](const cv::Range& rows) {
     std::vector<const Surface*> cands, in_row;
     for (int y = rows.start; y < rows.end; ++y) {
-      float* out = img.ptr<float>(y);
+      cv::Vec3f* out = img.ptr<cv::Vec3f>(y);
+      const float* zrow = mesh_depth.ptr<float>(y);
       // Rows and columns that any surface may cover: the only pixels that need tracing.
       in_row.clear();
       int row_x0 = m.w, row_x1 = -1;
@@ -287,6 +310,7 @@ void trace_surfaces(const RenderTables& m, const std::vector<Surface>& surfaces,
           if (x >= s->x0 && x <= s->x1) cands.push_back(s);
         }
         if (cands.empty()) continue;
+        const double zmesh = double(zrow[x]);
         const Eigen::Vector2d& g00 = m.node(x, y);
         const Eigen::Vector2d& g10 = m.node(x + 1, y);
         const Eigen::Vector2d& g01 = m.node(x, y + 1);
@@ -296,7 +320,7 @@ void trace_surfaces(const RenderTables& m, const std::vector<Surface>& surfaces,
         const auto shade = [&](double a, double b) {
           const Eigen::Vector2d xy =
               (1 - a) * (1 - b) * g00 + a * (1 - b) * g10 + (1 - a) * b * g01 + a * b * g11;
-          return shade_ray(cands, Eigen::Vector3d(xy.x(), xy.y(), 1.0), black, white);
+          return shade_ray(cands, Eigen::Vector3d(xy.x(), xy.y(), 1.0), black, white, zmesh);
         };
         // Probe a 3 x 3 pattern; a pixel that sees one value everywhere needs no more samples.
         constexpr double kProbe[3] = {1.0 / 64, 0.5, 63.0 / 64};
@@ -308,20 +332,141 @@ void trace_surfaces(const RenderTables& m, const std::vector<Surface>& surfaces,
             uniform = (std::isnan(v) && std::isnan(first)) || v == first;
           }
         }
-        const double bg = out[x];
+        const cv::Vec3d bg = out[x];
         if (uniform) {
-          if (!std::isnan(first)) out[x] = float(first);
+          if (!std::isnan(first)) out[x] = cv::Vec3f(float(first), float(first), float(first));
           continue;
         }
-        double sum = 0;
+        cv::Vec3d sum(0, 0, 0);
+        int n_bg = 0;
+        double grey = 0;
         for (const auto& [a, b] : lattice) {
           const double v = shade(a, b);
-          sum += std::isnan(v) ? bg : v;
+          if (std::isnan(v)) {
+            ++n_bg;
+          } else {
+            grey += v;
+          }
         }
-        out[x] = float(sum / double(lattice.size()));
+        sum = bg * double(n_bg) + cv::Vec3d(grey, grey, grey);
+        const double n = double(lattice.size());
+        out[x] = cv::Vec3f(float(sum[0] / n), float(sum[1] / n), float(sum[2] / n));
       }
     }
   });
+}
+
+// The meshes at time t drawn into img (CV_32FC3) and depth (CV_32F, camera z, +inf where none):
+// vertices projected through the camera model (distortion included), triangles filled where
+// their projection covers a pixel centre, depth interpolated as 1/z, colours (lit per vertex)
+// interpolated linearly; a triangle with a vertex less than 10 mm in front of the camera is left out.
+void draw_meshes(const SyntheticScene& scene, const std::vector<std::vector<Eigen::Vector3f>>& normals,
+                 double t, cv::Mat* img, cv::Mat& depth) {
+  const calibration::CameraModel& cam = scene.camera;
+  const int w = cam.width, h = cam.height;
+  depth = cv::Mat(h, w, CV_32F, cv::Scalar(std::numeric_limits<float>::infinity()));
+  // A light above the camera and behind it: surfaces facing the camera are lit.
+  const Eigen::Vector3d light = Eigen::Vector3d(0.25, -0.6, -1.0).normalized();
+  struct Projected {
+    std::vector<Eigen::Vector3f> px;  // x, y pixel; z camera depth (<= 0: unusable)
+    std::vector<cv::Vec3f> colour;
+  };
+  std::vector<Projected> projected(scene.meshes.size());
+  for (size_t k = 0; k < scene.meshes.size(); ++k) {
+    const SceneMesh& mesh = scene.meshes[k];
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    for (const SceneBoard& b : scene.boards) {
+      if (b.board.name == mesh.board) T = pose_at(b, t);
+    }
+    Projected& p = projected[k];
+    p.px.resize(mesh.vertices.size());
+    p.colour.resize(mesh.vertices.size());
+    cv::parallel_for_(cv::Range(0, int(mesh.vertices.size())), [&](const cv::Range& r) {
+      for (int i = r.start; i < r.end; ++i) {
+        const Eigen::Vector3d q = T * mesh.vertices[size_t(i)].cast<double>();
+        if (q.z() < 10.0) {
+          p.px[size_t(i)] = Eigen::Vector3f(0, 0, -1);
+          continue;
+        }
+        const Eigen::Vector2d uv = cam.project(q);
+        p.px[size_t(i)] = Eigen::Vector3f(float(uv.x()), float(uv.y()), float(q.z()));
+        const Eigen::Vector3d n = T.linear() * normals[k][size_t(i)].cast<double>();
+        const double lit = 0.35 + 0.65 * std::abs(n.dot(light));
+        const Eigen::Vector3f& c = mesh.colours[size_t(i)];
+        p.colour[size_t(i)] = cv::Vec3f(float(c.x() * lit), float(c.y() * lit), float(c.z() * lit));
+      }
+    });
+  }
+  // Bands of rows in parallel; every band walks all triangles.
+  constexpr int kBand = 32;
+  const int n_bands = (h + kBand - 1) / kBand;
+  cv::parallel_for_(cv::Range(0, n_bands), [&](const cv::Range& bands) {
+    for (int band = bands.start; band < bands.end; ++band) {
+      const int by0 = band * kBand, by1 = std::min(h - 1, by0 + kBand - 1);
+      for (size_t k = 0; k < scene.meshes.size(); ++k) {
+        const Projected& p = projected[k];
+        for (const Eigen::Vector3i& tri : scene.meshes[k].triangles) {
+          const Eigen::Vector3f& a = p.px[size_t(tri[0])];
+          const Eigen::Vector3f& b = p.px[size_t(tri[1])];
+          const Eigen::Vector3f& c = p.px[size_t(tri[2])];
+          if (!(a.z() > 0 && b.z() > 0 && c.z() > 0)) continue;
+          const int y0 = std::max(by0, int(std::ceil(std::min({a.y(), b.y(), c.y()}))));
+          const int y1 = std::min(by1, int(std::floor(std::max({a.y(), b.y(), c.y()}))));
+          if (y0 > y1) continue;
+          const int x0 = std::max(0, int(std::ceil(std::min({a.x(), b.x(), c.x()}))));
+          const int x1 = std::min(w - 1, int(std::floor(std::max({a.x(), b.x(), c.x()}))));
+          if (x0 > x1) continue;
+          const double area = double(b.x() - a.x()) * double(c.y() - a.y()) -
+                              double(b.y() - a.y()) * double(c.x() - a.x());
+          if (std::abs(area) < 1e-12) continue;
+          const double inv_area = 1.0 / area;
+          const double iza = 1.0 / a.z(), izb = 1.0 / b.z(), izc = 1.0 / c.z();
+          const cv::Vec3f& ca = p.colour[size_t(tri[0])];
+          const cv::Vec3f& cb = p.colour[size_t(tri[1])];
+          const cv::Vec3f& cc = p.colour[size_t(tri[2])];
+          for (int y = y0; y <= y1; ++y) {
+            float* zrow = depth.ptr<float>(y);
+            cv::Vec3f* row = img ? img->ptr<cv::Vec3f>(y) : nullptr;
+            for (int x = x0; x <= x1; ++x) {
+              // Barycentric weights of the pixel centre (x, y).
+              const double wa = (double(b.x() - x) * double(c.y() - y) -
+                                 double(b.y() - y) * double(c.x() - x)) * inv_area;
+              const double wb = (double(c.x() - x) * double(a.y() - y) -
+                                 double(c.y() - y) * double(a.x() - x)) * inv_area;
+              const double wc = 1.0 - wa - wb;
+              // Pixel centres on an edge shared by two triangles belong to both.
+              constexpr double kEdge = -1e-9;
+              if (wa < kEdge || wb < kEdge || wc < kEdge) continue;
+              const float z = float(1.0 / (wa * iza + wb * izb + wc * izc));
+              if (!(z < zrow[x])) continue;
+              zrow[x] = z;
+              if (row) {
+                row[x] = cv::Vec3f(float(wa * ca[0] + wb * cb[0] + wc * cc[0]),
+                                   float(wa * ca[1] + wb * cb[1] + wc * cc[1]),
+                                   float(wa * ca[2] + wb * cb[2] + wc * cc[2]));
+              }
+            }
+          }
+        }
+      }
+    }
+  });
+}
+
+// Area-weighted vertex normals of a mesh (board frame).
+std::vector<Eigen::Vector3f> vertex_normals(const SceneMesh& mesh) {
+  std::vector<Eigen::Vector3f> n(mesh.vertices.size(), Eigen::Vector3f::Zero());
+  for (const Eigen::Vector3i& t : mesh.triangles) {
+    const Eigen::Vector3f a = mesh.vertices[size_t(t[0])], b = mesh.vertices[size_t(t[1])],
+                          c = mesh.vertices[size_t(t[2])];
+    const Eigen::Vector3f f = (b - a).cross(c - a);
+    for (int i = 0; i < 3; ++i) n[size_t(t[i])] += f;
+  }
+  for (Eigen::Vector3f& v : n) {
+    const float len = v.norm();
+    v = len > 0 ? Eigen::Vector3f(v / len) : Eigen::Vector3f(0, 0, -1);
+  }
+  return n;
 }
 
 // What the camera adds to the traced grey levels of a frame: occlusions, lighting, blur and
@@ -333,30 +478,33 @@ cv::Mat apply_camera_effects(const SyntheticScene& scene, int64_t frame, cv::Mat
                                 cv::Point(int(std::ceil(o.rect_px.x + o.rect_px.width)),
                                           int(std::ceil(o.rect_px.y + o.rect_px.height)))) &
                        cv::Rect(0, 0, img.cols, img.rows);
-    if (r.area() > 0) img(r).setTo(cv::Scalar(o.grey));
+    if (r.area() > 0) img(r).setTo(cv::Scalar(o.grey, o.grey, o.grey));
   }
   if (scene.gain != 1.0 || scene.offset != 0.0) {
-    img.convertTo(img, CV_32F, scene.gain, scene.offset);
+    img.convertTo(img, CV_32FC3, scene.gain, scene.offset);
   }
   if (scene.blur_sigma > 0) {
     cv::GaussianBlur(img, img, cv::Size(0, 0), scene.blur_sigma, scene.blur_sigma,
                      cv::BORDER_REPLICATE);
   }
   if (scene.noise_sigma > 0) {
-    cv::Mat noise(img.size(), CV_32F);
+    // One noise value per pixel for its three channels (a grey scene stays grey).
+    cv::Mat noise(img.size(), CV_32F), noise3;
     cv::RNG rng(scene.seed * 1000003ULL + uint64_t(frame) * 7919ULL + 1ULL);
     rng.fill(noise, cv::RNG::NORMAL, 0.0, scene.noise_sigma);
-    img += noise;
+    cv::cvtColor(noise, noise3, cv::COLOR_GRAY2BGR);
+    img += noise3;
   }
-  cv::Mat grey, bgr;
-  img.convertTo(grey, CV_8U);  // rounds and saturates
-  cv::cvtColor(grey, bgr, cv::COLOR_GRAY2BGR);
+  cv::Mat bgr;
+  img.convertTo(bgr, CV_8UC3);  // rounds and saturates
   return bgr;
 }
 
 }  // namespace
 
-struct SyntheticRenderer::Impl : RenderTables {};
+struct SyntheticRenderer::Impl : RenderTables {
+  std::vector<std::vector<Eigen::Vector3f>> normals;  // per mesh, per vertex (board frame)
+};
 
 SyntheticRenderer::SyntheticRenderer(SyntheticScene scene)
     : scene_(std::move(scene)), impl_(std::make_unique<Impl>()) {
@@ -419,6 +567,7 @@ SyntheticRenderer::SyntheticRenderer(SyntheticScene scene)
     m.background = (texture - lo) * (scene_.background_contrast / span) +
                    (scene_.background_grey - 0.5 * scene_.background_contrast);
   }
+  for (const SceneMesh& mesh : scene_.meshes) m.normals.push_back(vertex_normals(mesh));
   for (const SceneBoard& b : scene_.boards) {
     for (const BoardTag& t : b.board.tags) {
       m.patterns.emplace(std::make_pair(b.board.family, t.id), tag_pattern(b.board.family, t.id));
@@ -443,9 +592,20 @@ cv::Mat SyntheticRenderer::render(int64_t frame, std::vector<TruePose>* truth) c
     if (truth) truth->push_back({sb.board.name, T});
     add_board_surfaces(sb, T, scene_.camera, m, surfaces);
   }
-  cv::Mat img = m.background.clone();
-  trace_surfaces(m, surfaces, edge_lattice(scene_.supersampling), scene_.black, scene_.white, img);
+  cv::Mat img;
+  cv::cvtColor(m.background, img, cv::COLOR_GRAY2BGR);
+  cv::Mat depth;
+  draw_meshes(scene_, m.normals, t, &img, depth);
+  trace_surfaces(m, surfaces, edge_lattice(scene_.supersampling), scene_.black, scene_.white, depth,
+                 img);
   return apply_camera_effects(scene_, frame, std::move(img));
+}
+
+void SyntheticRenderer::render_meshes(int64_t frame, cv::Mat* mask, cv::Mat* depth) const {
+  cv::Mat z;
+  draw_meshes(scene_, impl_->normals, time_of(frame), nullptr, z);
+  if (mask) *mask = z < std::numeric_limits<float>::infinity();
+  if (depth) *depth = z;
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -594,6 +754,50 @@ std::vector<OcclusionBox> read_occlusions(const json& list, const JsonPath& at) 
   return out;
 }
 
+// "meshes": [{"name", "board", "vertices_mm": [x, y, z, ...], "triangles": [i, j, k, ...],
+// "colours": [b, g, r, ...]}]. At most 4 million vertices and triangles per mesh.
+std::vector<SceneMesh> read_meshes(const json& list, const JsonPath& at) {
+  as_array(list, at);
+  constexpr size_t kMax = 3 * 4'000'000;
+  std::vector<SceneMesh> out;
+  for (size_t k = 0; k < list.size(); ++k) {
+    const json& mj = list[k];
+    const JsonPath mf = at.index(k);
+    if (!mj.is_object()) mf.fail("must be an object");
+    SceneMesh mesh;
+    mesh.name = optional_string(mj, "name", mf, "mesh " + std::to_string(k));
+    mesh.board = optional_string(mj, "board", mf, "");
+    const auto numbers = [&](const char* key, size_t min_size) {
+      if (!mj.contains(key)) mf.key(key).fail("is missing");
+      const std::vector<double> v = as_numbers(mj[key], mf.key(key), min_size, kMax, "numbers");
+      if (v.size() % 3 != 0) mf.key(key).fail("must hold a multiple of 3 numbers");
+      return v;
+    };
+    const std::vector<double> v = numbers("vertices_mm", 3);
+    const std::vector<double> c = numbers("colours", 3);
+    const std::vector<double> t = numbers("triangles", 0);
+    for (size_t i = 0; i < v.size(); i += 3) mesh.vertices.emplace_back(float(v[i]), float(v[i + 1]), float(v[i + 2]));
+    for (size_t i = 0; i < c.size(); i += 3) {
+      for (size_t j = 0; j < 3; ++j) {
+        if (!(c[i + j] >= 0 && c[i + j] <= 255)) mf.key("colours").fail("must lie in 0 to 255");
+      }
+      mesh.colours.emplace_back(float(c[i]), float(c[i + 1]), float(c[i + 2]));
+    }
+    for (size_t i = 0; i < t.size(); i += 3) {
+      Eigen::Vector3i tri;
+      for (size_t j = 0; j < 3; ++j) {
+        if (!(t[i + j] >= 0 && t[i + j] < double(v.size() / 3) && t[i + j] == std::floor(t[i + j]))) {
+          mf.key("triangles").fail("must hold vertex indices 0 to " + std::to_string(v.size() / 3 - 1));
+        }
+        tri[int(j)] = int(t[i + j]);
+      }
+      mesh.triangles.push_back(tri);
+    }
+    out.push_back(std::move(mesh));
+  }
+  return out;
+}
+
 }  // namespace
 
 SyntheticScene read_scene(const std::string& path) {
@@ -624,6 +828,14 @@ SyntheticScene read_scene(const std::string& path) {
   s.dropped_frames = frame_list(j, "dropped_frames", root);
   s.corrupt_frames = frame_list(j, "corrupt_frames", root);
   if (j.contains("occlusions")) s.occlusions = read_occlusions(j["occlusions"], root.key("occlusions"));
+  if (j.contains("meshes")) {
+    if (j["meshes"].is_string()) {
+      const std::string file = relative(j["meshes"].get<std::string>());
+      s.meshes = read_meshes(read_json_file(file, "meshes file"), JsonPath(file));
+    } else {
+      s.meshes = read_meshes(j["meshes"], root.key("meshes"));
+    }
+  }
   s.validate(path);
   return s;
 }

@@ -33,6 +33,17 @@ struct SceneBoard {
   double plate_margin_mm = 10;  // plate border beyond the tags' white rings
 };
 
+// A triangle mesh that moves with a board (vertices in that board's frame, mm): the patient's
+// skin and the table under it, a needle's shaft and hub. Drawn shaded (Lambert, two-sided, a light
+// above the camera) and z-buffered against the boards; a board in front of a mesh hides it.
+struct SceneMesh {
+  std::string name;
+  std::string board;  // the board it is attached to
+  std::vector<Eigen::Vector3f> vertices;      // board frame, mm
+  std::vector<Eigen::Vector3f> colours;       // per vertex, BGR 0..255 (lit by the shading)
+  std::vector<Eigen::Vector3i> triangles;     // vertex indices
+};
+
 struct OcclusionBox {
   cv::Rect2d rect_px;
   int64_t first_frame = 0, last_frame = 0;  // inclusive
@@ -45,6 +56,7 @@ struct SyntheticScene {
   double background_grey = 128;         // plain: this level; gradient/noise: the mean level
   double background_contrast = 60;      // gradient/noise: peak-to-peak amplitude (grey levels)
   std::vector<SceneBoard> boards;
+  std::vector<SceneMesh> meshes;  // drawn under the boards' tags, z-buffered
   double fps = 30;
   int64_t frame_count = 90;
   double noise_sigma = 0;  // Gaussian pixel noise (grey levels), new per frame
@@ -76,7 +88,10 @@ Eigen::Isometry3d pose_at(const SceneBoard& board, double time_s);
 //  "plate": true, "fps": 30, "frames": 90, "noise_sigma": 0, "blur_sigma": 0, "gain": 1,
 //  "offset": 0, "black": 25, "white": 230, "seed": 1, "supersampling": 7,
 //  "occlusions": [{"rect_px": [x, y, w, h], "frames": [first, last], "grey": 60}],
-//  "dropped_frames": [..], "corrupt_frames": [..]}
+//  "dropped_frames": [..], "corrupt_frames": [..],
+//  "meshes": [{"name": "body", "board": "patient", "vertices_mm": [x0, y0, z0, x1, ...],
+//              "triangles": [i0, j0, k0, ...], "colours": [b0, g0, r0, ...]}]
+//            or "meshes": "meshes.json" (a file holding that array)}
 // Paths are relative to the scene file. Errors name the file and the field.
 SyntheticScene read_scene(const std::string& path);
 
@@ -104,6 +119,9 @@ class SyntheticRenderer {
   // The frame's image (BGR 8-bit, noise, blur, lighting and occlusions applied) and the true pose
   // of every board.
   cv::Mat render(int64_t frame, std::vector<TruePose>* truth = nullptr) const;
+  // The meshes alone at a frame, before camera effects: mask (CV_8U, 255 where a mesh covers the
+  // pixel centre) and depth (CV_32F, camera z in mm, +inf elsewhere); either may be null.
+  void render_meshes(int64_t frame, cv::Mat* mask, cv::Mat* depth) const;
 
  private:
   struct Impl;

@@ -5,6 +5,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <condition_variable>
+#include <mutex>
+#include <optional>
+#include <thread>
+
+#include <opencv2/imgproc.hpp>
 
 #include "foundation/error.hpp"
 
@@ -83,6 +89,106 @@ Eigen::Isometry3d PoseFilter::update(const Eigen::Isometry3d& measured, const Ma
 }
 
 // ---------------------------------------------------------------------------------------------
+// Full-frame search on a worker thread
+
+// One search at a time: a frame's grey image goes in, its detections come out once.
+class Tracker::FullSearchWorker {
+ public:
+  struct Result {
+    int64_t frame = 0;
+    std::vector<Detection> detections;
+  };
+
+  explicit FullSearchWorker(const DetectorOptions& options)
+      : detector_(options), thread_([this] { run(); }) {}
+  ~FullSearchWorker() {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      stop_ = true;
+    }
+    wake_.notify_all();
+    thread_.join();
+  }
+
+  // Starts searching `image` (copied as grey) unless a search is under way or its result has not
+  // been taken; returns whether it started.
+  bool submit(const cv::Mat& image, int64_t frame) {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (state_ != State::kIdle) return false;
+    }
+    cv::Mat grey;
+    if (image.channels() == 3) {
+      cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
+    } else if (image.channels() == 4) {
+      cv::cvtColor(image, grey, cv::COLOR_BGRA2GRAY);
+    } else {
+      grey = image.clone();
+    }
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      image_ = std::move(grey);
+      frame_ = frame;
+      state_ = State::kQueued;
+    }
+    wake_.notify_all();
+    return true;
+  }
+
+  // The finished search's result (once); with wait, waits for the search under way first.
+  std::optional<Result> take(bool wait) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    if (wait) done_.wait(lock, [&] { return state_ == State::kIdle || state_ == State::kDone; });
+    if (state_ != State::kDone) return std::nullopt;
+    state_ = State::kIdle;
+    if (error_) {
+      std::exception_ptr e = error_;
+      error_ = nullptr;
+      std::rethrow_exception(e);
+    }
+    return std::move(result_);
+  }
+
+ private:
+  enum class State { kIdle, kQueued, kRunning, kDone };
+
+  void run() {
+    std::unique_lock<std::mutex> lock(mutex_);
+    for (;;) {
+      wake_.wait(lock, [&] { return stop_ || state_ == State::kQueued; });
+      if (stop_) return;
+      state_ = State::kRunning;
+      cv::Mat image = std::move(image_);
+      Result r;
+      r.frame = frame_;
+      lock.unlock();
+      std::exception_ptr error;
+      try {
+        r.detections = detector_.detect(image);
+      } catch (...) {
+        error = std::current_exception();
+      }
+      lock.lock();
+      result_ = std::move(r);
+      error_ = error;
+      state_ = State::kDone;
+      done_.notify_all();
+    }
+  }
+
+  TagDetector detector_;  // the worker's own: libapriltag detectors are not shared
+  std::mutex mutex_;
+  std::condition_variable wake_, done_;
+  State state_ = State::kIdle;
+  bool stop_ = false;
+  cv::Mat image_;
+  int64_t frame_ = 0;
+  Result result_;
+  std::exception_ptr error_;
+  std::thread thread_;  // last: starts after the members above exist
+};
+
+// ---------------------------------------------------------------------------------------------
 // Tracker
 
 Tracker::Tracker(const calibration::CameraModel& camera, std::vector<Board> boards,
@@ -102,6 +208,37 @@ Tracker::Tracker(const calibration::CameraModel& camera, std::vector<Board> boar
   if (!(options.max_age_ms > 0)) throw Error("tracker: max_age_ms must be > 0");
   tracks_.resize(boards_.size());
   for (Track& t : tracks_) t.filter = PoseFilter(options.filter);
+  if (options.full_search_mode != FullSearchMode::kInFrame) {
+    worker_ = std::make_unique<FullSearchWorker>(options.detector);
+  }
+}
+
+Tracker::~Tracker() = default;
+
+std::vector<cv::Rect> Tracker::regions_around(const std::vector<Detection>& detections) const {
+  std::vector<cv::Rect> rois;
+  const cv::Rect image(0, 0, camera_.width, camera_.height);
+  for (const Detection& d : detections) {
+    const bool ours = std::any_of(boards_.begin(), boards_.end(), [&](const Board& b) {
+      return std::any_of(b.tags.begin(), b.tags.end(),
+                         [&](const BoardTag& t) { return t.id == d.id; });
+    });
+    if (!ours) continue;
+    double x0 = 1e300, y0 = 1e300, x1 = -1e300, y1 = -1e300;
+    for (const Eigen::Vector2d& c : d.corners) {
+      x0 = std::min(x0, c.x());
+      y0 = std::min(y0, c.y());
+      x1 = std::max(x1, c.x());
+      y1 = std::max(y1, c.y());
+    }
+    // The tag has moved since that frame: a whole tag's size more on every side.
+    const double margin = options_.roi_margin_px + std::max(x1 - x0, y1 - y0);
+    const cv::Rect r(cv::Point(int(std::floor(x0 - margin)), int(std::floor(y0 - margin))),
+                     cv::Point(int(std::ceil(x1 + margin)) + 1, int(std::ceil(y1 + margin)) + 1));
+    const cv::Rect clipped = r & image;
+    if (clipped.area() > 0) rois.push_back(clipped);
+  }
+  return rois;
 }
 
 std::vector<cv::Rect> Tracker::predicted_regions(int64_t timestamp_ns, bool* all_predicted) const {
@@ -190,6 +327,88 @@ bool Tracker::measure(size_t b, const std::vector<Detection>& detections, int64_
   return true;
 }
 
+void Tracker::search_in_frame(const Frame& frame, TrackResult& res, std::vector<bool>& measured) {
+  bool full = options_.full_search_interval <= 0 ||
+              frames_since_full_ + 1 >= options_.full_search_interval;
+  std::vector<cv::Rect> rois;
+  if (!full) {
+    bool all_predicted = true;
+    rois = predicted_regions(frame.timestamp_ns, &all_predicted);
+    double area = 0;
+    for (const cv::Rect& r : rois) area += r.area();
+    if (!all_predicted || rois.empty() ||
+        area > options_.max_roi_fraction * camera_.width * camera_.height) {
+      full = true;
+    }
+  }
+  if (!full) {
+    res.regions = int(rois.size());
+    res.detections = detector_.detect(frame.image, rois);
+    bool missing = false;
+    for (size_t b = 0; b < boards_.size(); ++b) {
+      measured[b] = measure(b, res.detections, frame.timestamp_ns, &res.boards[b]);
+      if (!measured[b]) missing = true;
+    }
+    // A board the regions did not show is searched for in the whole frame at once.
+    full = missing;
+  }
+  if (full) {
+    res.full_search = true;
+    ++full_searches_;
+    frames_since_full_ = 0;
+    res.detections = detector_.detect(frame.image);
+    for (size_t b = 0; b < boards_.size(); ++b) {
+      if (!measured[b]) measured[b] = measure(b, res.detections, frame.timestamp_ns, &res.boards[b]);
+    }
+  } else {
+    ++frames_since_full_;
+  }
+}
+
+void Tracker::search_with_worker(const Frame& frame, TrackResult& res,
+                                 std::vector<bool>& measured) {
+  // A finished full-frame search: the regions around the tags it found join the predicted ones.
+  std::vector<cv::Rect> rois;
+  if (auto done = worker_->take(options_.full_search_mode == FullSearchMode::kBackgroundWait)) {
+    res.full_search_frame = done->frame;
+    rois = regions_around(done->detections);
+  }
+  bool all_predicted = true;
+  for (const cv::Rect& r : predicted_regions(frame.timestamp_ns, &all_predicted)) rois.push_back(r);
+  rois = TagDetector::merge_regions(std::move(rois));
+  double area = 0;
+  for (const cv::Rect& r : rois) area += r.area();
+  const bool nothing_to_search = rois.empty();
+  if (area > options_.max_roi_fraction * camera_.width * camera_.height ||
+      (nothing_to_search && options_.full_search_mode == FullSearchMode::kBackgroundWait)) {
+    // Regions that large cost what the whole frame does; and a replay with nothing to search
+    // would only wait for the worker in the next frame: the whole frame now.
+    res.full_search = true;
+    ++full_searches_;
+    res.detections = detector_.detect(frame.image);
+  } else if (!rois.empty()) {
+    res.regions = int(rois.size());
+    res.detections = detector_.detect(frame.image, rois);
+  }
+  bool missing = false;
+  for (size_t b = 0; b < boards_.size(); ++b) {
+    measured[b] = measure(b, res.detections, frame.timestamp_ns, &res.boards[b]);
+    if (!measured[b]) missing = true;
+  }
+  // A missing board, or the periodic search, starts one on the worker when it is free.
+  const bool due = options_.full_search_interval <= 0 ||
+                   frames_since_full_ + 1 >= options_.full_search_interval;
+  if ((missing || due) && !res.full_search && worker_->submit(frame.image, frame.index)) {
+    res.full_search_started = true;
+    ++full_searches_;
+    frames_since_full_ = 0;
+  } else if (res.full_search) {
+    frames_since_full_ = 0;
+  } else {
+    ++frames_since_full_;
+  }
+}
+
 TrackResult Tracker::process(const Frame& frame) {
   TrackResult res;
   res.frame = frame.index;
@@ -224,47 +443,18 @@ TrackResult Tracker::process(const Frame& frame) {
   if (frame.image.empty() || wrong_size) {
     if (res.problem.empty()) res.problem = "no image";
   } else {
-    bool full = options_.full_search_interval <= 0 ||
-                frames_since_full_ + 1 >= options_.full_search_interval;
-    std::vector<cv::Rect> rois;
-    if (!full) {
-      bool all_predicted = true;
-      rois = predicted_regions(frame.timestamp_ns, &all_predicted);
-      double area = 0;
-      for (const cv::Rect& r : rois) area += r.area();
-      if (!all_predicted || rois.empty() ||
-          area > options_.max_roi_fraction * camera_.width * camera_.height) {
-        full = true;
-      }
-    }
-    if (!full) {
-      res.regions = int(rois.size());
-      res.detections = detector_.detect(frame.image, rois);
-      bool missing = false;
-      for (size_t b = 0; b < boards_.size(); ++b) {
-        measured[b] = measure(b, res.detections, frame.timestamp_ns, &res.boards[b]);
-        if (!measured[b]) missing = true;
-      }
-      // A board the regions did not show is searched for in the whole frame at once.
-      full = missing;
-    }
-    if (full) {
-      res.full_search = true;
-      ++full_searches_;
-      frames_since_full_ = 0;
-      res.detections = detector_.detect(frame.image);
-      for (size_t b = 0; b < boards_.size(); ++b) {
-        if (!measured[b]) measured[b] = measure(b, res.detections, frame.timestamp_ns, &res.boards[b]);
-      }
+    if (worker_) {
+      search_with_worker(frame, res, measured);
     } else {
-      ++frames_since_full_;
+      search_in_frame(frame, res, measured);
     }
   }
 
   // Boards without a measurement now: their last pose while it is young enough, else lost.
   for (size_t b = 0; b < boards_.size(); ++b) {
     Track& tr = tracks_[b];
-    tr.measured_last = measured[b];
+    // A frame without an image says nothing of where the boards are: the one before still counts.
+    if (!frame.image.empty() && !wrong_size) tr.measured_last = measured[b];
     if (measured[b]) continue;
     BoardStatus& st = res.boards[b];
     if (st.problem.empty()) st.problem = res.problem.empty() ? "not searched" : res.problem;

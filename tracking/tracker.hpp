@@ -7,6 +7,7 @@
 #include <Eigen/Geometry>
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -64,6 +65,14 @@ class PoseFilter {
   int64_t timestamp_ns_ = 0;
 };
 
+// Where the full-frame tag search runs. kInFrame: in the frame that needs it, which waits for it.
+// kBackground: on a worker thread; the frame goes on with the regions it has, and the first frame
+// after the search finishes searches the regions around the tags it found (no frame waits for a
+// full-frame search; which frame takes the result depends on timing). kBackgroundWait: on the
+// worker, with the next frame waiting for its result (the same output on every run: replays,
+// tests).
+enum class FullSearchMode { kInFrame, kBackground, kBackgroundWait };
+
 struct TrackerOptions {
   DetectorOptions detector;
   PoseOptions pose;
@@ -73,6 +82,7 @@ struct TrackerOptions {
   // Full-frame search at least every this many frames while every board is tracked (0: every
   // frame); in between, tags are searched where the boards' predicted poses put them.
   int full_search_interval = 15;
+  FullSearchMode full_search_mode = FullSearchMode::kInFrame;
   double roi_margin_px = 16.0;        // margin around each predicted tag
   double roi_margin_tag_fraction = 0.5;  // plus this share of the tag's predicted size
   // Above this share of the image, the regions are not worth it: search the full frame.
@@ -101,8 +111,12 @@ struct TrackResult {
   int64_t timestamp_ns = 0;
   std::vector<BoardStatus> boards;  // in the order of the tracker's boards
   std::vector<Detection> detections;
-  bool full_search = false;  // the whole frame was searched (possibly after the regions)
+  bool full_search = false;  // the whole frame was searched in this frame (possibly after the regions)
   int regions = 0;           // regions searched before any full-frame search
+  // Background modes: this frame started a full-frame search on the worker, and the frame whose
+  // full-frame search this frame took the result of (-1: none).
+  bool full_search_started = false;
+  int64_t full_search_frame = -1;
   int64_t dropped = 0;       // frames missing just before this one (gap in frame numbers)
   std::string problem;       // the frame's own problem (undecodable image, ...)
 };
@@ -113,6 +127,9 @@ class Tracker {
   // camera without a focal length.
   Tracker(const calibration::CameraModel& camera, std::vector<Board> boards,
           const TrackerOptions& options = {});
+  ~Tracker();
+  Tracker(const Tracker&) = delete;
+  Tracker& operator=(const Tracker&) = delete;
 
   TrackResult process(const Frame& frame);
 
@@ -133,6 +150,11 @@ class Tracker {
   std::vector<cv::Rect> predicted_regions(int64_t timestamp_ns, bool* all_predicted) const;
   bool measure(size_t b, const std::vector<Detection>& detections, int64_t timestamp_ns,
                BoardStatus* status);
+  // The search of one frame in kInFrame mode and in the background modes.
+  void search_in_frame(const Frame& frame, TrackResult& res, std::vector<bool>& measured);
+  void search_with_worker(const Frame& frame, TrackResult& res, std::vector<bool>& measured);
+  // Regions around the detections of a full-frame search that belong to a board.
+  std::vector<cv::Rect> regions_around(const std::vector<Detection>& detections) const;
 
   calibration::CameraModel camera_;
   std::vector<Board> boards_;
@@ -148,6 +170,8 @@ class Tracker {
   int64_t frames_ = 0;
   int64_t frames_since_full_ = 0;
   int64_t full_searches_ = 0;
+  class FullSearchWorker;
+  std::unique_ptr<FullSearchWorker> worker_;  // background modes
 };
 
 }  // namespace crepuscular::tracking

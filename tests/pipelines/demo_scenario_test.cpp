@@ -9,12 +9,16 @@
 
 #include <gtest/gtest.h>
 
+#include <array>
+#include <chrono>
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
 #include <iostream>
 
 #include <opencv2/calib3d.hpp>
+#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include "calibration/camera_model.hpp"
@@ -338,6 +342,9 @@ TEST_F(GuidanceSceneTest, RenderedFramesTrackBothBoardsAndPlaceTheTip) {
     frame.index = f;
     frame.timestamp_ns = renderer.timestamp_ns_of(f);
     frame.image = renderer.render(f);
+    if (const char* png_dir = std::getenv("GS_PNG_DIR")) {
+      cv::imwrite(std::string(png_dir) + "/frame_" + std::to_string(f) + ".png", frame.image);
+    }
     const tracking::TrackResult r = tracker.process(frame);
     ASSERT_EQ(r.boards.size(), 2u);
     for (const tracking::BoardStatus& b : r.boards) {
@@ -352,6 +359,137 @@ TEST_F(GuidanceSceneTest, RenderedFramesTrackBothBoardsAndPlaceTheTip) {
     EXPECT_LT((tracked - truth).norm(), 3.0) << "frame " << f;
     std::printf("frame %lld: tracked tip %.2f mm from the truth\n", static_cast<long long>(f),
                 (tracked - truth).norm());
+  }
+}
+
+// The camera is where an OR camera would be: above the patient (anterior) and to one side, 40 to
+// 70 cm from the patient board and the entries in every frame, and it sees each needle from the
+// side: in every frame of an approach the needle's axis (the needle board's z) makes 30 degrees
+// or more with the ray from the camera to the skin entry, so the needle is a line, not a dot.
+TEST_F(GuidanceSceneTest, CameraAboveAndBesideSeesBothNeedlesObliquely) {
+  const GuidanceScenario& sc = *scenario_;
+  const Eigen::Vector3d cam_ct = sc.T_cam_ct_nominal.inverse().translation();
+  const Eigen::Vector3d mid = 0.5 * (sc.safe.entry_ct + sc.dangerous.entry_ct);
+  EXPECT_LT(cam_ct.y(), mid.y() - 250.0) << "camera above (anterior of) the entries";
+  const double side_mm = std::abs(cam_ct.x() - mid.x());
+  EXPECT_GT(side_mm, 150.0) << "camera to one side of the entries";
+  const double fps = sc.scene.fps;
+  double near_mm = 1e9, far_mm = 0;
+  for (const GuidanceApproach* a : {&sc.safe, &sc.dangerous}) {
+    double min_deg = 180;
+    for (int64_t f = 0; f < sc.scene.frame_count; ++f) {
+      const double t = double(f) / fps;
+      const Eigen::Isometry3d T_cam_patient = tracking::pose_at(board("patient"), t);
+      const Eigen::Vector3d entry = T_cam_patient * (sc.T_ct_patient.inverse() * a->entry_ct);
+      near_mm = std::min({near_mm, entry.norm(), T_cam_patient.translation().norm()});
+      far_mm = std::max({far_mm, entry.norm(), T_cam_patient.translation().norm()});
+      if (t < a->start_s || t > a->end_s) continue;
+      const Eigen::Vector3d axis = tracking::pose_at(board("needle"), t).linear().col(2);
+      const double deg =
+          std::acos(std::clamp(axis.dot(entry.normalized()), -1.0, 1.0)) * 180.0 / M_PI;
+      min_deg = std::min(min_deg, deg);
+    }
+    EXPECT_GE(min_deg, 30.0) << a->name;
+    EXPECT_NEAR(a->view_obliquity_deg, min_deg, 1e-6) << a->name;
+    std::printf("%s needle: at least %.1f deg from its viewing ray\n", a->name.c_str(), min_deg);
+  }
+  EXPECT_GE(near_mm, 400.0);
+  EXPECT_LE(far_mm, 700.0);
+  std::printf("camera %.0f mm to the side, %.0f to %.0f mm from the board and the entries\n",
+              side_mm, near_mm, far_mm);
+}
+
+// The body in the frames: rendered alone (boards without tags or plates, a black background), it
+// covers exactly the pixels onto which its mesh projects, computed independently (vertices through
+// cv::projectPoints, each triangle filled with cv::fillConvexPoly): every projected pixel 2 px
+// inside the outline is covered and none 2 px outside it. Both entries lie on visible skin: the
+// pixel they project to shows skin colour and the rendered depth there is the entry's own.
+TEST_F(GuidanceSceneTest, RenderedBodyCoversItsProjectedMeshAndShowsTheEntriesOnSkin) {
+  const GuidanceScenario& sc = *scenario_;
+  tracking::SyntheticScene alone = sc.scene;
+  for (tracking::SceneBoard& b : alone.boards) {
+    b.board.tags.clear();
+    b.plate = false;
+  }
+  alone.meshes.erase(std::remove_if(alone.meshes.begin(), alone.meshes.end(),
+                                    [](const tracking::SceneMesh& m) { return m.name != "body"; }),
+                     alone.meshes.end());
+  alone.background = "plain";
+  alone.background_grey = 0;
+  alone.noise_sigma = 0;
+  const tracking::SceneMesh* body = nullptr;
+  for (const tracking::SceneMesh& m : alone.meshes) {
+    if (m.name == "body") body = &m;
+  }
+  ASSERT_NE(body, nullptr);
+  EXPECT_EQ(body->board, "patient");
+  const tracking::SyntheticRenderer renderer(alone);
+  const calibration::CameraModel& cam = alone.camera;
+  const cv::Mat K = cam.camera_matrix(), dist = cam.distortion_coefficients();
+  const double fps = alone.fps;
+  for (const GuidanceApproach* a : {&sc.safe, &sc.dangerous}) {
+    const int64_t f = int64_t(std::lround(a->end_s * fps));
+    const double t = double(f) / fps;
+    const auto t0 = std::chrono::steady_clock::now();
+    const cv::Mat image = renderer.render(f);
+    const double ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    cv::Mat depth;
+    renderer.render_meshes(f, nullptr, &depth);
+    std::vector<cv::Mat> ch;
+    cv::split(image, ch);
+    const cv::Mat covered = cv::max(cv::max(ch[0], ch[1]), ch[2]) > 15;
+
+    // Independent truth: the projected triangles of the body mesh.
+    const Eigen::Isometry3d T_cam_patient = tracking::pose_at(board("patient"), t);
+    std::vector<cv::Point3d> cam_points;
+    for (const Eigen::Vector3f& v : body->vertices) {
+      const Eigen::Vector3d p = T_cam_patient * v.cast<double>();
+      ASSERT_GT(p.z(), 10.0);
+      cam_points.emplace_back(p.x(), p.y(), p.z());
+    }
+    std::vector<cv::Point2d> px;
+    cv::projectPoints(cam_points, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), K, dist, px);
+    cv::Mat truth(cam.height, cam.width, CV_8U, cv::Scalar(0));
+    constexpr int kShift = 8;  // sub-pixel vertices for fillConvexPoly
+    for (const Eigen::Vector3i& tri : body->triangles) {
+      std::array<cv::Point, 3> pts;
+      bool far_out = false;
+      for (int i = 0; i < 3; ++i) {
+        const cv::Point2d& q = px[size_t(tri[i])];
+        far_out = far_out || std::abs(q.x) > 1e5 || std::abs(q.y) > 1e5;
+        pts[size_t(i)] = cv::Point(int(std::lround(q.x * (1 << kShift))),
+                                   int(std::lround(q.y * (1 << kShift))));
+      }
+      if (!far_out) cv::fillConvexPoly(truth, pts.data(), 3, cv::Scalar(255), cv::LINE_8, kShift);
+    }
+    const cv::Mat k5 = cv::getStructuringElement(cv::MORPH_RECT, cv::Size(5, 5));
+    cv::Mat inner, outer;
+    cv::erode(truth, inner, k5, cv::Point(-1, -1), 1, cv::BORDER_REPLICATE);
+    cv::dilate(truth, outer, k5, cv::Point(-1, -1), 1, cv::BORDER_REPLICATE);
+    const int n_truth = cv::countNonZero(truth);
+    const int missed = cv::countNonZero(inner & ~covered);
+    const int spilled = cv::countNonZero(covered & ~outer);
+    EXPECT_GT(n_truth, cam.width * cam.height / 4) << "the body fills a good part of the frame";
+    EXPECT_EQ(missed, 0) << a->name << " frame " << f;
+    EXPECT_EQ(spilled, 0) << a->name << " frame " << f;
+    std::printf("%s frame %lld: body mesh projects onto %d px, %d missed, %d outside; rendered "
+                "in %.0f ms\n",
+                a->name.c_str(), static_cast<long long>(f), n_truth, missed, spilled, ms);
+
+    // Both entries on visible skin.
+    for (const GuidanceApproach* e : {&sc.safe, &sc.dangerous}) {
+      const Eigen::Vector3d p = T_cam_patient * sc.T_ct_patient.inverse() * e->entry_ct;
+      const Eigen::Vector2d uv = cam.project(p);
+      const int x = int(std::lround(uv.x())), y = int(std::lround(uv.y()));
+      ASSERT_TRUE(x >= 2 && y >= 2 && x < cam.width - 2 && y < cam.height - 2)
+          << e->name << " entry outside the image at " << uv.transpose();
+      const cv::Vec3b c = image.at<cv::Vec3b>(y, x);
+      // Skin (BGR 140, 165, 215 shaded): red above green above blue.
+      EXPECT_GT(int(c[2]), int(c[1]) + 10) << e->name << " entry pixel " << cv::Mat(c);
+      EXPECT_GT(int(c[1]), int(c[0]) + 5) << e->name << " entry pixel " << cv::Mat(c);
+      EXPECT_NEAR(depth.at<float>(y, x), p.z(), 6.0) << e->name << " entry hidden or off the skin";
+    }
   }
 }
 
@@ -458,13 +596,25 @@ TEST_F(GuidanceSceneTest, WrittenSetupReadsBackEqual) {
                 1e-9);
     }
   }
+  // The meshes (meshes.json beside it) read back.
+  ASSERT_EQ(s.meshes.size(), sc.scene.meshes.size());
+  for (size_t m = 0; m < s.meshes.size(); ++m) {
+    EXPECT_EQ(s.meshes[m].name, sc.scene.meshes[m].name);
+    EXPECT_EQ(s.meshes[m].board, sc.scene.meshes[m].board);
+    ASSERT_EQ(s.meshes[m].vertices.size(), sc.scene.meshes[m].vertices.size());
+    ASSERT_EQ(s.meshes[m].triangles.size(), sc.scene.meshes[m].triangles.size());
+    for (size_t i = 0; i < s.meshes[m].vertices.size(); i += 97) {
+      EXPECT_LT((s.meshes[m].vertices[i] - sc.scene.meshes[m].vertices[i]).norm(), 1e-3);
+    }
+    EXPECT_EQ(s.meshes[m].triangles.back(), sc.scene.meshes[m].triangles.back());
+  }
   // Only the files, no temporaries.
   int files = 0;
   for (const auto& e : fs::directory_iterator(out)) {
     ++files;
     EXPECT_NE(e.path().filename().string().front(), '.') << e.path();
   }
-  EXPECT_EQ(files, 5);
+  EXPECT_EQ(files, 6);
 }
 
 }  // namespace

@@ -9,7 +9,9 @@
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <chrono>
 #include <random>
+#include <thread>
 
 #include "foundation/error.hpp"
 #include "tests/support/errors.hpp"
@@ -246,6 +248,94 @@ TEST(Tracker, RegionSearchFindsWhatFullFrameSearchFinds) {
   std::printf("frames searched by regions only: %d of %d\n", region_frames, n);
   EXPECT_GE(region_frames, n - 3);  // frames 0 and 15 are full-frame searches
   EXPECT_EQ(full.full_searches(), n);
+}
+
+// The full-frame search on the worker, the next frame waiting for it (replays): frame 0 has no
+// region to search and searches the whole frame itself (waiting for the worker would cost the
+// same, a frame later); the periodic search starts on the worker at frame 15 and its result comes
+// in frame 16; every frame measures both boards as a full-frame search does. Two runs give
+// identical poses (the output does not depend on timing).
+TEST(Tracker, BackgroundSearchWithWaitIsDeterministicAndNeverSearchesInTheFrame) {
+  Rig& r = rig();
+  TrackerOptions wait_o, full_o;
+  wait_o.full_search_mode = FullSearchMode::kBackgroundWait;
+  full_o.full_search_interval = 0;
+  const int n = 20;
+  std::vector<Frame> frames;
+  std::vector<Eigen::Isometry3d> truth;
+  for (int i = 0; i < n; ++i) {
+    const Eigen::Isometry3d Tp = look_at_board(-60 + 2.5 * i, 20 - 1.0 * i, 480, 15, -10, 5);
+    const Eigen::Isometry3d Tn = look_at_board(80 - 3.0 * i, -40 + 1.5 * i, 450, -15, 10, -20);
+    RenderOptions ro;
+    ro.noise_sigma = 1.5;
+    ro.seed = 500 + i;
+    frames.push_back(make_frame(i, r.renderer.render({{&r.patient, Tp}, {&r.needle, Tn}}, ro)));
+    truth.push_back(Tn);
+  }
+  std::vector<std::vector<Eigen::Matrix4d>> runs;
+  for (int run = 0; run < 2; ++run) {
+    Tracker waiting(r.cam, {r.patient, r.needle}, wait_o);
+    Tracker full(r.cam, {r.patient, r.needle}, full_o);
+    std::vector<Eigen::Matrix4d> poses;
+    for (int i = 0; i < n; ++i) {
+      const TrackResult a = waiting.process(frames[size_t(i)]);
+      const TrackResult b = full.process(frames[size_t(i)]);
+      EXPECT_EQ(a.full_search, i == 0) << "frame " << i;
+      EXPECT_EQ(a.full_search_started, i == 15) << "frame " << i;
+      EXPECT_EQ(a.full_search_frame, i == 16 ? 15 : -1) << "frame " << i;
+      for (size_t k = 0; k < 2; ++k) {
+        ASSERT_TRUE(a.boards[k].measured) << "frame " << i << ": " << a.boards[k].problem;
+        // Regions and the whole frame refine corners alike to within 0.4 mm here (measured 0.37).
+        EXPECT_LT(distance_mm(a.boards[k].T_measured, b.boards[k].T_measured), 0.5)
+            << "frame " << i;
+      }
+      EXPECT_LT(distance_mm(a.boards[1].T_measured, truth[size_t(i)]), 1.5) << "frame " << i;
+      poses.push_back(a.boards[1].T_measured.matrix());
+    }
+    EXPECT_EQ(waiting.full_searches(), 2);  // frame 0 in the frame, frame 15 on the worker
+    runs.push_back(poses);
+  }
+  ASSERT_EQ(runs[0].size(), runs[1].size());
+  for (size_t i = 0; i < runs[0].size(); ++i) EXPECT_EQ(runs[0][i], runs[1][i]) << "frame " << i;
+}
+
+// The worker that no frame waits for: frames come faster than a full-frame search, yet no frame
+// searches the whole image; the boards are found within a few frames, and a board that leaves
+// and comes back is found again by the search its absence starts.
+TEST(Tracker, BackgroundSearchFindsBoardsWithoutAFrameWaiting) {
+  Rig& r = rig();
+  TrackerOptions o;
+  o.full_search_mode = FullSearchMode::kBackground;
+  Tracker tracker(r.cam, {r.patient}, o);
+  const Eigen::Isometry3d T = look_at_board(10, 5, 450, 15, -10, 0);
+  RenderOptions ro;
+  ro.noise_sigma = 1.5;
+  const cv::Mat board = r.renderer.render({{&r.patient, T}}, ro);
+  const cv::Mat empty_scene = r.renderer.render({}, ro);
+  const auto first_measured = [&](int64_t from, int limit) {
+    for (int64_t i = from; i < from + limit; ++i) {
+      const TrackResult res = tracker.process(make_frame(i, board));
+      EXPECT_FALSE(res.full_search) << "frame " << i;
+      if (res.boards[0].measured) {
+        EXPECT_LT(distance_mm(res.boards[0].T_measured, T), 1.5);
+        return i;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    return int64_t(-1);
+  };
+  const int64_t found = first_measured(0, 400);
+  ASSERT_GE(found, 1) << "never found (frame 0 cannot measure: its search runs on the worker)";
+  int64_t i = found + 1;
+  for (; i < found + 6; ++i) {
+    const TrackResult res = tracker.process(make_frame(i, empty_scene));
+    EXPECT_FALSE(res.boards[0].measured);
+    EXPECT_FALSE(res.full_search);
+  }
+  const int64_t again = first_measured(i, 400);
+  ASSERT_GE(again, i);
+  std::printf("found at frame %lld, found again %lld frames after it came back\n",
+              static_cast<long long>(found), static_cast<long long>(again - i));
 }
 
 // Occluded tags, a blurred frame, an undecodable frame and dropped frames: the tracker keeps going,
