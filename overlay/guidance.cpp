@@ -503,9 +503,9 @@ cv::Mat cone_image(const std::vector<GuidanceOverlay::Patch>& patches, const Eig
       cv::fillConvexPoly(mask, tri, 3, cv::Scalar(255), cv::LINE_8, 4);
     }
     const cv::Scalar colour = leeway_bgr(palette, patch.leeway);
-    paint(image, mask, colour, 55);
+    paint(image, mask, colour, 75);
     cv::polylines(image, mask_outlines(mask), true,
-                  cv::Scalar(colour[0], colour[1], colour[2], 150), 1, cv::LINE_AA, 4);
+                  cv::Scalar(colour[0], colour[1], colour[2], 200), 1, cv::LINE_AA, 4);
   }
   return image;
 }
@@ -737,6 +737,9 @@ void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isomet
       ring.points_cam.push_back(T_cam_ct * (*entry + 4.0 * (std::cos(t) * e1 + std::sin(t) * e2)));
     }
     ring.closed = true;
+    ring.colour = cv::Scalar(30, 30, 30);  // a dark rim, so that the ring reads on the patches
+    ring.width_px = 5;
+    renderer.add_polyline("needle", ring);
     ring.colour = colour;
     ring.width_px = 2.5;
     renderer.add_polyline("needle", ring);

@@ -101,7 +101,7 @@ cv::Mat render_targeting_view(const planning::TargetingGeometry& g, planning::Pa
       cv::fillPoly(cells, polys, class_colour(palette, c.safety), cv::LINE_8, kShift);
       cv::fillPoly(cells_mask, polys, cv::Scalar(255), cv::LINE_8, kShift);
     }
-    blend(image, cells_mask, cells, 0.6);
+    blend(image, cells_mask, cells, 0.75);
     // Tilt rings: every ring's outer edge, the outer ones labelled.
     const double ring_px = std::abs(g.pivot_to_plane_mm) / g.mm_per_px;
     for (int r = 1; r <= g.rings; ++r) {
@@ -126,7 +126,7 @@ cv::Mat render_targeting_view(const planning::TargetingGeometry& g, planning::Pa
     }
     cv::Mat tumor_mask(n, n, CV_8U, cv::Scalar(0));
     cv::fillPoly(tumor_mask, polys, cv::Scalar(255), cv::LINE_8, kShift);
-    blend(image, tumor_mask, magenta, 0.35);
+    blend(image, tumor_mask, magenta, 0.15);
     cv::polylines(image, polys, true, magenta, 2, cv::LINE_AA, kShift);
     cv::circle(image, fixed(g.centre_px), 4 * 16, magenta, 1, cv::LINE_AA, kShift);
     // The needle's crossing: a white cross (arms 11 px), or an arrow at the edge toward it.
@@ -140,6 +140,18 @@ cv::Mat render_targeting_view(const planning::TargetingGeometry& g, planning::Pa
       const Eigen::Vector2d tip = g.centre_px + dir * (0.5 * n - 12);
       cv::arrowedLine(image, fixed(tip - 30 * dir), fixed(tip), kTargetingCrossColour, 2,
                       cv::LINE_8, kShift, 0.35);
+    }
+    // Beyond the map: an arrow toward the nearest safe direction, with its tilt.
+    if (std::isfinite(g.nearest_safe_deg) && g.nearest_safe_deg > g.max_tilt_deg) {
+      const double a = g.nearest_safe_azimuth_deg * M_PI / 180.0;
+      const Eigen::Vector2d dir(std::cos(a), std::sin(a));
+      const double r0 = ring_px * std::tan(g.max_tilt_deg * M_PI / 180.0) + 4;
+      const Eigen::Vector2d from = g.crossing_px + r0 * dir, to = from + 28 * dir;
+      const cv::Scalar green = class_colour(palette, planning::NeedleSafety::kSafe);
+      cv::arrowedLine(image, fixed(from), fixed(to), green, 2, cv::LINE_AA, kShift, 0.35);
+      text(image, fmt::format("safe {:.0f}deg", g.nearest_safe_deg),
+           cv::Point(int(to.x()) + (dir.x() < 0 ? -70 : 4), int(to.y()) + (dir.y() < 0 ? -4 : 12)),
+           0.4, green);
     }
     const double miss = (g.crossing - g.centre).norm();
     text(image, fmt::format("needle misses centre by {:.1f} mm", miss), cv::Point(8, n - 10));

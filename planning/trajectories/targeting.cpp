@@ -114,6 +114,11 @@ TargetingGeometry targeting_geometry(const NeedleGuide& guide, const NeedleState
   g.tumor_px.reserve(tumor_surface.size());
   for (const auto& p : tumor_surface) g.tumor_px.push_back(g.to_px(p));
 
+  if (std::isfinite(needle.angle_to_safe_deg)) {
+    const Eigen::Vector3d in = -needle.nearest_safe_direction;  // into the body
+    g.nearest_safe_deg = needle.angle_to_safe_deg;
+    g.nearest_safe_azimuth_deg = std::atan2(in.dot(g.v), in.dot(g.u)) / kDeg;
+  }
   // Polar map: the needle tilted about the pivot, each cell's centre direction evaluated as the
   // live needle is (its tip at the pivot).
   const double ring_deg = options.max_tilt_deg / options.rings;

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <limits>
 #include <optional>
 #include <vector>
 
@@ -58,6 +59,9 @@ struct TargetingGeometry {
   std::vector<PolarCell> cells;           // rings x sectors, ring-major
   int rings = 0, sectors = 0;
   double max_tilt_deg = 0;
+  // The nearest safe direction (NeedleState): the tilt to it (NaN without one) and its azimuth.
+  double nearest_safe_deg = std::numeric_limits<double>::quiet_NaN();
+  double nearest_safe_azimuth_deg = 0;
 
   // Pixel of a point, projected along the axis onto the plane.
   Eigen::Vector2d to_px(const Eigen::Vector3d& p) const;
