@@ -669,6 +669,24 @@ void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isomet
   // The shaft: from the hub (the board origin's foot on the axis) to the tip.
   const double length = setup_.tip_in_needle.dot(setup_.axis_in_needle);
   const Eigen::Vector3d hub = T_cam_needle * (setup_.tip_in_needle - length * setup_.axis_in_needle);
+  // Drawn first, under the needle and its extension.
+  const std::optional<Eigen::Vector3d> entry = needle_skin_entry(s);
+  if (entry) {
+    // Where the needle's line enters the skin: a ring of 4 mm radius across the needle.
+    const Eigen::Vector3d e1 = s.axis.unitOrthogonal(), e2 = s.axis.cross(e1);
+    Polyline ring;
+    for (int k = 0; k < 32; ++k) {
+      const double t = 2 * M_PI * k / 32;
+      ring.points_cam.push_back(T_cam_ct * (*entry + 4.0 * (std::cos(t) * e1 + std::sin(t) * e2)));
+    }
+    ring.closed = true;
+    ring.colour = cv::Scalar(30, 30, 30);  // a dark rim, so that the ring reads on the patches
+    ring.width_px = 5;
+    renderer.add_polyline("needle", ring);
+    ring.colour = colour;
+    ring.width_px = 2.5;
+    renderer.add_polyline("needle", ring);
+  }
   Polyline shaft;
   shaft.points_cam = {hub, tip};
   shaft.colour = cv::Scalar(255, 255, 255);
@@ -710,7 +728,6 @@ void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isomet
                                  s.tip_to_centroid_mm, s.miss_distance_mm)});
   }
   // Deviations: between the skin entries (mm) and the directions (degrees).
-  const std::optional<Eigen::Vector3d> entry = needle_skin_entry(s);
   if (std::isfinite(s.angle_to_safe_deg)) {
     const Eigen::Vector3d dir = s.nearest_safe_direction;
     const auto safe_entry = skin_exit(plan_.tumor_centre, dir);
@@ -728,22 +745,7 @@ void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isomet
     lines.push_back({fmt::format("to planned trajectory: {:.0f} mm at the skin, {:.1f} deg",
                                  d.entry_mm, d.angle_deg)});
   }
-  if (entry) {
-    // Where the needle's line enters the skin: a ring of 4 mm radius across the needle.
-    const Eigen::Vector3d e1 = s.axis.unitOrthogonal(), e2 = s.axis.cross(e1);
-    Polyline ring;
-    for (int k = 0; k < 32; ++k) {
-      const double t = 2 * M_PI * k / 32;
-      ring.points_cam.push_back(T_cam_ct * (*entry + 4.0 * (std::cos(t) * e1 + std::sin(t) * e2)));
-    }
-    ring.closed = true;
-    ring.colour = cv::Scalar(30, 30, 30);  // a dark rim, so that the ring reads on the patches
-    ring.width_px = 5;
-    renderer.add_polyline("needle", ring);
-    ring.colour = colour;
-    ring.width_px = 2.5;
-    renderer.add_polyline("needle", ring);
-  }
+
   const cv::Size frame(renderer.camera().width, renderer.camera().height);
   cv::Point origin;
   const cv::Mat panel = text_panel(lines, cv::Point(10, frame.height - 10), true, frame, &origin);
