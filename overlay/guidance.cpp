@@ -757,7 +757,18 @@ void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isomet
     to.size_px = std::min(to.size_px, std::min(frame.width, frame.height) / 2);
     to.right_hint = T_cam_ct.inverse().linear().col(0);
     if (to.size_px >= 32) {
-      targeting_ = planning::targeting_geometry(*guide_, s, tumor_surface_, tumor_voxel_mm_, to);
+      // The polar map costs a few dozen line evaluations: kept while the needle and the view
+      // stay within 0.1 mm and 0.05 deg of the last frame's (a needle held still, a still camera).
+      const double kSame = std::cos(0.05 * M_PI / 180.0);
+      const bool same = targeting_.valid && !s.points_away &&
+                        (s.tip - targeting_tip_).norm() < 0.1 && s.axis.dot(targeting_.axis) > kSame &&
+                        to.right_hint.dot(targeting_right_) > kSame &&
+                        to.size_px == targeting_.size_px;
+      if (!same) {
+        targeting_ = planning::targeting_geometry(*guide_, s, tumor_surface_, tumor_voxel_mm_, to);
+        targeting_tip_ = s.tip;
+        targeting_right_ = to.right_hint;
+      }
       targeting_origin_ = cv::Point(frame.width - to.size_px - 10, 10);
       renderer.add_layer_image("target", render_targeting_view(targeting_, palette),
                                targeting_origin_);

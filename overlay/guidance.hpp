@@ -219,6 +219,7 @@ class GuidanceOverlay {
   std::vector<Eigen::Vector3d> tumor_surface_;
   double tumor_voxel_mm_ = 1;
   planning::TargetingGeometry targeting_;
+  Eigen::Vector3d targeting_tip_ = Eigen::Vector3d::Zero(), targeting_right_ = Eigen::Vector3d::Zero();
   cv::Point targeting_origin_;
 };
 
