@@ -58,9 +58,13 @@ void add_guide_command(CLI::App& app) {
       "calibrated camera, (1) safe ray bundles, (2) a volume rendering of path safety, (3) entry\n"
       "areas on the skin with their leeway, (4) the tumor outline, (5) the needle, its line to\n"
       "the tumor coloured by its live safety, the structures it crosses and the angle to the\n"
-      "nearest safe direction, (6) tracking state, frame rate and latency. Nothing is drawn from\n"
+      "nearest safe direction, (6) tracking state, frame rate and latency, (7) the targeting view:\n"
+      "a picture-in-picture looking down the needle at the tumor, with a cross where the\n"
+      "extended needle meets the plane through the tumor centre and, around it, the safety of\n"
+      "the paths the needle takes when tilted by up to 12.5 deg about its skin entry (green:\n"
+      "safe, yellow: medium, red: dangerous, grey: unknown): tilt toward green. Nothing is drawn from\n"
       "a pose older than --max-age-ms: a lost marker or a corrupt frame is said on screen.\n"
-      "Window keys: 1-6 toggle layers, C colour-blind palette, S snapshot, Q or Esc quit.\n"
+      "Window keys: 1-7 toggle layers, C colour-blind palette, S snapshot, Q or Esc quit.\n"
       "Example: crepuscular guide --plan demo/plan --camera demo/setup/camera.yaml\n"
       "  --registration demo/setup/registration.yaml --needle demo/setup/needle.yaml\n"
       "  --source recording:demo/recording --headless --out demo/overlay.mp4");
@@ -118,7 +122,7 @@ void add_guide_command(CLI::App& app) {
                   "Also record the incoming frames to this recording folder (replay it later "
                   "with --source recording:DIR)");
   cmd->add_option("--hide", a->hide,
-                  "Layers to start hidden: rays, volume, entry, tumor, needle, status (or 1-6)")
+                  "Layers to start hidden: rays, volume, entry, tumor, needle, status, target (or 1-7)")
       ->transform(enum_names(guidance_layer_names()));
   cmd->add_option("--show", a->show, "Layers to start shown (the volume rendering starts hidden)")
       ->transform(enum_names(guidance_layer_names()));

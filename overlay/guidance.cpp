@@ -14,6 +14,7 @@
 
 #include "foundation/error.hpp"
 #include "overlay/renderer.hpp"
+#include "overlay/targeting_view.hpp"
 #include "overlay/volume_rendering.hpp"
 #include "planning/imaging/ray_march.hpp"
 #include "planning/safety/unknown.hpp"
@@ -23,8 +24,8 @@ namespace crepuscular::overlay {
 
 namespace {
 
-constexpr std::array<const char*, kGuidanceLayerCount> kLayerNames = {"rays",  "volume", "entry",
-                                                                       "tumor", "needle", "status"};
+constexpr std::array<const char*, kGuidanceLayerCount> kLayerNames = {
+    "rays", "volume", "entry", "tumor", "needle", "status", "target"};
 
 cv::Scalar bgr(const std::array<uint8_t, 3>& rgb) { return cv::Scalar(rgb[2], rgb[1], rgb[0]); }
 
@@ -89,7 +90,7 @@ GuidanceLayer parse_guidance_layer(const std::string& text) {
     }
   }
   throw Error("unknown overlay layer '" + text +
-              "', expected rays, volume, entry, tumor, needle or status (or 1-6)");
+              "', expected rays, volume, entry, tumor, needle, status or target (or 1-7)");
 }
 
 std::vector<std::string> needle_text(const planning::NeedleState& s) {
@@ -122,6 +123,13 @@ GuidanceOverlay::GuidanceOverlay(const planning::PlanData& plan, GuidanceSetup s
   build_tumor_surface();
   build_rays();
   build_entry_contours();
+  build_entry_patches();
+  if (plan_.area) {
+    const auto planned = planning::region_trajectories(*plan_.area, plan_.tumor_centre,
+                                                       plan_.labels, plan_.path_safety.at(value_),
+                                                       plan_.radius_mm);
+    if (!planned.empty()) planned_ = planned.front();
+  }
   spdlog::info("guidance: {} safe or medium rays of {} ({} not drawn: they reach the unknown "
                "outside the scan), {} entry contours, {} tumor surface points",
                rays_.size(), options_.ray_directions, unknown_rays_, contours_.size(),
@@ -307,6 +315,108 @@ void GuidanceOverlay::build_entry_contours() {
   }
 }
 
+void GuidanceOverlay::build_entry_patches() {
+  if (!plan_.area) return;
+  const planning::AreaSafetyGeometry& g = *plan_.area;
+  for (const auto& region : g.regions) {
+    Patch patch;
+    patch.region = region.id;
+    patch.leeway = std::clamp(region.leeway, 0.0, 1.0);
+    std::map<int, int> index;  // mesh vertex -> patch point (-1: no skin in the scan)
+    auto point = [&](int vertex) {
+      auto it = index.find(vertex);
+      if (it != index.end()) return it->second;
+      int i = -1;
+      if (g.region[size_t(vertex)] == region.id) {
+        if (auto p = skin_exit(g.base[size_t(vertex)], g.normals[size_t(vertex)])) {
+          i = int(patch.points.size());
+          patch.points.push_back(*p);
+        }
+      }
+      index.emplace(vertex, i);
+      return i;
+    };
+    std::map<std::pair<int, int>, int> edges;  // how many triangles share an edge
+    for (const auto& tri : g.triangles) {
+      const std::array<int, 3> t = {point(tri[0]), point(tri[1]), point(tri[2])};
+      if (t[0] < 0 || t[1] < 0 || t[2] < 0) continue;
+      patch.triangles.push_back(t);
+      for (int e = 0; e < 3; ++e) {
+        const int a = t[size_t(e)], b = t[size_t((e + 1) % 3)];
+        ++edges[{std::min(a, b), std::max(a, b)}];
+      }
+    }
+    for (const auto& [edge, count] : edges) {
+      if (count == 1) patch.border.push_back({edge.first, edge.second});
+    }
+    if (!patch.triangles.empty()) patches_.push_back(std::move(patch));
+  }
+}
+
+std::optional<Eigen::Vector3d> GuidanceOverlay::needle_skin_entry(
+    const planning::NeedleState& s) const {
+  if (s.points_away) return std::nullopt;
+  if (s.tip_in_body) return s.line_start;
+  return planning::body_entry_along(plan_.labels, s.tip, s.axis, s.along_axis_mm);
+}
+
+namespace {
+
+// Projected points of `points` (CT) with T_cam_ct; NaN for points behind the near plane.
+std::vector<Eigen::Vector2d> project_all(const std::vector<Eigen::Vector3d>& points,
+                                         const Eigen::Isometry3d& T_cam_ct,
+                                         const calibration::CameraModel& camera) {
+  std::vector<Eigen::Vector2d> px;
+  px.reserve(points.size());
+  for (const auto& p : points) {
+    const Eigen::Vector3d q = T_cam_ct * p;
+    px.push_back(q.z() > 1.0 ? camera.project(q)
+                             : Eigen::Vector2d::Constant(std::numeric_limits<double>::quiet_NaN()));
+  }
+  return px;
+}
+
+bool fits(const Eigen::Vector2d& p) { return p.allFinite() && p.cwiseAbs().maxCoeff() < 1e5; }
+
+cv::Point fixed_px(const Eigen::Vector2d& p) {
+  return cv::Point(int(std::lround(p.x() * 16)), int(std::lround(p.y() * 16)));
+}
+
+// Fills the patch's triangles that face the camera (their outward side: the mesh's triangles are
+// outward, seen counter-clockwise from outside) into mask.
+void fill_front_triangles(cv::Mat& mask, const GuidanceOverlay::Patch& patch,
+                          const Eigen::Isometry3d& T_cam_ct,
+                          const calibration::CameraModel& camera) {
+  const auto px = project_all(patch.points, T_cam_ct, camera);
+  for (const auto& t : patch.triangles) {
+    const Eigen::Vector3d a = T_cam_ct * patch.points[size_t(t[0])];
+    const Eigen::Vector3d b = T_cam_ct * patch.points[size_t(t[1])];
+    const Eigen::Vector3d c = T_cam_ct * patch.points[size_t(t[2])];
+    if ((b - a).cross(c - a).dot(a) >= 0) continue;  // faces away from the camera
+    const Eigen::Vector2d &pa = px[size_t(t[0])], &pb = px[size_t(t[1])], &pc = px[size_t(t[2])];
+    if (!fits(pa) || !fits(pb) || !fits(pc)) continue;
+    const cv::Point tri[3] = {fixed_px(pa), fixed_px(pb), fixed_px(pc)};
+    cv::fillConvexPoly(mask, tri, 3, cv::Scalar(255), cv::LINE_8, 4);
+  }
+}
+
+// Paints `colour` at `alpha` (0..255) into the BGRA image where mask is set (over what is there).
+void paint(cv::Mat& bgra, const cv::Mat& mask, const cv::Scalar& colour, double alpha) {
+  bgra.setTo(cv::Scalar(colour[0], colour[1], colour[2], alpha), mask);
+}
+
+}  // namespace
+
+cv::Mat GuidanceOverlay::entry_patch_mask(const Eigen::Isometry3d& T_cam_ct,
+                                          const calibration::CameraModel& camera,
+                                          int region) const {
+  cv::Mat mask(camera.height, camera.width, CV_8U, cv::Scalar(0));
+  for (const Patch& p : patches_) {
+    if (region < 0 || p.region == region) fill_front_triangles(mask, p, T_cam_ct, camera);
+  }
+  return mask;
+}
+
 namespace {
 
 // The volume rendering's options from the guidance options. Without a resolution scale: a quarter
@@ -352,57 +462,145 @@ void add_rays(OverlayRenderer& renderer, const std::vector<GuidanceOverlay::Ray>
   }
 }
 
-void add_entry_contours(OverlayRenderer& renderer,
-                        const std::vector<GuidanceOverlay::Contour>& contours,
-                        const Eigen::Isometry3d& T_cam_ct, planning::Palette palette) {
-  for (const GuidanceOverlay::Contour& c : contours) {
-    Polyline line;
-    for (const auto& p : c.points) line.points_cam.push_back(T_cam_ct * p);
-    line.closed = c.closed;
-    // Every entry area is safe: its leeway runs from the medium colour (a small region) to the
-    // safe colour (the largest).
-    line.colour = bgr(planning::leeway_colour(palette, 0.5 + 0.5 * std::clamp(c.leeway, 0.0, 1.0)));
-    line.width_px = 2.0 + 6.0 * std::clamp(c.leeway, 0.0, 1.0);
-    line.opacity = 0.9;
-    renderer.add_polyline("entry", line);
+cv::Scalar leeway_bgr(planning::Palette palette, double leeway) {
+  // Every entry area is safe: its leeway runs from the medium colour (a small region) to the safe
+  // colour (the largest).
+  return bgr(planning::leeway_colour(palette, 0.5 + 0.5 * std::clamp(leeway, 0.0, 1.0)));
+}
+
+// Outlines of the mask's regions, in fixed point (4 bits) for cv::polylines.
+std::vector<std::vector<cv::Point>> mask_outlines(const cv::Mat& mask) {
+  std::vector<std::vector<cv::Point>> outlines;
+  cv::findContours(mask.clone(), outlines, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
+  for (auto& o : outlines)
+    for (auto& q : o) q = cv::Point(q.x * 16 + 8, q.y * 16 + 8);  // centres of the pixels
+  return outlines;
+}
+
+// One translucent cone per patch: from the patch (its whole surface) to `apex`, i.e. the patch and
+// the triangles from the apex to its border, which together cover the cone's projection; a faint
+// outline around it.
+cv::Mat cone_image(const std::vector<GuidanceOverlay::Patch>& patches, const Eigen::Vector3d& apex,
+                   const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& camera,
+                   planning::Palette palette) {
+  cv::Mat image(camera.height, camera.width, CV_8UC4, cv::Scalar(0, 0, 0, 0));
+  const Eigen::Vector3d apex_cam = T_cam_ct * apex;
+  if (apex_cam.z() <= 1.0) return image;
+  const Eigen::Vector2d apex_px = camera.project(apex_cam);
+  for (const auto& patch : patches) {
+    cv::Mat mask(image.size(), CV_8U, cv::Scalar(0));
+    const auto px = project_all(patch.points, T_cam_ct, camera);
+    for (const auto& t : patch.triangles) {
+      const Eigen::Vector2d &a = px[size_t(t[0])], &b = px[size_t(t[1])], &c = px[size_t(t[2])];
+      if (!fits(a) || !fits(b) || !fits(c)) continue;
+      const cv::Point tri[3] = {fixed_px(a), fixed_px(b), fixed_px(c)};
+      cv::fillConvexPoly(mask, tri, 3, cv::Scalar(255), cv::LINE_8, 4);
+    }
+    for (const auto& e : patch.border) {
+      const Eigen::Vector2d &a = px[size_t(e[0])], &b = px[size_t(e[1])];
+      if (!fits(a) || !fits(b) || !fits(apex_px)) continue;
+      const cv::Point tri[3] = {fixed_px(apex_px), fixed_px(a), fixed_px(b)};
+      cv::fillConvexPoly(mask, tri, 3, cv::Scalar(255), cv::LINE_8, 4);
+    }
+    const cv::Scalar colour = leeway_bgr(palette, patch.leeway);
+    paint(image, mask, colour, 75);
+    cv::polylines(image, mask_outlines(mask), true,
+                  cv::Scalar(colour[0], colour[1], colour[2], 200), 1, cv::LINE_AA, 4);
+  }
+  return image;
+}
+
+// The entry patches facing the camera, translucent, each outlined with a width (2-8 px) and colour
+// that show its leeway.
+cv::Mat patch_image(const GuidanceOverlay& overlay, const Eigen::Isometry3d& T_cam_ct,
+                    const calibration::CameraModel& camera, planning::Palette palette) {
+  cv::Mat image(camera.height, camera.width, CV_8UC4, cv::Scalar(0, 0, 0, 0));
+  for (const auto& patch : overlay.entry_patches()) {
+    const cv::Mat mask = overlay.entry_patch_mask(T_cam_ct, camera, patch.region);
+    const cv::Scalar colour = leeway_bgr(palette, patch.leeway);
+    paint(image, mask, colour, 110);
+    const int width = int(std::lround(2.0 + 6.0 * patch.leeway));
+    cv::polylines(image, mask_outlines(mask), true,
+                  cv::Scalar(colour[0], colour[1], colour[2], 235), width, cv::LINE_AA, 4);
+  }
+  return image;
+}
+
+// The planned trajectory into a BGRA image: dashes of 5 mm from the entry to the target (white
+// with a dark edge, so it reads on any skin), a ring of 5 mm radius at the entry and its label.
+void draw_planned(cv::Mat& image, const planning::RegionTrajectory& plan,
+                  const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& camera) {
+  const Eigen::Vector3d d = plan.target - plan.entry;
+  const double length = d.norm();
+  if (!(length > 1e-6)) return;
+  const Eigen::Vector3d u = d / length;
+  auto px = [&](const Eigen::Vector3d& p) -> std::optional<cv::Point> {
+    const Eigen::Vector3d q = T_cam_ct * p;
+    if (q.z() <= 1.0) return std::nullopt;
+    const Eigen::Vector2d x = camera.project(q);
+    if (!fits(x)) return std::nullopt;
+    return fixed_px(x);
+  };
+  const cv::Scalar white(255, 255, 255, 255), dark(40, 40, 40, 220);
+  for (double s = 0; s < length; s += 10.0) {
+    const auto a = px(plan.entry + s * u), b = px(plan.entry + std::min(s + 5.0, length) * u);
+    if (!a || !b) continue;
+    cv::line(image, *a, *b, dark, 5, cv::LINE_AA, 4);
+    cv::line(image, *a, *b, white, 2, cv::LINE_AA, 4);
+  }
+  const Eigen::Vector3d e1 = u.unitOrthogonal(), e2 = u.cross(e1);
+  std::vector<cv::Point> ring;
+  for (int k = 0; k < 48; ++k) {
+    const double t = 2 * M_PI * k / 48;
+    if (auto q = px(plan.entry + 5.0 * (std::cos(t) * e1 + std::sin(t) * e2))) ring.push_back(*q);
+  }
+  if (ring.size() == 48) {
+    cv::polylines(image, std::vector<std::vector<cv::Point>>{ring}, true, dark, 5, cv::LINE_AA, 4);
+    cv::polylines(image, std::vector<std::vector<cv::Point>>{ring}, true, white, 2, cv::LINE_AA, 4);
+  }
+  if (auto q = px(plan.entry)) {
+    const cv::Point at(q->x / 16 + 12, q->y / 16 - 10);
+    cv::putText(image, "PLANNED ENTRY", at, cv::FONT_HERSHEY_SIMPLEX, 0.5, dark, 4, cv::LINE_AA);
+    cv::putText(image, "PLANNED ENTRY", at, cv::FONT_HERSHEY_SIMPLEX, 0.5, white, 1, cv::LINE_AA);
   }
 }
 
-// The tumor's silhouette: its surface voxels (CT LPS mm, `voxel_mm` wide) projected as discs of
-// their apparent size, the outline of their union.
-void add_tumor_silhouette(OverlayRenderer& renderer, const std::vector<Eigen::Vector3d>& surface,
-                          double voxel_mm, const Eigen::Isometry3d& T_cam_ct,
-                          const cv::Scalar& colour) {
-  const calibration::CameraModel& cam = renderer.camera();
-  std::vector<cv::Point2f> pts;
+// The tumor seen through the skin: its surface voxels (CT LPS mm, `voxel_mm` wide) projected as
+// discs of their apparent size; their union filled translucently, outlined and labelled.
+cv::Mat tumor_image(const std::vector<Eigen::Vector3d>& surface, double voxel_mm,
+                    const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& cam,
+                    const cv::Scalar& colour) {
+  cv::Mat image(cam.height, cam.width, CV_8UC4, cv::Scalar(0, 0, 0, 0));
+  std::vector<Eigen::Vector2d> pts;
   double radius_px = 1;
   for (const auto& p_ct : surface) {
     const Eigen::Vector3d p = T_cam_ct * p_ct;
     if (p.z() < 1.0) continue;
     const Eigen::Vector2d uv = cam.project(p);
-    if (!uv.allFinite()) continue;
-    pts.emplace_back(float(uv.x()), float(uv.y()));
+    if (!fits(uv)) continue;
+    pts.push_back(uv);
     radius_px = std::max(radius_px, 0.6 * cam.fx * voxel_mm / p.z());
   }
-  if (pts.empty()) return;
-  cv::Rect box = cv::boundingRect(pts);
-  const int pad = int(std::ceil(radius_px)) + 2;
-  box = cv::Rect(box.x - pad, box.y - pad, box.width + 2 * pad, box.height + 2 * pad);
-  if (box.width >= 4000 || box.height >= 4000) return;
-  cv::Mat mask(box.size(), CV_8U, cv::Scalar(0));
-  const int shift = 4;
-  for (const auto& q : pts) {
-    cv::circle(
-        mask, cv::Point(int(std::lround((q.x - box.x) * 16)), int(std::lround((q.y - box.y) * 16))),
-        int(std::lround(radius_px * 16)), cv::Scalar(255), cv::FILLED, cv::LINE_8, shift);
+  std::vector<std::vector<cv::Point>> polys;
+  int right = -1, top = 1 << 20;
+  for (const auto& o : point_cloud_outlines(pts, radius_px)) {
+    std::vector<cv::Point> p;
+    for (const auto& q : o) {
+      p.push_back(fixed_px(Eigen::Vector2d(q.x, q.y)));
+      right = std::max(right, int(q.x));
+      top = std::min(top, int(q.y));
+    }
+    polys.push_back(std::move(p));
   }
-  std::vector<std::vector<cv::Point>> outlines;
-  cv::findContours(mask, outlines, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);
-  for (const auto& o : outlines) {
-    std::vector<Eigen::Vector2d> px;
-    for (const auto& q : o) px.emplace_back(q.x + box.x, q.y + box.y);
-    renderer.add_polyline_px("tumor", px, colour, 2.0, true);
-  }
+  if (polys.empty()) return image;
+  cv::fillPoly(image, polys, cv::Scalar(colour[0], colour[1], colour[2], 110), cv::LINE_8, 4);
+  cv::polylines(image, polys, true, cv::Scalar(colour[0], colour[1], colour[2], 255), 2,
+                cv::LINE_AA, 4);
+  const cv::Point at(right + 8, std::max(16, top + 12));
+  const cv::Scalar dark(40, 40, 40, 220), label(colour[0], colour[1], colour[2], 255);
+  cv::putText(image, "TUMOR", at, cv::FONT_HERSHEY_SIMPLEX, 0.6, dark, 4, cv::LINE_AA);
+  cv::putText(image, "TUMOR", at, cv::FONT_HERSHEY_SIMPLEX, 0.6, label, 2, cv::LINE_AA);
+  return image;
 }
 
 // The tumor centre: a small cross in 3D, 8 mm across.
@@ -437,11 +635,26 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
     SafetyVolumeRendering* volume = volume_.get();
     renderer.set_layer_draw("volume", [volume](const DrawContext& c) { volume->draw(c); });
   }
-  if (visible(GuidanceLayer::kRays)) add_rays(renderer, rays_, T_cam_ct, palette);
-  if (visible(GuidanceLayer::kEntry)) add_entry_contours(renderer, contours_, T_cam_ct, palette);
+  const calibration::CameraModel& cam = renderer.camera();
+  if (visible(GuidanceLayer::kRays)) {
+    // One cone per safe region; the ray bundles where the plan has no area safety.
+    if (patches_.empty()) {
+      add_rays(renderer, rays_, T_cam_ct, palette);
+    } else {
+      renderer.add_layer_image("rays", cone_image(patches_, plan_.tumor_centre, T_cam_ct, cam, palette),
+                               cv::Point(0, 0));
+    }
+  }
+  if (visible(GuidanceLayer::kEntry)) {
+    cv::Mat image = patch_image(*this, T_cam_ct, cam, palette);
+    if (planned_) draw_planned(image, *planned_, T_cam_ct, cam);
+    renderer.add_layer_image("entry", image, cv::Point(0, 0));
+  }
   if (visible(GuidanceLayer::kTumor)) {
     const cv::Scalar magenta(255, 0, 255);
-    add_tumor_silhouette(renderer, tumor_surface_, tumor_voxel_mm_, T_cam_ct, magenta);
+    renderer.add_layer_image(
+        "tumor", tumor_image(tumor_surface_, tumor_voxel_mm_, T_cam_ct, cam, magenta),
+        cv::Point(0, 0));
     add_tumor_centre(renderer, plan_.tumor_centre, T_cam_ct, magenta);
   }
 }
@@ -456,6 +669,24 @@ void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isomet
   // The shaft: from the hub (the board origin's foot on the axis) to the tip.
   const double length = setup_.tip_in_needle.dot(setup_.axis_in_needle);
   const Eigen::Vector3d hub = T_cam_needle * (setup_.tip_in_needle - length * setup_.axis_in_needle);
+  // Drawn first, under the needle and its extension.
+  const std::optional<Eigen::Vector3d> entry = needle_skin_entry(s);
+  if (entry) {
+    // Where the needle's line enters the skin: a ring of 4 mm radius across the needle.
+    const Eigen::Vector3d e1 = s.axis.unitOrthogonal(), e2 = s.axis.cross(e1);
+    Polyline ring;
+    for (int k = 0; k < 32; ++k) {
+      const double t = 2 * M_PI * k / 32;
+      ring.points_cam.push_back(T_cam_ct * (*entry + 4.0 * (std::cos(t) * e1 + std::sin(t) * e2)));
+    }
+    ring.closed = true;
+    ring.colour = cv::Scalar(30, 30, 30);  // a dark rim, so that the ring reads on the patches
+    ring.width_px = 5;
+    renderer.add_polyline("needle", ring);
+    ring.colour = colour;
+    ring.width_px = 2.5;
+    renderer.add_polyline("needle", ring);
+  }
   Polyline shaft;
   shaft.points_cam = {hub, tip};
   shaft.colour = cv::Scalar(255, 255, 255);
@@ -496,13 +727,53 @@ void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isomet
     lines.push_back({fmt::format("tip to target {:.1f} mm, passes {:.1f} mm from the centre",
                                  s.tip_to_centroid_mm, s.miss_distance_mm)});
   }
+  // Deviations: between the skin entries (mm) and the directions (degrees).
   if (std::isfinite(s.angle_to_safe_deg)) {
-    lines.push_back({fmt::format("nearest safe direction {:.1f} deg away", s.angle_to_safe_deg)});
+    const Eigen::Vector3d dir = s.nearest_safe_direction;
+    const auto safe_entry = skin_exit(plan_.tumor_centre, dir);
+    if (entry && safe_entry) {
+      const planning::Deviation d = planning::line_deviation(*entry, s.axis, *safe_entry, -dir);
+      lines.push_back({fmt::format("to nearest safe direction: {:.0f} mm at the skin, {:.1f} deg",
+                                   d.entry_mm, s.angle_to_safe_deg)});
+    } else {
+      lines.push_back({fmt::format("to nearest safe direction: {:.1f} deg", s.angle_to_safe_deg)});
+    }
   }
+  if (planned_ && entry && !s.points_away) {
+    const planning::Deviation d = planning::line_deviation(
+        *entry, s.axis, planned_->entry, (planned_->target - planned_->entry).normalized());
+    lines.push_back({fmt::format("to planned trajectory: {:.0f} mm at the skin, {:.1f} deg",
+                                 d.entry_mm, d.angle_deg)});
+  }
+
   const cv::Size frame(renderer.camera().width, renderer.camera().height);
   cv::Point origin;
   const cv::Mat panel = text_panel(lines, cv::Point(10, frame.height - 10), true, frame, &origin);
   renderer.add_layer_image("needle", panel, origin);
+
+  if (visible(GuidanceLayer::kTarget)) {
+    // The targeting view, top right; right in it is the camera's right.
+    planning::TargetingOptions to = options_.targeting;
+    to.size_px = std::min(to.size_px, std::min(frame.width, frame.height) / 2);
+    to.right_hint = T_cam_ct.inverse().linear().col(0);
+    if (to.size_px >= 32) {
+      // The polar map costs a few dozen line evaluations: kept while the needle and the view
+      // stay within 0.1 mm and 0.05 deg of the last frame's (a needle held still, a still camera).
+      const double kSame = std::cos(0.05 * M_PI / 180.0);
+      const bool same = targeting_.valid && !s.points_away &&
+                        (s.tip - targeting_tip_).norm() < 0.1 && s.axis.dot(targeting_.axis) > kSame &&
+                        to.right_hint.dot(targeting_right_) > kSame &&
+                        to.size_px == targeting_.size_px;
+      if (!same) {
+        targeting_ = planning::targeting_geometry(*guide_, s, tumor_surface_, tumor_voxel_mm_, to);
+        targeting_tip_ = s.tip;
+        targeting_right_ = to.right_hint;
+      }
+      targeting_origin_ = cv::Point(frame.width - to.size_px - 10, 10);
+      renderer.add_layer_image("target", render_targeting_view(targeting_, palette),
+                               targeting_origin_);
+    }
+  }
 }
 
 void GuidanceOverlay::draw_status(OverlayRenderer& renderer, const GuidanceFrameInfo& info,
@@ -618,7 +889,7 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
       reading.T_ct_needle = setup_.T_ct_patient * patient->T_cam_board.inverse() * needle->T_cam_board;
       reading.state =
           guide_->evaluate(reading.T_ct_needle, setup_.tip_in_needle, setup_.axis_in_needle);
-      if (visible(GuidanceLayer::kNeedle)) {
+      if (visible(GuidanceLayer::kNeedle) || visible(GuidanceLayer::kTarget)) {
         draw_needle(renderer, T_cam_ct, needle->T_cam_board, reading);
       }
       info.needle = std::move(reading);

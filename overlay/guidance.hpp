@@ -5,20 +5,30 @@
 // tracking status.
 //
 // Layers (names, keys in the window):
-//   1 "rays"    safe ray bundles: rays from the tumor out to the skin whose entry point is safe or
-//               medium in the plan's path safety volume, coloured by class
+//   1 "rays"    safe directions: one translucent cone per safe area-safety region, from its entry
+//               patch on the skin to the tumor centre (plans without area safety: the safe ray
+//               bundles, rays from the tumor out to the skin whose entry point is safe or medium in
+//               the plan's path safety volume, coloured by class)
 //   2 "volume"  volume rendering of the path safety volume (SafetyVolumeRendering), off by default
-//   3 "entry"   entry areas: where each safe area-safety region meets the skin, as contours whose
-//               width and colour show the region's leeway
-//   4 "tumor"   the tumor's outline as seen from the camera, and its centre
+//   3 "entry"   entry areas: where each safe area-safety region's directions meet the skin, as
+//               translucent patches on the skin (the sides facing the camera) whose outline width
+//               and colour show the region's leeway; the planned trajectory (the best entry of the
+//               largest safe region to the tumor centre) dashed, with a ring at its entry
+//   4 "tumor"   the tumor seen through the skin: its silhouette filled translucently, outlined,
+//               labelled, and its centre
 //   5 "needle"  the tracked needle, its line extended to the tumor coloured by its live safety,
-//               the nearest safe direction, and a text panel (line integral, structures crossed
-//               with depth, tip-to-target distance, angle to the nearest safe direction)
+//               a ring where that line enters the skin, the nearest safe direction, and a text
+//               panel (line integral, structures crossed with depth, tip-to-target distance, the
+//               deviation from the nearest safe direction and from the planned trajectory: mm
+//               between the skin entries, degrees between the directions)
 //   6 "status"  tracking state of both boards, frame rate, end-to-end latency, and warnings
+//   7 "target"  targeting view (picture-in-picture, top right): looking down the needle at the
+//               plane through the tumor centroid; tumor outline, the needle's crossing, and the
+//               polar map of path safety for tilts of the needle about its skin entry
 //
 // Tracking loss is shown, never hidden: the anatomy layers (1-4) are drawn only while the patient
-// board is tracked (the tracker reports a pose older than its limit as lost), the needle layer
-// only while both boards are, and a frame without an image shows no overlay at all.
+// board is tracked (the tracker reports a pose older than its limit as lost), the needle and
+// target layers only while both boards are, and a frame without an image shows no overlay at all.
 #pragma once
 
 #include <Eigen/Core>
@@ -34,7 +44,9 @@
 
 #include "calibration/camera_model.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
+#include "planning/trajectories/markups.hpp"
 #include "planning/trajectories/needle_guidance.hpp"
+#include "planning/trajectories/targeting.hpp"
 #include "planning/views/palette.hpp"
 #include "tracking/tracker.hpp"
 
@@ -43,10 +55,10 @@ namespace crepuscular::overlay {
 class OverlayRenderer;
 class SafetyVolumeRendering;
 
-enum class GuidanceLayer { kRays = 0, kVolume, kEntry, kTumor, kNeedle, kStatus };
-constexpr int kGuidanceLayerCount = 6;
+enum class GuidanceLayer { kRays = 0, kVolume, kEntry, kTumor, kNeedle, kStatus, kTarget };
+constexpr int kGuidanceLayerCount = 7;
 const char* guidance_layer_name(GuidanceLayer layer);  // "rays", "volume", ...
-// "rays" -> kRays, ... ; also "1".."6". Throws Error naming the text otherwise.
+// "rays" -> kRays, ... ; also "1".."7". Throws Error naming the text otherwise.
 GuidanceLayer parse_guidance_layer(const std::string& text);
 
 // How the tracked boards relate to the plan.
@@ -65,7 +77,9 @@ struct GuidanceOptions {
   std::string value;  // path safety value for the ray bundles ("" = the plan's first)
   planning::Palette palette = planning::Palette::kDefault;
   int ray_directions = 3000;  // directions sampled evenly on the sphere around the tumor
-  std::array<bool, kGuidanceLayerCount> visible = {true, false, true, true, true, true};
+  std::array<bool, kGuidanceLayerCount> visible = {true, false, true, true, true, true, true};
+  // The targeting view (layer 7); its size is reduced to fit half the image's smaller side.
+  planning::TargetingOptions targeting;
   // Volume rendering resolution relative to the image (0 < s <= 1); 0: automatic, 1 on a GPU and
   // 0.25 on a software renderer (Mesa llvmpipe), where a full-size rendering takes ~0.5 s.
   double volume_resolution_scale = 0;
@@ -144,9 +158,34 @@ class GuidanceOverlay {
     bool closed = false;
   };
   const std::vector<Contour>& entry_contours() const { return contours_; }
+  // Entry patch of one safe region: the skin points where its vertices' extrusion directions leave
+  // the body (vertices whose line meets no skin in the scan are left out), triangulated as the
+  // area safety mesh is, and the edges of its border (edges of one triangle only).
+  struct Patch {
+    int region = 0;
+    double leeway = 0;  // 0..1
+    std::vector<Eigen::Vector3d> points;
+    std::vector<std::array<int, 3>> triangles;
+    std::vector<std::array<int, 2>> border;
+  };
+  const std::vector<Patch>& entry_patches() const { return patches_; }
+  // The pixels (CV_8U, 255) of the camera image that the patches' triangles facing the camera
+  // cover; region -1: all regions.
+  cv::Mat entry_patch_mask(const Eigen::Isometry3d& T_cam_ct,
+                           const calibration::CameraModel& camera, int region = -1) const;
+  // The planned trajectory: the best entry of the largest safe region reaching the skin, to the
+  // tumor centre (planning::region_trajectories); none without area safety.
+  const std::optional<planning::RegionTrajectory>& planned_trajectory() const { return planned_; }
+  // Where the needle's line enters the skin (the point just outside), as the panel's deviations
+  // use it; nullopt when it points away or never meets the body before the target.
+  std::optional<Eigen::Vector3d> needle_skin_entry(const planning::NeedleState& s) const;
   const std::vector<Eigen::Vector3d>& tumor_surface() const { return tumor_surface_; }
   const planning::NeedleGuide& needle_guide() const { return *guide_; }
   const GuidanceSetup& setup() const { return setup_; }
+  // The targeting view of the last frame that drew it (valid false before), and where its
+  // top-left pixel lay in the frame.
+  const planning::TargetingGeometry& last_targeting() const { return targeting_; }
+  cv::Point last_targeting_origin() const { return targeting_origin_; }
 
  private:
   void build_rays();
@@ -154,6 +193,7 @@ class GuidanceOverlay {
   bool crosses_unknown(const Eigen::Vector3d& from, const Eigen::Vector3d& to, double step) const;
   void build_entry_contours();
   void build_tumor_surface();
+  void build_entry_patches();
   void draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
   void draw_needle(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct,
                    const Eigen::Isometry3d& T_cam_needle, const NeedleReading& reading);
@@ -174,8 +214,13 @@ class GuidanceOverlay {
   std::vector<Ray> rays_;
   int unknown_rays_ = 0;  // directions not drawn because they reach the unknown
   std::vector<Contour> contours_;
+  std::vector<Patch> patches_;
+  std::optional<planning::RegionTrajectory> planned_;
   std::vector<Eigen::Vector3d> tumor_surface_;
   double tumor_voxel_mm_ = 1;
+  planning::TargetingGeometry targeting_;
+  Eigen::Vector3d targeting_tip_ = Eigen::Vector3d::Zero(), targeting_right_ = Eigen::Vector3d::Zero();
+  cv::Point targeting_origin_;
 };
 
 // One line per structure the needle's line crosses: "portal vein (high) at 43 mm, 6.2 mm long".

@@ -188,14 +188,14 @@ class GuideOutputs {
   std::vector<std::string> snapshots_written_;
 };
 
-// Window keys: 1-6 toggle layers, C palette, S snapshot, Q or Esc quit. Returns true to quit.
+// Window keys: 1-7 toggle layers, C palette, S snapshot, Q or Esc quit. Returns true to quit.
 bool handle_keys(GuideLoop& loop, GuideOutputs& outputs, const cv::Mat& image,
                  int& manual_snapshots) {
   OverlayRenderer& renderer = loop.renderer();
   GuidanceOverlay& overlay = loop.overlay();
   bool quit = false;
   for (int key : renderer.poll_keys()) {
-    if (key >= '1' && key <= '6') {
+    if (key >= '1' && key < '1' + kGuidanceLayerCount) {
       const auto layer = static_cast<GuidanceLayer>(key - '1');
       overlay.toggle(layer);
       spdlog::info("guide: layer {} {}", guidance_layer_name(layer),

@@ -27,7 +27,7 @@ struct GuideRequest {
   overlay::GuidanceSetup setup;
   std::vector<tracking::Board> boards;  // must include setup.patient_board and setup.needle_board
   std::string source;                   // open_frame_source URI
-  bool window = false;                  // show a GLFW window (keys: 1-6 layers, C palette,
+  bool window = false;                  // show a GLFW window (keys: 1-7 layers, C palette,
                                         // S snapshot, Q or Esc quit)
   std::string video;                    // overlay video to write (.mp4 or .avi); "" = none
   double video_fps = 30;                // frame rate written into the video

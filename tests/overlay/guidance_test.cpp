@@ -9,12 +9,14 @@
 
 #include <cmath>
 #include <memory>
+#include <set>
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include "foundation/error.hpp"
 #include "overlay/renderer.hpp"
+#include "overlay/targeting_view.hpp"
 #include "pipelines/plan.hpp"
 #include "planning/imaging/ray_march.hpp"
 #include "planning/imaging/sampling.hpp"
@@ -262,6 +264,60 @@ TEST_F(GuidanceTest, EntryContoursLieOnTheSkin) {
   EXPECT_GT(points, 20u);
 }
 
+// The entry patches lie on the skin: their points on the 40 mm ball, and every pixel they fill in
+// the camera image looks at the body (the pixel's ray enters the label map's body), where the
+// body's first point along that ray lies on a patch (within 3 mm of a patch point): only the
+// sides facing the camera are drawn, never a patch on the far side seen through the body.
+TEST_F(GuidanceTest, EntryPatchesLieOnSkinPixels) {
+  const auto& patches = overlay_->entry_patches();
+  ASSERT_FALSE(patches.empty());
+  std::vector<Eigen::Vector3d> points;
+  for (const auto& p : patches) {
+    EXPECT_FALSE(p.triangles.empty());
+    EXPECT_FALSE(p.border.empty());
+    for (const auto& q : p.points) {
+      EXPECT_NEAR(q.norm(), kBody, 3.0);
+      points.push_back(q);
+    }
+  }
+  const calibration::CameraModel cam = test_camera();
+  const Eigen::Isometry3d T = T_ct_cam();
+  // Without the outermost pixel: a rasterised triangle covers every pixel its edge touches.
+  cv::Mat mask;
+  cv::erode(overlay_->entry_patch_mask(T.inverse(), cam), mask, cv::Mat());
+  const int filled = cv::countNonZero(mask);
+  EXPECT_GT(filled, 5000);
+  int checked = 0, off_body = 0, off_patch = 0;
+  for (int y = 0; y < mask.rows; y += 2) {
+    for (int x = 0; x < mask.cols; x += 2) {
+      if (!mask.at<uint8_t>(y, x)) continue;
+      ++checked;
+      const Eigen::Vector2d n = cam.unproject(Eigen::Vector2d(x, y));
+      const Eigen::Vector3d dir = (T.linear() * Eigen::Vector3d(n.x(), n.y(), 1.0)).normalized();
+      const auto hit = planning::first_entry(
+          T.translation(), dir, 0.25, 600.0,
+          [&](const Eigen::Vector3d& p) { return planning::in_body(plan_->labels, p); });
+      if (!hit) {
+        ++off_body;
+        continue;
+      }
+      const Eigen::Vector3d skin = T.translation() + hit->inside_s * dir;
+      double nearest = 1e9;
+      for (const auto& q : points) nearest = std::min(nearest, (q - skin).norm());
+      if (nearest > 3.0) ++off_patch;
+    }
+  }
+  EXPECT_GT(checked, 1000);
+  EXPECT_EQ(off_body, 0);
+  EXPECT_EQ(off_patch, 0);
+  // The planned trajectory: from the skin of the largest region to the tumor centre.
+  ASSERT_TRUE(overlay_->planned_trajectory().has_value());
+  const auto& plan = *overlay_->planned_trajectory();
+  EXPECT_EQ(plan.region, 0);
+  EXPECT_NEAR(plan.entry.norm(), kBody, 2.0);
+  EXPECT_NEAR((plan.target - plan_->tumor_centre).norm(), 0.0, 1e-9);
+}
+
 TEST_F(GuidanceTest, EachLayerOnAndOffChangesOnlyItsPixels) {
   auto renderer = make_renderer(test_camera());
   if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context on this machine";
@@ -279,15 +335,16 @@ TEST_F(GuidanceTest, EachLayerOnAndOffChangesOnlyItsPixels) {
     o.update(*renderer, grey_frame(), t, timing);
     return renderer->render();
   };
-  auto changed = [](const cv::Mat& a, const cv::Mat& b) {
+  // Pixels that differ by more than `levels` (in grey).
+  auto changed = [](const cv::Mat& a, const cv::Mat& b, int levels = 0) {
     cv::Mat diff, mask;
     cv::absdiff(a, b, diff);
     cv::cvtColor(diff, mask, cv::COLOR_BGR2GRAY);
-    return cv::Mat(mask > 0);
+    return cv::Mat(mask > levels);
   };
   const std::vector<GuidanceLayer> all = {GuidanceLayer::kRays, GuidanceLayer::kVolume, GuidanceLayer::kEntry,
                                           GuidanceLayer::kTumor, GuidanceLayer::kNeedle,
-                                          GuidanceLayer::kStatus};
+                                          GuidanceLayer::kStatus, GuidanceLayer::kTarget};
   const cv::Mat none = render_with({});
   const cv::Mat everything = render_with(all);
   for (GuidanceLayer layer : all) {
@@ -296,7 +353,9 @@ TEST_F(GuidanceTest, EachLayerOnAndOffChangesOnlyItsPixels) {
       if (l != layer) others.push_back(l);
     const cv::Mat without = render_with(others);
     const cv::Mat alone = render_with({layer});
-    const cv::Mat toggled = changed(everything, without);  // what switching it off changes
+    // What switching it off changes; beyond 2 grey levels: a faint translucent layer that leaves
+    // the grey frame unchanged in 8 bits can change a coloured translucent layer below by one.
+    const cv::Mat toggled = changed(everything, without, 2);
     const cv::Mat own = changed(alone, none);              // where it draws at all
     const int toggled_count = cv::countNonZero(toggled);
     EXPECT_GT(toggled_count, 50) << guidance_layer_name(layer);
@@ -436,6 +495,144 @@ TEST_F(GuidanceTest, NoOverlayFromAPoseOlderThanTheLimit) {
       EXPECT_EQ(cv::countNonZero(grey(cv::Rect(0, 120, grey.cols, grey.rows - 120)) > 0), 0);
     }
   }
+}
+
+// The targeting view of a needle aimed 3 mm beside the tumor centre from an oblique direction: the
+// white cross of the picture lies where the needle's line meets the plane through the centroid
+// perpendicular to it (the analytic intersection, mapped with the view's own right/down axes,
+// built here from the hint), within 1 px; the tumor (a 5 mm ball) is drawn as a circle of 5 mm.
+TEST_F(GuidanceTest, TargetingCrossMarksTheNeedleCrossingWithinOnePixel) {
+  const planning::NeedleGuide& guide = overlay_->needle_guide();
+  const Eigen::Vector3d c = plan_->tumor_centre;
+  const Eigen::Vector3d tip(-55, -30, 12), aim = c + Eigen::Vector3d(3, -2, 1);
+  const Eigen::Vector3d a = (aim - tip).normalized();
+  const planning::NeedleState s =
+      guide.evaluate(T_ct_needle_for(tip, a), Eigen::Vector3d(0, 0, 150), Eigen::Vector3d::UnitZ());
+  planning::TargetingOptions to;
+  to.size_px = 300;
+  to.half_extent_mm = 20.0;  // 300 px over 40 mm: 0.1333 mm per pixel
+  to.right_hint = Eigen::Vector3d(0, 0, 1);
+  const planning::TargetingGeometry g =
+      planning::targeting_geometry(guide, s, overlay_->tumor_surface(), 2.0, to);
+  ASSERT_TRUE(g.valid);
+  // The analytic crossing: tip + s a with (p - c) . a = 0.
+  const Eigen::Vector3d q = tip + (c - tip).dot(a) * a;
+  EXPECT_NEAR((g.crossing - q).norm(), 0.0, 1e-9);
+  const Eigen::Vector3d u = (to.right_hint - to.right_hint.dot(a) * a).normalized();
+  const Eigen::Vector3d v = a.cross(u);
+  const double mm_per_px = 40.0 / 300.0;
+  const Eigen::Vector2d expected =
+      Eigen::Vector2d(149.5, 149.5) + Eigen::Vector2d((q - c).dot(u), (q - c).dot(v)) / mm_per_px;
+  // The needle misses the centre by sqrt(14) mm less its part along the axis: well off the centre.
+  ASSERT_GT((expected - Eigen::Vector2d(149.5, 149.5)).norm(), 15.0);
+  auto cross_centroid = [](const cv::Mat& bgra) {
+    cv::Mat bgr, mask;
+    cv::cvtColor(bgra, bgr, cv::COLOR_BGRA2BGR);
+    cv::inRange(bgr, kTargetingCrossColour, kTargetingCrossColour, mask);
+    const cv::Moments m = cv::moments(mask, true);
+    return std::make_pair(Eigen::Vector2d(m.m10 / m.m00, m.m01 / m.m00), int(m.m00));
+  };
+  const cv::Mat view = render_targeting_view(g, planning::Palette::kDefault);
+  ASSERT_EQ(view.rows, 300);
+  const auto [found, count] = cross_centroid(view);
+  EXPECT_GT(count, 40);
+  EXPECT_LE((found - expected).norm(), 1.0) << found.transpose() << " vs " << expected.transpose();
+  // The tumor's outline: a ball of 5 mm radius (voxel centres within 5 mm, 2 mm voxels drawn as
+  // discs of 0.6 voxel): its outline lies 4 to 6.5 mm from the centre.
+  for (const auto& outline : point_cloud_outlines(g.tumor_px, g.tumor_point_radius_px)) {
+    for (const auto& p : outline) {
+      const double r_mm = (Eigen::Vector2d(p.x, p.y) - g.centre_px).norm() * mm_per_px;
+      EXPECT_GT(r_mm, 4.0);
+      EXPECT_LT(r_mm, 6.5);
+    }
+  }
+
+  // The same through the overlay and the renderer: the picture-in-picture in the frame.
+  auto renderer = make_renderer(test_camera());
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context on this machine";
+  GuidanceOverlay& o = *overlay_;
+  for (int l = 0; l < kGuidanceLayerCount; ++l) o.set_visible(GuidanceLayer(l), false);
+  o.set_visible(GuidanceLayer::kTarget, true);
+  o.update(*renderer, grey_frame(), track(T_ct_needle_for(tip, a)), {});
+  const cv::Mat image = renderer->render();
+  for (int l = 0; l < kGuidanceLayerCount; ++l) o.set_visible(GuidanceLayer(l), l != 1);
+  const planning::TargetingGeometry& shown = o.last_targeting();
+  ASSERT_TRUE(shown.valid);
+  const cv::Rect box(o.last_targeting_origin(), cv::Size(shown.size_px, shown.size_px));
+  ASSERT_EQ(box & cv::Rect(0, 0, image.cols, image.rows), box);
+  cv::Mat pip;
+  cv::cvtColor(image(box), pip, cv::COLOR_BGR2BGRA);
+  // Its own scale and axes (the camera's right): the analytic crossing in those.
+  const Eigen::Vector2d shown_expected =
+      shown.centre_px +
+      Eigen::Vector2d((q - c).dot(shown.u), (q - c).dot(shown.v)) / shown.mm_per_px;
+  EXPECT_NEAR(shown.u.dot(a), 0.0, 1e-12);
+  // Right in the view: the camera's right, projected onto the plane.
+  const Eigen::Vector3d cam_x = T_ct_cam().linear().col(0);
+  EXPECT_NEAR((shown.u - (cam_x - cam_x.dot(a) * a).normalized()).norm(), 0.0, 1e-9);
+  const auto [found_in_frame, n_in_frame] = cross_centroid(pip);
+  EXPECT_GT(n_in_frame, 40);
+  EXPECT_LE((found_in_frame - shown_expected).norm(), 1.0);
+}
+
+// The polar map's classes, cell by cell along 8 directions (every other sector of 16) on two
+// rings, equal those of `evaluate` for the same straight lines: from the pivot just outside the
+// skin along the tilted direction to its point nearest the tumor centre. The needle comes in at
+// 30 deg azimuth, past the vessel (x = 16 mm, |y| < 4 mm): tilts of 17.5 deg toward -y cross it.
+TEST_F(GuidanceTest, PolarSafetyMapAgreesWithEvaluateAlongEightDirections) {
+  const planning::NeedleGuide& guide = overlay_->needle_guide();
+  const Eigen::Vector3d c = plan_->tumor_centre;
+  const double az = 30.0 * M_PI / 180.0;
+  const Eigen::Vector3d out(std::cos(az), std::sin(az), 0.0);
+  const planning::NeedleState s = guide.evaluate(T_ct_needle_for(c + 60.0 * out, -out),
+                                                 Eigen::Vector3d(0, 0, 150),
+                                                 Eigen::Vector3d::UnitZ());
+  planning::TargetingOptions to;
+  to.right_hint = Eigen::Vector3d(0, 1, 0);
+  to.max_tilt_deg = 25.0;  // rings of 5 deg
+  const planning::TargetingGeometry g =
+      planning::targeting_geometry(guide, s, overlay_->tumor_surface(), 2.0, to);
+  ASSERT_TRUE(g.valid);
+  ASSERT_EQ(int(g.cells.size()), to.rings * to.sectors);
+  // The pivot: on the needle's line, just outside the 40 mm ball.
+  EXPECT_NEAR(g.pivot.norm(), kBody, 2.0);
+  EXPECT_FALSE(planning::in_body(plan_->labels, g.pivot));
+  EXPECT_NEAR(((g.pivot - s.tip).cross(s.axis)).norm(), 0.0, 1e-6);
+  EXPECT_NEAR(g.u.dot(g.v), 0.0, 1e-12);
+  EXPECT_NEAR(g.u.dot(g.axis), 0.0, 1e-12);
+  const planning::TrajectoryEvaluator evaluator(*plan_);
+  std::set<planning::NeedleSafety> seen;
+  for (int ring : {1, 3}) {
+    for (int k = 0; k < 8; ++k) {
+      const int sector = 2 * k;
+      const planning::PolarCell& cell = g.cells[size_t(ring * to.sectors + sector)];
+      ASSERT_EQ(cell.ring, ring);
+      ASSERT_EQ(cell.sector, sector);
+      const double tilt = (ring + 0.5) * to.max_tilt_deg / to.rings * M_PI / 180.0;
+      const double phi = k * 45.0 * M_PI / 180.0;
+      const Eigen::Vector3d d = std::cos(tilt) * g.axis +
+                                std::sin(tilt) * (std::cos(phi) * g.u + std::sin(phi) * g.v);
+      EXPECT_NEAR((cell.direction - d).norm(), 0.0, 1e-9);
+      planning::Trajectory t;
+      t.entry = g.pivot;
+      t.target = g.pivot + (c - g.pivot).dot(d) * d;
+      const planning::TrajectoryEvaluation e = evaluator.evaluate(t);
+      ASSERT_FALSE(e.values.empty());
+      const std::string& at_entry = e.values.front().safety_class;
+      const planning::NeedleSafety expected =
+          e.line_integral > s.eps || at_entry == "dangerous" ? planning::NeedleSafety::kDangerous
+          : e.leaves_scan()                                   ? planning::NeedleSafety::kUnknown
+          : at_entry == "medium"                              ? planning::NeedleSafety::kMedium
+                                                              : planning::NeedleSafety::kSafe;
+      EXPECT_EQ(cell.safety, expected)
+          << "ring " << ring << " sector " << sector << ": line integral " << e.line_integral
+          << ", at entry " << at_entry;
+      seen.insert(cell.safety);
+    }
+  }
+  // Both sides of the vessel are among them: the map can tell which way to tilt.
+  EXPECT_TRUE(seen.count(planning::NeedleSafety::kSafe));
+  EXPECT_TRUE(seen.count(planning::NeedleSafety::kDangerous));
 }
 
 TEST(GuidanceLayers, NamesParseBothWays) {
