@@ -3,6 +3,7 @@
 #include "apps/commands.hpp"
 #include "apps/enum_names.hpp"
 #include "pipelines/demo.hpp"
+#include "planning/simulation/phantom.hpp"
 
 namespace crepuscular::apps {
 
@@ -30,9 +31,23 @@ void add_demo_command(CLI::App& app) {
                   "plan's own default, the farthest voxel with any blocking, spans the whole "
                   "body here because muscle carries a low risk.)")
       ->capture_default_str();
+  auto* mode_option = cmd->get_option("--mode");
+  cmd->add_option("--breathing", a->breathing_phases,
+                  "Breathing: make the phantom a cycle of N phases (10: a 4D CT), plan svv over all "
+                  "of them (a path is safe only if safe in every phase; fast mode unless --mode is "
+                  "given), guide with the combined plan and report both approaches' safety per "
+                  "phase")
+      ->check(in_range(2, 50, true));
+  cmd->add_option("--amplitude", a->breathing_amplitude_mm,
+                  "Breathing: cranio-caudal motion of the diaphragm's dome, mm")
+      ->capture_default_str()
+      ->check(in_range(0, planning::kMaxBreathingAmplitudeMm));
   cmd->add_flag("!--no-guidance", a->guidance,
                 "Stop after the plan and the slice views (no recording, no overlay)");
-  cmd->callback([a] { pipelines::run_demo(*a); });
+  cmd->callback([a, mode_option] {
+    if (a->breathing_phases > 0 && mode_option->count() == 0) a->mode = planning::Mode::kFast;
+    pipelines::run_demo(*a);
+  });
 }
 
 }  // namespace crepuscular::apps

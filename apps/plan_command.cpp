@@ -20,8 +20,7 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
                   "level wins");
   cmd->add_option("--tumor", req->tumor,
                   "Tumor FILE (a mask: voxels > 0.5) or FILE:LABEL (a label value, or a segment "
-                  "name of a .seg.nrrd)")
-      ->required();
+                  "name of a .seg.nrrd); required unless --phases");
   cmd->add_option("--lesion", req->lesion,
                   "Plan for the K-th largest lesion of the tumor mask (1 = largest); with several "
                   "lesions and neither --lesion nor --lesion-at, plan lists them and stops")
@@ -43,6 +42,15 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
                   "Ready blocking volume (risk per mm, >= 0), used as is; the tumor mask may lie "
                   "on another grid")
       ->check(CLI::ExistingPath);
+  cmd->add_option("--phases", req->phases,
+                  "Breathing: phases.json listing one label map, tumor (and CT) per phase of the "
+                  "respiratory cycle (crepuscular phantom --phases writes one). Path safety is "
+                  "computed per phase on one grid and combined: safe only if safe in every phase "
+                  "(svv the minimum, the others the maximum; unknown in any phase is unknown)")
+      ->check(CLI::ExistingFile);
+  cmd->add_flag("--per-phase", req->per_phase,
+                "With --phases: also write each phase's volumes, "
+                "path_safety_<value>_<phase>.nii.gz (evaluate then names the worst phase)");
   return lesion_at;
 }
 

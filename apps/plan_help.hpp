@@ -26,6 +26,14 @@ inline constexpr const char* kPlanHelp =
       "      --tumor data/tumor.nii.gz --preset phantom --out plan\n"
       "  crepuscular plan --labels seg_total.nii.gz:totalsegmentator \\\n"
       "      --labels seg_vessels.nii.gz:totalsegmentator_liver_vessels \\\n"
-      "      --tumor seg_vessels.nii.gz:2 --lesion 1 --ct ct.nii.gz --mode fast --out plan";
+      "      --tumor seg_vessels.nii.gz:2 --lesion 1 --ct ct.nii.gz --mode fast --out plan\n"
+      "Breathing (--phases phases.json): the liver moves with breathing, so a path safe in the\n"
+      "planning scan's phase may cross a vessel in another. Each phase is planned on one grid\n"
+      "(centred on the mean tumor centroid) and the phases combined: a voxel is safe only if it\n"
+      "is safe in every phase (svv the minimum, the others the maximum), unknown if unknown in\n"
+      "any. plan.json \"breathing\" lists per-phase statistics and the share of the region whose\n"
+      "class changes over the cycle; --per-phase also writes each phase's volumes.\n"
+      "  crepuscular phantom --phases 10 --out cycle && \\\n"
+      "      crepuscular plan --phases cycle/phases.json --mode fast --per-phase --out plan";
 
 }  // namespace crepuscular::apps

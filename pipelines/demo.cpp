@@ -29,11 +29,26 @@ namespace crepuscular::pipelines {
 
 namespace {
 
+// A file of the planning scan: the phantom at rest, or with breathing its first phase (end-exhale,
+// the same anatomy).
+std::string phantom_file(const DemoRequest& a, const std::string& dir, const std::string& name) {
+  return dir + (a.breathing_phases > 0 ? "/phantom/phase00/" : "/phantom/") + name;
+}
+
 void make_plan(const DemoRequest& a, const std::string& dir) {
   PlanRequest req;
-  req.labels = {dir + "/phantom/labels.nii.gz"};
-  req.tumor = dir + "/phantom/tumor.nii.gz";
-  req.vulnerability = dir + "/phantom/vulnerability.json";
+  if (a.breathing_phases > 0) {
+    req.phases = dir + "/phantom/phases.json";
+    req.per_phase = true;
+    // Ten plans instead of one: SVV alone (what guidance and the scenario read first), and a
+    // smaller exact check of fast mode per phase, keep the breathing demo within minutes.
+    req.path_safety.values = kernels::kSvv;
+    req.path_safety.fast_check_voxels = 200;
+  } else {
+    req.labels = {dir + "/phantom/labels.nii.gz"};
+    req.tumor = dir + "/phantom/tumor.nii.gz";
+    req.vulnerability = dir + "/phantom/vulnerability.json";
+  }
   req.path_safety.device = a.device;
   req.path_safety.mode = a.mode;
   req.path_safety.radius_mm = a.radius_mm;
@@ -44,11 +59,11 @@ void make_plan(const DemoRequest& a, const std::string& dir) {
 }
 
 // Slice views through the largest safe region.
-void make_slices(const std::string& dir) {
+void make_slices(const DemoRequest& a, const std::string& dir) {
   spdlog::info("demo [3/7]: slice views");
   SlicesRequest sr;
   sr.plan_dir = dir + "/plan";
-  sr.ct = dir + "/phantom/ct.nii.gz";
+  sr.ct = phantom_file(a, dir, "ct.nii.gz");
   sr.region = 0;
   sr.planes = {planning::SlicePlaneKind::kAxial, planning::SlicePlaneKind::kCoronal,
                planning::SlicePlaneKind::kSagittal, planning::SlicePlaneKind::kOblique};
@@ -76,16 +91,18 @@ GuidanceScenario record_scenario(const planning::PlanData& plan, const std::stri
 // `register` on the phantom CT: the beads found, paired with the board's layout and fitted; the
 // guidance then uses this registration, not the scenario's truth. Its error against the truth
 // at the tumor goes into the report.
-std::string register_board(const GuidanceScenario& scenario, const std::string& dir) {
+std::string register_board(const DemoRequest& a, const GuidanceScenario& scenario,
+                           const std::string& dir) {
+  const std::string ct = phantom_file(a, dir, "ct.nii.gz");
   spdlog::info("demo [6/7]: registering the patient board to the CT by its beads (register)");
   std::string md = "\n## Registration\n\n";
   try {
-    const int beads = paint_board_beads(scenario, dir + "/phantom/ct.nii.gz");
+    const int beads = paint_board_beads(scenario, ct);
     RegistrationRequest rr;
-    rr.ct = dir + "/phantom/ct.nii.gz";
+    rr.ct = ct;
     rr.boards = dir + "/setup/boards.json";
     rr.board_name = "patient";
-    rr.tumor = dir + "/phantom/tumor.nii.gz";
+    rr.tumor = phantom_file(a, dir, "tumor.nii.gz");
     rr.out = dir + "/setup/registration.yaml";
     const calibration::RegistrationRecord r = run_registration(rr);
     const Eigen::Vector3d c = scenario.target_ct;
@@ -149,8 +166,15 @@ void run_demo(const DemoRequest& a) {
   auto t = Clock::now();
   planning::PhantomOptions po;
   po.spacing_mm = a.spacing_mm;
-  spdlog::info("demo [1/7]: building the phantom ({} mm)", a.spacing_mm);
-  planning::write_phantom(planning::make_phantom(po), dir + "/phantom");
+  po.amplitude_mm = a.breathing_amplitude_mm;
+  if (a.breathing_phases > 0) {
+    spdlog::info("demo [1/7]: building the breathing phantom ({} mm, {} phases, {} mm at the "
+                 "dome)", a.spacing_mm, a.breathing_phases, a.breathing_amplitude_mm);
+    planning::write_breathing_phantom(po, a.breathing_phases, dir + "/phantom");
+  } else {
+    spdlog::info("demo [1/7]: building the phantom ({} mm)", a.spacing_mm);
+    planning::write_phantom(planning::make_phantom(po), dir + "/phantom");
+  }
   times["phantom_s"] = seconds_since(t);
 
   t = Clock::now();
@@ -158,7 +182,7 @@ void run_demo(const DemoRequest& a) {
   times["plan_s"] = seconds_since(t);
 
   t = Clock::now();
-  make_slices(dir);
+  make_slices(a, dir);
   times["slices_s"] = seconds_since(t);
 
   const planning::PlanData plan = planning::load_plan(dir + "/plan");
@@ -169,12 +193,13 @@ void run_demo(const DemoRequest& a) {
     const GuidanceScenario scenario = record_scenario(plan, dir);
     times["recording_s"] = seconds_since(t);
     t = Clock::now();
-    const std::string registration = register_board(scenario, dir);
+    const std::string registration = register_board(a, scenario, dir);
     times["registration_s"] = seconds_since(t);
     t = Clock::now();
     const GuideSummary g = guide(plan, scenario, dir);
     times["guide_s"] = seconds_since(t);
     report += registration + demo_guidance_report(scenario, g);
+    if (a.breathing_phases > 0) report += demo_breathing_report(plan, scenario);
   }
   times["total_s"] = seconds_since(t_start);
   report += demo_files_report(a.guidance, times["total_s"].get<double>());

@@ -3,11 +3,13 @@
 #include "pipelines/demo_report.hpp"
 
 #include <array>
+#include <nlohmann/json.hpp>
 #include <cmath>
 #include <fmt/format.h>
 #include <sstream>
 
 #include "overlay/guidance.hpp"
+#include "planning/trajectories/evaluate.hpp"
 
 namespace crepuscular::pipelines {
 
@@ -156,6 +158,72 @@ std::string demo_files_report(bool guidance, double total_s) {
   }
   report << fmt::format("\nThe demo took {:.0f} s.\n", total_s);
   return report.str();
+}
+
+std::string demo_breathing_report(const planning::PlanData& plan,
+                                  const GuidanceScenario& scenario) {
+  std::ostringstream o;
+  o << "\n## Breathing\n\n";
+  const nlohmann::json& b = plan.json.at("breathing");
+  o << fmt::format(
+      "The phantom breathes: {} phases of one cycle (phase 00 end-exhale, the middle one "
+      "end-inhale). Path safety was computed per phase on one grid and combined: a voxel is safe "
+      "only if it is safe in every phase (svv the minimum over the phases, the others the "
+      "maximum). Share of the known region whose class changes over the cycle:",
+      plan.phases.size());
+  for (const auto& [value, share] : b.at("class_change_share").items()) {
+    o << fmt::format(" {} {:.1f} %", value, 100.0 * share.get<double>());
+  }
+  o << ".\n\n";
+  const planning::TrajectoryEvaluator evaluator(plan);
+  const std::array<const GuidanceApproach*, 2> approaches = {&scenario.safe, &scenario.dangerous};
+  for (const std::string& value : plan.values) {
+    if (!plan.phase_path_safety.count(value)) continue;
+    const planning::SafetyClasses& classes = plan.classes.at(value);
+    o << "Path safety (" << value << ") at each approach's entry, per phase (class by the "
+      << "combined plan's thresholds):\n\n| phase |";
+    for (const auto* a : approaches) o << " " << a->name << " path |";
+    o << "\n|---|";
+    for (size_t i = 0; i < approaches.size(); ++i) o << "---|";
+    o << "\n";
+    std::vector<planning::TrajectoryEvaluation> evals;
+    for (const auto* a : approaches) {
+      evals.push_back(evaluator.evaluate({a->name, a->entry_ct, scenario.target_ct}));
+    }
+    const auto cell = [&](double x) {
+      static const char* const kNames[] = {"safe", "medium", "dangerous", "unknown"};
+      return std::isfinite(x) ? fmt::format("{:.3g} {}", x, kNames[int(classes.classify(x))])
+                              : std::string("unknown");
+    };
+    for (size_t k = 0; k < plan.phases.size(); ++k) {
+      o << "| " << plan.phases[k] << " |";
+      for (const auto& e : evals) {
+        for (const auto& v : e.values) {
+          if (v.value != value) continue;
+          o << " " << cell(k < v.per_phase.size() ? v.per_phase[k] : NAN) << " |";
+        }
+      }
+      o << "\n";
+    }
+    o << "| **combined** |";
+    for (const auto& e : evals) {
+      for (const auto& v : e.values) {
+        if (v.value == value) o << " **" << cell(v.at_entry) << "** |";
+      }
+    }
+    o << "\n| worst phase |";
+    for (const auto& e : evals) {
+      for (const auto& v : e.values) {
+        if (v.value == value) o << " " << (v.worst_phase.empty() ? "-" : v.worst_phase) << " |";
+      }
+    }
+    o << "\n\n";
+  }
+  o << "Files: phantom/phases.json and phantom/phaseKK/ (CT, labels, tumor per phase; the slices, "
+       "registration and guidance use phase00, end-exhale), plan/path_safety_<value>_phaseKK.nii.gz "
+       "(each phase), plan/path_safety_<value>.nii.gz (the combination, which the overlay "
+       "draws).\n";
+  return o.str();
 }
 
 }  // namespace crepuscular::pipelines

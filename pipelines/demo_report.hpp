@@ -17,6 +17,11 @@ std::string demo_plan_report(const planning::PlanData& plan, double spacing_mm,
 // tracking and latency figures of the guidance run.
 std::string demo_guidance_report(const GuidanceScenario& scenario, const GuideSummary& guide);
 
+// Breathing plans: both approaches' path safety at the entry in every phase (the plan's
+// per-phase volumes), the combination and the share of the region whose class changes.
+std::string demo_breathing_report(const planning::PlanData& plan,
+                                  const GuidanceScenario& scenario);
+
 // The list of files and the demo's duration.
 std::string demo_files_report(bool guidance, double total_s);
 

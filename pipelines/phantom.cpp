@@ -11,6 +11,8 @@
 #include <map>
 #include <sstream>
 #include <vector>
+#include <algorithm>
+#include <nlohmann/json.hpp>
 
 namespace crepuscular::pipelines {
 
@@ -76,6 +78,33 @@ void run_phantom(const planning::PhantomOptions& options, const std::string& out
       "phantom: wrote ct.nii.gz, labels.nii.gz, tumor.nii.gz, vulnerability.json to {} "
       "(seed {}; generated in {:.2f} s, written in {:.2f} s)",
       out_dir, options.seed, seconds(t0, t1), seconds(t1, t2));
+}
+
+void run_breathing_phantom(const planning::PhantomOptions& options, int phases,
+                           const std::string& out_dir) {
+  const auto t0 = std::chrono::steady_clock::now();
+  spdlog::info("phantom: {} breathing phases, {} mm cranio-caudal at the diaphragm's dome",
+               phases, options.amplitude_mm);
+  const nlohmann::json doc = planning::write_breathing_phantom(
+      options, phases, out_dir, [&](int k, const planning::Phantom& ph) {
+        if (k == 0) {
+          for (const std::string& line : phantom_summary(ph)) spdlog::info("{}", line);
+        }
+        spdlog::info("phantom: phase {:02d} of {} (inhale {:.2f}) written", k, phases,
+                     planning::breathing_inhale(k, phases));
+      });
+  const auto& list = doc.at("phases");
+  const auto c0 = list.front().at("tumor_centroid_lps_mm").get<std::vector<double>>();
+  double farthest = 0.0;
+  for (const auto& p : list) {
+    const auto c = p.at("tumor_centroid_lps_mm").get<std::vector<double>>();
+    farthest = std::max(farthest, std::hypot(c[0] - c0[0], c[1] - c0[1], c[2] - c0[2]));
+  }
+  spdlog::info("phantom: the tumor moves up to {:.1f} mm from end-exhale", farthest);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  spdlog::info("phantom: wrote phases.json, vulnerability.json and phase00..phase{:02d} to {} "
+               "({:.1f} s)", phases - 1, out_dir, seconds);
 }
 
 }  // namespace crepuscular::pipelines

@@ -12,6 +12,11 @@ namespace crepuscular::pipelines {
 // Builds the phantom, writes it into `out_dir` (planning::write_phantom) and logs its summary.
 void run_phantom(const planning::PhantomOptions& options, const std::string& out_dir);
 
+// Writes a breathing cycle of `phases` phases (planning::write_breathing_phantom) into `out_dir`
+// and logs each phase's tumor centroid and its motion.
+void run_breathing_phantom(const planning::PhantomOptions& options, int phases,
+                           const std::string& out_dir);
+
 // One-line summaries of the phantom: grid; tumor voxels, volume, equivalent diameter, centroid;
 // voxels per label.
 std::vector<std::string> phantom_summary(const planning::Phantom& phantom);

@@ -17,6 +17,7 @@
 #include "pipelines/plan_inputs.hpp"
 #include "planning/imaging/volume_io.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
+#include "planning/safety/breathing.hpp"
 #include "planning/safety/unknown.hpp"
 #include "planning/trajectories/markups.hpp"
 
@@ -27,6 +28,16 @@ using namespace planning;  // NOLINT: the job drives the planning modules throug
 namespace {
 
 void check_request(const PlanRequest& req) {
+  if (!req.phases.empty()) {
+    if (!req.tumor.empty() || !req.labels.empty() || !req.ct.empty() || !req.blocking.empty()) {
+      throw Error("plan: with a phase list the label maps, tumors and CTs come from it; give no "
+                  "other label map, tumor, CT or blocking volume");
+    }
+    if (req.out_dir.empty()) throw Error("plan: an output folder is required");
+    require_input(req.phases, "the phase list");
+    return;
+  }
+  if (req.per_phase) throw Error("plan: per-phase volumes need a phase list");
   if (req.tumor.empty()) throw Error("plan: a tumor mask is required");
   if (req.out_dir.empty()) throw Error("plan: an output folder is required");
   const int sources = int(!req.labels.empty()) + int(!req.blocking.empty());
@@ -244,9 +255,214 @@ nlohmann::json plan_json(const PlanRequest& req, const PlanInputs& in,
   return plan;
 }
 
+// --- Breathing (DESIGN.md §10) -------------------------------------------------------------------
+
+// The phases' inputs and the request of each (the plan's own request with its files).
+struct PhaseInputs {
+  PlanPhase phase;
+  PlanRequest request;
+  PlanInputs inputs;
+  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+};
+
+std::vector<PhaseInputs> read_phases(const PlanRequest& req, const PhaseList& list) {
+  std::vector<PhaseInputs> out;
+  for (const PlanPhase& phase : list.phases) {
+    PhaseInputs p;
+    p.phase = phase;
+    p.request = req;
+    p.request.phases.clear();
+    p.request.per_phase = false;
+    p.request.labels = phase.labels;
+    p.request.tumor = phase.tumor;
+    p.request.ct = phase.ct;
+    if (req.vulnerability.empty() && req.preset.empty()) {
+      p.request.vulnerability = list.vulnerability;
+      p.request.preset = list.vulnerability.empty() ? list.preset : "";
+    }
+    check_request(p.request);
+    spdlog::info("breathing: reading {} ({} of {})", phase.name, out.size() + 1,
+                 list.phases.size());
+    p.inputs = read_plan_inputs(p.request);
+    p.centroid = extract_tumor_surface(p.inputs.tumor, tumor_file(phase.tumor)).centroid;
+    out.push_back(std::move(p));
+  }
+  return out;
+}
+
+// One grid for all phases: centred on the mean tumor centroid (the first phase's plus the mean
+// difference, so identical phases give the single-phase centre exactly), spacing and radius the
+// single-phase defaults taken over all phases.
+PathSafetyOptions shared_grid(const PlanRequest& req, const std::vector<PhaseInputs>& phases) {
+  PathSafetyOptions ps = req.path_safety;
+  Eigen::Vector3d sum = Eigen::Vector3d::Zero();
+  for (const PhaseInputs& p : phases) sum += p.centroid - phases.front().centroid;
+  const Eigen::Vector3d centre = phases.front().centroid + sum / double(phases.size());
+  ps.centre_lps_mm = centre;
+  if (ps.spacing_mm == 0.0) {
+    double h = INFINITY;
+    for (const PhaseInputs& p : phases) {
+      h = std::min({h, p.inputs.blocking.geometry().spacing.minCoeff(),
+                    p.inputs.tumor.geometry().spacing.minCoeff()});
+    }
+    ps.spacing_mm = h;
+  }
+  if (ps.radius_mm == 0.0) {
+    double r = 0.0;
+    for (const PhaseInputs& p : phases) {
+      r = std::max(r, farthest_blocking_mm(p.inputs.blocking, centre));
+    }
+    if (r == 0.0) {
+      throw Error("breathing: no phase has a voxel with blocking > 0, so the region of interest "
+                  "is empty; give a region of interest radius");
+    }
+    ps.radius_mm = r;
+  }
+  return ps;
+}
+
+nlohmann::json point_json(const Eigen::Vector3d& p) { return {p.x(), p.y(), p.z()}; }
+
+nlohmann::json run_plan_phases(const PlanRequest& req) {
+  const auto t_start = Clock::now();
+  check_request(req);
+  StagedDirectory out(req.out_dir);
+  nlohmann::json timings;
+  auto t = Clock::now();
+  const PhaseList list = read_phase_list(req.phases);
+  const std::vector<PhaseInputs> phases = read_phases(req, list);
+  timings["read_and_preprocess_s"] = seconds_since(t);
+
+  PlanRequest shared = req;
+  shared.path_safety = shared_grid(req, phases);
+  const Eigen::Vector3d centre = *shared.path_safety.centre_lps_mm;
+  spdlog::info("breathing: {} phases on one grid centred on the mean tumor centroid ({:.1f}, "
+               "{:.1f}, {:.1f}) LPS mm, radius {:.1f} mm, spacing {} mm",
+               phases.size(), centre.x(), centre.y(), centre.z(), shared.path_safety.radius_mm,
+               shared.path_safety.spacing_mm);
+  PhaseCombiner combiner;
+  nlohmann::json phase_list = nlohmann::json::array();
+  CoverageReport first_coverage;
+  t = Clock::now();
+  for (size_t k = 0; k < phases.size(); ++k) {
+    const PhaseInputs& p = phases[k];
+    spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, k + 1, phases.size());
+    const auto t_phase = Clock::now();
+    PlanRequest phase_request = p.request;
+    phase_request.path_safety = shared.path_safety;
+    PathSafetyResult result = compute(phase_request, p.inputs);
+    CoverageReport coverage;
+    const Volume<uint8_t> region =
+        apply_scan_coverage(result, p.inputs.coverage, p.inputs.tumor, {req.crop_to_scan},
+                            &coverage);
+    if (k == 0) first_coverage = coverage;
+    warn_about_coverage(coverage, req.crop_to_scan);
+    nlohmann::json entry;
+    entry["name"] = p.phase.name;
+    nlohmann::json labels = nlohmann::json::array();
+    for (const auto& f : label_files(p.phase.labels)) labels.push_back(input_json(f, req.out_dir));
+    entry["inputs"] = {{"label_maps", labels},
+                       {"tumor", input_json(tumor_file(p.phase.tumor), req.out_dir)},
+                       {"ct", input_json(p.phase.ct, req.out_dir)}};
+    entry["tumor_centroid_lps_mm"] = point_json(p.centroid);
+    entry["tumor_voxels"] = result.tumor_voxels;
+    entry["unknown_voxels"] = coverage.unknown_voxels;
+    entry["device"] = result.device;
+    entry["path_safety_s"] = result.seconds;
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      const unsigned bit = 1u << v;
+      if (!(result.values & bit)) continue;
+      entry["statistics"][value_name(bit)] = statistics_json(result.volumes[size_t(v)]);
+      if (req.per_phase) {
+        const std::string file = std::string("path_safety_") + value_name(bit) + "_" +
+                                 p.phase.name + ".nii.gz";
+        write_volume(result.volumes[size_t(v)], out.file(file));
+        entry["outputs"][value_name(bit)] = file;
+      }
+    }
+    combiner.add(result, region);
+    entry["seconds"] = seconds_since(t_phase);
+    phase_list.push_back(entry);
+  }
+  timings["path_safety_s"] = seconds_since(t);
+  PathSafetyResult combined = combiner.combined();
+  const Volume<uint8_t>& region = combiner.region();
+
+  // The plan's own files: the combination, with the first phase's blocking, tumor and labels.
+  const PhaseInputs& first = phases.front();
+  t = Clock::now();
+  Written written = write_volumes(out, first.inputs.blocking, first.inputs.tumor, combined, region);
+  timings["write_s"] = seconds_since(t);
+  nlohmann::json breathing;
+  breathing["phase_list"] = input_json(list.file, req.out_dir);
+  breathing["combination"] =
+      "one output grid for all phases, centred on the mean tumor centroid; per voxel svv the "
+      "minimum over the phases, isbv, ivbv, bvv the maximum: safe only if safe in every phase; "
+      "unknown in any phase: unknown";
+  breathing["reference_phase"] = first.phase.name;
+  breathing["reference"] =
+      "blocking, tumor and label map of the plan are the reference phase's (the first listed)";
+  breathing["phases"] = phase_list;
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    const unsigned bit = 1u << v;
+    if (!(combined.values & bit)) continue;
+    const SafetyClasses classes = default_classes(bit, combined.volumes[size_t(v)]);
+    const double share = combiner.class_change_share(v, classes);
+    breathing["class_change_share"][value_name(bit)] = share;
+    spdlog::info("breathing: {} class changes over the cycle in {:.1f} % of the known region",
+                 value_name(bit), 100.0 * share);
+  }
+  breathing["class_change_rule"] =
+      "share of the computed voxels whose class (the combined plan's thresholds) is not the same "
+      "in every phase";
+
+  nlohmann::json area_safety;
+  if (req.area_safety.enabled) {
+    t = Clock::now();
+    AreaSafetyGeometry geometry;
+    area_safety = plan_area_safety(first.inputs.tumor, combined, req.area_safety,
+                                   out.file("area_safety.vtk"), &region, &geometry);
+    written.outputs["area_safety"] = "area_safety.vtk";
+    timings["area_safety_s"] = seconds_since(t);
+    const std::string value = area_safety["value"].get<std::string>();
+    const std::vector<RegionTrajectory> planned = region_trajectories(
+        geometry, combined.grid.centre, first.inputs.labels,
+        combined.volumes[size_t(kernels::value_slot(parse_value_set(value)))],
+        combined.grid.radius_mm);
+    write_text_file(out.file("trajectories.mrk.json"),
+                    trajectories_markups_json(planned, value).dump(2) + "\n");
+    write_text_file(out.file("entries.mrk.json"),
+                    entries_markups_json(planned, value).dump(2) + "\n");
+    written.outputs["trajectories"] = "trajectories.mrk.json";
+    written.outputs["entries"] = "entries.mrk.json";
+  }
+  timings["total_s"] = seconds_since(t_start);
+
+  // Unknown in the combination: in any phase.
+  CoverageReport coverage = first_coverage;
+  coverage.unknown_voxels = 0;
+  for (int64_t i = 0; i < region.voxel_count(); ++i) {
+    coverage.unknown_voxels += region[i] == kRegionUnknown ? 1 : 0;
+  }
+  coverage.unknown_share =
+      coverage.roi_voxels ? double(coverage.unknown_voxels) / double(coverage.roi_voxels) : 0.0;
+  nlohmann::json plan = plan_json(first.request, first.inputs, combined, written);
+  plan["scan_coverage"] = coverage_json(coverage);
+  if (!area_safety.is_null()) plan["area_safety"] = area_safety;
+  plan["breathing"] = breathing;
+  plan["outputs"] = written.outputs;
+  plan["timings"] = timings;
+  write_text_file(out.file("plan.json"), plan.dump(2) + "\n");
+  out.commit();
+  spdlog::info("plan over {} breathing phases written to {} ({:.1f} s)", phases.size(),
+               req.out_dir, seconds_since(t_start));
+  return plan;
+}
+
 }  // namespace
 
 nlohmann::json run_plan(const PlanRequest& req) {
+  if (!req.phases.empty()) return run_plan_phases(req);
   const auto t_start = Clock::now();
   check_request(req);
   // Staged first: a failure below removes it and leaves no plan behind.

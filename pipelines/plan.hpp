@@ -25,6 +25,10 @@ struct PlanRequest : PlanInputOptions {
   // being unknown.
   bool crop_to_scan = false;
   std::string out_dir;
+  // Breathing (DESIGN.md §10): phases.json; then the label maps, tumor and CT come from it, one
+  // set per phase, and the plan combines the phases (planning/safety/breathing.hpp).
+  std::string phases;
+  bool per_phase = false;  // also write path_safety_<value>_<phase>.nii.gz per phase
 };
 
 // Runs preprocessing and path safety and writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/roi.nii.gz
@@ -34,6 +38,13 @@ struct PlanRequest : PlanInputOptions {
 // PLAN_DIR/plan.json, and (area_safety.enabled) PLAN_DIR/area_safety.vtk with plan.json's
 // "area_safety" section. Returns the content of plan.json. Throws Error on bad input, naming the
 // input by its role; then nothing is left at out_dir (an earlier plan there stays untouched).
+//
+// With `phases`: one output grid for all phases, centred on the mean of the phases' tumor
+// centroids (radius: the largest of the phases' defaults); each phase's path safety on it,
+// combined voxelwise (SVV the minimum, the others the maximum; unknown in any phase: unknown).
+// The combined volumes are the plan's path_safety_<value> files; blocking, tumor and label map are
+// the first phase's (the planning scan); plan.json "breathing" lists the phases, their inputs and
+// statistics and, per value, the share of the region whose class changes over the cycle.
 nlohmann::json run_plan(const PlanRequest& request);
 
 }  // namespace crepuscular::pipelines

@@ -4,10 +4,12 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <cctype>
 #include <deque>
 #include <filesystem>
 
 #include "foundation/error.hpp"
+#include "foundation/json_fields.hpp"
 #include "pipelines/job_inputs.hpp"
 #include "planning/imaging/file_spec.hpp"
 #include "planning/imaging/lesions.hpp"
@@ -226,6 +228,71 @@ PlanInputs read_plan_inputs(const PlanInputOptions& o) {
   make_blocking(o, in);
   read_tumor(o, in);
   return in;
+}
+
+namespace {
+
+// A path of phases.json relative to its folder (absolute ones stay), keeping a ":QUALIFIER".
+std::string relative_to(const std::filesystem::path& base, const std::string& spec) {
+  if (spec.empty()) return spec;
+  const std::filesystem::path p(spec);
+  return p.is_absolute() ? spec : (base / p).lexically_normal().string();
+}
+
+}  // namespace
+
+PhaseList read_phase_list(const std::string& path) {
+  PhaseList list;
+  list.file = path;
+  const nlohmann::json doc = read_json_file(path, "phase list");
+  const JsonPath root(path);
+  as_object(doc, root);
+  const std::filesystem::path base = std::filesystem::path(path).parent_path();
+  list.vulnerability = relative_to(base, optional_string(doc, "vulnerability", root, ""));
+  list.preset = optional_string(doc, "preset", root, "");
+  const JsonPath at = root.key("phases");
+  const nlohmann::json& phases = as_array(required_field(doc, "phases", root), at);
+  if (phases.size() < 2) {
+    at.fail("lists " + std::to_string(phases.size()) +
+            " phase(s), expected at least 2 (a single scan: plan it without --phases)");
+  }
+  for (size_t k = 0; k < phases.size(); ++k) {
+    const JsonPath pk = at.index(k);
+    const nlohmann::json& p = as_object(phases[k], pk);
+    PlanPhase phase;
+    phase.name = optional_string(p, "name", pk, k < 10 ? "phase0" + std::to_string(k)
+                                                        : "phase" + std::to_string(k));
+    for (const char c : phase.name) {
+      if (!std::isalnum(static_cast<unsigned char>(c)) && c != '_' && c != '-') {
+        pk.key("name").fail("is \"" + phase.name +
+                            "\", expected letters, digits, '_' or '-' (it names output files)");
+      }
+    }
+    const nlohmann::json& labels = required_field(p, "labels", pk);
+    if (labels.is_array()) {
+      for (size_t i = 0; i < labels.size(); ++i) {
+        phase.labels.push_back(relative_to(base, as_string(labels[i], pk.key("labels").index(i))));
+      }
+    } else {
+      phase.labels.push_back(relative_to(base, as_string(labels, pk.key("labels"))));
+    }
+    phase.tumor = relative_to(base, required_string(p, "tumor", pk));
+    phase.ct = relative_to(base, optional_string(p, "ct", pk, ""));
+    for (const auto& f : label_files(phase.labels)) {
+      if (!std::filesystem::exists(f)) pk.key("labels").fail("names " + f + ", which does not exist");
+    }
+    if (!std::filesystem::exists(tumor_file(phase.tumor))) {
+      pk.key("tumor").fail("names " + tumor_file(phase.tumor) + ", which does not exist");
+    }
+    if (!phase.ct.empty() && !std::filesystem::exists(phase.ct)) {
+      pk.key("ct").fail("names " + phase.ct + ", which does not exist");
+    }
+    for (const PlanPhase& earlier : list.phases) {
+      if (earlier.name == phase.name) pk.key("name").fail("repeats \"" + phase.name + "\"");
+    }
+    list.phases.push_back(phase);
+  }
+  return list;
 }
 
 }  // namespace crepuscular::pipelines

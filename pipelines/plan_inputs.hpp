@@ -43,6 +43,25 @@ struct PlanInputs {
   planning::Volume<int32_t> labels;   // the (combined) label map, for the skin; empty without one
 };
 
+// A breathing cycle (DESIGN.md §10) as phases.json lists it: per phase its label maps, tumor and
+// optional CT (paths relative to phases.json), in the order of the cycle.
+struct PlanPhase {
+  std::string name;                 // "phase00", or "phase<K>" when phases.json names none
+  std::vector<std::string> labels;  // label specs FILE[:TABLE]
+  std::string tumor;                // tumor spec FILE[:LABEL]
+  std::string ct;
+};
+struct PhaseList {
+  std::string file;           // phases.json
+  std::string vulnerability;  // the table phases.json names, "" when none
+  std::string preset;
+  std::vector<PlanPhase> phases;
+};
+// Reads phases.json: {"phases": [{"name", "labels" (a spec or a list), "tumor", "ct"}, ...],
+// "vulnerability" or "preset" (optional)}. Throws Error naming the file and the field; at least 2
+// phases, every named file must exist.
+PhaseList read_phase_list(const std::string& path);
+
 // Reads and combines the inputs. Throws Error naming the file and the problem.
 PlanInputs read_plan_inputs(const PlanInputOptions& options);
 

@@ -8,6 +8,7 @@
 #include <climits>
 #include <filesystem>
 #include <fstream>
+#include <cmath>
 #include <limits>
 
 #include "foundation/error.hpp"
@@ -219,6 +220,39 @@ void mark_outside_roi(PlanData& plan, const nlohmann::json& outputs) {
   plan.region = std::move(roi);
 }
 
+// Breathing plans: the phases' names and, when written, their path safety volumes (only where the
+// combined plan has a computed value).
+void read_phase_volumes(PlanData& plan, const PlanLoadOptions& options,
+                        const std::string& json_path) {
+  if (!plan.json.contains("breathing")) return;
+  const JsonPath at = JsonPath(json_path).key("breathing");
+  const nlohmann::json& phases =
+      as_array(required_field(as_object(plan.json["breathing"], at), "phases", at), at.key("phases"));
+  for (size_t k = 0; k < phases.size(); ++k) {
+    const JsonPath pk = at.key("phases").index(k);
+    plan.phases.push_back(required_string(as_object(phases[k], pk), "name", pk));
+  }
+  if (!options.path_safety) return;
+  for (const auto& [value, combined] : plan.path_safety) {
+    std::vector<Volume<float>> volumes;
+    for (size_t k = 0; k < phases.size(); ++k) {
+      const JsonPath pk = at.key("phases").index(k);
+      if (!phases[k].contains("outputs") || !phases[k]["outputs"].contains(value)) break;
+      const std::string path =
+          in_plan(plan.dir, required_string(phases[k]["outputs"], value, pk.key("outputs")));
+      Volume<float> v = read_volume<float>(path);
+      if (!v.geometry().same_grid(plan.grid, 1e-4)) {
+        throw Error(path + ": not on the plan's grid (plan.json \"grid\")");
+      }
+      for (int64_t o = 0; o < v.voxel_count(); ++o) {
+        if (std::isnan(combined[o])) v[o] = std::numeric_limits<float>::quiet_NaN();
+      }
+      volumes.push_back(std::move(v));
+    }
+    if (volumes.size() == phases.size()) plan.phase_path_safety[value] = std::move(volumes);
+  }
+}
+
 // The blocking volume, the classes of every value and the path safety volumes asked for.
 void read_volumes(PlanData& plan, const PlanLoadOptions& options, const std::string& json_path) {
   const JsonPath outputs_at = JsonPath(json_path).key("outputs");
@@ -242,6 +276,7 @@ void read_volumes(PlanData& plan, const PlanLoadOptions& options, const std::str
     plan.path_safety[v] = read_volume<float>(in_plan(plan.dir, name));
   }
   if (!plan.path_safety.empty()) mark_outside_roi(plan, outputs);
+  read_phase_volumes(plan, options, json_path);
 }
 
 // The label map and the tumor mask of plan.json's inputs (or the label map given instead).

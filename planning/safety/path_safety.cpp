@@ -245,11 +245,28 @@ TumorSurface extract_tumor_surface(const Volume<uint8_t>& tumor, const std::stri
   return s;
 }
 
+double farthest_blocking_mm(const Volume<float>& blocking, const Eigen::Vector3d& centre) {
+  const auto& bg = blocking.geometry();
+  const auto& d = bg.dims;
+  double r2 = 0.0;
+  for (int64_t k = 0; k < d[2]; ++k) {
+    for (int64_t j = 0; j < d[1]; ++j) {
+      for (int64_t i = 0; i < d[0]; ++i) {
+        if (blocking(i, j, k) > 0.0f) {
+          r2 = std::max(r2, (bg.index_to_physical(i, j, k) - centre).squaredNorm());
+        }
+      }
+    }
+  }
+  return std::sqrt(r2);
+}
+
 OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                             const TumorSurface& surface, const PathSafetyOptions& options) {
   const auto& bg = blocking.geometry();
   OutputGrid out;
-  out.centre = surface.centroid;
+  out.centre = options.centre_lps_mm ? *options.centre_lps_mm : surface.centroid;
+  if (!out.centre.allFinite()) throw Error("output grid centre: not a finite point");
   double h = options.spacing_mm;
   if (h == 0.0) h = std::min(bg.spacing.minCoeff(), tumor.geometry().spacing.minCoeff());
   if (!(h > 0.0) || !std::isfinite(h)) {
@@ -260,18 +277,7 @@ OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>
     throw Error("region of interest radius: must be >= 0 mm (got " + std::to_string(r) + ")");
   }
   if (r == 0.0) {
-    const auto& d = bg.dims;
-    double r2 = 0.0;
-    for (int64_t k = 0; k < d[2]; ++k) {
-      for (int64_t j = 0; j < d[1]; ++j) {
-        for (int64_t i = 0; i < d[0]; ++i) {
-          if (blocking(i, j, k) > 0.0f) {
-            r2 = std::max(r2, (bg.index_to_physical(i, j, k) - out.centre).squaredNorm());
-          }
-        }
-      }
-    }
-    r = std::sqrt(r2);
+    r = farthest_blocking_mm(blocking, out.centre);
     if (r == 0.0) {
       throw Error(
           "blocking volume has no voxel with b > 0, so the region of interest (the ball "

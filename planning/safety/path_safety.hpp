@@ -6,6 +6,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -41,6 +42,9 @@ struct PathSafetyOptions {
   double eps = 0.5;
   double spacing_mm = 0.0;  // output spacing h; 0: the smallest spacing of the inputs
   double radius_mm = 0.0;   // region of interest R; 0: distance to the farthest voxel with b > 0
+  // Centre of the output grid, LPS mm; unset: the tumor centroid. Several breathing phases share
+  // one grid centred on their mean tumor centroid (DESIGN.md §10).
+  std::optional<Eigen::Vector3d> centre_lps_mm;
   // Spacing the tumor mask is resampled to before its surface is taken (DESIGN.md §4, tumor
   // sampling). kTumorSpacingAuto: the output spacing h, applied only where the mask is finer than
   // h; 0: the mask's own voxels, never resampled.
@@ -112,6 +116,9 @@ struct OutputGrid {
 };
 OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                             const TumorSurface& surface, const PathSafetyOptions& options);
+// The default region of interest radius: the distance from `centre` (LPS mm) to the farthest voxel
+// centre with b > 0; 0 when there is none.
+double farthest_blocking_mm(const Volume<float>& blocking, const Eigen::Vector3d& centre);
 
 // The tumor mask on an isotropic grid of `spacing` with the axes of the output grid and a lattice
 // through its centre (DESIGN.md §4, tumor sampling): a voxel is tumor when its centre lies in a

@@ -2,6 +2,7 @@
 // mm, voxelised by sampling them at voxel centres, so it looks the same at any spacing.
 #include "planning/simulation/phantom.hpp"
 
+#include <fmt/format.h>
 #include <spdlog/spdlog.h>
 
 #include <Eigen/Geometry>
@@ -201,6 +202,26 @@ double dome_z(double x, double y) {
   };
   return std::max(dome(kDomeRightX, kDomeRightApex), dome(kDomeLeftX, kDomeLeftApex));
 }
+
+// Breathing (DESIGN.md §10): the moving anatomy's displacement field, smooth, largest at the
+// diaphragm and fading with the vertical distance from it; bones, skin, the body wall, the spine
+// and the great vessels stay.
+constexpr double kBreathingAnteriorRatio = 0.35;  // anterior motion per mm of caudal motion
+constexpr double kBreathingFadeSigmaMm = 70.0;    // Gaussian fade with distance from the dome
+
+Vec3 breathing_direction() { return Vec3(0.0, -kBreathingAnteriorRatio, -1.0); }
+
+// Where a voxel's content comes from: in a phase, the moving anatomy at p is the anatomy at rest
+// (end-exhale) at p - u(p). Identity when the phase does not move.
+struct Warp {
+  double inhale = 0.0, amplitude_mm = 0.0;
+  bool moves() const { return inhale * amplitude_mm != 0.0; }
+  // Largest |u| anywhere (mm): a margin for bounding boxes.
+  double max_mm() const { return std::abs(inhale * amplitude_mm) * breathing_direction().norm(); }
+  Vec3 source(const Vec3& p) const {
+    return moves() ? Vec3(p - breathing_displacement(p, inhale, amplitude_mm)) : p;
+  }
+};
 
 // Kidney: tilted ellipsoid minus a hilum notch on its medial side. side = -1 right, +1 left.
 double kidney_sdf(const Vec3& p, int side) {
@@ -498,21 +519,23 @@ std::pair<int64_t, int64_t> index_range(const ImageGeometry& g, int a, double mi
 template <typename Allowed>
 void paint_capsules(const std::vector<Capsule>& capsules, const ImageGeometry& g, int64_t k,
                     const ColumnMaps& cols, uint8_t* labels, int16_t* hu, uint8_t label,
-                    Allowed allowed) {
+                    const Warp& warp, Allowed allowed) {
   const double z = g.origin.z() + g.spacing.z() * double(k);
+  const double m = warp.max_mm();
   for (const Capsule& c : capsules) {
-    if (z < std::min(c.a.z(), c.b.z()) - c.r || z > std::max(c.a.z(), c.b.z()) + c.r) continue;
+    const double r = c.r + m;
+    if (z < std::min(c.a.z(), c.b.z()) - r || z > std::max(c.a.z(), c.b.z()) + r) continue;
     const auto [i0, i1] =
-        index_range(g, 0, std::min(c.a.x(), c.b.x()) - c.r, std::max(c.a.x(), c.b.x()) + c.r);
+        index_range(g, 0, std::min(c.a.x(), c.b.x()) - r, std::max(c.a.x(), c.b.x()) + r);
     const auto [j0, j1] =
-        index_range(g, 1, std::min(c.a.y(), c.b.y()) - c.r, std::max(c.a.y(), c.b.y()) + c.r);
+        index_range(g, 1, std::min(c.a.y(), c.b.y()) - r, std::max(c.a.y(), c.b.y()) + r);
     for (int64_t j = j0; j <= j1; ++j) {
       for (int64_t i = i0; i <= i1; ++i) {
         const size_t col = size_t(i + g.dims[0] * j);
         if (!allowed(labels[col], cols.kind[col])) continue;
         const Vec3 p(g.origin.x() + g.spacing.x() * double(i),
                      g.origin.y() + g.spacing.y() * double(j), z);
-        if (segment_distance(p, c.a, c.b) <= c.r) {
+        if (segment_distance(warp.source(p), c.a, c.b) <= c.r) {
           labels[col] = label;
           hu[col] = kLabelHu[label];
         }
@@ -643,6 +666,15 @@ void check_options(const PhantomOptions& options) {
     m << "phantom: spacing " << options.spacing_mm << " mm is not usable (expected 0.3 to 10 mm)";
     throw Error(m.str());
   }
+  if (!(options.inhale >= 0.0 && options.inhale <= 1.0)) {
+    throw Error("phantom: inhale fraction " + std::to_string(options.inhale) +
+                " is not usable (expected 0 to 1)");
+  }
+  if (!(options.amplitude_mm >= 0.0 && options.amplitude_mm <= kMaxBreathingAmplitudeMm)) {
+    throw Error("phantom: breathing amplitude " + std::to_string(options.amplitude_mm) +
+                " mm is not usable (expected 0 to " + std::to_string(int(kMaxBreathingAmplitudeMm)) +
+                " mm)");
+  }
 }
 
 // The phantom's grid: isotropic `s` mm voxels over kExtentMm, centred on (0, 0, 0), LPS axes.
@@ -682,7 +714,8 @@ Vec3 voxel_centre(const ImageGeometry& g, int64_t i, int64_t j, double z) {
 }
 
 // Body wall and smooth organs, from the column maps.
-void paint_body_and_organs(const ImageGeometry& g, const ColumnMaps& cols, const Slice& sl) {
+void paint_body_and_organs(const ImageGeometry& g, const ColumnMaps& cols, const Warp& warp,
+                           const Slice& sl) {
   const int64_t nx = g.dims[0], ny = g.dims[1];
   for (int64_t j = 0; j < ny; ++j) {
     for (int64_t i = 0; i < nx; ++i) {
@@ -699,7 +732,13 @@ void paint_body_and_organs(const ImageGeometry& g, const ColumnMaps& cols, const
           sl.labels[c] = kMuscle;
           break;
         default:
-          cavity_voxel(p, cols.cavity_d[c], cols.dome[c], sl.labels[c], sl.hu[c]);
+          if (warp.moves()) {  // the cavity's content moves; its wall stays
+            const Vec3 q = warp.source(p);
+            cavity_voxel(q, cavity_sdf(q.x(), q.y()), dome_z(q.x(), q.y()), sl.labels[c],
+                         sl.hu[c]);
+          } else {
+            cavity_voxel(p, cols.cavity_d[c], cols.dome[c], sl.labels[c], sl.hu[c]);
+          }
           continue;
       }
       sl.hu[c] = kLabelHu[sl.labels[c]];
@@ -720,17 +759,21 @@ void paint_vessels_and_spine(const ImageGeometry& g, const ColumnMaps& cols, con
 }
 
 // Gas pockets in the bowel.
-void paint_gas(const std::vector<Sphere>& gas, const ImageGeometry& g, const Slice& sl) {
+void paint_gas(const std::vector<Sphere>& gas, const ImageGeometry& g, const Warp& warp,
+               const Slice& sl) {
   const int64_t nx = g.dims[0];
   for (const Sphere& sphere : gas) {
-    if (std::abs(sl.z - sphere.c.z()) > sphere.r) continue;
-    const auto [i0, i1] = index_range(g, 0, sphere.c.x() - sphere.r, sphere.c.x() + sphere.r);
-    const auto [j0, j1] = index_range(g, 1, sphere.c.y() - sphere.r, sphere.c.y() + sphere.r);
+    const double r = sphere.r + warp.max_mm();
+    if (std::abs(sl.z - sphere.c.z()) > r) continue;
+    const auto [i0, i1] = index_range(g, 0, sphere.c.x() - r, sphere.c.x() + r);
+    const auto [j0, j1] = index_range(g, 1, sphere.c.y() - r, sphere.c.y() + r);
     for (int64_t j = j0; j <= j1; ++j) {
       for (int64_t i = i0; i <= i1; ++i) {
         const size_t c = size_t(i + nx * j);
         const Vec3 p = voxel_centre(g, i, j, sl.z);
-        if (sl.labels[c] == kBowel && (p - sphere.c).norm() <= sphere.r) sl.hu[c] = kBowelGasHu;
+        if (sl.labels[c] == kBowel && (warp.source(p) - sphere.c).norm() <= sphere.r) {
+          sl.hu[c] = kBowelGasHu;
+        }
       }
     }
   }
@@ -741,23 +784,24 @@ struct IndexBox {
   std::pair<int64_t, int64_t> x, y, z;
 };
 
-IndexBox tumor_box(const ImageGeometry& g) {
+IndexBox tumor_box(const ImageGeometry& g, const Warp& warp) {
   IndexBox b;
-  b.z = index_range(g, 2, kTumorC.z() - kTumorBoundingR, kTumorC.z() + kTumorBoundingR);
-  b.x = index_range(g, 0, kTumorC.x() - kTumorBoundingR, kTumorC.x() + kTumorBoundingR);
-  b.y = index_range(g, 1, kTumorC.y() - kTumorBoundingR, kTumorC.y() + kTumorBoundingR);
+  const double r = kTumorBoundingR + warp.max_mm();
+  b.z = index_range(g, 2, kTumorC.z() - r, kTumorC.z() + r);
+  b.x = index_range(g, 0, kTumorC.x() - r, kTumorC.x() + r);
+  b.y = index_range(g, 1, kTumorC.y() - r, kTumorC.y() + r);
   return b;
 }
 
 // The tumor: liver tissue (vessels carved out) inside the lobes.
-void paint_tumor(const ImageGeometry& g, const IndexBox& box, const Slice& sl) {
+void paint_tumor(const ImageGeometry& g, const IndexBox& box, const Warp& warp, const Slice& sl) {
   if (sl.k < box.z.first || sl.k > box.z.second) return;
   const int64_t nx = g.dims[0];
   for (int64_t j = box.y.first; j <= box.y.second; ++j) {
     for (int64_t i = box.x.first; i <= box.x.second; ++i) {
       const size_t c = size_t(i + nx * j);
       if (sl.labels[c] != kLiver && sl.labels[c] != kLiverVessel) continue;
-      if (!in_tumor(voxel_centre(g, i, j, sl.z))) continue;
+      if (!in_tumor(warp.source(voxel_centre(g, i, j, sl.z)))) continue;
       sl.labels[c] = kLiver;
       sl.hu[c] = kTumorHu;
       sl.tumor[c] = 1;
@@ -775,19 +819,19 @@ void add_noise(uint64_t noise_key, int64_t slice_size, const Slice& sl) {
 
 // Paints one slice; each step overrides what the steps before it painted.
 void paint_slice(const ImageGeometry& g, const Scene& scene, const ColumnMaps& cols,
-                 const IndexBox& tumor, uint64_t noise_key, const Slice& sl) {
-  paint_body_and_organs(g, cols, sl);
+                 const IndexBox& tumor, const Warp& warp, uint64_t noise_key, const Slice& sl) {
+  paint_body_and_organs(g, cols, warp, sl);
   // Bowel in the fat of the abdominal cavity; liver vessels inside the liver.
-  paint_capsules(scene.bowel, g, sl.k, cols, sl.labels, sl.hu, kBowel,
+  paint_capsules(scene.bowel, g, sl.k, cols, sl.labels, sl.hu, kBowel, warp,
                  [](uint8_t l, uint8_t col) { return l == kFat && col == kColCavity; });
-  paint_capsules(scene.liver_vessels, g, sl.k, cols, sl.labels, sl.hu, kLiverVessel,
+  paint_capsules(scene.liver_vessels, g, sl.k, cols, sl.labels, sl.hu, kLiverVessel, warp,
                  [](uint8_t l, uint8_t) { return l == kLiver; });
   paint_vessels_and_spine(g, cols, sl);
   // Ribs after the spine (inside the body).
-  paint_capsules(scene.ribs, g, sl.k, cols, sl.labels, sl.hu, kBone,
+  paint_capsules(scene.ribs, g, sl.k, cols, sl.labels, sl.hu, kBone, Warp{},
                  [](uint8_t, uint8_t col) { return col != kColAir; });
-  paint_gas(scene.gas, g, sl);
-  paint_tumor(g, tumor, sl);
+  paint_gas(scene.gas, g, warp, sl);
+  paint_tumor(g, tumor, warp, sl);
   add_noise(noise_key, g.dims[0] * g.dims[1], sl);
 }
 
@@ -803,7 +847,8 @@ Phantom make_phantom(const PhantomOptions& options) {
 
   const Scene scene = make_scene_parts(options.seed);
   const ColumnMaps cols = make_column_maps(g);
-  const IndexBox tumor = tumor_box(g);
+  const Warp warp{options.inhale, options.amplitude_mm};
+  const IndexBox tumor = tumor_box(g, warp);
   const uint64_t noise_key = splitmix64(options.seed ^ 0x6E6F697365ull);
   const int64_t nx = g.dims[0], ny = g.dims[1], nz = g.dims[2];
   const int64_t slice_size = nx * ny;
@@ -812,7 +857,7 @@ Phantom make_phantom(const PhantomOptions& options) {
     const Slice slice{k, g.origin.z() + g.spacing.z() * double(k),
                       ph.labels.data() + k * slice_size, ph.ct.data() + k * slice_size,
                       ph.tumor.data() + k * slice_size};
-    paint_slice(g, scene, cols, tumor, noise_key, slice);
+    paint_slice(g, scene, cols, tumor, warp, noise_key, slice);
   }
 
   ph.vulnerability = nlohmann::json::parse(preset_sources().at("phantom"));
@@ -830,6 +875,104 @@ void write_phantom(const Phantom& phantom, const std::string& dir) {
   write_volume(phantom.tumor, out.file("tumor.nii.gz"));
   write_text_file(out.file("vulnerability.json"), phantom.vulnerability.dump(2) + "\n");
   out.commit();
+}
+
+Eigen::Vector3d breathing_displacement(const Eigen::Vector3d& p, double inhale,
+                                       double amplitude_mm) {
+  const double d = p.z() - dome_z(p.x(), p.y());  // vertical distance from the diaphragm
+  const double w = std::exp(-0.5 * d * d / (kBreathingFadeSigmaMm * kBreathingFadeSigmaMm));
+  return inhale * amplitude_mm * w * breathing_direction();
+}
+
+Eigen::Vector3d breathing_position(const Eigen::Vector3d& p_rest, double inhale,
+                                   double amplitude_mm) {
+  // q = p_rest + u(q): a contraction (|grad u| < 0.5 for amplitudes up to the maximum).
+  Vec3 q = p_rest;
+  for (int it = 0; it < 100; ++it) {
+    const Vec3 next = p_rest + breathing_displacement(q, inhale, amplitude_mm);
+    const bool done = (next - q).norm() < 1e-9;
+    q = next;
+    if (done) break;
+  }
+  return q;
+}
+
+double breathing_inhale(int phase, int phases) {
+  const double s = std::sin(kPi * double(phase) / double(phases));
+  return s * s;
+}
+
+nlohmann::json write_breathing_phantom(const PhantomOptions& base, int phases,
+                                       const std::string& dir,
+                                       const std::function<void(int, const Phantom&)>& progress) {
+  if (phases < 2 || phases > 50) {
+    throw Error("phantom: " + std::to_string(phases) + " breathing phases are not usable (expected "
+                "2 to 50)");
+  }
+  check_options(base);
+  StagedDirectory out(dir);
+  nlohmann::json list = nlohmann::json::array();
+  Vec3 rest_centroid = Vec3::Zero();
+  nlohmann::json vulnerability;
+  for (int k = 0; k < phases; ++k) {
+    PhantomOptions o = base;
+    o.inhale = breathing_inhale(k, phases);
+    const Phantom ph = make_phantom(o);
+    // The tumor's centroid at rest, from the mask: the motion curve starts there.
+    if (k == 0) {
+      const ImageGeometry& g = ph.tumor.geometry();
+      Vec3 sum = Vec3::Zero();
+      int64_t n = 0;
+      for (int64_t kk = 0; kk < g.dims[2]; ++kk) {
+        for (int64_t j = 0; j < g.dims[1]; ++j) {
+          for (int64_t i = 0; i < g.dims[0]; ++i) {
+            if (ph.tumor(i, j, kk)) {
+              sum += g.index_to_physical(i, j, kk);
+              ++n;
+            }
+          }
+        }
+      }
+      rest_centroid = sum / double(std::max<int64_t>(n, 1));
+      vulnerability = ph.vulnerability;
+    }
+    const std::string name = fmt::format("phase{:02d}", k);
+    std::filesystem::create_directories(std::filesystem::path(out.path()) / name);
+    write_volume(ph.ct, out.file(name + "/ct.nii.gz"));
+    write_volume(ph.labels, out.file(name + "/labels.nii.gz"));
+    write_volume(ph.tumor, out.file(name + "/tumor.nii.gz"));
+    const Vec3 c = breathing_position(rest_centroid, o.inhale, o.amplitude_mm);
+    list.push_back({{"name", name},
+                    {"cycle_fraction", double(k) / double(phases)},
+                    {"inhale", o.inhale},
+                    {"labels", name + "/labels.nii.gz"},
+                    {"tumor", name + "/tumor.nii.gz"},
+                    {"ct", name + "/ct.nii.gz"},
+                    {"tumor_centroid_lps_mm", {c.x(), c.y(), c.z()}}});
+    if (progress) progress(k, ph);
+  }
+  write_text_file(out.file("vulnerability.json"), vulnerability.dump(2) + "\n");
+  const Vec3 dir_lps = breathing_direction().normalized();
+  nlohmann::json doc = {
+      {"format", "crepuscular-phases"},
+      {"version", 1},
+      {"description",
+       "breathing cycle of the built-in phantom: phase 0 end-exhale, the middle phase "
+       "end-inhale; paths are relative to this file"},
+      {"vulnerability", "vulnerability.json"},
+      {"motion",
+       {{"amplitude_mm", base.amplitude_mm},
+        {"direction_lps", {dir_lps.x(), dir_lps.y(), dir_lps.z()}},
+        {"fade_sigma_mm", kBreathingFadeSigmaMm},
+        {"inhale", "sin^2(pi k / phases)"},
+        {"moves", "diaphragm, liver and its vessels, tumor, kidneys, spleen, bowel, heart, lungs"},
+        {"stays", "skin, fat and muscle wall, ribs, spine, aorta, vena cava"}}},
+      {"seed", base.seed},
+      {"spacing_mm", base.spacing_mm},
+      {"phases", list}};
+  write_text_file(out.file("phases.json"), doc.dump(2) + "\n");
+  out.commit();
+  return doc;
 }
 
 }  // namespace crepuscular::planning

@@ -3,18 +3,29 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <string>
 
 // The full json.hpp: Phantom holds its vulnerability table as a JSON value.
 #include <nlohmann/json.hpp>
+#include <Eigen/Core>
 
 #include "planning/imaging/volume.hpp"
 
 namespace crepuscular::planning {
 
+// Breathing (DESIGN.md §10): the diaphragm, the organs below it (liver, its vessels, the tumor,
+// kidneys, spleen, bowel) and the heart and lungs' bases move by the displacement field
+// u = inhale * amplitude * w * (0, -0.35, -1) (caudal and anterior), with w = 1 at the
+// diaphragm's dome and a Gaussian fade (sigma 70 mm) with the vertical distance from it; bones,
+// skin, body wall, spine, aorta and vena cava stay.
+constexpr double kMaxBreathingAmplitudeMm = 30.0;
+
 struct PhantomOptions {
   double spacing_mm = 3.0;  // isotropic voxel size
   uint64_t seed = 1;        // same seed, same phantom
+  double inhale = 0.0;         // 0: end-exhale (the phantom at rest) .. 1: end-inhale
+  double amplitude_mm = 12.0;  // cranio-caudal motion of the diaphragm's dome at end-inhale
 };
 
 struct Phantom {
@@ -31,5 +42,24 @@ Phantom make_phantom(const PhantomOptions& options);
 // Writes ct.nii.gz, labels.nii.gz, tumor.nii.gz and vulnerability.json as the folder `dir`,
 // staged: complete or not at all; an existing `dir` is replaced only when crepuscular wrote it.
 void write_phantom(const Phantom& phantom, const std::string& dir);
+
+// The breathing displacement u (LPS mm) at a point p of a phase (inhale 0..1, amplitude in mm):
+// the content of the phase at p is the phantom at rest at p - u(p).
+Eigen::Vector3d breathing_displacement(const Eigen::Vector3d& p, double inhale,
+                                       double amplitude_mm);
+// Where the material at `p_rest` (end-exhale) lies in a phase: the q with q - u(q) = p_rest.
+Eigen::Vector3d breathing_position(const Eigen::Vector3d& p_rest, double inhale,
+                                   double amplitude_mm);
+// Inhale fraction of phase k of a cycle of n phases: sin^2(pi k / n) (phase 0 end-exhale, phase
+// n/2 end-inhale).
+double breathing_inhale(int phase, int phases);
+
+// Writes a breathing cycle of `phases` phases (2..50) of the phantom `base` into the folder `dir`,
+// staged: phaseKK/{ct,labels,tumor}.nii.gz per phase, vulnerability.json, and phases.json (the
+// list the plan reads: per phase its files, inhale fraction and the tumor centroid the motion
+// predicts). `progress(k)` is called after phase k is written. Returns phases.json's content.
+nlohmann::json write_breathing_phantom(const PhantomOptions& base, int phases,
+                                       const std::string& dir,
+                                       const std::function<void(int, const Phantom&)>& progress = {});
 
 }  // namespace crepuscular::planning

@@ -251,6 +251,30 @@ EntryArea entry_area(const AreaSafetyGeometry& a, const Eigen::Vector3d& entry) 
 
 }  // namespace
 
+namespace {
+
+// Breathing plans: the entry's value in each phase and the least safe phase (DESIGN.md §10).
+void worst_phase(const PlanData& plan, const std::string& value, const Eigen::Vector3d& entry,
+                 EntryValue& ev) {
+  ev.at_worst_phase = kNaN;
+  const auto it = plan.phase_path_safety.find(value);
+  if (it == plan.phase_path_safety.end()) return;
+  const bool higher_is_safer = plan.classes.at(value).higher_is_safer;
+  for (size_t k = 0; k < it->second.size(); ++k) {
+    const double x = sample_path_safety(it->second[k], entry);
+    ev.per_phase.push_back(x);
+    if (!std::isfinite(x)) continue;
+    const bool worse = std::isnan(ev.at_worst_phase) ||
+                       (higher_is_safer ? x < ev.at_worst_phase : x > ev.at_worst_phase);
+    if (worse && k < plan.phases.size()) {
+      ev.at_worst_phase = x;
+      ev.worst_phase = plan.phases[k];
+    }
+  }
+}
+
+}  // namespace
+
 TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
   const PlanData& plan = impl_->plan;
   TrajectoryEvaluation e;
@@ -281,6 +305,7 @@ TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
     // Unknown is never safe: no value at an entry outside the scan (the trilinear sample could
     // borrow one from computed neighbours), and no "safe" for a path that leaves the scan.
     EntryValue& ev = e.values.back();
+    worst_phase(plan, value, t.entry, ev);
     if (e.entry_outside_scan) {
       ev.at_entry = ev.percentile = ev.safety_percentile = kNaN;
       ev.safety_class = "unknown";
@@ -337,6 +362,14 @@ nlohmann::json evaluation_json(const TrajectoryEvaluation& e) {
                        {"class", v.safety_class},
                        {"percentile", num(v.percentile)},
                        {"safety_percentile", num(v.safety_percentile)}};
+    if (!v.per_phase.empty()) {
+      nlohmann::json per_phase = nlohmann::json::array();
+      for (double x : v.per_phase) per_phase.push_back(num(x));
+      values[v.value]["per_phase"] = per_phase;
+      values[v.value]["worst_phase"] =
+          v.worst_phase.empty() ? nlohmann::json(nullptr) : nlohmann::json(v.worst_phase);
+      values[v.value]["at_worst_phase"] = num(v.at_worst_phase);
+    }
   }
   j["path_safety"] = values;
   if (e.area.available) {
@@ -407,6 +440,10 @@ std::string evaluation_text(const TrajectoryEvaluation& e) {
     }
     s << fmt::format("  {:<5} {:>12.4g}  {:<9} safer than {:>5.1f} % of the region of interest\n",
                      v.value, v.at_entry, v.safety_class, v.safety_percentile);
+    if (!v.worst_phase.empty()) {
+      s << fmt::format("        worst over {} breathing phases: {:.4g} in {}\n",
+                       v.per_phase.size(), v.at_worst_phase, v.worst_phase);
+    }
   }
   if (e.area.available) {
     if (e.leaves_scan()) {

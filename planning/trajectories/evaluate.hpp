@@ -52,6 +52,11 @@ struct EntryValue {
   std::string safety_class;
   double percentile = 0;         // % of ROI voxels with a lower value (ties count half)
   double safety_percentile = 0;  // % of ROI voxels less safe than the entry (100: safest)
+  // Breathing plans with per-phase volumes: the value at the entry in each phase, and the least
+  // safe phase (svv: the lowest value; the others: the highest); empty / NaN otherwise.
+  std::vector<double> per_phase;
+  std::string worst_phase;
+  double at_worst_phase = 0;
 };
 
 // The area safety region of the entry: the base vertex of the area safety geometry whose normal

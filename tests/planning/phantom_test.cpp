@@ -379,5 +379,99 @@ TEST(Phantom, WritesFourFilesThatReadBack) {
   EXPECT_TRUE(tumor.values() == ph.tumor.values());
 }
 
+// Breathing (DESIGN.md §10). Phases of a 10-phase cycle at 12 mm, 3 mm voxels.
+Phantom breathing_phase(int phase) {
+  PhantomOptions o = options(3.0, 1);
+  o.inhale = breathing_inhale(phase, 10);
+  o.amplitude_mm = 12.0;
+  return make_phantom(o);
+}
+
+TEST(PhantomBreathing, DisplacementIsTwelveMmCaudalAtTheDomeAndFadesBelow) {
+  // At the right dome's apex (x -65, y -10, z 80) the full displacement: 12 mm caudal, 0.35 x 12
+  // anterior (LPS: -z, -y).
+  const Eigen::Vector3d u = breathing_displacement(Eigen::Vector3d(-65, -10, 80), 1.0, 12.0);
+  EXPECT_NEAR(u.x(), 0.0, 1e-12);
+  EXPECT_NEAR(u.y(), -0.35 * 12.0, 1e-9);
+  EXPECT_NEAR(u.z(), -12.0, 1e-9);
+  // 70 mm below the dome (one sigma): exp(-1/2) of it.
+  const Eigen::Vector3d v = breathing_displacement(Eigen::Vector3d(-65, -10, 10), 1.0, 12.0);
+  EXPECT_NEAR(v.z(), -12.0 * std::exp(-0.5), 1e-9);
+  // The cycle: phase 0 at rest, the middle phase full inhale, symmetric.
+  EXPECT_EQ(breathing_inhale(0, 10), 0.0);
+  EXPECT_NEAR(breathing_inhale(5, 10), 1.0, 1e-15);
+  EXPECT_NEAR(breathing_inhale(2, 10), breathing_inhale(8, 10), 1e-15);
+}
+
+TEST(PhantomBreathing, TumorCentroidFollowsTheMotionCurveAndBonesStay) {
+  const Phantom rest = breathing_phase(0);
+  // Phase 0 is the phantom at rest, voxel for voxel.
+  EXPECT_TRUE(rest.labels.values() == phantom_3mm().labels.values());
+  const Eigen::Vector3d c0 = tumor_stats(rest).centroid;
+  const Stats bone0 = label_stats(rest, kBone);
+  double largest = 0.0;
+  for (const int phase : {2, 5}) {
+    const Phantom ph = breathing_phase(phase);
+    const Eigen::Vector3d c = tumor_stats(ph).centroid;
+    const Eigen::Vector3d expected = breathing_position(c0, breathing_inhale(phase, 10), 12.0);
+    EXPECT_LT((c - expected).norm(), 0.5)
+        << "phase " << phase << ": centroid " << c.transpose() << ", curve "
+        << expected.transpose();
+    // Mostly cranio-caudal (caudal = -z), with a smaller anterior (-y) component.
+    const Eigen::Vector3d moved = c - c0;
+    EXPECT_LT(moved.z(), -2.0) << "phase " << phase;
+    EXPECT_LT(moved.y(), 0.0) << "phase " << phase;
+    EXPECT_GT(std::abs(moved.z()), 2.0 * std::abs(moved.y())) << "phase " << phase;
+    largest = std::max(largest, moved.norm());
+    // Bones and the skin stay: every bone and air voxel is where it was.
+    int64_t changed = 0;
+    for (int64_t n = 0; n < ph.labels.voxel_count(); ++n) {
+      const bool was = rest.labels[n] == kBone || rest.labels[n] == kAir;
+      const bool is = ph.labels[n] == kBone || ph.labels[n] == kAir;
+      if (was != is && (rest.labels[n] != kLung && ph.labels[n] != kLung)) ++changed;
+    }
+    EXPECT_EQ(changed, 0) << "phase " << phase;
+    EXPECT_EQ(label_stats(ph, kBone).count, bone0.count) << "phase " << phase;
+  }
+  // The liver 70 mm below the dome moves about 12 x exp(-1/2) ~ 7.3 mm x 1.06 at end-inhale.
+  EXPECT_GT(largest, 6.0);
+  EXPECT_LT(largest, 9.0);
+}
+
+TEST(PhantomBreathing, DiaphragmDescendsByTheAmplitude) {
+  // The highest liver voxel in the column under the right dome drops by ~12 mm (one voxel of 3 mm).
+  const auto liver_top = [](const Phantom& ph) {
+    const auto& g = ph.labels.geometry();
+    const Eigen::Vector3d ijk = g.physical_to_index(Eigen::Vector3d(-65, -10, 0));
+    const int64_t i = std::llround(ijk.x()), j = std::llround(ijk.y());
+    for (int64_t k = g.dims[2] - 1; k >= 0; --k) {
+      if (ph.labels(i, j, k) == kLiver || ph.labels(i, j, k) == kLiverVessel) {
+        return g.index_to_physical(i, j, k).z();
+      }
+    }
+    return -1e9;
+  };
+  const double drop = liver_top(breathing_phase(0)) - liver_top(breathing_phase(5));
+  EXPECT_NEAR(drop, 12.0, 3.0);
+}
+
+TEST(PhantomBreathing, WritesPhasesJsonThatListsEveryPhase) {
+  const test::TemporaryFolder folder;
+  const std::string dir = folder.file("cycle");
+  PhantomOptions o = options(8.0, 2);
+  const nlohmann::json doc = write_breathing_phantom(o, 3, dir);
+  ASSERT_EQ(doc.at("phases").size(), 3u);
+  for (const auto& p : doc.at("phases")) {
+    for (const char* key : {"labels", "tumor", "ct"}) {
+      EXPECT_TRUE(std::filesystem::exists(dir + "/" + p.at(key).get<std::string>())) << key;
+    }
+  }
+  EXPECT_TRUE(std::filesystem::exists(dir + "/phases.json"));
+  EXPECT_TRUE(std::filesystem::exists(dir + "/vulnerability.json"));
+  EXPECT_THROW(write_breathing_phantom(o, 1, folder.file("one")), Error);
+  o.amplitude_mm = 100.0;
+  EXPECT_THROW(write_breathing_phantom(o, 3, folder.file("far")), Error);
+}
+
 }  // namespace
 }  // namespace crepuscular::planning

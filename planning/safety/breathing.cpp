@@ -1,0 +1,83 @@
+// Path safety over the breathing cycle: the voxelwise combination of the phases.
+#include "planning/safety/breathing.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include "foundation/error.hpp"
+#include "kernels/path_safety_math.hpp"
+#include "planning/safety/unknown.hpp"
+
+namespace crepuscular::planning {
+
+namespace {
+
+// SVV is safer when higher: the least safe phase has the smallest value.
+bool higher_is_safer(int slot) { return (1u << slot) == kernels::kSvv; }
+
+}  // namespace
+
+void PhaseCombiner::add(const PathSafetyResult& phase, const Volume<uint8_t>& region) {
+  const ImageGeometry& g = phase.grid.geometry;
+  if (!region.geometry().same_grid(g, 1e-6)) {
+    throw Error("breathing phase " + std::to_string(phases_ + 1) +
+                ": its voxel states are not on its path safety grid");
+  }
+  if (phases_ == 0) {
+    combined_ = phase;
+    region_ = region;
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      if (phase.values & (1u << v)) other_[size_t(v)] = phase.volumes[size_t(v)];
+    }
+    phases_ = 1;
+    return;
+  }
+  if (!g.same_grid(combined_.grid.geometry, 1e-6) || phase.values != combined_.values) {
+    throw Error("breathing phase " + std::to_string(phases_ + 1) +
+                ": its path safety grid or values differ from the first phase's (the phases "
+                "must share one output grid)");
+  }
+  const int64_t n = g.voxel_count();
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  // Voxel states: computed only where computed in every phase; unknown wins over not computed.
+  for (int64_t i = 0; i < n; ++i) {
+    const uint8_t a = region_[i], b = region[i];
+    if (a == kRegionComputed && b == kRegionComputed) continue;
+    region_[i] = (a == kRegionUnknown || b == kRegionUnknown) ? kRegionUnknown : kRegionNotComputed;
+  }
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (!(phase.values & (1u << v))) continue;
+    const bool svv = higher_is_safer(v);
+    Volume<float>& worst = combined_.volumes[size_t(v)];
+    Volume<float>& other = other_[size_t(v)];
+    const Volume<float>& x = phase.volumes[size_t(v)];
+    for (int64_t i = 0; i < n; ++i) {
+      const float w = worst[i], o = other[i], p = x[i];
+      if (std::isnan(w) || std::isnan(p)) {
+        worst[i] = nan;
+        other[i] = nan;
+        continue;
+      }
+      worst[i] = svv ? std::min(w, p) : std::max(w, p);
+      other[i] = svv ? std::max(o, p) : std::min(o, p);
+    }
+  }
+  combined_.seconds += phase.seconds;
+  combined_.rays += phase.rays;
+  ++phases_;
+}
+
+double PhaseCombiner::class_change_share(int slot, const SafetyClasses& classes) const {
+  const Volume<float>& worst = combined_.volumes[size_t(slot)];
+  const Volume<float>& other = other_[size_t(slot)];
+  int64_t known = 0, changing = 0;
+  for (int64_t i = 0; i < worst.voxel_count(); ++i) {
+    if (region_[i] != kRegionComputed || std::isnan(worst[i])) continue;
+    ++known;
+    if (classes.classify(worst[i]) != classes.classify(other[i])) ++changing;
+  }
+  return known ? double(changing) / double(known) : 0.0;
+}
+
+}  // namespace crepuscular::planning

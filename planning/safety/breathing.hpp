@@ -1,0 +1,44 @@
+// Path safety over the breathing cycle (DESIGN.md §10): the phases' volumes on one output grid
+// combined so that a voxel is safe only if it is safe in every phase.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <vector>
+
+#include "planning/safety/path_safety.hpp"
+#include "planning/safety/safety_classes.hpp"
+
+namespace crepuscular::planning {
+
+// Folds the phases in one at a time (memory: two sets of volumes, whatever the number of phases).
+// Combination per voxel: SVV the minimum over the phases, ISBV, IVBV and BVV the maximum (the
+// least safe phase); a voxel unknown (NaN, state kRegionUnknown) in any phase is unknown in the
+// combination; one not computed in some phase (outside its region) is not computed.
+class PhaseCombiner {
+ public:
+  // The first phase fixes the grid and the values; later ones must match (Error otherwise).
+  void add(const PathSafetyResult& phase, const Volume<uint8_t>& region);
+
+  int phases() const { return phases_; }
+  // The combination: the first phase's grid and parameters, the combined volumes, the summed
+  // time and rays.
+  const PathSafetyResult& combined() const { return combined_; }
+  const Volume<uint8_t>& region() const { return region_; }
+  // Per value slot, the other end of the range over the phases (SVV: the maximum; the others: the
+  // minimum); NaN where the combination is.
+  const Volume<float>& other_extreme(int slot) const { return other_[size_t(slot)]; }
+
+  // Share (0..1) of the computed voxels of the combination whose class under `classes` is not the
+  // same in every phase: classes are monotone in the value, so the class changes over the cycle
+  // exactly where the minimum and the maximum over the phases fall in different classes.
+  double class_change_share(int slot, const SafetyClasses& classes) const;
+
+ private:
+  int phases_ = 0;
+  PathSafetyResult combined_;
+  std::array<Volume<float>, kernels::kValueCount> other_;
+  Volume<uint8_t> region_;
+};
+
+}  // namespace crepuscular::planning

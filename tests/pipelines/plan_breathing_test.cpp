@@ -1,0 +1,253 @@
+// Planning over the breathing cycle (DESIGN.md §10): the combination of the phases on one grid,
+// checked against the single-phase plan, the per-phase volumes, a vessel that moves across a path
+// and a rigid shift of the whole scene.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "foundation/error.hpp"
+#include "pipelines/plan.hpp"
+#include "planning/imaging/volume_io.hpp"
+#include "planning/safety/unknown.hpp"
+#include "planning/plan_folder/plan_folder.hpp"
+#include "planning/trajectories/evaluate.hpp"
+#include "tests/support/plans.hpp"
+#include "tests/support/temporary_folder.hpp"
+
+namespace fs = std::filesystem;
+
+namespace crepuscular::planning {
+namespace {
+
+using pipelines::PlanRequest;
+using pipelines::run_plan;
+
+const char* const kValues[] = {"svv", "isbv", "ivbv", "bvv"};
+
+// phases.json listing (labels, tumor) per phase, paths relative to `dir`.
+std::string write_phase_list(const fs::path& dir,
+                             const std::vector<std::pair<std::string, std::string>>& phases) {
+  nlohmann::json list = nlohmann::json::array();
+  for (const auto& [labels, tumor] : phases) {
+    list.push_back({{"labels", fs::relative(labels, dir).string()},
+                    {"tumor", fs::relative(tumor, dir).string()}});
+  }
+  const std::string path = (dir / "phases.json").string();
+  std::ofstream(path) << nlohmann::json{{"vulnerability", "table.json"}, {"phases", list}}.dump(2);
+  return path;
+}
+
+PlanRequest phases_request(const std::string& phases, const std::string& out) {
+  PlanRequest r;
+  r.phases = phases;
+  r.path_safety.radius_mm = 16.0;
+  r.path_safety.device = Device::kCpu;
+  r.per_phase = true;
+  r.out_dir = out;
+  return r;
+}
+
+// Same values bit for bit, NaN at the same voxels.
+void expect_identical(const Volume<float>& a, const Volume<float>& b, const std::string& what) {
+  ASSERT_TRUE(a.geometry().same_grid(b.geometry(), 0.0)) << what;
+  int64_t differing = 0;
+  for (int64_t n = 0; n < a.voxel_count(); ++n) {
+    const bool same = std::isnan(a[n]) ? std::isnan(b[n]) : a[n] == b[n];
+    differing += same ? 0 : 1;
+  }
+  EXPECT_EQ(differing, 0) << what;
+}
+
+// The mini plan's labels (fat, tumor block at voxels 10..12) with the vessel column on
+// i = vessel_i, j = 9..13, every k.
+std::string write_labels_with_vessel_at(const fs::path& dir, const std::string& name,
+                                        int vessel_i) {
+  Volume<int32_t> labels(test::mini_plan_grid(), 1);
+  for (int k = 0; k < 24; ++k) {
+    for (int j = 9; j <= 13; ++j) labels(vessel_i, j, k) = 2;
+  }
+  const std::string path = (dir / name).string();
+  write_volume(labels, path);
+  return path;
+}
+
+TEST(PlanBreathing, IdenticalPhasesGiveExactlyTheSinglePhasePlan) {
+  const test::TemporaryFolder dir;
+  const test::MiniPlanInputs in = test::write_mini_plan_inputs(dir.path());
+  const nlohmann::json single = run_plan(in.request(dir.file("single")));
+  const std::string list =
+      write_phase_list(dir.path(), {{in.labels, in.tumor}, {in.labels, in.tumor},
+                                    {in.labels, in.tumor}});
+  const nlohmann::json cycle = run_plan(phases_request(list, dir.file("cycle")));
+  EXPECT_EQ(cycle["grid"], single["grid"]);
+  for (const char* v : kValues) {
+    expect_identical(read_volume<float>(dir.file("single/path_safety_") + v + ".nii.gz"),
+                     read_volume<float>(dir.file("cycle/path_safety_") + v + ".nii.gz"), v);
+    EXPECT_EQ(cycle["classes"][v], single["classes"][v]) << v;
+    EXPECT_EQ(cycle["breathing"]["class_change_share"][v].get<double>(), 0.0) << v;
+  }
+  const Volume<uint8_t> roi_single = read_volume<uint8_t>(dir.file("single/roi.nii.gz"));
+  const Volume<uint8_t> roi_cycle = read_volume<uint8_t>(dir.file("cycle/roi.nii.gz"));
+  EXPECT_TRUE(roi_single.values() == roi_cycle.values());
+  EXPECT_EQ(cycle["breathing"]["phases"].size(), 3u);
+}
+
+// Two phases: the vessel column at i = 16 (between the tumor and the voxels at i >= 17, inside the 16 mm region) and at
+// i = 4 (on the other side).
+class MovingVessel : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    in_ = test::write_mini_plan_inputs(dir_.path());
+    const std::string a = write_labels_with_vessel_at(dir_.path(), "labels_a.nii.gz", 16);
+    const std::string b = write_labels_with_vessel_at(dir_.path(), "labels_b.nii.gz", 4);
+    plan_ = run_plan(phases_request(
+        write_phase_list(dir_.path(), {{a, in_.tumor}, {b, in_.tumor}}), dir_.file("plan")));
+  }
+  Volume<float> volume(const std::string& name) const {
+    return read_volume<float>(dir_.file("plan/" + name + ".nii.gz"));
+  }
+  test::TemporaryFolder dir_;
+  test::MiniPlanInputs in_;
+  nlohmann::json plan_;
+};
+
+TEST_F(MovingVessel, CombinationIsTheVoxelwiseMinimumOfSvvAndMaximumOfTheOthers) {
+  // Voxels computed in every phase (roi.nii.gz state 1): ITK's NIfTI reader turns NaN into 0, so
+  // the voxel states say where there is a value.
+  const Volume<uint8_t> roi = read_volume<uint8_t>(dir_.file("plan/roi.nii.gz"));
+  for (const char* v : kValues) {
+    const std::string value = v;
+    const Volume<float> combined = volume("path_safety_" + value);
+    const Volume<float> a = volume("path_safety_" + value + "_phase00");
+    const Volume<float> b = volume("path_safety_" + value + "_phase01");
+    int64_t checked = 0, differing_phases = 0;
+    for (int64_t n = 0; n < combined.voxel_count(); ++n) {
+      if (roi[n] != kRegionComputed) continue;
+      const float expected = value == "svv" ? std::min(a[n], b[n]) : std::max(a[n], b[n]);
+      ASSERT_EQ(combined[n], expected) << value << " voxel " << n;
+      ++checked;
+      differing_phases += a[n] != b[n] ? 1 : 0;
+    }
+    EXPECT_GT(checked, 1000) << value;
+    EXPECT_GT(differing_phases, 100) << value << ": the phases should differ";
+  }
+}
+
+TEST_F(MovingVessel, PathSafeInOnePhaseIsUnsafeInTheCombination) {
+  // Voxel (18, 11, 11) of the mini grid, on the +x side of the tumor: behind the vessel at
+  // i = 16 in phase 0, in the open in phase 1 (the vessel then lies at i = 4, on the far side).
+  const Eigen::Vector3d p = test::mini_plan_grid().index_to_physical(18, 11, 11);
+  const Volume<float> combined = volume("path_safety_svv");
+  const Volume<float> a = volume("path_safety_svv_phase00");
+  const Volume<float> b = volume("path_safety_svv_phase01");
+  const Eigen::Vector3d ijk = combined.physical_to_index(p);
+  const int64_t i = std::llround(ijk.x()), j = std::llround(ijk.y()), k = std::llround(ijk.z());
+  ASSERT_NEAR((combined.index_to_physical(i, j, k) - p).norm(), 0.0, 1e-6);
+  EXPECT_GE(b(i, j, k), 90.0f) << "safe in phase 1: every visible tumor point in the open";
+  EXPECT_LT(a(i, j, k), 50.0f) << "dangerous in phase 0: the vessel lies across the paths";
+  EXPECT_EQ(combined(i, j, k), a(i, j, k));
+  const SafetyClasses classes = classes_from_json(plan_, "svv", "plan.json");
+  EXPECT_EQ(classes.classify(combined(i, j, k)), SafetyClass::kDangerous);
+  // Some of the region changes class over the cycle, not all of it.
+  const double share = plan_["breathing"]["class_change_share"]["svv"].get<double>();
+  EXPECT_GT(share, 0.01);
+  EXPECT_LT(share, 0.9);
+}
+
+TEST_F(MovingVessel, EvaluateNamesTheWorstPhaseAndItsValue) {
+  const PlanData plan = load_plan(dir_.file("plan"));
+  ASSERT_EQ(plan.phases, (std::vector<std::string>{"phase00", "phase01"}));
+  const TrajectoryEvaluator evaluator(plan);
+  const Eigen::Vector3d entry = test::mini_plan_grid().index_to_physical(18, 11, 11);
+  const TrajectoryEvaluation e = evaluator.evaluate({"lateral", entry, plan.tumor_centre});
+  const Volume<float> a = volume("path_safety_svv_phase00");
+  const Eigen::Vector3d ijk = a.physical_to_index(entry);
+  const float a_entry = a(std::llround(ijk.x()), std::llround(ijk.y()), std::llround(ijk.z()));
+  bool found = false;
+  for (const EntryValue& v : e.values) {
+    if (v.value != "svv") continue;
+    found = true;
+    ASSERT_EQ(v.per_phase.size(), 2u);
+    EXPECT_EQ(v.worst_phase, "phase00");  // the vessel lies across the path in phase 0
+    EXPECT_NEAR(v.at_worst_phase, a_entry, 1e-4);
+    EXPECT_GE(v.per_phase[1], 90.0);
+    EXPECT_NE(evaluation_text(e).find("in phase00"), std::string::npos) << evaluation_text(e);
+  }
+  EXPECT_TRUE(found);
+}
+
+TEST(PlanBreathing, RigidShiftOfTheSceneShiftsEachPhasesVolumeByTheSameVector) {
+  // Phase 1 is phase 0 moved by s = (0, 0, 4) mm (two voxels of the 2 mm output grid): its path
+  // safety at x is phase 0's at x - s. The shared grid sits on the mean centroid, so both x and
+  // x - s are voxels of it.
+  const test::TemporaryFolder dir;
+  fs::create_directories(dir.path() / "a");
+  fs::create_directories(dir.path() / "b");
+  const test::MiniPlanInputs a = test::write_mini_plan_inputs(dir.path() / "a");
+  test::MiniPlanOptions shifted;
+  shifted.grid.origin += Eigen::Vector3d(0, 0, 4);
+  const test::MiniPlanInputs b = test::write_mini_plan_inputs(dir.path() / "b", shifted);
+  test::write_fat_and_vessel_table(dir.file("table.json"));
+  const nlohmann::json plan = run_plan(phases_request(
+      write_phase_list(dir.path(), {{a.labels, a.tumor}, {b.labels, b.tumor}}), dir.file("plan")));
+  // The grid's centre: the mean of the two centroids, 2 mm above phase 0's.
+  const Eigen::Vector3d c0 = test::mini_plan_grid().index_to_physical(11, 11, 11);
+  const auto centre = plan["grid"]["centre_lps_mm"].get<std::vector<double>>();
+  EXPECT_NEAR(centre[0], c0.x(), 1e-9);
+  EXPECT_NEAR(centre[1], c0.y(), 1e-9);
+  EXPECT_NEAR(centre[2], c0.z() + 2.0, 1e-9);
+  const Volume<uint8_t> roi = read_volume<uint8_t>(dir.file("plan/roi.nii.gz"));
+  for (const char* v : kValues) {
+    const std::string value = v;
+    const Volume<float> pa = read_volume<float>(dir.file("plan/path_safety_" + value + "_phase00.nii.gz"));
+    const Volume<float> pb = read_volume<float>(dir.file("plan/path_safety_" + value + "_phase01.nii.gz"));
+    const auto& d = pa.dims();
+    int64_t compared = 0;
+    double worst = 0.0, largest = 0.0;
+    for (int64_t k = 2; k < d[2]; ++k) {
+      for (int64_t j = 0; j < d[1]; ++j) {
+        for (int64_t i = 0; i < d[0]; ++i) {
+          // Both voxels computed (ITK's NIfTI reader turns the NaN of the others into 0).
+          if (roi(i, j, k) != kRegionComputed || roi(i, j, k - 2) != kRegionComputed) continue;
+          const float x = pb(i, j, k), y = pa(i, j, k - 2);
+          worst = std::max(worst, double(std::abs(x - y)));
+          largest = std::max(largest, double(std::abs(y)));
+          ++compared;
+        }
+      }
+    }
+    EXPECT_GT(compared, 1000) << value;
+    EXPECT_GT(largest, 0.0) << value;
+    EXPECT_LE(worst, 1e-4 * largest) << value << " (largest value " << largest << ")";
+  }
+}
+
+TEST(PlanBreathing, BadPhaseListsAreRefusedNamingTheFile) {
+  const test::TemporaryFolder dir;
+  const test::MiniPlanInputs in = test::write_mini_plan_inputs(dir.path());
+  const std::string one = write_phase_list(dir.path(), {{in.labels, in.tumor}});
+  try {
+    run_plan(phases_request(one, dir.file("plan")));
+    ADD_FAILURE() << "one phase accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("phases.json"), std::string::npos) << e.what();
+  }
+  std::ofstream(dir.file("phases.json"))
+      << R"({"phases": [{"labels": "labels.nii.gz", "tumor": "tumor.nii.gz"},
+                        {"labels": "missing.nii.gz", "tumor": "tumor.nii.gz"}]})";
+  try {
+    run_plan(phases_request(dir.file("phases.json"), dir.file("plan")));
+    ADD_FAILURE() << "missing label map accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("missing.nii.gz"), std::string::npos) << e.what();
+  }
+  EXPECT_FALSE(fs::exists(dir.file("plan")));
+}
+
+}  // namespace
+}  // namespace crepuscular::planning

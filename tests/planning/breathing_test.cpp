@@ -1,0 +1,90 @@
+// The phases of a breathing cycle combined voxel by voxel (planning/safety/breathing.hpp): the
+// least safe phase wins, unknown in any phase stays unknown, and the class change share.
+#include "planning/safety/breathing.hpp"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <limits>
+
+#include "foundation/error.hpp"
+#include "planning/safety/unknown.hpp"
+#include "tests/support/grids.hpp"
+
+namespace crepuscular::planning {
+namespace {
+
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+
+// A 4-voxel "result" with SVV and ISBV values and the voxel states given.
+PathSafetyResult result(std::array<float, 4> svv, std::array<float, 4> isbv) {
+  PathSafetyResult r;
+  r.grid.geometry = test::cube_grid(1, 1.0);
+  r.grid.geometry.dims = {4, 1, 1};
+  r.values = kernels::kSvv | kernels::kIsbv;
+  r.volumes[0] = Volume<float>(r.grid.geometry, 0.0f);
+  r.volumes[1] = Volume<float>(r.grid.geometry, 0.0f);
+  for (int64_t i = 0; i < 4; ++i) {
+    r.volumes[0][i] = svv[size_t(i)];
+    r.volumes[1][i] = isbv[size_t(i)];
+  }
+  r.seconds = 1.0;
+  r.rays = 10;
+  return r;
+}
+
+Volume<uint8_t> states(std::array<uint8_t, 4> s, const ImageGeometry& g) {
+  Volume<uint8_t> v(g, 0);
+  for (int64_t i = 0; i < 4; ++i) v[i] = s[size_t(i)];
+  return v;
+}
+
+TEST(PhaseCombiner, LeastSafePhaseWinsAndUnknownInAnyPhaseIsUnknown) {
+  // Voxel 0: computed everywhere; voxel 1: unknown (outside the scan) in phase 1 only; voxel 2:
+  // not computed anywhere; voxel 3: computed everywhere.
+  const PathSafetyResult a = result({95, 80, kNaN, 40}, {0.0f, 2.0f, kNaN, 7.0f});
+  const PathSafetyResult b = result({60, kNaN, kNaN, 45}, {3.0f, kNaN, kNaN, 1.0f});
+  const PathSafetyResult c = result({99, 90, kNaN, 30}, {1.0f, 0.5f, kNaN, 2.0f});
+  const ImageGeometry& g = a.grid.geometry;
+  PhaseCombiner combiner;
+  combiner.add(a, states({1, 1, 0, 1}, g));
+  combiner.add(b, states({1, 2, 0, 1}, g));
+  combiner.add(c, states({1, 1, 0, 1}, g));
+  const PathSafetyResult& m = combiner.combined();
+  EXPECT_EQ(combiner.phases(), 3);
+  EXPECT_EQ(m.volumes[0][0], 60.0f);  // svv: the minimum
+  EXPECT_EQ(m.volumes[1][0], 3.0f);   // isbv: the maximum
+  EXPECT_EQ(m.volumes[0][3], 30.0f);
+  EXPECT_EQ(m.volumes[1][3], 7.0f);
+  EXPECT_TRUE(std::isnan(m.volumes[0][1]));  // unknown in phase 1: unknown
+  EXPECT_TRUE(std::isnan(m.volumes[1][1]));
+  EXPECT_EQ(combiner.region()[1], kRegionUnknown);
+  EXPECT_EQ(combiner.region()[2], kRegionNotComputed);
+  EXPECT_EQ(combiner.region()[0], kRegionComputed);
+  EXPECT_EQ(combiner.other_extreme(0)[0], 99.0f);  // svv's best phase
+  EXPECT_EQ(combiner.other_extreme(1)[3], 1.0f);   // isbv's best phase
+  EXPECT_DOUBLE_EQ(m.seconds, 3.0);
+  EXPECT_EQ(m.rays, 30u);
+  // SVV classes safe >= 90, dangerous < 50: voxel 0 ranges 60..99 (medium to safe: changes),
+  // voxel 3 ranges 30..45 (dangerous throughout): 1 of the 2 computed voxels changes.
+  SafetyClasses svv;
+  svv.higher_is_safer = true;
+  svv.safe = 90;
+  svv.dangerous = 50;
+  EXPECT_DOUBLE_EQ(combiner.class_change_share(0, svv), 0.5);
+}
+
+TEST(PhaseCombiner, PhasesOnDifferentGridsAreRefused) {
+  PhaseCombiner combiner;
+  const PathSafetyResult a = result({1, 2, 3, 4}, {1, 2, 3, 4});
+  combiner.add(a, states({1, 1, 1, 1}, a.grid.geometry));
+  PathSafetyResult b = result({1, 2, 3, 4}, {1, 2, 3, 4});
+  b.grid.geometry.origin.x() += 1.0;
+  for (auto& v : b.volumes) {
+    if (!v.empty()) v = Volume<float>(b.grid.geometry, 0.0f);
+  }
+  EXPECT_THROW(combiner.add(b, states({1, 1, 1, 1}, b.grid.geometry)), Error);
+}
+
+}  // namespace
+}  // namespace crepuscular::planning
