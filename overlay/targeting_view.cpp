@@ -149,9 +149,14 @@ cv::Mat render_targeting_view(const planning::TargetingGeometry& g, planning::Pa
       const Eigen::Vector2d from = g.crossing_px + r0 * dir, to = from + 28 * dir;
       const cv::Scalar green = class_colour(palette, planning::NeedleSafety::kSafe);
       cv::arrowedLine(image, fixed(from), fixed(to), green, 2, cv::LINE_AA, kShift, 0.35);
-      text(image, fmt::format("safe {:.0f}deg", g.nearest_safe_deg),
-           cv::Point(int(to.x()) + (dir.x() < 0 ? -70 : 4), int(to.y()) + (dir.y() < 0 ? -4 : 12)),
-           0.4, green);
+      // The label stays inside the view, whichever way the arrow points.
+      const std::string label = fmt::format("safe {:.0f}deg", g.nearest_safe_deg);
+      int baseline = 0;
+      const cv::Size size = cv::getTextSize(label, cv::FONT_HERSHEY_SIMPLEX, 0.4, 1, &baseline);
+      const int x = std::clamp(int(to.x()) + (dir.x() < 0 ? -size.width - 4 : 4), 2,
+                               n - size.width - 2);
+      const int y = std::clamp(int(to.y()) + (dir.y() < 0 ? -4 : 12), size.height + 2, n - 40);
+      text(image, label, cv::Point(x, y), 0.4, green);
     }
     const double miss = (g.crossing - g.centre).norm();
     text(image, fmt::format("needle misses centre by {:.1f} mm", miss), cv::Point(8, n - 10));
