@@ -74,7 +74,18 @@ void make_slices(const DemoRequest& a, const std::string& dir) {
 // The guidance scenario, its calibration files in setup/ and its synthetic recording.
 GuidanceScenario record_scenario(const planning::PlanData& plan, const std::string& dir) {
   spdlog::info("demo [4/7]: choosing a safe and a vessel-crossing approach, scripting the scene");
-  GuidanceScenario scenario = make_guidance_scenario(plan);
+  GuidanceScenario scenario;
+  try {
+    scenario = make_guidance_scenario(plan);
+  } catch (const Error& e) {
+    // A plan whose safe region is narrow (over a breathing cycle, say) may have no vessel-crossing
+    // approach 15-35 deg from a safe one; a wider separation still shows both.
+    GuidanceScenarioOptions wide;
+    wide.min_separation_deg = 10;
+    wide.max_separation_deg = 60;
+    spdlog::info("demo: {}; looking 10 to 60 deg from the safe approach", e.what());
+    scenario = make_guidance_scenario(plan, wide);
+  }
   write_guidance_setup(scenario, dir + "/setup");
   spdlog::info("demo [5/7]: rendering the synthetic recording ({} frames)",
                scenario.scene.frame_count);
