@@ -16,8 +16,6 @@ if [ "${BUNDLE:-}" = overlay ]; then targets=(overlay_bench guide_bench); fi
 if [ "${BUNDLE:-}" = plan ]; then
   targets=(path_safety_cuda_test path_safety_test path_safety_fast_test bench_plan)
 fi
-# BUNDLE=guide: the guidance loop and overlay benchmarks with bench_plan (compressed).
-if [ "${BUNDLE:-}" = guide ]; then targets=(overlay_bench guide_bench bench_plan); fi
 cmake --build "$build" -j "$(nproc)" --target "${targets[@]}"
 rm -rf .device && mkdir -p .device/bin .device/lib
 for t in "${targets[@]}"; do
@@ -32,7 +30,7 @@ done | sort -u | grep -vE '/(libc|libm|libdl|libpthread|librt|ld-linux[^/]*|libc
 du -sh .device
 # The overlay programs' libraries exceed the carry limit uncompressed: carry .device.tar.xz and
 # unpack it there (run_gpu.sh does).
-if [ "${BUNDLE:-}" = overlay ] || [ "${BUNDLE:-}" = plan ] || [ "${BUNDLE:-}" = guide ]; then
+if [ "${BUNDLE:-}" = overlay ] || [ "${BUNDLE:-}" = plan ]; then
   tar -cJf .device.tar.xz .device && rm -rf .device
   du -sh .device.tar.xz
 fi
