@@ -140,35 +140,6 @@ CREPUSCULAR_HD bool empty_brick(const BlockingGrid<Real>& g, int i, int j, int k
   return g.bricks[(int64_t(bk) * g.by + bj) * g.bx + bi] == 0;
 }
 
-// The first sample index after k whose lower corner may leave the empty brick that sample k's
-// lower corner lies in (origin + k step, blocking index), or k when that brick is not empty.
-// Conservative: the index returned may still lie in the brick (the caller looks again), never
-// beyond it, so every sample skipped is one sample_blocking would return 0 for.
-template <typename Real>
-CREPUSCULAR_HD int past_empty_brick(const BlockingGrid<Real>& g, Vec3<Real> origin,
-                                    Vec3<Real> step, int k) {
-  const Real q[3] = {origin.x + Real(k) * step.x, origin.y + Real(k) * step.y,
-                     origin.z + Real(k) * step.z};
-  const int i = int(floor(q[0])), j = int(floor(q[1])), kk = int(floor(q[2]));
-  if (!empty_brick(g, i, j, kk)) return k;
-  const int brick[3] = {i >> kBrickShift, j >> kBrickShift, kk >> kBrickShift};
-  const Real o[3] = {origin.x, origin.y, origin.z}, d[3] = {step.x, step.y, step.z};
-  Real t = Real(2e9);
-  for (int a = 0; a < 3; ++a) {
-    // The lower corner leaves the brick once the coordinate reaches its upper face (d > 0) or
-    // falls below its lower face (d < 0).
-    if (d[a] > Real(0)) {
-      const Real te = (Real((brick[a] + 1) << kBrickShift) - o[a]) / d[a];
-      t = te < t ? te : t;
-    } else if (d[a] < Real(0)) {
-      const Real te = (Real(brick[a] << kBrickShift) - o[a]) / d[a];
-      t = te < t ? te : t;
-    }
-  }
-  const Real next = floor(t);
-  return next > Real(k) ? (next < Real(2e9) ? int(next) : 2000000000) : k + 1;
-}
-
 // Tumor mask (0/1), x fastest, looked up at the nearest voxel. [lo, hi] is the index bounding box
 // of the tumor voxels.
 template <typename Real>
@@ -543,14 +514,6 @@ CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<double> 
     typename Ivbv::Ray ivbv_ray;
     typename Bvv::Ray bvv_ray;
     for (int k = 1; k <= ray.n; ++k) {
-      // Samples in an empty brick are 0 and add nothing to any value: jump over them.
-      if (s.blocking.bricks) {
-        const int next = past_empty_brick(s.blocking, ray.q0, ray.dq, k);
-        if (next > k) {
-          k = next - 1;
-          continue;
-        }
-      }
       const RaySample<Real> sample{Real(blocking_at(along(ray.q0, ray.dq, Real(k)))), ray.step,
                                    k, ray.n};
       if constexpr ((Values & kSvv) != 0) Svv::accumulate(svv_ray, sample);
