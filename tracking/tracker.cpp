@@ -327,6 +327,21 @@ bool Tracker::measure(size_t b, const std::vector<Detection>& detections, int64_
   return true;
 }
 
+bool Tracker::measure_boards(const Frame& frame, TrackResult& res, std::vector<bool>& measured) {
+  bool missing = false;
+  for (size_t b = 0; b < boards_.size(); ++b) {
+    if (!measured[b]) measured[b] = measure(b, res.detections, frame.timestamp_ns, &res.boards[b]);
+    if (!measured[b]) missing = true;
+  }
+  return missing;
+}
+
+bool Tracker::too_large(const std::vector<cv::Rect>& rois) const {
+  double area = 0;
+  for (const cv::Rect& r : rois) area += r.area();
+  return area > options_.max_roi_fraction * camera_.width * camera_.height;
+}
+
 void Tracker::search_in_frame(const Frame& frame, TrackResult& res, std::vector<bool>& measured) {
   bool full = options_.full_search_interval <= 0 ||
               frames_since_full_ + 1 >= options_.full_search_interval;
@@ -334,32 +349,20 @@ void Tracker::search_in_frame(const Frame& frame, TrackResult& res, std::vector<
   if (!full) {
     bool all_predicted = true;
     rois = predicted_regions(frame.timestamp_ns, &all_predicted);
-    double area = 0;
-    for (const cv::Rect& r : rois) area += r.area();
-    if (!all_predicted || rois.empty() ||
-        area > options_.max_roi_fraction * camera_.width * camera_.height) {
-      full = true;
-    }
+    if (!all_predicted || rois.empty() || too_large(rois)) full = true;
   }
   if (!full) {
     res.regions = int(rois.size());
     res.detections = detector_.detect(frame.image, rois);
-    bool missing = false;
-    for (size_t b = 0; b < boards_.size(); ++b) {
-      measured[b] = measure(b, res.detections, frame.timestamp_ns, &res.boards[b]);
-      if (!measured[b]) missing = true;
-    }
     // A board the regions did not show is searched for in the whole frame at once.
-    full = missing;
+    full = measure_boards(frame, res, measured);
   }
   if (full) {
     res.full_search = true;
     ++full_searches_;
     frames_since_full_ = 0;
     res.detections = detector_.detect(frame.image);
-    for (size_t b = 0; b < boards_.size(); ++b) {
-      if (!measured[b]) measured[b] = measure(b, res.detections, frame.timestamp_ns, &res.boards[b]);
-    }
+    measure_boards(frame, res, measured);
   } else {
     ++frames_since_full_;
   }
@@ -376,10 +379,8 @@ void Tracker::search_with_worker(const Frame& frame, TrackResult& res,
   bool all_predicted = true;
   for (const cv::Rect& r : predicted_regions(frame.timestamp_ns, &all_predicted)) rois.push_back(r);
   rois = TagDetector::merge_regions(std::move(rois));
-  double area = 0;
-  for (const cv::Rect& r : rois) area += r.area();
   const bool nothing_to_search = rois.empty();
-  if (area > options_.max_roi_fraction * camera_.width * camera_.height ||
+  if (too_large(rois) ||
       (nothing_to_search && options_.full_search_mode == FullSearchMode::kBackgroundWait)) {
     // Regions that large cost what the whole frame does; and a replay with nothing to search
     // would only wait for the worker in the next frame: the whole frame now.
@@ -390,11 +391,7 @@ void Tracker::search_with_worker(const Frame& frame, TrackResult& res,
     res.regions = int(rois.size());
     res.detections = detector_.detect(frame.image, rois);
   }
-  bool missing = false;
-  for (size_t b = 0; b < boards_.size(); ++b) {
-    measured[b] = measure(b, res.detections, frame.timestamp_ns, &res.boards[b]);
-    if (!measured[b]) missing = true;
-  }
+  const bool missing = measure_boards(frame, res, measured);
   // A missing board, or the periodic search, starts one on the worker when it is free.
   const bool due = options_.full_search_interval <= 0 ||
                    frames_since_full_ + 1 >= options_.full_search_interval;

@@ -150,6 +150,10 @@ class Tracker {
   std::vector<cv::Rect> predicted_regions(int64_t timestamp_ns, bool* all_predicted) const;
   bool measure(size_t b, const std::vector<Detection>& detections, int64_t timestamp_ns,
                BoardStatus* status);
+  // Measures every board not yet measured from res.detections; true when one is still missing.
+  bool measure_boards(const Frame& frame, TrackResult& res, std::vector<bool>& measured);
+  // Regions so large that searching them costs what the whole frame does.
+  bool too_large(const std::vector<cv::Rect>& rois) const;
   // The search of one frame in kInFrame mode and in the background modes.
   void search_in_frame(const Frame& frame, TrackResult& res, std::vector<bool>& measured);
   void search_with_worker(const Frame& frame, TrackResult& res, std::vector<bool>& measured);

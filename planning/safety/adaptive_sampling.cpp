@@ -93,6 +93,10 @@ class SampleStore {
 // A lattice cell: lower corner and edge, in output voxels.
 struct Cell {
   int32_t i, j, k, size;
+  // Corner q (0..7; bit 0: +i, bit 1: +j, bit 2: +k).
+  int64_t ci(int q) const { return i + (q & 1) * size; }
+  int64_t cj(int q) const { return j + ((q >> 1) & 1) * size; }
+  int64_t ck(int q) const { return k + ((q >> 2) & 1) * size; }
 };
 
 bool near_threshold(const SafetyClasses& c, double v, const AdaptiveOptions& o) {
@@ -166,8 +170,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     queue.clear();
     for (const Cell& c : cells) {
       for (int corner = 0; corner < 8; ++corner) {
-        store.request(c.i + (corner & 1) * size, c.j + ((corner >> 1) & 1) * size,
-                      c.k + ((corner >> 2) & 1) * size, options.known, queue);
+        store.request(c.ci(corner), c.cj(corner), c.ck(corner), options.known, queue);
       }
     }
     values.assign(queue.size() * kSlots, 0.0f);
@@ -200,9 +203,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
         const SafetyClasses& classes = report.classes[size_t(s)];
         SafetyClass first = SafetyClass::kUnknown;
         for (int corner = 0; corner < 8 && !split; ++corner) {
-          const double v = store.value(cell.i + (corner & 1) * size,
-                                       cell.j + ((corner >> 1) & 1) * size,
-                                       cell.k + ((corner >> 2) & 1) * size, s);
+          const double v = store.value(cell.ci(corner), cell.cj(corner), cell.ck(corner), s);
           const SafetyClass k = classes.classify(v);
           if (corner == 0) first = k;
           split = k != first || k == SafetyClass::kUnknown || near_threshold(classes, v, options);
@@ -246,8 +247,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       float corner[8][kSlots];
       for (int q = 0; q < 8; ++q) {
         for (const int s : slots) {
-          corner[q][s] = store.value(cell.i + (q & 1) * size, cell.j + ((q >> 1) & 1) * size,
-                                     cell.k + ((q >> 2) & 1) * size, s);
+          corner[q][s] = store.value(cell.ci(q), cell.cj(q), cell.ck(q), s);
         }
       }
       const float inv = 1.0f / float(size);

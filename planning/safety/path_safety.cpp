@@ -463,6 +463,14 @@ struct VoxelCentres {
   }
 };
 
+// The result's arrays of the requested values (null for the others), in slot order.
+void value_outputs(PathSafetyResult& result, unsigned values,
+                   float* out[kernels::kValueCount]) {
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    out[v] = (values & (1u << v)) ? result.volumes[size_t(v)].data() : nullptr;
+  }
+}
+
 void run_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
              const uint8_t* known, unsigned values, int threads, PathSafetyResult& result,
              const std::function<void(double)>& progress) {
@@ -470,9 +478,7 @@ void run_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& gr
   const VoxelCentres centre(g);
   const int64_t n = g.dims[0];
   float* out[kernels::kValueCount] = {};
-  for (int v = 0; v < kernels::kValueCount; ++v) {
-    if (values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
-  }
+  value_outputs(result, values, out);
   std::atomic<int64_t> done{0};
   const int64_t total = std::max<int64_t>(grid.roi_voxels, 1);
   double next_report = 0.02;
@@ -574,9 +580,7 @@ void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGri
     }
   });
   float* out[kernels::kValueCount] = {};
-  for (int v = 0; v < kernels::kValueCount; ++v) {
-    if (values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
-  }
+  value_outputs(result, values, out);
 #pragma omp parallel for schedule(static) num_threads(threads)
   for (int64_t v = 0; v < int64_t(roi.size()); ++v) {
     float res[kernels::kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
@@ -608,9 +612,7 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
   adaptive.dilate = options.fast_dilate;
   adaptive.progress = options.progress;
   float* out[kernels::kValueCount] = {};
-  for (int v = 0; v < kernels::kValueCount; ++v) {
-    if (options.values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
-  }
+  value_outputs(result, options.values, out);
   const AdaptiveReport report = sample_adaptively(grid, adaptive, evaluate, out);
   result.evaluated_points = report.evaluated;
   result.interpolated_voxels = report.interpolated;
@@ -848,9 +850,7 @@ class CudaBackend {
     cuda.wait_for_outputs = [&] {
       const auto t = std::chrono::steady_clock::now();
       volumes.collect(result);
-      for (int v = 0; v < kernels::kValueCount; ++v) {
-        if (options.values & (1u << v)) out[v] = result.volumes[size_t(v)].data();
-      }
+      value_outputs(result, options.values, out);
       clock.phases.emplace_back(
           "allocate_wait",
           std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count());
