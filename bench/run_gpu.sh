@@ -4,6 +4,10 @@
 # renderer's frame time through EGL (no X server needed). Logs go to $OUT.
 # ONLY=overlay runs the overlay renderer benchmark alone.
 set -uo pipefail
+# A bundle carried in two parts (bundle_gpu.sh): the first kept by an earlier call in build-keep/.
+if [ ! -f .device.tar.xz ] && [ -f build-keep/.device.part0 ] && [ -f .device.part1 ]; then
+  cat build-keep/.device.part0 .device.part1 >.device.tar.xz && rm -f build-keep/.device.part0
+fi
 if [ -f .device.tar.xz ]; then tar -xJf .device.tar.xz; fi
 export LD_LIBRARY_PATH="$PWD/.device/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 out="${OUT:-/tmp/crepuscular-gpu}"
