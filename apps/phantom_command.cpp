@@ -9,6 +9,7 @@ void add_phantom_command(CLI::App& app) {
   auto out = std::make_shared<std::string>();
   auto options = std::make_shared<planning::PhantomOptions>();
   auto phases = std::make_shared<int>(0);
+  auto four_d = std::make_shared<bool>(false);
   CLI::App* cmd = app.add_subcommand(
       "phantom",
       "Generate the built-in phantom, the default demo data: a procedural abdomen in LPS mm\n"
@@ -37,7 +38,11 @@ void add_phantom_command(CLI::App& app) {
       "caudally by up to --amplitude mm at the dome, with an anterior component of 0.35 mm per mm,\n"
       "fading with the distance from the diaphragm (the tumor moves about 7 mm at 12 mm); skin,\n"
       "body wall, ribs, spine, aorta and vena cava stay. Next step:\n"
-      "  crepuscular plan --phases DIR/phases.json --out PLAN --mode fast");
+      "  crepuscular plan --phases DIR/phases.json --out PLAN --mode fast\n"
+      "With --four-d also {ct,labels,tumor}_4d.nii.gz: the phases along the 4th axis, as a 4D CT\n"
+      "and its segmentation come from a scanner; plan reads them as well:\n"
+      "  crepuscular plan --labels DIR/labels_4d.nii.gz --tumor DIR/tumor_4d.nii.gz \\\n"
+      "      --preset phantom --out PLAN --mode fast");
   cmd->add_option("--out", *out, "Output folder (DIR)")->required();
   cmd->add_option("--spacing", options->spacing_mm,
                   "Isotropic voxel size in mm, 0.3 to 10 (1 mm: ~22 M voxels)")
@@ -55,9 +60,12 @@ void add_phantom_command(CLI::App& app) {
                   "(5-7 with abdominal compression, 15-20 free breathing)")
       ->capture_default_str()
       ->check(in_range(0, planning::kMaxBreathingAmplitudeMm));
-  cmd->callback([out, options, phases] {
+  cmd->add_flag("--four-d", *four_d,
+                "Breathing: also write the phases as 4D NIfTI files (ct_4d, labels_4d, tumor_4d)")
+      ->needs("--phases");
+  cmd->callback([out, options, phases, four_d] {
     if (*phases > 0) {
-      pipelines::run_breathing_phantom(*options, *phases, *out);
+      pipelines::run_breathing_phantom(*options, *phases, *out, *four_d);
     } else {
       pipelines::run_phantom(*options, *out);
     }

@@ -46,10 +46,13 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
                   "Breathing: phases.json listing one label map, tumor (and CT) per phase of the "
                   "respiratory cycle (crepuscular phantom --phases writes one). Path safety is "
                   "computed per phase on one grid and combined: safe only if safe in every phase "
-                  "(svv the minimum, the others the maximum; unknown in any phase is unknown)")
+                  "(svv the minimum, the others the maximum; unknown in any phase is unknown). "
+                  "4D NIfTI inputs do the same without a list: --labels, --tumor and --ct may "
+                  "hold the phases along their 4th axis (the same count in each 4D file; a 3D "
+                  "input serves every phase)")
       ->check(CLI::ExistingFile);
   cmd->add_flag("--per-phase", req->per_phase,
-                "With --phases: also write each phase's volumes, "
+                "With --phases or 4D inputs: also write each phase's volumes, "
                 "path_safety_<value>_<phase>.nii.gz (evaluate then names the worst phase)");
   return lesion_at;
 }

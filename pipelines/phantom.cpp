@@ -8,11 +8,14 @@
 #include <array>
 #include <chrono>
 #include <cmath>
+#include <filesystem>
 #include <map>
 #include <sstream>
 #include <vector>
 #include <algorithm>
 #include <nlohmann/json.hpp>
+
+#include "planning/imaging/volume_io.hpp"
 
 namespace crepuscular::pipelines {
 
@@ -81,7 +84,7 @@ void run_phantom(const planning::PhantomOptions& options, const std::string& out
 }
 
 void run_breathing_phantom(const planning::PhantomOptions& options, int phases,
-                           const std::string& out_dir) {
+                           const std::string& out_dir, bool four_d) {
   const auto t0 = std::chrono::steady_clock::now();
   spdlog::info("phantom: {} breathing phases, {} mm cranio-caudal at the diaphragm's dome",
                phases, options.amplitude_mm);
@@ -101,6 +104,18 @@ void run_breathing_phantom(const planning::PhantomOptions& options, int phases,
     farthest = std::max(farthest, std::hypot(c[0] - c0[0], c[1] - c0[1], c[2] - c0[2]));
   }
   spdlog::info("phantom: the tumor moves up to {:.1f} mm from end-exhale", farthest);
+  if (four_d) {
+    for (const char* kind : {"ct", "labels", "tumor"}) {
+      std::vector<planning::Volume<float>> frames;
+      for (const auto& p : list) {
+        frames.push_back(planning::read_volume<float>(
+            (std::filesystem::path(out_dir) / p.at(kind).get<std::string>()).string()));
+      }
+      const std::string file = std::string(kind) + "_4d.nii.gz";
+      planning::write_volume_frames(frames, (std::filesystem::path(out_dir) / file).string());
+      spdlog::info("phantom: wrote {} ({} phases along the 4th axis)", file, phases);
+    }
+  }
   const double seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   spdlog::info("phantom: wrote phases.json, vulnerability.json and phase00..phase{:02d} to {} "

@@ -14,8 +14,9 @@ void run_phantom(const planning::PhantomOptions& options, const std::string& out
 
 // Writes a breathing cycle of `phases` phases (planning::write_breathing_phantom) into `out_dir`
 // and logs each phase's tumor centroid and its motion.
+// four_d: also {ct,labels,tumor}_4d.nii.gz, the phases along the 4th axis.
 void run_breathing_phantom(const planning::PhantomOptions& options, int phases,
-                           const std::string& out_dir);
+                           const std::string& out_dir, bool four_d = false);
 
 // One-line summaries of the phantom: grid; tumor voxels, volume, equivalent diameter, centroid;
 // voxels per label.

@@ -5,7 +5,9 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <filesystem>
 #include <future>
+#include <map>
 #include <vector>
 #include <cmath>
 #include <nlohmann/json.hpp>
@@ -323,13 +325,12 @@ PathSafetyOptions shared_grid(const PlanRequest& req, const std::vector<PhaseInp
 
 nlohmann::json point_json(const Eigen::Vector3d& p) { return {p.x(), p.y(), p.z()}; }
 
-nlohmann::json run_plan_phases(const PlanRequest& req) {
-  const auto t_start = Clock::now();
-  check_request(req);
+// `req`'s phases come from `list` (phases.json, or the frames of 4D inputs).
+nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
+                               Clock::time_point t_start) {
   StagedDirectory out(req.out_dir);
   nlohmann::json timings;
   auto t = Clock::now();
-  const PhaseList list = read_phase_list(req.phases);
   const std::vector<PhaseInputs> phases = read_phases(req, list);
   timings["read_and_preprocess_s"] = seconds_since(t);
 
@@ -359,11 +360,17 @@ nlohmann::json run_plan_phases(const PlanRequest& req) {
     warn_about_coverage(coverage, req.crop_to_scan);
     nlohmann::json entry;
     entry["name"] = p.phase.name;
+    // A frame of a 4D input is recorded as that file (the frame is the phase's).
+    const auto recorded = [&](const std::string& f) {
+      const auto four_d = p.phase.frame_of.find(f);
+      return input_json(four_d == p.phase.frame_of.end() ? f : four_d->second, req.out_dir);
+    };
     nlohmann::json labels = nlohmann::json::array();
-    for (const auto& f : label_files(p.phase.labels)) labels.push_back(input_json(f, req.out_dir));
+    for (const auto& f : label_files(p.phase.labels)) labels.push_back(recorded(f));
     entry["inputs"] = {{"label_maps", labels},
-                       {"tumor", input_json(tumor_file(p.phase.tumor), req.out_dir)},
-                       {"ct", input_json(p.phase.ct, req.out_dir)}};
+                       {"tumor", recorded(tumor_file(p.phase.tumor))},
+                       {"ct", recorded(p.phase.ct)}};
+    if (p.phase.frame >= 0) entry["inputs"]["frame"] = p.phase.frame;
     entry["tumor_centroid_lps_mm"] = point_json(p.centroid);
     entry["tumor_voxels"] = result.tumor_voxels;
     entry["unknown_voxels"] = coverage.unknown_voxels;
@@ -394,7 +401,12 @@ nlohmann::json run_plan_phases(const PlanRequest& req) {
   Written written = write_volumes(out, first.inputs.blocking, first.inputs.tumor, combined, region);
   timings["write_s"] = seconds_since(t);
   nlohmann::json breathing;
-  breathing["phase_list"] = input_json(list.file, req.out_dir);
+  if (!list.file.empty()) {
+    breathing["phase_list"] = input_json(list.file, req.out_dir);
+  } else {
+    breathing["phase_list"] = nullptr;
+    breathing["phases_from"] = "4D inputs: phase K is frame K of each 4D file (the 4th axis)";
+  }
   breathing["combination"] =
       "one output grid for all phases, centred on the mean tumor centroid; per voxel svv the "
       "minimum over the phases, isbv, ivbv, bvv the maximum: safe only if safe in every phase; "
@@ -459,10 +471,101 @@ nlohmann::json run_plan_phases(const PlanRequest& req) {
   return plan;
 }
 
+// The phase count of 4D inputs (label maps, tumor, CT with phases along the 4th axis): 1 when
+// none is 4D. Throws Error when 4D inputs disagree on it, or a blocking volume is 4D.
+int four_d_phases(const PlanRequest& req, std::vector<std::pair<std::string, int>>& frames) {
+  std::vector<std::string> files = label_files(req.labels);
+  if (!req.tumor.empty()) files.push_back(tumor_file(req.tumor));
+  if (!req.ct.empty()) files.push_back(req.ct);
+  int phases = 1;
+  std::string first;
+  for (const std::string& f : files) {
+    if (!std::filesystem::exists(f)) continue;  // check_request names it
+    const int n = volume_frames(f);
+    frames.emplace_back(f, n);
+    if (n <= 1) continue;
+    if (phases > 1 && n != phases) {
+      throw Error("plan: " + f + " holds " + std::to_string(n) + " phases (4th axis), " + first +
+                  " holds " + std::to_string(phases) + "; 4D inputs must have the same phases");
+    }
+    phases = n;
+    first = f;
+  }
+  if (phases > 1 && !req.blocking.empty()) {
+    throw Error("plan: 4D inputs with a ready blocking volume are not supported; give the label "
+                "maps of every phase instead");
+  }
+  return phases;
+}
+
+// The frames of 4D inputs as phases: each 4D file is split into 3D files in `folder` (a staged
+// folder this run makes and removes), 3D inputs serve every phase.
+PhaseList four_d_phase_list(const PlanRequest& req, int phases,
+                            const std::vector<std::pair<std::string, int>>& frames,
+                            const StagedDirectory& folder) {
+  PhaseList list;
+  list.vulnerability = req.vulnerability;
+  list.preset = req.preset;
+  for (int k = 0; k < phases; ++k) {
+    PlanPhase phase;
+    phase.name = k < 10 ? "phase0" + std::to_string(k) : "phase" + std::to_string(k);
+    phase.frame = k;
+    list.phases.push_back(phase);
+  }
+  std::map<std::string, std::vector<std::string>> split;  // 4D file -> its frames' files
+  for (size_t i = 0; i < frames.size(); ++i) {
+    const auto& [file, n] = frames[i];
+    if (n <= 1 || split.count(file)) continue;
+    std::vector<std::string> paths;
+    for (int k = 0; k < phases; ++k) {
+      paths.push_back(folder.file("input" + std::to_string(i) + "_" + list.phases[size_t(k)].name +
+                                  ".nii"));
+    }
+    spdlog::info("{}: {} phases along the 4th axis", file, phases);
+    split_volume_frames(file, paths);
+    split[file] = paths;
+  }
+  // A spec FILE[:QUALIFIER] of phase k: the frame's file with the same qualifier.
+  const auto of_phase = [&](const std::string& spec, const std::string& file, int k,
+                            PlanPhase& phase) {
+    const auto four_d = split.find(file);
+    if (four_d == split.end()) return spec;
+    const std::string frame = four_d->second[size_t(k)];
+    phase.frame_of[frame] = file;
+    return frame + spec.substr(file.size());
+  };
+  const std::vector<std::string> label_paths = label_files(req.labels);
+  for (int k = 0; k < phases; ++k) {
+    PlanPhase& phase = list.phases[size_t(k)];
+    for (size_t i = 0; i < req.labels.size(); ++i) {
+      phase.labels.push_back(of_phase(req.labels[i], label_paths[i], k, phase));
+    }
+    phase.tumor = of_phase(req.tumor, tumor_file(req.tumor), k, phase);
+    phase.ct = req.ct.empty() ? std::string() : of_phase(req.ct, req.ct, k, phase);
+  }
+  return list;
+}
+
 }  // namespace
 
 nlohmann::json run_plan(const PlanRequest& req) {
-  if (!req.phases.empty()) return run_plan_phases(req);
+  if (!req.phases.empty()) {
+    const auto t_start = Clock::now();
+    check_request(req);
+    return run_plan_phases(req, read_phase_list(req.phases), t_start);
+  }
+  std::vector<std::pair<std::string, int>> frames;
+  if (const int phases = four_d_phases(req, frames); phases > 1) {
+    const auto t_start = Clock::now();
+    if (req.out_dir.empty()) throw Error("plan: an output folder is required");
+    StagedDirectory folder(req.out_dir + ".4d-frames");  // never committed: removed at the end
+    const PhaseList list = four_d_phase_list(req, phases, frames, folder);
+    PlanRequest phased = req;
+    phased.labels.clear();
+    phased.tumor.clear();
+    phased.ct.clear();
+    return run_plan_phases(phased, list, t_start);
+  }
   const auto t_start = Clock::now();
   check_request(req);
   // Staged first: a failure below removes it and leaves no plan behind.

@@ -6,6 +6,7 @@
 #include <Eigen/Core>
 #include <nlohmann/json.hpp>
 #include <optional>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -50,9 +51,12 @@ struct PlanPhase {
   std::vector<std::string> labels;  // label specs FILE[:TABLE]
   std::string tumor;                // tumor spec FILE[:LABEL]
   std::string ct;
+  // 4D inputs: each file above that is a frame of one, mapped to that 4D file; and the frame.
+  std::map<std::string, std::string> frame_of;
+  int frame = -1;
 };
 struct PhaseList {
-  std::string file;           // phases.json
+  std::string file;           // phases.json; "" for 4D inputs
   std::string vulnerability;  // the table phases.json names, "" when none
   std::string preset;
   std::vector<PlanPhase> phases;

@@ -780,6 +780,156 @@ Volume<uint8_t> read_mask(const std::string& path) {
   });
 }
 
+namespace {
+
+// The ImageIO of a file with its header read (checked first for values ITK would abort on).
+itk::ImageIOBase::Pointer image_io_of(const std::string& path) {
+  register_io_factories();
+  std::error_code ec;
+  const fs::file_status status = fs::status(path, ec);
+  if (ec || !fs::exists(status)) throw Error(path + ": cannot read (file does not exist)");
+  if (fs::is_directory(status)) return nullptr;  // a DICOM series: 3D
+  if (!std::ifstream(path, std::ios::binary)) {
+    throw Error(path + ": cannot read (no permission to open the file)");
+  }
+  itk::ImageIOBase::Pointer io =
+      itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::IOFileModeEnum::ReadMode);
+  if (!io) {
+    throw Error(path + ": cannot read (not a NIfTI, NRRD, MetaImage or DICOM file, or a damaged one)");
+  }
+  io->SetFileName(path);
+  const std::string bad_header = header_problem(path, io->GetNameOfClass());
+  if (!bad_header.empty()) throw Error(path + ": cannot read (" + bad_header + ")");
+  io->ReadImageInformation();
+  return io;
+}
+
+}  // namespace
+
+int volume_frames(const std::string& path) {
+  try {
+    const itk::ImageIOBase::Pointer io = image_io_of(path);
+    if (!io || io->GetNumberOfDimensions() < 4) return 1;
+    for (unsigned a = 4; a < io->GetNumberOfDimensions(); ++a) {
+      if (io->GetDimensions(a) != 1) {
+        throw Error(path + ": image is " + std::to_string(io->GetNumberOfDimensions()) + "D with " +
+                    std::to_string(io->GetDimensions(a)) + " samples along axis " +
+                    std::to_string(a) + " (expected 3D, or 4D with phases along the 4th axis)");
+      }
+    }
+    return int(io->GetDimensions(3));
+  } catch (const Error&) {
+    throw;
+  } catch (const itk::ExceptionObject& e) {
+    throw Error(path + ": cannot read (" + describe(e) + ")");
+  }
+}
+
+void split_volume_frames(const std::string& path, const std::vector<std::string>& frame_paths) {
+  using Image4 = itk::Image<float, 4>;
+  try {
+    const itk::ImageIOBase::Pointer io = image_io_of(path);
+    if (!io || io->GetNumberOfDimensions() < 4 ||
+        int(io->GetDimensions(3)) != int(frame_paths.size())) {
+      throw Error(path + ": cannot split into " + std::to_string(frame_paths.size()) +
+                  " phases (not a 4D volume of that many frames)");
+    }
+    if (io->GetNumberOfComponents() != 1) {
+      throw Error(path + ": voxels have " + std::to_string(io->GetNumberOfComponents()) +
+                  " components (expected scalar values)");
+    }
+    const std::string short_data = length_problem(path, io->GetNameOfClass());
+    if (!short_data.empty()) throw Error(path + ": cannot read (" + short_data + ")");
+    auto reader = itk::ImageFileReader<Image4>::New();
+    reader->SetImageIO(io);
+    reader->SetFileName(path);
+    reader->Update();
+    const Image4& image = *reader->GetOutput();
+    ImageGeometry g;
+    const auto region = image.GetLargestPossibleRegion();
+    itk::Point<double, 4> origin;
+    image.TransformIndexToPhysicalPoint(region.GetIndex(), origin);
+    for (unsigned a = 0; a < 3; ++a) {
+      g.dims[a] = int64_t(region.GetSize()[a]);
+      g.spacing[a] = image.GetSpacing()[a];
+      g.origin[a] = origin[a];
+      for (unsigned r = 0; r < 3; ++r) g.direction(r, a) = image.GetDirection()[r][a];
+    }
+    check_geometry(g, path);
+    const int64_t per_frame = g.voxel_count();
+    for (size_t t = 0; t < frame_paths.size(); ++t) {
+      Volume<float> frame(g);
+      const float* first = image.GetBufferPointer() + int64_t(t) * per_frame;
+      for (int64_t i = 0; i < per_frame; ++i) {
+        if (!std::isfinite(first[i])) {
+          throw Error(path + ": phase " + std::to_string(t) + ", " + voxel_text(g, i) +
+                      " has value " + value_text(first[i]) + " (expected a finite number)");
+        }
+      }
+      std::copy_n(first, per_frame, frame.data());
+      write_volume(frame, frame_paths[t]);
+    }
+  } catch (const Error&) {
+    throw;
+  } catch (const itk::ExceptionObject& e) {
+    throw Error(path + ": cannot read (" + describe(e) + ")");
+  } catch (const std::bad_alloc&) {
+    throw Error(path + ": cannot read (out of memory)");
+  }
+}
+
+void write_volume_frames(const std::vector<Volume<float>>& frames, const std::string& path) {
+  register_io_factories();
+  if (frames.empty()) throw Error(path + ": cannot write (no frames)");
+  const ImageGeometry& g = frames.front().geometry();
+  check_geometry(g, path);
+  for (const Volume<float>& f : frames) {
+    if (!f.geometry().same_grid(g, 0.0)) {
+      throw Error(path + ": cannot write (the frames lie on different grids)");
+    }
+  }
+  if (!ends_with(path, ".nii.gz") && !ends_with(path, ".nii")) {
+    throw Error(path + ": cannot write (4D volumes are written as .nii.gz or .nii)");
+  }
+  using Image4 = itk::Image<float, 4>;
+  auto image = Image4::New();
+  Image4::SizeType size;
+  Image4::SpacingType spacing;
+  Image4::PointType origin;
+  Image4::DirectionType direction;
+  direction.SetIdentity();
+  for (unsigned a = 0; a < 3; ++a) {
+    size[a] = itk::SizeValueType(g.dims[a]);
+    spacing[a] = g.spacing[a];
+    origin[a] = g.origin[a];
+    for (unsigned r = 0; r < 3; ++r) direction[r][a] = g.direction(r, a);
+  }
+  size[3] = itk::SizeValueType(frames.size());
+  spacing[3] = 1.0;
+  origin[3] = 0.0;
+  image->SetRegions(Image4::RegionType(size));
+  image->SetSpacing(spacing);
+  image->SetOrigin(origin);
+  image->SetDirection(direction);
+  image->Allocate();
+  for (size_t t = 0; t < frames.size(); ++t) {
+    std::copy_n(frames[t].data(), g.voxel_count(),
+                image->GetBufferPointer() + int64_t(t) * g.voxel_count());
+  }
+  write_file_atomically(path, [&](const std::string& temporary) {
+    try {
+      auto writer = itk::ImageFileWriter<Image4>::New();
+      writer->SetFileName(temporary);
+      writer->SetInput(image);
+      writer->SetUseCompression(!ends_with(path, ".nii"));
+      writer->SetCompressionLevel(1);
+      writer->Update();
+    } catch (const itk::ExceptionObject& e) {
+      throw Error(path + ": cannot write (" + describe(e) + ")");
+    }
+  });
+}
+
 template <typename T>
 void write_volume(const Volume<T>& volume, const std::string& path) {
   register_io_factories();

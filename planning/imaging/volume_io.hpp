@@ -4,6 +4,7 @@
 
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include "planning/imaging/volume.hpp"
 
@@ -22,6 +23,19 @@ Volume<int32_t> read_label_map(const std::string& path);
 
 // Reads a binary mask: voxels > 0.5 are 1, all others 0.
 Volume<uint8_t> read_mask(const std::string& path);
+
+// Frames along the 4th axis of a file: breathing phases of a 4D NIfTI (or NRRD, MetaImage); 1 for
+// a 3D volume or a folder. Throws Error naming the file when it cannot be read.
+int volume_frames(const std::string& path);
+
+// Writes frame t of a 4D file as the 3D volume frame_paths[t] (values as float: exact for labels
+// and CT numbers) with the geometry of the first three axes. Throws Error naming the file when it
+// is not 4D with that many frames, is unreadable, or has an unusable geometry or value.
+void split_volume_frames(const std::string& path, const std::vector<std::string>& frame_paths);
+
+// Writes volumes of one grid as the frames of a 4D file (.nii.gz or .nii), e.g. the phases of a
+// breathing cycle as a 4D CT holds them. Atomic like write_volume. Throws Error on failure.
+void write_volume_frames(const std::vector<Volume<float>>& frames, const std::string& path);
 
 // Writes a volume with its full geometry. The format follows the extension (.nii.gz preferred;
 // .nii, .nrrd, .mha also work). The file is written under a temporary name in the same folder and

@@ -249,5 +249,68 @@ TEST(PlanBreathing, BadPhaseListsAreRefusedNamingTheFile) {
   EXPECT_FALSE(fs::exists(dir.file("plan")));
 }
 
+
+// A 4D label map (phases along the 4th axis, as a 4D CT's segmentation comes) plans exactly like
+// the phase list of its frames; the 3D tumor serves every phase; nothing of the split frames stays.
+TEST(PlanBreathing, FourDInputsPlanExactlyLikeThePhaseListOfTheirFrames) {
+  const test::TemporaryFolder dir;
+  const test::MiniPlanInputs in = test::write_mini_plan_inputs(dir.path());
+  const std::string a = write_labels_with_vessel_at(dir.path(), "labels_a.nii.gz", 16);
+  const std::string b = write_labels_with_vessel_at(dir.path(), "labels_b.nii.gz", 4);
+  run_plan(phases_request(write_phase_list(dir.path(), {{a, in.tumor}, {b, in.tumor}}),
+                          dir.file("listed")));
+  const std::string four_d = dir.file("labels_4d.nii.gz");
+  write_volume_frames({read_volume<float>(a), read_volume<float>(b)}, four_d);
+  ASSERT_EQ(volume_frames(four_d), 2);
+  ASSERT_EQ(volume_frames(a), 1);
+
+  PlanRequest r = phases_request("", dir.file("four_d"));
+  r.labels = {four_d};
+  r.tumor = in.tumor;
+  r.vulnerability = in.vulnerability;
+  const nlohmann::json plan = run_plan(r);
+  for (const char* v : kValues) {
+    const std::string value = v;
+    for (const std::string suffix : {"", "_phase00", "_phase01"}) {
+      expect_identical(read_volume<float>(dir.file("listed/path_safety_" + value + suffix + ".nii.gz")),
+                       read_volume<float>(dir.file("four_d/path_safety_" + value + suffix + ".nii.gz")),
+                       value + suffix);
+    }
+  }
+  const nlohmann::json& phases = plan["breathing"]["phases"];
+  ASSERT_EQ(phases.size(), 2u);
+  EXPECT_EQ(phases[1]["inputs"]["frame"], 1);
+  EXPECT_NE(phases[1]["inputs"]["label_maps"][0].dump().find("labels_4d.nii.gz"), std::string::npos)
+      << phases[1]["inputs"].dump();
+  EXPECT_TRUE(plan["breathing"]["phase_list"].is_null());
+  for (const auto& entry : fs::directory_iterator(dir.path())) {
+    EXPECT_EQ(entry.path().filename().string().find("4d-frames"), std::string::npos)
+        << entry.path() << " left behind";
+  }
+}
+
+TEST(PlanBreathing, FourDInputsOfDifferentPhaseCountsAreRefusedNamingBoth) {
+  const test::TemporaryFolder dir;
+  const test::MiniPlanInputs in = test::write_mini_plan_inputs(dir.path());
+  const Volume<float> labels = read_volume<float>(in.labels);
+  const Volume<float> tumor = read_volume<float>(in.tumor);
+  write_volume_frames({labels, labels}, dir.file("labels_4d.nii.gz"));
+  write_volume_frames({tumor, tumor, tumor}, dir.file("tumor_4d.nii.gz"));
+  PlanRequest r = phases_request("", dir.file("plan"));
+  r.labels = {dir.file("labels_4d.nii.gz")};
+  r.tumor = dir.file("tumor_4d.nii.gz");
+  r.vulnerability = in.vulnerability;
+  try {
+    run_plan(r);
+    ADD_FAILURE() << "2 and 3 phases accepted";
+  } catch (const Error& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("labels_4d.nii.gz"), std::string::npos) << what;
+    EXPECT_NE(what.find("tumor_4d.nii.gz"), std::string::npos) << what;
+    EXPECT_NE(what.find("3 phases"), std::string::npos) << what;
+  }
+  EXPECT_FALSE(fs::exists(dir.file("plan")));
+}
+
 }  // namespace
 }  // namespace crepuscular::planning
