@@ -62,6 +62,9 @@ int main(int argc, char** argv) {
   double fast_refine_relative = PathSafetyOptions{}.fast_refine_relative;
   int fast_stride = PathSafetyOptions{}.fast_stride;
   bool no_dilate = false;
+  double svv_margin = PathSafetyOptions{}.fast_svv_margin;
+  double blocking_margin = PathSafetyOptions{}.fast_blocking_margin;
+  bool texture = false;
   app.add_option("--phantom-spacing", phantom_spacing, "phantom voxel size, mm");
   app.add_option("--tumor-diameter", tumor_diameter, "ball tumor diameter, mm");
   app.add_option("--tumor-spacing", tumor_spacing, "tumor mask voxel size, mm");
@@ -70,6 +73,10 @@ int main(int argc, char** argv) {
   app.add_option("--mode", mode, "exact, fast or tables");
   app.add_option("--fast-stride", fast_stride, "fast mode: coarsest lattice stride");
   app.add_flag("--fast-no-dilate", no_dilate, "fast mode: refine only cells that disagree");
+  app.add_option("--fast-svv-margin", svv_margin, "fast mode: SVV points near a threshold refine");
+  app.add_option("--fast-blocking-margin", blocking_margin,
+                 "fast mode: relative margin of the blocking values' thresholds");
+  app.add_flag("--texture", texture, "CUDA: blocking volume through a texture (hardware filtering)");
   app.add_option("--device", device, "auto, cpu or cuda");
   app.add_option("--value", values, "values (svv,isbv,ivbv,bvv or all)");
   app.add_option("--work", work, "working folder (phantom and plan)");
@@ -106,6 +113,9 @@ int main(int argc, char** argv) {
   req.path_safety.fast_refine_relative = fast_refine_relative;
   req.path_safety.fast_stride = fast_stride;
   req.path_safety.fast_dilate = !no_dilate;
+  req.path_safety.fast_svv_margin = svv_margin;
+  req.path_safety.fast_blocking_margin = blocking_margin;
+  req.path_safety.cuda_texture = texture;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
   const nlohmann::json plan = pipelines::run_plan(req);
@@ -124,6 +134,8 @@ int main(int argc, char** argv) {
                          {"tables", {fast_angular, fast_refine, fast_refine_relative}},
                          {"fast_stride", fast_stride},
                          {"fast_dilate", !no_dilate},
+                         {"fast_margins", {svv_margin, blocking_margin}},
+                         {"texture", texture},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},
                          {"device", plan["parameters"]["device"]},
                          {"setup_s_not_counted", setup_s},
