@@ -99,6 +99,52 @@ struct Cell {
   int64_t ck(int q) const { return k + ((q >> 2) & 1) * size; }
 };
 
+// Fills the voxels of a uniform cell by trilinear interpolation of its corners (never a voxel
+// evaluated or outside the scan); returns how many voxels became interpolated.
+int64_t fill_cell(const Cell& cell, const OutputGrid& grid, const AdaptiveOptions& options,
+                  const std::vector<int>& slots, SampleStore& store) {
+  const int64_t n = grid.geometry.dims[0];
+  const int size = cell.size;
+  int64_t interpolated = 0;
+  float corner[8][kSlots];
+  for (int q = 0; q < 8; ++q) {
+    for (const int s : slots) corner[q][s] = store.value(cell.ci(q), cell.cj(q), cell.ck(q), s);
+  }
+  const float inv = 1.0f / float(size);
+  for (int64_t k = std::max<int64_t>(cell.k, 0); k <= std::min<int64_t>(cell.k + size, n - 1); ++k) {
+    const float wz = float(k - cell.k) * inv;
+    for (int64_t j = std::max<int64_t>(cell.j, 0); j <= std::min<int64_t>(cell.j + size, n - 1);
+         ++j) {
+      const float wy = float(j - cell.j) * inv;
+      for (int64_t i = std::max<int64_t>(cell.i, 0); i <= std::min<int64_t>(cell.i + size, n - 1);
+           ++i) {
+        if (!grid.in_roi(i, j, k)) continue;
+        uint8_t& st = store.state(i, j, k);
+        if (st == kEvaluated || st == kUnknown) continue;
+        // A voxel between known corners may itself lie outside the scan (a thin gap): unknown
+        // too, never interpolated.
+        if (options.known && !options.known(i, j, k)) {
+          st = kUnknown;
+          continue;
+        }
+        if (st != kInterpolated) ++interpolated;
+        st = kInterpolated;
+        const float wx = float(i - cell.i) * inv;
+        const int64_t off = store.offset(i, j, k);
+        for (const int s : slots) {
+          const float c00 = corner[0][s] + wx * (corner[1][s] - corner[0][s]);
+          const float c10 = corner[2][s] + wx * (corner[3][s] - corner[2][s]);
+          const float c01 = corner[4][s] + wx * (corner[5][s] - corner[4][s]);
+          const float c11 = corner[6][s] + wx * (corner[7][s] - corner[6][s]);
+          const float c0 = c00 + wy * (c10 - c00), c1 = c01 + wy * (c11 - c01);
+          store.set(off, s, c0 + wz * (c1 - c0));
+        }
+      }
+    }
+  }
+  return interpolated;
+}
+
 bool near_threshold(const SafetyClasses& c, double v, const AdaptiveOptions& o) {
   if (c.higher_is_safer) {
     return std::abs(v - c.safe) < o.svv_margin || std::abs(v - c.dangerous) < o.svv_margin;
@@ -195,9 +241,10 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
 
     // One class at all corners, none near a threshold: uniform.
     std::vector<uint8_t> refine(cells.size(), 0);
-    for (size_t c = 0; c < cells.size(); ++c) {
-      const Cell& cell = cells[c];
-      if (size == 1) break;
+#pragma omp parallel for schedule(dynamic, 256) if (size > 1)
+    for (int64_t c = 0; c < int64_t(cells.size()); ++c) {
+      const Cell& cell = cells[size_t(c)];
+      if (size == 1) continue;
       bool split = false;
       for (const int s : slots) {
         const SafetyClasses& classes = report.classes[size_t(s)];
@@ -210,7 +257,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
         }
         if (split) break;
       }
-      refine[c] = split ? 1 : 0;
+      refine[size_t(c)] = split ? 1 : 0;
     }
     if (level == 0 && options.dilate && size > 1) {
       std::vector<uint8_t> grown = refine;
@@ -230,59 +277,32 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       refine.swap(grown);
     }
 
-    // Fill the uniform cells; split the others.
+    // Split the cells to refine.
     std::vector<Cell> next;
     for (size_t c = 0; c < cells.size(); ++c) {
       const Cell& cell = cells[c];
-      if (refine[c]) {
-        const int h = size / 2;
-        for (int child = 0; child < 8; ++child) {
-          const Cell sub{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
-                         cell.k + ((child >> 2) & 1) * h, h};
-          if (meets_roi(sub.i, sub.j, sub.k, h)) next.push_back(sub);
-        }
-        continue;
+      if (!refine[c]) continue;
+      const int h = size / 2;
+      for (int child = 0; child < 8; ++child) {
+        const Cell sub{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
+                       cell.k + ((child >> 2) & 1) * h, h};
+        if (meets_roi(sub.i, sub.j, sub.k, h)) next.push_back(sub);
       }
-      if (size == 1) continue;  // every voxel of it is a corner: evaluated
-      float corner[8][kSlots];
-      for (int q = 0; q < 8; ++q) {
-        for (const int s : slots) {
-          corner[q][s] = store.value(cell.ci(q), cell.cj(q), cell.ck(q), s);
-        }
+    }
+    // Fill the uniform cells (size 1: every voxel is a corner, evaluated), in parallel: eight
+    // passes by the parity of the cell's lattice position, so no two cells of a pass share a voxel.
+    for (int parity = 0; size > 1 && parity < 8; ++parity) {
+      int64_t interpolated = 0;
+#pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
+      for (int64_t c = 0; c < int64_t(cells.size()); ++c) {
+        const Cell& cell = cells[size_t(c)];
+        if (refine[size_t(c)]) continue;
+        const int64_t a = (cell.i - half) / size, b = (cell.j - half) / size,
+                      d = (cell.k - half) / size;
+        if (int((a & 1) | ((b & 1) << 1) | ((d & 1) << 2)) != parity) continue;
+        interpolated += fill_cell(cell, grid, options, slots, store);
       }
-      const float inv = 1.0f / float(size);
-      for (int64_t k = std::max<int64_t>(cell.k, 0); k <= std::min<int64_t>(cell.k + size, n - 1);
-           ++k) {
-        const float wz = float(k - cell.k) * inv;
-        for (int64_t j = std::max<int64_t>(cell.j, 0);
-             j <= std::min<int64_t>(cell.j + size, n - 1); ++j) {
-          const float wy = float(j - cell.j) * inv;
-          for (int64_t i = std::max<int64_t>(cell.i, 0);
-               i <= std::min<int64_t>(cell.i + size, n - 1); ++i) {
-            if (!grid.in_roi(i, j, k)) continue;
-            uint8_t& st = store.state(i, j, k);
-            if (st == kEvaluated || st == kUnknown) continue;
-            // A voxel between known corners may itself lie outside the scan (a thin gap):
-            // unknown too, never interpolated.
-            if (options.known && !options.known(i, j, k)) {
-              st = kUnknown;
-              continue;
-            }
-            if (st != kInterpolated) ++report.interpolated;
-            st = kInterpolated;
-            const float wx = float(i - cell.i) * inv;
-            const int64_t off = store.offset(i, j, k);
-            for (const int s : slots) {
-              const float c00 = corner[0][s] + wx * (corner[1][s] - corner[0][s]);
-              const float c10 = corner[2][s] + wx * (corner[3][s] - corner[2][s]);
-              const float c01 = corner[4][s] + wx * (corner[5][s] - corner[4][s]);
-              const float c11 = corner[6][s] + wx * (corner[7][s] - corner[6][s]);
-              const float c0 = c00 + wy * (c10 - c00), c1 = c01 + wy * (c11 - c01);
-              store.set(off, s, c0 + wz * (c1 - c0));
-            }
-          }
-        }
-      }
+      report.interpolated += interpolated;
     }
     cells.swap(next);
     ++level;
@@ -292,6 +312,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   report.interpolated -= store.reclaimed();
   // Corners evaluated outside the region are not part of the result.
   const float nan = std::numeric_limits<float>::quiet_NaN();
+#pragma omp parallel for schedule(static)
   for (int64_t k = 0; k < n; ++k)
     for (int64_t j = 0; j < n; ++j)
       for (int64_t i = 0; i < n; ++i) {

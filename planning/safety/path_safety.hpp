@@ -55,7 +55,8 @@ struct PathSafetyOptions {
   int threads = 0;  // CPU threads; 0: all cores
   int max_gpus = 0;  // CUDA devices to use; 0: all visible
   // CUDA only: sample the blocking volume through a 3D texture with hardware trilinear filtering
-  // (9-bit weights) instead of float filtering in global memory (the exact definition).
+  // (9-bit weights) instead of float filtering in global memory (the exact definition). Exact and
+  // tables mode; fast mode always samples through the texture, and this applies to its self-check.
   bool cuda_texture = false;
   // Fast mode: the coarsest lattice (every fast_stride-th voxel, a power of two), and how close
   // to a class threshold a corner may lie before its cell is refined (adaptive_sampling.hpp).
