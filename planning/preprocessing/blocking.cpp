@@ -2,6 +2,7 @@
 // vulnerability table, or from CT thresholds, with the Gaussian safety margin done by ITK.
 #include "planning/preprocessing/blocking.hpp"
 #include "planning/imaging/itk_image.hpp"
+#include "planning/preprocessing/smoothing.hpp"
 
 #include <spdlog/spdlog.h>
 
@@ -20,7 +21,6 @@
 #define ITK_USE_SYSTEM_EIGEN
 #endif
 #include <itkConnectedComponentImageFilter.h>
-#include <itkDiscreteGaussianImageFilter.h>
 #include <itkImage.h>
 
 namespace crepuscular::planning {
@@ -61,8 +61,8 @@ template <typename InMask>
 void add_level(std::vector<float>& b, const ImageGeometry& g, double coeff, double fwhm_mm,
                InMask in_mask) {
   const int64_t n = g.voxel_count();
-  FloatImage::Pointer mask = make_image<FloatImage>(g);
-  float* m = mask->GetBufferPointer();
+  std::vector<float> mask(static_cast<size_t>(n));
+  float* m = mask.data();
 #pragma omp parallel for schedule(static)
   for (int64_t v = 0; v < n; ++v) m[v] = in_mask(v) ? 1.0f : 0.0f;
 
@@ -73,30 +73,23 @@ void add_level(std::vector<float>& b, const ImageGeometry& g, double coeff, doub
     return;
   }
 
-  // Discrete Gaussian (Lindeberg's Bessel kernel) rather than the recursive one: it never goes
+  // ITK's discrete Gaussian (Lindeberg's Bessel kernel) rather than a recursive one: it never goes
   // negative nor overshoots 1, keeps the exact variance when sigma is below a voxel (thick slices),
   // and has no minimum image size. MaximumError, not MaximumKernelWidth, sets the kernel size.
+  // Applied by separable passes over the structure's box (smoothing.hpp): ITK's values.
   const double sigma_mm = sigma_of_fwhm(fwhm_mm);
   double max_sigma_voxels = 0.0;
   for (int a = 0; a < 3; ++a)
     max_sigma_voxels = std::max(max_sigma_voxels, sigma_mm / g.spacing[a]);
   const unsigned max_width = unsigned(2.0 * std::ceil(6.0 * max_sigma_voxels) + 3.0);
-  using Gaussian = itk::DiscreteGaussianImageFilter<FloatImage, FloatImage>;
-  auto filter = Gaussian::New();
-  filter->SetInput(mask);
-  filter->SetUseImageSpacing(true);  // variance in mm^2
-  filter->SetVariance(sigma_mm * sigma_mm);
-  filter->SetMaximumError(1e-3);
-  filter->SetMaximumKernelWidth(std::max(32u, max_width));
-  try {
-    filter->Update();
-  } catch (const itk::ExceptionObject& e) {
-    throw Error(std::string("safety margin: Gaussian smoothing failed: ") + e.GetDescription());
-  }
-  const float* smoothed = filter->GetOutput()->GetBufferPointer();
+  DiscreteGaussian gaussian;
+  gaussian.variance_mm2 = sigma_mm * sigma_mm;
+  gaussian.maximum_error = 1e-3;
+  gaussian.maximum_kernel_width = std::max(32u, max_width);
+  const std::vector<float> smoothed = discrete_gaussian(mask, g, gaussian);
 #pragma omp parallel for schedule(static)
   for (int64_t v = 0; v < n; ++v) {
-    b[size_t(v)] = std::max(b[size_t(v)], c * std::max(m[v], smoothed[v]));
+    b[size_t(v)] = std::max(b[size_t(v)], c * std::max(m[v], smoothed[size_t(v)]));
   }
 }
 

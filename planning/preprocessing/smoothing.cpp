@@ -1,0 +1,155 @@
+#include "planning/preprocessing/smoothing.hpp"
+#include "planning/imaging/itk_image.hpp"
+
+#include <algorithm>
+#include <array>
+#include <cstdint>
+#include <string>
+
+#include "foundation/error.hpp"
+
+// ITK headers after ours (see volume_io.cpp): keep one Eigen (the system one) in this unit.
+#ifndef ITK_USE_SYSTEM_EIGEN
+#define ITK_USE_SYSTEM_EIGEN
+#endif
+#include <itkDiscreteGaussianImageFilter.h>
+#include <itkGaussianOperator.h>
+#include <itkImage.h>
+
+namespace crepuscular::planning {
+namespace {
+
+using FloatImage = itk::Image<float, 3>;
+
+// The taps along axis a, offsets -r..r: the operator DiscreteGaussianImageFilter builds.
+std::vector<double> taps_along(int a, const ImageGeometry& g, const DiscreteGaussian& gaussian) {
+  itk::GaussianOperator<double, 3> op;
+  op.SetDirection(unsigned(a));
+  op.SetVariance(gaussian.variance_mm2 / (g.spacing[a] * g.spacing[a]));
+  op.SetMaximumKernelWidth(gaussian.maximum_kernel_width);
+  op.SetMaximumError(gaussian.maximum_error);
+  op.CreateDirectional();
+  std::vector<double> taps(op.Size());
+  for (size_t i = 0; i < taps.size(); ++i) taps[i] = op.GetElement(i);
+  return taps;
+}
+
+}  // namespace
+
+std::vector<float> discrete_gaussian(const std::vector<float>& values, const ImageGeometry& g,
+                                     const DiscreteGaussian& gaussian) {
+  const std::array<int64_t, 3> n = {g.dims[0], g.dims[1], g.dims[2]};
+  std::vector<float> out(values.size(), 0.0f);
+  // The box of non-zero input.
+  std::array<int64_t, 3> lo = n, hi = {-1, -1, -1};
+#pragma omp parallel
+  {
+    std::array<int64_t, 3> l = n, h = {-1, -1, -1};
+#pragma omp for schedule(static) nowait
+    for (int64_t k = 0; k < n[2]; ++k)
+      for (int64_t j = 0; j < n[1]; ++j) {
+        const float* row = values.data() + (k * n[1] + j) * n[0];
+        for (int64_t i = 0; i < n[0]; ++i) {
+          if (row[i] == 0.0f) continue;
+          l = {std::min(l[0], i), std::min(l[1], j), std::min(l[2], k)};
+          h = {std::max(h[0], i), std::max(h[1], j), std::max(h[2], k)};
+        }
+      }
+#pragma omp critical
+    for (int a = 0; a < 3; ++a) {
+      lo[size_t(a)] = std::min(lo[size_t(a)], l[size_t(a)]);
+      hi[size_t(a)] = std::max(hi[size_t(a)], h[size_t(a)]);
+    }
+  }
+  if (hi[0] < 0) return out;  // all zero: so is its smoothing
+
+  // Grown by each axis' kernel radius: outside this box every pass's values are exactly zero.
+  std::array<std::vector<double>, 3> taps;
+  std::array<int64_t, 3> b0{}, b1{}, m{};
+  for (int a = 0; a < 3; ++a) {
+    taps[size_t(a)] = taps_along(a, g, gaussian);
+    const int64_t r = int64_t(taps[size_t(a)].size() / 2);
+    b0[size_t(a)] = std::max<int64_t>(0, lo[size_t(a)] - r);
+    b1[size_t(a)] = std::min<int64_t>(n[size_t(a)] - 1, hi[size_t(a)] + r);
+    m[size_t(a)] = b1[size_t(a)] - b0[size_t(a)] + 1;
+  }
+  const auto box = [&](int64_t i, int64_t j, int64_t k) {
+    return size_t(((k - b0[2]) * m[1] + (j - b0[1])) * m[0] + (i - b0[0]));
+  };
+  std::vector<float> a(size_t(m[0] * m[1] * m[2])), b(a.size());
+  for (int64_t k = b0[2]; k <= b1[2]; ++k)
+    for (int64_t j = b0[1]; j <= b1[1]; ++j)
+      std::copy_n(values.data() + (k * n[1] + j) * n[0] + b0[0], m[0], &a[box(b0[0], j, k)]);
+
+  // One pass along `axis`: out(x) = sum_t taps[t] in(clamp(x + t - r)), in() zero outside the
+  // box (and clamped to the image's edge: zero flux), accumulated in double over t in order.
+  const auto pass = [&](int axis, const std::vector<float>& in, std::vector<float>& to) {
+    const std::vector<double>& t = taps[size_t(axis)];
+    const int64_t r = int64_t(t.size() / 2);
+#pragma omp parallel
+    {
+      std::vector<double> acc(static_cast<size_t>(m[0]));
+      std::vector<float> padded(static_cast<size_t>(m[0] + 2 * r));
+#pragma omp for schedule(static) collapse(2)
+      for (int64_t k = b0[2]; k <= b1[2]; ++k)
+        for (int64_t j = b0[1]; j <= b1[1]; ++j) {
+          std::fill(acc.begin(), acc.end(), 0.0);
+          if (axis == 0) {
+            // The row padded by r on each side with what the taps read there.
+            for (int64_t p = 0; p < m[0] + 2 * r; ++p) {
+              const int64_t x = std::clamp<int64_t>(b0[0] - r + p, 0, n[0] - 1);
+              padded[size_t(p)] = x >= b0[0] && x <= b1[0] ? in[box(x, j, k)] : 0.0f;
+            }
+            for (int64_t i = 0; i < m[0]; ++i) {
+              double s = 0.0;
+              for (size_t q = 0; q < t.size(); ++q) s += t[q] * double(padded[size_t(i) + q]);
+              acc[size_t(i)] = s;
+            }
+          } else {
+            const int64_t c = axis == 1 ? j : k;
+            for (size_t q = 0; q < t.size(); ++q) {
+              const int64_t x = std::clamp<int64_t>(c + int64_t(q) - r, 0, n[size_t(axis)] - 1);
+              if (x < b0[size_t(axis)] || x > b1[size_t(axis)]) continue;  // zero there
+              const double w = t[q];
+              const float* row = axis == 1 ? &in[box(b0[0], x, k)] : &in[box(b0[0], j, x)];
+              for (int64_t i = 0; i < m[0]; ++i) acc[size_t(i)] += w * double(row[i]);
+            }
+          }
+          float* dst = &to[box(b0[0], j, k)];
+          for (int64_t i = 0; i < m[0]; ++i) dst[i] = float(acc[size_t(i)]);
+        }
+    }
+  };
+  // ITK's order: z, then y, then x.
+  pass(2, a, b);
+  pass(1, b, a);
+  pass(0, a, b);
+  for (int64_t k = b0[2]; k <= b1[2]; ++k)
+    for (int64_t j = b0[1]; j <= b1[1]; ++j)
+      std::copy_n(&b[box(b0[0], j, k)], m[0], out.data() + (k * n[1] + j) * n[0] + b0[0]);
+  return out;
+}
+
+std::vector<float> discrete_gaussian_itk(const std::vector<float>& values, const ImageGeometry& g,
+                                         const DiscreteGaussian& gaussian) {
+  auto image = FloatImage::New();
+  set_image_geometry(*image, g);
+  image->Allocate();
+  std::copy(values.begin(), values.end(), image->GetBufferPointer());
+  using Gaussian = itk::DiscreteGaussianImageFilter<FloatImage, FloatImage>;
+  auto filter = Gaussian::New();
+  filter->SetInput(image);
+  filter->SetUseImageSpacing(true);
+  filter->SetVariance(gaussian.variance_mm2);
+  filter->SetMaximumError(gaussian.maximum_error);
+  filter->SetMaximumKernelWidth(gaussian.maximum_kernel_width);
+  try {
+    filter->Update();
+  } catch (const itk::ExceptionObject& e) {
+    throw Error(std::string("Gaussian smoothing failed: ") + e.GetDescription());
+  }
+  const float* p = filter->GetOutput()->GetBufferPointer();
+  return std::vector<float>(p, p + values.size());
+}
+
+}  // namespace crepuscular::planning
