@@ -239,30 +239,38 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       classes_known = true;
     }
 
-    // One class at all corners, none near a threshold: uniform.
+    // One class at all corners, none near a threshold: uniform. refine: 1 where the classes
+    // disagree or lie near a threshold, 2 where only a corner outside the scan keeps the cell from
+    // being filled (its known voxels are reached by splitting; no class boundary was seen there).
     std::vector<uint8_t> refine(cells.size(), 0);
 #pragma omp parallel for schedule(dynamic, 256) if (size > 1)
     for (int64_t c = 0; c < int64_t(cells.size()); ++c) {
       const Cell& cell = cells[size_t(c)];
       if (size == 1) continue;
-      bool split = false;
+      bool split = false, unknown = false;
       for (const int s : slots) {
         const SafetyClasses& classes = report.classes[size_t(s)];
+        bool seen = false;
         SafetyClass first = SafetyClass::kUnknown;
         for (int corner = 0; corner < 8 && !split; ++corner) {
           const double v = store.value(cell.ci(corner), cell.cj(corner), cell.ck(corner), s);
           const SafetyClass k = classes.classify(v);
-          if (corner == 0) first = k;
-          split = k != first || k == SafetyClass::kUnknown || near_threshold(classes, v, options);
+          if (k == SafetyClass::kUnknown) {
+            unknown = true;
+            continue;
+          }
+          if (!seen) first = k;
+          seen = true;
+          split = k != first || near_threshold(classes, v, options);
         }
         if (split) break;
       }
-      refine[size_t(c)] = split ? 1 : 0;
+      refine[size_t(c)] = split ? 1 : unknown ? 2 : 0;
     }
     if (level == 0 && options.dilate && size > 1) {
       std::vector<uint8_t> grown = refine;
       for (size_t c = 0; c < cells.size(); ++c) {
-        if (!refine[c]) continue;
+        if (refine[c] != 1) continue;
         const int64_t a = (cells[c].i - half) / s0 - a_lo, b = (cells[c].j - half) / s0 - a_lo,
                       cc = (cells[c].k - half) / s0 - a_lo;
         for (int64_t dc = -1; dc <= 1; ++dc)
@@ -271,7 +279,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
               const int64_t x = a + da, y = b + db, z = cc + dc;
               if (x < 0 || y < 0 || z < 0 || x >= na || y >= na || z >= na) continue;
               const int32_t other = cell_at[size_t((z * na + y) * na + x)];
-              if (other >= 0) grown[size_t(other)] = 1;
+              if (other >= 0) grown[size_t(other)] = std::max<uint8_t>(grown[size_t(other)], 1);
             }
       }
       refine.swap(grown);
