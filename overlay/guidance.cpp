@@ -502,11 +502,12 @@ FixedPixels fixed_pixels(const std::vector<Eigen::Vector2d>& px, const cv::Point
 }
 
 // Fills the triangles (vertex indices into f) for which keep(index) holds into the 8-bit mask with
-// 255, from several threads for large meshes: each fills a share of them into a mask of its own
-// and the masks are combined, which gives the same pixels (a fill only sets them to 255).
+// 255, from several threads when there are more than per_thread of them: each fills a share of
+// them into a mask of its own and the masks are combined, which gives the same pixels (a fill only
+// sets them to 255).
 template <typename Keep>
 void fill_triangles(cv::Mat& mask, const std::vector<std::array<int, 3>>& triangles,
-                    const FixedPixels& f, const Keep& keep) {
+                    const FixedPixels& f, const Keep& keep, size_t per_thread = 2000) {
   const auto fill_range = [&](cv::Mat& into, size_t from, size_t to) {
     for (size_t i = from; i < to; ++i) {
       const auto& t = triangles[i];
@@ -518,7 +519,8 @@ void fill_triangles(cv::Mat& mask, const std::vector<std::array<int, 3>>& triang
     }
   };
   const size_t n = triangles.size();
-  const int parts = int(std::min<size_t>(size_t(std::max(1, cv::getNumThreads())), n / 2000 + 1));
+  const int parts =
+      int(std::min<size_t>(size_t(std::max(1, cv::getNumThreads())), n / per_thread + 1));
   if (parts <= 1) {
     fill_range(mask, 0, n);
     return;
@@ -653,15 +655,19 @@ Picture cone_image(const std::vector<GuidanceOverlay::Patch>& patches, const Eig
   for (size_t i = 0; i < patches.size(); ++i) {
     const auto& patch = patches[i];
     const auto& px = projected[i];
-    const FixedPixels f = fixed_pixels(px, o);
+    // The apex after the patch's points; the fan from it to the border, large triangles, shared
+    // among threads in smaller lots.
+    FixedPixels f = fixed_pixels(px, o);
+    const int apex_index = int(px.size());
+    f.fits.push_back(fits(apex_px));
+    f.px.push_back(fits(apex_px) ? fixed_px(apex_px, o) : cv::Point());
+    std::vector<std::array<int, 3>> fan;
+    fan.reserve(patch.border.size());
+    for (const auto& e : patch.border) fan.push_back({apex_index, e[0], e[1]});
     cv::Mat mask(image.size(), CV_8U, cv::Scalar(0));
-    fill_triangles(mask, patch.triangles, f, [](size_t) { return true; });
-    for (const auto& e : patch.border) {
-      const Eigen::Vector2d &a = px[size_t(e[0])], &b = px[size_t(e[1])];
-      if (!fits(a) || !fits(b) || !fits(apex_px)) continue;
-      const cv::Point tri[3] = {fixed_px(apex_px, o), fixed_px(a, o), fixed_px(b, o)};
-      cv::fillConvexPoly(mask, tri, 3, cv::Scalar(255), cv::LINE_8, 4);
-    }
+    const auto all = [](size_t) { return true; };
+    fill_triangles(mask, patch.triangles, f, all);
+    fill_triangles(mask, fan, f, all, 100);
     const cv::Scalar colour = leeway_bgr(palette, patch.leeway);
     paint(image, mask, colour, 75);
     cv::polylines(image, mask_outlines(mask), true,
