@@ -58,7 +58,8 @@ int main(int argc, char** argv) {
                  "in-frame (the frame that needs one waits for it)")
       ->check(CLI::IsMember({"background", "wait", "in-frame"}))
       ->capture_default_str();
-  app.add_option("--volume-layer", volume_layer, "Volume layer settings to measure: off, on or both")
+  app.add_option("--volume-layer", volume_layer,
+                 "Volume layer settings to measure: off, on or both")
       ->check(CLI::IsMember({"off", "on", "both"}))
       ->capture_default_str();
   app.add_option("--plan", plan_dir,

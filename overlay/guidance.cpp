@@ -880,10 +880,10 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
   const calibration::CameraModel& cam = renderer.camera();
   // The pictures drawn on the CPU are kept while the pose moves them by less than the tolerance
   // (and the palette and the camera stay); they show the pose they were drawn for.
-  const bool keep = anatomy_.valid && options_.anatomy_reuse_px > 0 &&
-                    anatomy_.palette == palette && same_camera(anatomy_.camera, cam) &&
-                    moves_less_than(anatomy_.T_cam_ct, T_cam_ct, anatomy_box_, cam,
-                                    options_.anatomy_reuse_px);
+  const bool keep =
+      anatomy_.valid && options_.anatomy_reuse_px > 0 && anatomy_.palette == palette &&
+      same_camera(anatomy_.camera, cam) &&
+      moves_less_than(anatomy_.T_cam_ct, T_cam_ct, anatomy_box_, cam, options_.anatomy_reuse_px);
   if (!keep) {
     anatomy_ = AnatomyPictures{};
     anatomy_.valid = true;

@@ -328,9 +328,9 @@ TrajectoryEvaluation TrajectoryEvaluator::evaluate_class(const Trajectory& t,
     EntryValue ev;
     ev.value = value;
     ev.at_entry = sample_path_safety(vol->second, t.entry);
-    ev.safety_class =
-        std::isfinite(ev.at_entry) ? class_name(plan.classes.at(value).classify(ev.at_entry))
-                                   : "outside";
+    ev.safety_class = std::isfinite(ev.at_entry)
+                          ? class_name(plan.classes.at(value).classify(ev.at_entry))
+                          : "outside";
     ev.percentile = ev.safety_percentile = ev.at_worst_phase = kNaN;
     mark_unknown(e, ev);
     e.values.push_back(std::move(ev));

@@ -209,7 +209,8 @@ NeedleState NeedleGuide::evaluate(const Eigen::Isometry3d& T_ct_needle,
   return s;
 }
 
-NeedleSafety NeedleGuide::line_safety(const Eigen::Vector3d& tip, const Eigen::Vector3d& axis) const {
+NeedleSafety NeedleGuide::line_safety(const Eigen::Vector3d& tip,
+                                      const Eigen::Vector3d& axis) const {
   const PlanData& plan = *plan_;
   NeedleState s = needle_line(Eigen::Isometry3d::Identity(), tip, axis, plan.tumor_centre);
   if (s.points_away) return NeedleSafety::kUnknown;

@@ -703,8 +703,8 @@ TEST_F(GuidanceTest, MovedNeedleUpdatesThePolarMapAndAStillOneKeepsIt) {
     return T_ct_needle_for(c + 60.0 * out, -out);
   };
   const auto expected_cells = [&](const Eigen::Isometry3d& T_ct_needle) {
-    const planning::NeedleState s = o.needle_guide().evaluate(
-        T_ct_needle, setup.tip_in_needle, setup.axis_in_needle);
+    const planning::NeedleState s =
+        o.needle_guide().evaluate(T_ct_needle, setup.tip_in_needle, setup.axis_in_needle);
     planning::TargetingOptions to = options.targeting;
     to.size_px = 240;  // half the 480 px image's height
     to.right_hint = T_ct_cam().linear().col(0);

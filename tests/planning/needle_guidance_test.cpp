@@ -89,8 +89,7 @@ std::set<NeedleSafety> expect_line_safety_equals_evaluate(const NeedleGuide& gui
     const Eigen::Vector3d tip = c + (14.0 + 11.0 * unit(rng)) * random_unit();
     const Eigen::Vector3d axis =
         i % 5 == 4 ? random_unit() : Eigen::Vector3d(c + 6.0 * unit(rng) * random_unit() - tip);
-    const NeedleState s =
-        guide.evaluate(Eigen::Isometry3d::Identity(), tip, axis);
+    const NeedleState s = guide.evaluate(Eigen::Isometry3d::Identity(), tip, axis);
     const NeedleSafety expected = s.points_away ? NeedleSafety::kUnknown : s.safety;
     EXPECT_EQ(guide.line_safety(tip, axis), expected)
         << "line " << i << ": tip " << tip.transpose() << ", axis " << axis.transpose()
