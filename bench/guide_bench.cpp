@@ -40,6 +40,8 @@ int main(int argc, char** argv) {
   std::string device = "auto";
   double volume_scale = 0;
   std::string full_search = "background";
+  std::string plan_dir;
+  std::string volume_layer = "both";
   app.add_option("--spacing", spacing, "Phantom voxel size, mm")->capture_default_str();
   app.add_option("--frames", frames, "Frames per configuration (the first 5 are warm-up)")
       ->capture_default_str();
@@ -56,27 +58,40 @@ int main(int argc, char** argv) {
                  "in-frame (the frame that needs one waits for it)")
       ->check(CLI::IsMember({"background", "wait", "in-frame"}))
       ->capture_default_str();
+  app.add_option("--volume-layer", volume_layer,
+                 "Volume layer settings to measure: off, on or both")
+      ->check(CLI::IsMember({"off", "on", "both"}))
+      ->capture_default_str();
+  app.add_option("--plan", plan_dir,
+                 "Plan folder of the phantom to reuse (made there when it holds no plan.json yet; "
+                 "kept afterwards)");
   CLI11_PARSE(app, argc, argv);
   spdlog::set_level(spdlog::level::warn);
   try {
     const fs::path dir = fs::temp_directory_path() / ("crepuscular_guide_bench_" +
                                                       std::to_string(::getpid()));
     fs::remove_all(dir);
-    planning::PhantomOptions po;
-    po.spacing_mm = spacing;
-    planning::write_phantom(planning::make_phantom(po), (dir / "phantom").string());
     pipelines::PlanRequest req;
-    req.labels = {(dir / "phantom/labels.nii.gz").string()};
-    req.tumor = (dir / "phantom/tumor.nii.gz").string();
-    req.vulnerability = (dir / "phantom/vulnerability.json").string();
-    req.path_safety.mode = planning::Mode::kFast;
-    req.path_safety.device = planning::parse_device(device);
-    req.path_safety.radius_mm = 120;
-    req.out_dir = (dir / "plan").string();
-    const auto t_plan = std::chrono::steady_clock::now();
-    pipelines::run_plan(req);
-    std::cerr << "plan: " << std::chrono::duration<double>(std::chrono::steady_clock::now() - t_plan).count()
-              << " s\n";
+    req.out_dir = plan_dir.empty() ? (dir / "plan").string() : plan_dir;
+    if (plan_dir.empty() || !fs::exists(fs::path(plan_dir) / "plan.json")) {
+      // A kept plan keeps its phantom beside it: the scenario reads its label map.
+      const fs::path phantom =
+          plan_dir.empty() ? dir / "phantom" : fs::path(plan_dir).parent_path() / "phantom";
+      planning::PhantomOptions po;
+      po.spacing_mm = spacing;
+      planning::write_phantom(planning::make_phantom(po), phantom.string());
+      req.labels = {(phantom / "labels.nii.gz").string()};
+      req.tumor = (phantom / "tumor.nii.gz").string();
+      req.vulnerability = (phantom / "vulnerability.json").string();
+      req.path_safety.mode = planning::Mode::kFast;
+      req.path_safety.device = planning::parse_device(device);
+      req.path_safety.radius_mm = 120;
+      const auto t_plan = std::chrono::steady_clock::now();
+      pipelines::run_plan(req);
+      std::cerr << "plan: "
+                << std::chrono::duration<double>(std::chrono::steady_clock::now() - t_plan).count()
+                << " s\n";
+    }
     const planning::PlanData plan = planning::load_plan(req.out_dir);
     const pipelines::GuidanceScenario scenario = pipelines::make_guidance_scenario(plan);
     std::vector<tracking::Board> boards;
@@ -115,6 +130,7 @@ int main(int argc, char** argv) {
       setup.axis_in_needle =
           scenario.needle.axis_needle ? *scenario.needle.axis_needle : Eigen::Vector3d::UnitZ();
       for (bool volume : {false, true}) {
+        if (volume_layer != "both" && volume != (volume_layer == "on")) continue;
         overlay::GuidanceOptions go;
         go.visible[size_t(overlay::GuidanceLayer::kVolume)] = volume;
         go.volume_resolution_scale = volume_scale;
@@ -162,6 +178,8 @@ int main(int argc, char** argv) {
                                         {"anatomy", pipelines::percentile(anatomy, 50)},
                                         {"needle", pipelines::percentile(needle_ms, 50)},
                                         {"status", pipelines::percentile(status, 50)}};
+        j["overlay_parts_p95_ms"] = {{"anatomy", pipelines::percentile(anatomy, 95)},
+                                     {"needle", pipelines::percentile(needle_ms, 95)}};
         j["render_p95_ms"] = pipelines::percentile(render, 95);
         j["gl"] = loop.renderer().gl_description();
         std::cout << j.dump() << std::endl;

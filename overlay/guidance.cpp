@@ -9,6 +9,7 @@
 #include <set>
 
 #include <fmt/format.h>
+#include <opencv2/core/utility.hpp>
 #include <opencv2/imgproc.hpp>
 #include <spdlog/spdlog.h>
 
@@ -79,6 +80,30 @@ cv::Mat text_panel(const std::vector<TextLine>& lines, cv::Point at, bool anchor
   return panel;
 }
 
+bool same_camera(const calibration::CameraModel& a, const calibration::CameraModel& b) {
+  return a.width == b.width && a.height == b.height && a.fx == b.fx && a.fy == b.fy &&
+         a.cx == b.cx && a.cy == b.cy && a.distortion == b.distortion;
+}
+
+// Whether going from pose `from` to pose `to` (T_cam_ct) moves no point of the box with these
+// corners (CT) by more than tol_px in the image. The move of a point in the camera frame is
+// largest at a corner (its length is convex over the box), the depth smallest and the off-axis
+// slope |(x, y)| / z largest there too, and a move of d mm at depth z shifts the point's pixel by
+// about f d (1 + slope) / z at most. False when the box reaches the camera plane.
+bool moves_less_than(const Eigen::Isometry3d& from, const Eigen::Isometry3d& to,
+                     const std::array<Eigen::Vector3d, 8>& corners,
+                     const calibration::CameraModel& camera, double tol_px) {
+  double move = 0, z_min = std::numeric_limits<double>::infinity(), slope = 0;
+  for (const Eigen::Vector3d& p : corners) {
+    const Eigen::Vector3d a = from * p, b = to * p;
+    move = std::max(move, (a - b).norm());
+    z_min = std::min({z_min, a.z(), b.z()});
+    if (a.z() > 0) slope = std::max(slope, a.head<2>().norm() / a.z());
+  }
+  if (!(z_min > 1.0) || !std::isfinite(move)) return false;
+  return std::max(camera.fx, camera.fy) * move * (1.0 + slope) / z_min <= tol_px;
+}
+
 }  // namespace
 
 const char* guidance_layer_name(GuidanceLayer layer) { return kLayerNames[size_t(layer)]; }
@@ -129,6 +154,20 @@ GuidanceOverlay::GuidanceOverlay(const planning::PlanData& plan, GuidanceSetup s
                                                        plan_.labels, plan_.path_safety.at(value_),
                                                        plan_.radius_mm);
     if (!planned.empty()) planned_ = planned.front();
+  }
+  // The box around everything the anatomy pictures show (the ring of the planned entry: 5 mm).
+  Eigen::AlignedBox3d box(plan_.tumor_centre);
+  for (const auto& p : tumor_surface_) box.extend(p);
+  for (const Patch& patch : patches_)
+    for (const auto& p : patch.points) box.extend(p);
+  if (planned_) {
+    box.extend(planned_->entry);
+    box.extend(planned_->target);
+  }
+  box.min() -= Eigen::Vector3d::Constant(std::max(5.0, tumor_voxel_mm_));
+  box.max() += Eigen::Vector3d::Constant(std::max(5.0, tumor_voxel_mm_));
+  for (int i = 0; i < 8; ++i) {
+    anatomy_box_[size_t(i)] = box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(i));
   }
   spdlog::info("guidance: {} safe or medium rays of {} ({} not drawn: they reach the unknown "
                "outside the scan), {} entry contours, {} tumor surface points",
@@ -378,26 +417,142 @@ std::vector<Eigen::Vector2d> project_all(const std::vector<Eigen::Vector3d>& poi
 
 bool fits(const Eigen::Vector2d& p) { return p.allFinite() && p.cwiseAbs().maxCoeff() < 1e5; }
 
-cv::Point fixed_px(const Eigen::Vector2d& p) {
-  return cv::Point(int(std::lround(p.x() * 16)), int(std::lround(p.y() * 16)));
+// A pixel in fixed point (4 bits) for OpenCV's drawing, in an image whose top-left pixel lies at
+// `origin` in the frame.
+cv::Point fixed_px(const Eigen::Vector2d& p, const cv::Point& origin = cv::Point(0, 0)) {
+  return cv::Point(int(std::lround(p.x() * 16)) - 16 * origin.x,
+                   int(std::lround(p.y() * 16)) - 16 * origin.y);
+}
+
+// A picture of a part of the frame: its pixels (BGRA) and where its top-left pixel lies in the
+// frame. Empty: nothing to show.
+struct Picture {
+  cv::Mat bgra;
+  cv::Point origin;
+};
+
+// The frame's pixels within `pad` of the bounding box of the points that fits() (pixels); empty
+// when there are none or the box misses the frame.
+cv::Rect region_around(const std::vector<Eigen::Vector2d>& px, int pad, const cv::Size& frame) {
+  double x0 = std::numeric_limits<double>::infinity(), y0 = x0, x1 = -x0, y1 = -x0;
+  for (const auto& p : px) {
+    if (!fits(p)) continue;
+    x0 = std::min(x0, p.x()), y0 = std::min(y0, p.y());
+    x1 = std::max(x1, p.x()), y1 = std::max(y1, p.y());
+  }
+  if (!(x0 <= x1)) return {};
+  const cv::Rect box(cv::Point(int(std::floor(x0)) - pad, int(std::floor(y0)) - pad),
+                     cv::Point(int(std::ceil(x1)) + pad + 1, int(std::ceil(y1)) + pad + 1));
+  return box & cv::Rect(cv::Point(0, 0), frame);
+}
+
+// The corners of the box a text drawn at `at` (cv::putText's origin, frame pixels) covers, with
+// its stroke.
+void add_text_box(std::vector<Eigen::Vector2d>& px, const std::string& text, const cv::Point& at,
+                  double scale, int thickness) {
+  int base = 0;
+  const cv::Size size = cv::getTextSize(text, cv::FONT_HERSHEY_SIMPLEX, scale, thickness, &base);
+  px.emplace_back(at.x - thickness, at.y - size.height - thickness);
+  px.emplace_back(at.x + size.width + thickness, at.y + base + thickness);
+}
+
+// Fills a triangle (fixed point, 4 bits) into an 8-bit mask with 255, as cv::fillConvexPoly does,
+// except when every pixel it can touch is 255 already and the fill would change nothing: the case
+// of most of the small triangles of a dense mesh. cv::fillConvexPoly draws the edges between the
+// vertices rounded to pixels and fills the rows between them, x rounded: it touches only the
+// pixels between the rounded extremes of the vertices, (v + 8) >> 4.
+void fill_triangle(cv::Mat& mask, const cv::Point tri[3]) {
+  const int x0 = std::max(0, (std::min({tri[0].x, tri[1].x, tri[2].x}) + 8) >> 4);
+  const int x1 = std::min(mask.cols - 1, (std::max({tri[0].x, tri[1].x, tri[2].x}) + 8) >> 4);
+  const int y0 = std::max(0, (std::min({tri[0].y, tri[1].y, tri[2].y}) + 8) >> 4);
+  const int y1 = std::min(mask.rows - 1, (std::max({tri[0].y, tri[1].y, tri[2].y}) + 8) >> 4);
+  if (x0 > x1 || y0 > y1) return;  // wholly outside the mask
+  if ((x1 - x0 + 1) * (y1 - y0 + 1) <= 64) {
+    bool full = true;
+    for (int y = y0; y <= y1 && full; ++y) {
+      const uint8_t* row = mask.ptr<uint8_t>(y);
+      for (int x = x0; x <= x1; ++x) {
+        if (row[x] != 255) {
+          full = false;
+          break;
+        }
+      }
+    }
+    if (full) return;
+  }
+  cv::fillConvexPoly(mask, tri, 3, cv::Scalar(255), cv::LINE_8, 4);
+}
+
+// Points projected for drawing: pixels in fixed point (fixed_px, for an image whose top-left
+// pixel lies at `origin`), and whether each fits().
+struct FixedPixels {
+  std::vector<cv::Point> px;
+  std::vector<uint8_t> fits;
+};
+FixedPixels fixed_pixels(const std::vector<Eigen::Vector2d>& px, const cv::Point& origin) {
+  FixedPixels f;
+  f.px.reserve(px.size());
+  f.fits.reserve(px.size());
+  for (const auto& p : px) {
+    const bool ok = fits(p);
+    f.fits.push_back(ok);
+    f.px.push_back(ok ? fixed_px(p, origin) : cv::Point());
+  }
+  return f;
+}
+
+// Fills the triangles (vertex indices into f) for which keep(index) holds into the 8-bit mask with
+// 255, from several threads when there are more than per_thread of them: each fills a share of
+// them into a mask of its own and the masks are combined, which gives the same pixels (a fill only
+// sets them to 255).
+template <typename Keep>
+void fill_triangles(cv::Mat& mask, const std::vector<std::array<int, 3>>& triangles,
+                    const FixedPixels& f, const Keep& keep, size_t per_thread = 2000) {
+  const auto fill_range = [&](cv::Mat& into, size_t from, size_t to) {
+    for (size_t i = from; i < to; ++i) {
+      const auto& t = triangles[i];
+      if (!f.fits[size_t(t[0])] || !f.fits[size_t(t[1])] || !f.fits[size_t(t[2])] || !keep(i)) {
+        continue;
+      }
+      const cv::Point tri[3] = {f.px[size_t(t[0])], f.px[size_t(t[1])], f.px[size_t(t[2])]};
+      fill_triangle(into, tri);
+    }
+  };
+  const size_t n = triangles.size();
+  const int parts =
+      int(std::min<size_t>(size_t(std::max(1, cv::getNumThreads())), n / per_thread + 1));
+  if (parts <= 1) {
+    fill_range(mask, 0, n);
+    return;
+  }
+  std::vector<cv::Mat> masks(static_cast<size_t>(parts));
+  cv::parallel_for_(cv::Range(0, parts), [&](const cv::Range& r) {
+    for (int k = r.start; k < r.end; ++k) {
+      cv::Mat& m = masks[size_t(k)];
+      m = cv::Mat(mask.size(), CV_8U, cv::Scalar(0));
+      fill_range(m, n * size_t(k) / size_t(parts), n * size_t(k + 1) / size_t(parts));
+    }
+  });
+  for (const cv::Mat& m : masks) cv::bitwise_or(mask, m, mask);
 }
 
 // Fills the patch's triangles that face the camera (their outward side: the mesh's triangles are
-// outward, seen counter-clockwise from outside) into mask.
+// outward, seen counter-clockwise from outside) into mask, whose top-left pixel lies at `origin`
+// in the frame.
 void fill_front_triangles(cv::Mat& mask, const GuidanceOverlay::Patch& patch,
-                          const Eigen::Isometry3d& T_cam_ct,
-                          const calibration::CameraModel& camera) {
-  const auto px = project_all(patch.points, T_cam_ct, camera);
-  for (const auto& t : patch.triangles) {
-    const Eigen::Vector3d a = T_cam_ct * patch.points[size_t(t[0])];
-    const Eigen::Vector3d b = T_cam_ct * patch.points[size_t(t[1])];
-    const Eigen::Vector3d c = T_cam_ct * patch.points[size_t(t[2])];
-    if ((b - a).cross(c - a).dot(a) >= 0) continue;  // faces away from the camera
-    const Eigen::Vector2d &pa = px[size_t(t[0])], &pb = px[size_t(t[1])], &pc = px[size_t(t[2])];
-    if (!fits(pa) || !fits(pb) || !fits(pc)) continue;
-    const cv::Point tri[3] = {fixed_px(pa), fixed_px(pb), fixed_px(pc)};
-    cv::fillConvexPoly(mask, tri, 3, cv::Scalar(255), cv::LINE_8, 4);
-  }
+                          const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& camera,
+                          const cv::Point& origin = cv::Point(0, 0)) {
+  std::vector<Eigen::Vector3d> cam;
+  cam.reserve(patch.points.size());
+  for (const auto& p : patch.points) cam.push_back(T_cam_ct * p);
+  const FixedPixels f = fixed_pixels(project_all(patch.points, T_cam_ct, camera), origin);
+  fill_triangles(mask, patch.triangles, f, [&](size_t i) {
+    const auto& t = patch.triangles[i];
+    const Eigen::Vector3d& a = cam[size_t(t[0])];
+    const Eigen::Vector3d& b = cam[size_t(t[1])];
+    const Eigen::Vector3d& c = cam[size_t(t[2])];
+    return (b - a).cross(c - a).dot(a) < 0;  // faces the camera
+  });
 }
 
 // Paints `colour` at `alpha` (0..255) into the BGRA image where mask is set (over what is there).
@@ -479,98 +634,173 @@ std::vector<std::vector<cv::Point>> mask_outlines(const cv::Mat& mask) {
 
 // One translucent cone per patch: from the patch (its whole surface) to `apex`, i.e. the patch and
 // the triangles from the apex to its border, which together cover the cone's projection; a faint
-// outline around it.
-cv::Mat cone_image(const std::vector<GuidanceOverlay::Patch>& patches, const Eigen::Vector3d& apex,
+// outline around it. The picture spans the part of the frame the cones cover.
+Picture cone_image(const std::vector<GuidanceOverlay::Patch>& patches, const Eigen::Vector3d& apex,
                    const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& camera,
                    planning::Palette palette) {
-  cv::Mat image(camera.height, camera.width, CV_8UC4, cv::Scalar(0, 0, 0, 0));
   const Eigen::Vector3d apex_cam = T_cam_ct * apex;
-  if (apex_cam.z() <= 1.0) return image;
+  if (apex_cam.z() <= 1.0) return {};
   const Eigen::Vector2d apex_px = camera.project(apex_cam);
+  std::vector<std::vector<Eigen::Vector2d>> projected;
+  std::vector<Eigen::Vector2d> all = {apex_px};
   for (const auto& patch : patches) {
+    projected.push_back(project_all(patch.points, T_cam_ct, camera));
+    all.insert(all.end(), projected.back().begin(), projected.back().end());
+  }
+  const cv::Rect roi = region_around(all, 4, cv::Size(camera.width, camera.height));
+  if (roi.empty()) return {};
+  const cv::Point o = roi.tl();
+  Picture picture{cv::Mat(roi.size(), CV_8UC4, cv::Scalar(0, 0, 0, 0)), o};
+  cv::Mat& image = picture.bgra;
+  for (size_t i = 0; i < patches.size(); ++i) {
+    const auto& patch = patches[i];
+    const auto& px = projected[i];
+    // The apex after the patch's points; the fan from it to the border, large triangles, shared
+    // among threads in smaller lots.
+    FixedPixels f = fixed_pixels(px, o);
+    const int apex_index = int(px.size());
+    f.fits.push_back(fits(apex_px));
+    f.px.push_back(fits(apex_px) ? fixed_px(apex_px, o) : cv::Point());
+    std::vector<std::array<int, 3>> fan;
+    fan.reserve(patch.border.size());
+    for (const auto& e : patch.border) fan.push_back({apex_index, e[0], e[1]});
     cv::Mat mask(image.size(), CV_8U, cv::Scalar(0));
-    const auto px = project_all(patch.points, T_cam_ct, camera);
-    for (const auto& t : patch.triangles) {
-      const Eigen::Vector2d &a = px[size_t(t[0])], &b = px[size_t(t[1])], &c = px[size_t(t[2])];
-      if (!fits(a) || !fits(b) || !fits(c)) continue;
-      const cv::Point tri[3] = {fixed_px(a), fixed_px(b), fixed_px(c)};
-      cv::fillConvexPoly(mask, tri, 3, cv::Scalar(255), cv::LINE_8, 4);
-    }
-    for (const auto& e : patch.border) {
-      const Eigen::Vector2d &a = px[size_t(e[0])], &b = px[size_t(e[1])];
-      if (!fits(a) || !fits(b) || !fits(apex_px)) continue;
-      const cv::Point tri[3] = {fixed_px(apex_px), fixed_px(a), fixed_px(b)};
-      cv::fillConvexPoly(mask, tri, 3, cv::Scalar(255), cv::LINE_8, 4);
-    }
+    const auto all = [](size_t) { return true; };
+    fill_triangles(mask, patch.triangles, f, all);
+    fill_triangles(mask, fan, f, all, 100);
     const cv::Scalar colour = leeway_bgr(palette, patch.leeway);
     paint(image, mask, colour, 75);
     cv::polylines(image, mask_outlines(mask), true,
                   cv::Scalar(colour[0], colour[1], colour[2], 200), 1, cv::LINE_AA, 4);
   }
-  return image;
+  return picture;
+}
+
+// The planned trajectory's drawing: dashes of 5 mm from the entry to the target, a ring of 5 mm
+// radius at the entry (CT points: segments and the ring's points) and its label's position.
+struct PlannedMarks {
+  std::vector<std::pair<Eigen::Vector3d, Eigen::Vector3d>> dashes;
+  std::vector<Eigen::Vector3d> ring;
+};
+PlannedMarks planned_marks(const planning::RegionTrajectory& plan) {
+  PlannedMarks m;
+  const Eigen::Vector3d d = plan.target - plan.entry;
+  const double length = d.norm();
+  if (!(length > 1e-6)) return m;
+  const Eigen::Vector3d u = d / length;
+  for (double s = 0; s < length; s += 10.0) {
+    m.dashes.emplace_back(plan.entry + s * u, plan.entry + std::min(s + 5.0, length) * u);
+  }
+  const Eigen::Vector3d e1 = u.unitOrthogonal(), e2 = u.cross(e1);
+  for (int k = 0; k < 48; ++k) {
+    const double t = 2 * M_PI * k / 48;
+    m.ring.push_back(plan.entry + 5.0 * (std::cos(t) * e1 + std::sin(t) * e2));
+  }
+  return m;
+}
+
+// The pixel of a CT point, nullopt behind the near plane or far outside the image.
+std::optional<Eigen::Vector2d> pixel_of(const Eigen::Vector3d& p, const Eigen::Isometry3d& T_cam_ct,
+                                        const calibration::CameraModel& camera) {
+  const Eigen::Vector3d q = T_cam_ct * p;
+  if (q.z() <= 1.0) return std::nullopt;
+  const Eigen::Vector2d x = camera.project(q);
+  if (!fits(x)) return std::nullopt;
+  return x;
+}
+
+// Where the planned entry's label goes (cv::putText's origin, frame pixels).
+cv::Point planned_label_at(const Eigen::Vector2d& entry_px) {
+  const cv::Point q = fixed_px(entry_px);
+  return cv::Point(q.x / 16 + 12, q.y / 16 - 10);
+}
+
+// The planned trajectory into a BGRA image whose top-left pixel lies at `origin` in the frame:
+// dashes of 5 mm from the entry to the target (white with a dark edge, so it reads on any skin), a
+// ring of 5 mm radius at the entry and its label.
+void draw_planned(cv::Mat& image, const cv::Point& origin, const planning::RegionTrajectory& plan,
+                  const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& camera) {
+  const PlannedMarks marks = planned_marks(plan);
+  auto px = [&](const Eigen::Vector3d& p) -> std::optional<cv::Point> {
+    if (auto x = pixel_of(p, T_cam_ct, camera)) return fixed_px(*x, origin);
+    return std::nullopt;
+  };
+  const cv::Scalar white(255, 255, 255, 255), dark(40, 40, 40, 220);
+  for (const auto& [from, to] : marks.dashes) {
+    const auto a = px(from), b = px(to);
+    if (!a || !b) continue;
+    cv::line(image, *a, *b, dark, 5, cv::LINE_AA, 4);
+    cv::line(image, *a, *b, white, 2, cv::LINE_AA, 4);
+  }
+  std::vector<cv::Point> ring;
+  for (const auto& p : marks.ring) {
+    if (auto q = px(p)) ring.push_back(*q);
+  }
+  if (!marks.ring.empty() && ring.size() == marks.ring.size()) {
+    cv::polylines(image, std::vector<std::vector<cv::Point>>{ring}, true, dark, 5, cv::LINE_AA, 4);
+    cv::polylines(image, std::vector<std::vector<cv::Point>>{ring}, true, white, 2, cv::LINE_AA, 4);
+  }
+  if (marks.dashes.empty()) return;
+  if (auto q = pixel_of(plan.entry, T_cam_ct, camera)) {
+    const cv::Point at = planned_label_at(*q) - origin;
+    cv::putText(image, "PLANNED ENTRY", at, cv::FONT_HERSHEY_SIMPLEX, 0.5, dark, 4, cv::LINE_AA);
+    cv::putText(image, "PLANNED ENTRY", at, cv::FONT_HERSHEY_SIMPLEX, 0.5, white, 1, cv::LINE_AA);
+  }
 }
 
 // The entry patches facing the camera, translucent, each outlined with a width (2-8 px) and colour
-// that show its leeway.
-cv::Mat patch_image(const GuidanceOverlay& overlay, const Eigen::Isometry3d& T_cam_ct,
-                    const calibration::CameraModel& camera, planning::Palette palette) {
-  cv::Mat image(camera.height, camera.width, CV_8UC4, cv::Scalar(0, 0, 0, 0));
-  for (const auto& patch : overlay.entry_patches()) {
-    const cv::Mat mask = overlay.entry_patch_mask(T_cam_ct, camera, patch.region);
+// that show its leeway, and the planned trajectory over them (when there is one). The picture
+// spans the part of the frame they cover.
+Picture patch_image(const std::vector<GuidanceOverlay::Patch>& patches,
+                    const std::optional<planning::RegionTrajectory>& planned,
+                    const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& camera,
+                    planning::Palette palette) {
+  std::vector<Eigen::Vector2d> all;
+  for (const auto& patch : patches) {
+    const auto px = project_all(patch.points, T_cam_ct, camera);
+    all.insert(all.end(), px.begin(), px.end());
+  }
+  if (planned) {
+    const PlannedMarks marks = planned_marks(*planned);
+    for (const auto& [from, to] : marks.dashes) {
+      for (const auto& p : {from, to}) {
+        if (auto x = pixel_of(p, T_cam_ct, camera)) all.push_back(*x);
+      }
+    }
+    for (const auto& p : marks.ring) {
+      if (auto x = pixel_of(p, T_cam_ct, camera)) all.push_back(*x);
+    }
+    if (auto q = pixel_of(planned->entry, T_cam_ct, camera)) {
+      add_text_box(all, "PLANNED ENTRY", planned_label_at(*q), 0.5, 4);
+    }
+  }
+  // Outlines up to 8 px wide, dashes 5 px, smoothed: 10 px around the shapes hold them.
+  const cv::Rect roi = region_around(all, 10, cv::Size(camera.width, camera.height));
+  if (roi.empty()) return {};
+  const cv::Point o = roi.tl();
+  Picture picture{cv::Mat(roi.size(), CV_8UC4, cv::Scalar(0, 0, 0, 0)), o};
+  cv::Mat& image = picture.bgra;
+  for (const auto& patch : patches) {
+    cv::Mat mask(image.size(), CV_8U, cv::Scalar(0));
+    for (const auto& p : patches) {
+      if (p.region == patch.region) fill_front_triangles(mask, p, T_cam_ct, camera, o);
+    }
     const cv::Scalar colour = leeway_bgr(palette, patch.leeway);
     paint(image, mask, colour, 110);
     const int width = int(std::lround(2.0 + 6.0 * patch.leeway));
     cv::polylines(image, mask_outlines(mask), true,
                   cv::Scalar(colour[0], colour[1], colour[2], 235), width, cv::LINE_AA, 4);
   }
-  return image;
-}
-
-// The planned trajectory into a BGRA image: dashes of 5 mm from the entry to the target (white
-// with a dark edge, so it reads on any skin), a ring of 5 mm radius at the entry and its label.
-void draw_planned(cv::Mat& image, const planning::RegionTrajectory& plan,
-                  const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& camera) {
-  const Eigen::Vector3d d = plan.target - plan.entry;
-  const double length = d.norm();
-  if (!(length > 1e-6)) return;
-  const Eigen::Vector3d u = d / length;
-  auto px = [&](const Eigen::Vector3d& p) -> std::optional<cv::Point> {
-    const Eigen::Vector3d q = T_cam_ct * p;
-    if (q.z() <= 1.0) return std::nullopt;
-    const Eigen::Vector2d x = camera.project(q);
-    if (!fits(x)) return std::nullopt;
-    return fixed_px(x);
-  };
-  const cv::Scalar white(255, 255, 255, 255), dark(40, 40, 40, 220);
-  for (double s = 0; s < length; s += 10.0) {
-    const auto a = px(plan.entry + s * u), b = px(plan.entry + std::min(s + 5.0, length) * u);
-    if (!a || !b) continue;
-    cv::line(image, *a, *b, dark, 5, cv::LINE_AA, 4);
-    cv::line(image, *a, *b, white, 2, cv::LINE_AA, 4);
-  }
-  const Eigen::Vector3d e1 = u.unitOrthogonal(), e2 = u.cross(e1);
-  std::vector<cv::Point> ring;
-  for (int k = 0; k < 48; ++k) {
-    const double t = 2 * M_PI * k / 48;
-    if (auto q = px(plan.entry + 5.0 * (std::cos(t) * e1 + std::sin(t) * e2))) ring.push_back(*q);
-  }
-  if (ring.size() == 48) {
-    cv::polylines(image, std::vector<std::vector<cv::Point>>{ring}, true, dark, 5, cv::LINE_AA, 4);
-    cv::polylines(image, std::vector<std::vector<cv::Point>>{ring}, true, white, 2, cv::LINE_AA, 4);
-  }
-  if (auto q = px(plan.entry)) {
-    const cv::Point at(q->x / 16 + 12, q->y / 16 - 10);
-    cv::putText(image, "PLANNED ENTRY", at, cv::FONT_HERSHEY_SIMPLEX, 0.5, dark, 4, cv::LINE_AA);
-    cv::putText(image, "PLANNED ENTRY", at, cv::FONT_HERSHEY_SIMPLEX, 0.5, white, 1, cv::LINE_AA);
-  }
+  if (planned) draw_planned(image, o, *planned, T_cam_ct, camera);
+  return picture;
 }
 
 // The tumor seen through the skin: its surface voxels (CT LPS mm, `voxel_mm` wide) projected as
-// discs of their apparent size; their union filled translucently, outlined and labelled.
-cv::Mat tumor_image(const std::vector<Eigen::Vector3d>& surface, double voxel_mm,
+// discs of their apparent size; their union filled translucently, outlined and labelled. The
+// picture spans the part of the frame it covers.
+Picture tumor_image(const std::vector<Eigen::Vector3d>& surface, double voxel_mm,
                     const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& cam,
                     const cv::Scalar& colour) {
-  cv::Mat image(cam.height, cam.width, CV_8UC4, cv::Scalar(0, 0, 0, 0));
   std::vector<Eigen::Vector2d> pts;
   double radius_px = 1;
   for (const auto& p_ct : surface) {
@@ -581,26 +811,38 @@ cv::Mat tumor_image(const std::vector<Eigen::Vector3d>& surface, double voxel_mm
     pts.push_back(uv);
     radius_px = std::max(radius_px, 0.6 * cam.fx * voxel_mm / p.z());
   }
-  std::vector<std::vector<cv::Point>> polys;
+  const auto outlines = point_cloud_outlines(pts, radius_px);
+  if (outlines.empty()) return {};
+  std::vector<Eigen::Vector2d> all;
   int right = -1, top = 1 << 20;
-  for (const auto& o : point_cloud_outlines(pts, radius_px)) {
-    std::vector<cv::Point> p;
+  for (const auto& o : outlines) {
     for (const auto& q : o) {
-      p.push_back(fixed_px(Eigen::Vector2d(q.x, q.y)));
+      all.emplace_back(q.x, q.y);
       right = std::max(right, int(q.x));
       top = std::min(top, int(q.y));
     }
+  }
+  const cv::Point at(right + 8, std::max(16, top + 12));
+  add_text_box(all, "TUMOR", at, 0.6, 4);
+  // The outline is 2 px wide, smoothed.
+  const cv::Rect roi = region_around(all, 4, cv::Size(cam.width, cam.height));
+  if (roi.empty()) return {};
+  const cv::Point o = roi.tl();
+  Picture picture{cv::Mat(roi.size(), CV_8UC4, cv::Scalar(0, 0, 0, 0)), o};
+  cv::Mat& image = picture.bgra;
+  std::vector<std::vector<cv::Point>> polys;
+  for (const auto& outline : outlines) {
+    std::vector<cv::Point> p;
+    for (const auto& q : outline) p.push_back(fixed_px(Eigen::Vector2d(q.x, q.y), o));
     polys.push_back(std::move(p));
   }
-  if (polys.empty()) return image;
   cv::fillPoly(image, polys, cv::Scalar(colour[0], colour[1], colour[2], 110), cv::LINE_8, 4);
   cv::polylines(image, polys, true, cv::Scalar(colour[0], colour[1], colour[2], 255), 2,
                 cv::LINE_AA, 4);
-  const cv::Point at(right + 8, std::max(16, top + 12));
   const cv::Scalar dark(40, 40, 40, 220), label(colour[0], colour[1], colour[2], 255);
-  cv::putText(image, "TUMOR", at, cv::FONT_HERSHEY_SIMPLEX, 0.6, dark, 4, cv::LINE_AA);
-  cv::putText(image, "TUMOR", at, cv::FONT_HERSHEY_SIMPLEX, 0.6, label, 2, cv::LINE_AA);
-  return image;
+  cv::putText(image, "TUMOR", at - o, cv::FONT_HERSHEY_SIMPLEX, 0.6, dark, 4, cv::LINE_AA);
+  cv::putText(image, "TUMOR", at - o, cv::FONT_HERSHEY_SIMPLEX, 0.6, label, 2, cv::LINE_AA);
+  return picture;
 }
 
 // The tumor centre: a small cross in 3D, 8 mm across.
@@ -636,27 +878,53 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
     renderer.set_layer_draw("volume", [volume](const DrawContext& c) { volume->draw(c); });
   }
   const calibration::CameraModel& cam = renderer.camera();
+  // The pictures drawn on the CPU are kept while the pose moves them by less than the tolerance
+  // (and the palette and the camera stay); they show the pose they were drawn for.
+  const bool keep =
+      anatomy_.valid && options_.anatomy_reuse_px > 0 && anatomy_.palette == palette &&
+      same_camera(anatomy_.camera, cam) &&
+      moves_less_than(anatomy_.T_cam_ct, T_cam_ct, anatomy_box_, cam, options_.anatomy_reuse_px);
+  if (!keep) {
+    anatomy_ = AnatomyPictures{};
+    anatomy_.valid = true;
+    anatomy_.T_cam_ct = T_cam_ct;
+    anatomy_.palette = palette;
+    anatomy_.camera = cam;
+  }
+  const Eigen::Isometry3d T_drawn = anatomy_.T_cam_ct;
+  bool drew = false;
+  const auto show = [&](const char* layer, LayerPicture& picture, const auto& draw) {
+    if (!picture.drawn) {
+      Picture p = draw();
+      picture.bgra = p.bgra;
+      picture.origin = p.origin;
+      picture.revision = OverlayRenderer::new_image_revision();
+      picture.drawn = drew = true;
+    }
+    if (!picture.bgra.empty()) {
+      renderer.add_layer_image(layer, picture.bgra, picture.origin, picture.revision);
+    }
+  };
   if (visible(GuidanceLayer::kRays)) {
     // One cone per safe region; the ray bundles where the plan has no area safety.
     if (patches_.empty()) {
       add_rays(renderer, rays_, T_cam_ct, palette);
     } else {
-      renderer.add_layer_image("rays", cone_image(patches_, plan_.tumor_centre, T_cam_ct, cam, palette),
-                               cv::Point(0, 0));
+      show("rays", anatomy_.cones,
+           [&] { return cone_image(patches_, plan_.tumor_centre, T_drawn, cam, palette); });
     }
   }
   if (visible(GuidanceLayer::kEntry)) {
-    cv::Mat image = patch_image(*this, T_cam_ct, cam, palette);
-    if (planned_) draw_planned(image, *planned_, T_cam_ct, cam);
-    renderer.add_layer_image("entry", image, cv::Point(0, 0));
+    show("entry", anatomy_.entry,
+         [&] { return patch_image(patches_, planned_, T_drawn, cam, palette); });
   }
   if (visible(GuidanceLayer::kTumor)) {
     const cv::Scalar magenta(255, 0, 255);
-    renderer.add_layer_image(
-        "tumor", tumor_image(tumor_surface_, tumor_voxel_mm_, T_cam_ct, cam, magenta),
-        cv::Point(0, 0));
+    show("tumor", anatomy_.tumor,
+         [&] { return tumor_image(tumor_surface_, tumor_voxel_mm_, T_drawn, cam, magenta); });
     add_tumor_centre(renderer, plan_.tumor_centre, T_cam_ct, magenta);
   }
+  if (drew) ++anatomy_pictures_drawn_;
 }
 
 void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct,
@@ -765,13 +1033,20 @@ void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isomet
                         to.right_hint.dot(targeting_right_) > kSame &&
                         to.size_px == targeting_.size_px;
       if (!same) {
+        ++targeting_maps_computed_;
         targeting_ = planning::targeting_geometry(*guide_, s, tumor_surface_, tumor_voxel_mm_, to);
         targeting_tip_ = s.tip;
         targeting_right_ = to.right_hint;
       }
       targeting_origin_ = cv::Point(frame.width - to.size_px - 10, 10);
-      renderer.add_layer_image("target", render_targeting_view(targeting_, palette),
-                               targeting_origin_);
+      if (!same || !targeting_picture_.drawn || targeting_palette_ != palette) {
+        targeting_picture_.bgra = render_targeting_view(targeting_, palette);
+        targeting_picture_.revision = OverlayRenderer::new_image_revision();
+        targeting_picture_.drawn = true;
+        targeting_palette_ = palette;
+      }
+      renderer.add_layer_image("target", targeting_picture_.bgra, targeting_origin_,
+                               targeting_picture_.revision);
     }
   }
 }

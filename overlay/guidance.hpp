@@ -2,7 +2,9 @@
 // on the plan (safe ray bundles, entry-area contours on the skin, the tumor's surface) is built
 // once in CT coordinates; every frame it is moved into the camera with the tracked patient board
 // and handed to the OverlayRenderer, together with the tracked needle, its live safety and the
-// tracking status.
+// tracking status. The pictures drawn on the CPU cover only the part of the frame their shapes
+// cover; those of the anatomy are kept while the patient board moves them by less than a quarter
+// pixel, and the targeting view's while the needle stays where it was.
 //
 // Layers (names, keys in the window):
 //   1 "rays"    safe directions: one translucent cone per safe area-safety region, from its entry
@@ -87,6 +89,11 @@ struct GuidanceOptions {
   // paths only, as the paper shows them, so the safe funnels stand out. Voxels outside the body
   // (label 0) are never drawn.
   std::array<bool, 3> volume_classes = {true, true, false};
+  // The pictures of the anatomy layers drawn on the CPU (cones, entry patches with the planned
+  // trajectory, the tumor) are kept and shown again while the patient board's pose moves no point
+  // of the plan's geometry by more than this in the image (pixels; a still board under a still
+  // camera); 0: drawn anew every frame.
+  double anatomy_reuse_px = 0.25;
 };
 
 // The needle part of one frame (present when both boards were tracked).
@@ -186,6 +193,10 @@ class GuidanceOverlay {
   // top-left pixel lay in the frame.
   const planning::TargetingGeometry& last_targeting() const { return targeting_; }
   cv::Point last_targeting_origin() const { return targeting_origin_; }
+  // How many frames drew the anatomy layers' pictures anew (the others showed the kept ones), and
+  // how many computed the targeting view's polar map anew; for tests and logs.
+  int64_t anatomy_pictures_drawn() const { return anatomy_pictures_drawn_; }
+  int64_t targeting_maps_computed() const { return targeting_maps_computed_; }
 
  private:
   void build_rays();
@@ -218,7 +229,27 @@ class GuidanceOverlay {
   std::optional<planning::RegionTrajectory> planned_;
   std::vector<Eigen::Vector3d> tumor_surface_;
   double tumor_voxel_mm_ = 1;
+  // The anatomy layers' pictures and what they were drawn for (draw_anatomy).
+  struct LayerPicture {
+    bool drawn = false;
+    cv::Mat bgra;  // empty: nothing to show
+    cv::Point origin;
+    uint64_t revision = 0;  // OverlayRenderer::new_image_revision() of these pixels
+  };
+  struct AnatomyPictures {
+    bool valid = false;
+    Eigen::Isometry3d T_cam_ct = Eigen::Isometry3d::Identity();
+    planning::Palette palette = planning::Palette::kDefault;
+    calibration::CameraModel camera;
+    LayerPicture cones, entry, tumor;
+  };
+  AnatomyPictures anatomy_;
+  // The corners of a box (CT) around everything the pictures show, for the reuse test.
+  std::array<Eigen::Vector3d, 8> anatomy_box_{};
+  int64_t anatomy_pictures_drawn_ = 0, targeting_maps_computed_ = 0;
   planning::TargetingGeometry targeting_;
+  LayerPicture targeting_picture_;  // the view of targeting_
+  planning::Palette targeting_palette_ = planning::Palette::kDefault;
   Eigen::Vector3d targeting_tip_ = Eigen::Vector3d::Zero(), targeting_right_ = Eigen::Vector3d::Zero();
   cv::Point targeting_origin_;
 };

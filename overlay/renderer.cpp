@@ -9,6 +9,7 @@
 #include <GLFW/glfw3.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstring>
 #include <functional>
@@ -354,6 +355,7 @@ struct OverlayRenderer::Impl {
       int width = 0, height = 0;              // the image shown (top-left part of the texture)
       int texture_width = 0, texture_height = 0;  // allocated; grows, never shrinks
       cv::Point origin;
+      uint64_t revision = 0;  // of the pixels in the texture (0: not to be reused)
     };
     std::vector<Image> images;  // textures are kept for reuse; the first image_count are shown
     size_t image_count = 0;
@@ -655,8 +657,13 @@ void OverlayRenderer::set_layer_image(const std::string& layer_name, const cv::M
   add_layer_image(layer_name, bgra, cv::Point(0, 0));
 }
 
+uint64_t OverlayRenderer::new_image_revision() {
+  static std::atomic<uint64_t> next{1};
+  return next++;
+}
+
 void OverlayRenderer::add_layer_image(const std::string& layer_name, const cv::Mat& bgra,
-                                      const cv::Point& origin) {
+                                      const cv::Point& origin, uint64_t revision) {
   auto& layer = impl_->layer(layer_name);
   if (bgra.empty()) return;
   if (bgra.type() != CV_8UC4 || origin.x < 0 || origin.y < 0 ||
@@ -664,6 +671,14 @@ void OverlayRenderer::add_layer_image(const std::string& layer_name, const cv::M
     throw Error("overlay renderer: an image of layer '" + layer_name +
                 "' must be 8-bit BGRA and lie inside the " + std::to_string(camera_.width) + "x" +
                 std::to_string(camera_.height) + " frame");
+  }
+  if (revision != 0 && layer.image_count < layer.images.size()) {
+    auto& kept = layer.images[layer.image_count];
+    if (kept.revision == revision && kept.width == bgra.cols && kept.height == bgra.rows) {
+      kept.origin = origin;  // the same pixels: already in the texture
+      ++layer.image_count;
+      return;
+    }
   }
   const cv::Mat contiguous = bgra.isContinuous() ? bgra : bgra.clone();
   impl_->make_current();
@@ -677,6 +692,7 @@ void OverlayRenderer::add_layer_image(const std::string& layer_name, const cv::M
   }
   auto& image = layer.images[layer.image_count++];
   image.origin = origin;
+  image.revision = revision;
   glBindTexture(GL_TEXTURE_2D, image.texture);
   glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
   image.width = bgra.cols;

@@ -14,6 +14,7 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <cstdint>
 #include <functional>
 #include <memory>
 #include <string>
@@ -87,7 +88,14 @@ class OverlayRenderer {
   // Adds an image (CV_8UC4 BGRA) of any size at `origin` (its top-left pixel in the frame; it must
   // lie inside the frame) to the layer's images, e.g. a text panel; cheaper than a full-frame
   // image. clear_layer() removes them.
-  void add_layer_image(const std::string& layer, const cv::Mat& bgra, const cv::Point& origin);
+  // revision (from new_image_revision()) marks images that stay the same over many frames: when
+  // it equals that of the image last given at the same place in the layer (the same count of
+  // images added before it since clear_layer()) with the same size, the texture is kept and the
+  // pixels are not uploaded again. 0: always uploaded.
+  void add_layer_image(const std::string& layer, const cv::Mat& bgra, const cv::Point& origin,
+                       uint64_t revision = 0);
+  // A revision number for add_layer_image(), unique in the process (never 0).
+  static uint64_t new_image_revision();
   // A drawing step of the layer's own (e.g. a volume rendering), run before its shapes. An empty
   // function removes it.
   void set_layer_draw(const std::string& layer, std::function<void(const DrawContext&)> draw);

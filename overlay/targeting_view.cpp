@@ -59,10 +59,27 @@ std::vector<std::vector<cv::Point2f>> point_cloud_outlines(
   const int bx = int(std::floor(x0)) - pad, by = int(std::floor(y0)) - pad;
   cv::Mat mask(int(std::ceil(y1)) + pad - by + 1, int(std::ceil(x1)) + pad - bx + 1, CV_8U,
                cv::Scalar(0));
+  // A disc whose pixels (a pixel more on every side) are all set already would change nothing: the
+  // discs inside the outline, most of them, are not drawn again.
+  const auto covered = [&](const Eigen::Vector2d& c) {
+    const int x0 = std::max(0, int(std::floor(c.x() - radius_px)) - 1);
+    const int x1 = std::min(mask.cols - 1, int(std::ceil(c.x() + radius_px)) + 1);
+    const int y0 = std::max(0, int(std::floor(c.y() - radius_px)) - 1);
+    const int y1 = std::min(mask.rows - 1, int(std::ceil(c.y() + radius_px)) + 1);
+    for (int y = y0; y <= y1; ++y) {
+      const uint8_t* row = mask.ptr<uint8_t>(y);
+      for (int x = x0; x <= x1; ++x) {
+        if (row[x] != 255) return false;
+      }
+    }
+    return true;
+  };
   for (const auto& p : points_px) {
     if (!p.allFinite()) continue;
-    cv::circle(mask, fixed(p - Eigen::Vector2d(bx, by)), int(std::lround(radius_px * 16)),
-               cv::Scalar(255), cv::FILLED, cv::LINE_8, kShift);
+    const Eigen::Vector2d c = p - Eigen::Vector2d(bx, by);
+    if (covered(c)) continue;
+    cv::circle(mask, fixed(c), int(std::lround(radius_px * 16)), cv::Scalar(255), cv::FILLED,
+               cv::LINE_8, kShift);
   }
   std::vector<std::vector<cv::Point>> contours;
   cv::findContours(mask, contours, cv::RETR_EXTERNAL, cv::CHAIN_APPROX_SIMPLE);

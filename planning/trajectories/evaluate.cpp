@@ -89,7 +89,8 @@ namespace {
 // Line integral exactly as DESIGN.md section 4 defines it for a ray p -> t (kernels): sets the
 // integral, its sample count and its step.
 void integrate_blocking(const kernels::PathSafetyScene<double>& scene, const Trajectory& t,
-                        TrajectoryEvaluation& e) {
+                        TrajectoryEvaluation& e,
+                        double stop_above = std::numeric_limits<double>::infinity()) {
   kernels::SurfacePoint<double> target{};
   target.position = {t.target.x(), t.target.y(), t.target.z()};
   target.normal = {0, 0, 0};
@@ -100,6 +101,7 @@ void integrate_blocking(const kernels::PathSafetyScene<double>& scene, const Tra
   double integral = 0;
   for (int k = 1; k <= ray.n; ++k) {
     integral += sampler(kernels::along(ray.q0, ray.dq, double(k))) * double(ray.step);
+    if (integral > stop_above) break;
   }
   e.samples = ray.n;
   e.step_mm = double(ray.step);
@@ -275,8 +277,11 @@ void worst_phase(const PlanData& plan, const std::string& value, const Eigen::Ve
 
 }  // namespace
 
-TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
-  const PlanData& plan = impl_->plan;
+namespace {
+
+// A trajectory with its length, checked: throws Error naming it when the entry or target is not
+// finite, when they coincide, or when it is longer than any needle.
+TrajectoryEvaluation checked_trajectory(const Trajectory& t) {
   TrajectoryEvaluation e;
   e.trajectory = t;
   e.length_mm = (t.target - t.entry).norm();
@@ -294,6 +299,52 @@ TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
                 fmt::format("{:.6g}", e.length_mm) + " mm from the target; a needle path is at most " +
                 fmt::format("{:.0f}", kLongestPathMm) + " mm (coordinates are LPS millimetres)");
   }
+  return e;
+}
+
+// Unknown is never safe: no value at an entry outside the scan (the trilinear sample could borrow
+// one from computed neighbours), and no "safe" for a path that leaves the scan.
+void mark_unknown(const TrajectoryEvaluation& e, EntryValue& ev) {
+  if (e.entry_outside_scan) {
+    ev.at_entry = ev.percentile = ev.safety_percentile = kNaN;
+    ev.safety_class = "unknown";
+  } else if (e.leaves_scan() && ev.safety_class == "safe") {
+    ev.safety_class = "unknown";
+  }
+}
+
+}  // namespace
+
+TrajectoryEvaluation TrajectoryEvaluator::evaluate_class(const Trajectory& t,
+                                                         double stop_above) const {
+  const PlanData& plan = impl_->plan;
+  TrajectoryEvaluation e = checked_trajectory(t);
+  e.structure_step_mm = e.length_mm / structure_sample_count(plan, e.length_mm);
+  e.labels_available = !plan.labels.empty();
+  find_scan_coverage(plan, t, e);
+  for (const auto& value : plan.values) {
+    const auto vol = plan.path_safety.find(value);
+    if (vol == plan.path_safety.end()) continue;
+    EntryValue ev;
+    ev.value = value;
+    ev.at_entry = sample_path_safety(vol->second, t.entry);
+    ev.safety_class = std::isfinite(ev.at_entry)
+                          ? class_name(plan.classes.at(value).classify(ev.at_entry))
+                          : "outside";
+    ev.percentile = ev.safety_percentile = ev.at_worst_phase = kNaN;
+    mark_unknown(e, ev);
+    e.values.push_back(std::move(ev));
+    break;  // the first value only
+  }
+  if (e.values.empty() || e.values.front().safety_class != "dangerous") {
+    integrate_blocking(impl_->scene, t, e, stop_above);
+  }
+  return e;
+}
+
+TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
+  const PlanData& plan = impl_->plan;
+  TrajectoryEvaluation e = checked_trajectory(t);
   integrate_blocking(impl_->scene, t, e);
   find_structures_and_tumor(plan, t, e);
   find_scan_coverage(plan, t, e);
@@ -302,16 +353,9 @@ TrajectoryEvaluation TrajectoryEvaluator::evaluate(const Trajectory& t) const {
     if (vol == plan.path_safety.end()) continue;
     e.values.push_back(
         entry_value(value, vol->second, plan.classes.at(value), impl_->sorted.at(value), t.entry));
-    // Unknown is never safe: no value at an entry outside the scan (the trilinear sample could
-    // borrow one from computed neighbours), and no "safe" for a path that leaves the scan.
     EntryValue& ev = e.values.back();
     worst_phase(plan, value, t.entry, ev);
-    if (e.entry_outside_scan) {
-      ev.at_entry = ev.percentile = ev.safety_percentile = kNaN;
-      ev.safety_class = "unknown";
-    } else if (e.leaves_scan() && ev.safety_class == "safe") {
-      ev.safety_class = "unknown";
-    }
+    mark_unknown(e, ev);
   }
   if (plan.area && !plan.area->base.empty() &&
       plan.area->normals.size() == plan.area->base.size()) {

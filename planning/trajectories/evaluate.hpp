@@ -4,6 +4,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <limits>
 #include <map>
 #include <memory>
 #include <nlohmann/json_fwd.hpp>
@@ -103,6 +104,16 @@ class TrajectoryEvaluator {
   ~TrajectoryEvaluator();
   // Throws Error (naming the trajectory) when entry and target coincide.
   TrajectoryEvaluation evaluate(const Trajectory& trajectory) const;
+  // What a path's safety class depends on, the same as evaluate() gives: the scan coverage
+  // (entry_outside_scan, outside_scan_mm, structure_step_mm), the first value at the entry with
+  // its class (values holds that one only, without ranks or breathing phases) and the line
+  // integral, whose sum stops once it exceeds `stop_above` (the samples after that are left out:
+  // the blocking is never negative, so the integral only grows) or when the entry's class is
+  // "dangerous" (line_integral 0 then). No structures, tumor or area safety. For many lines at
+  // once, e.g. the targeting view's polar map.
+  TrajectoryEvaluation evaluate_class(
+      const Trajectory& trajectory,
+      double stop_above = std::numeric_limits<double>::infinity()) const;
 
  private:
   struct Impl;

@@ -67,15 +67,16 @@ std::string tip_class_at(const PlanData& plan, const Eigen::Vector3d& tip) {
 }
 
 // The trajectory line_start -> target evaluated (clear, class at the start); without an
-// extension, the class at the tip alone.
+// extension, the class at the tip alone. class_only: only what the safety class depends on
+// (TrajectoryEvaluator::evaluate_class; the line integral up to where it exceeds eps).
 void evaluate_extension(const PlanData& plan, const TrajectoryEvaluator& evaluator, double eps,
-                        NeedleState& s) {
+                        NeedleState& s, bool class_only = false) {
   if (s.along_axis_mm > 1e-6) {
     Trajectory t;
     t.name = "needle";
     t.entry = s.line_start;
     t.target = s.target;
-    s.evaluation = evaluator.evaluate(t);
+    s.evaluation = class_only ? evaluator.evaluate_class(t, eps) : evaluator.evaluate(t);
     s.clear = s.evaluation.line_integral <= eps;
     if (!s.evaluation.values.empty()) s.tip_class = s.evaluation.values.front().safety_class;
   } else {
@@ -206,6 +207,17 @@ NeedleState NeedleGuide::evaluate(const Eigen::Isometry3d& T_ct_needle,
   s.safety = overall_safety(plan, s);
   find_nearest_safe_direction(safe_dirs_, safe_vertex_, s);
   return s;
+}
+
+NeedleSafety NeedleGuide::line_safety(const Eigen::Vector3d& tip,
+                                      const Eigen::Vector3d& axis) const {
+  const PlanData& plan = *plan_;
+  NeedleState s = needle_line(Eigen::Isometry3d::Identity(), tip, axis, plan.tumor_centre);
+  if (s.points_away) return NeedleSafety::kUnknown;
+  s.eps = eps_;
+  start_line_at_body_entry(plan, s);
+  evaluate_extension(plan, *evaluator_, eps_, s, true);
+  return overall_safety(plan, s);
 }
 
 NeedleState needle_guidance(const PlanData& plan, const Eigen::Isometry3d& T_ct_needle,

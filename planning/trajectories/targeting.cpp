@@ -130,11 +130,7 @@ TargetingGeometry targeting_geometry(const NeedleGuide& guide, const NeedleState
       c.tilt_deg = (r + 0.5) * ring_deg;
       c.azimuth_deg = s * 360.0 / options.sectors;
       c.direction = g.tilted(c.tilt_deg, c.azimuth_deg);
-      Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
-      T.translation() = g.pivot;
-      const NeedleState tilted =
-          guide.evaluate(T, Eigen::Vector3d::Zero(), c.direction);  // identity rotation: axis = d
-      c.safety = tilted.points_away ? NeedleSafety::kUnknown : tilted.safety;
+      c.safety = guide.line_safety(g.pivot, c.direction);  // kUnknown where it points away
       g.cells.push_back(c);
     }
   }

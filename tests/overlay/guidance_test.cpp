@@ -635,6 +635,109 @@ TEST_F(GuidanceTest, PolarSafetyMapAgreesWithEvaluateAlongEightDirections) {
   EXPECT_TRUE(seen.count(planning::NeedleSafety::kDangerous));
 }
 
+// The anatomy layers' pictures (cones, entry patches, tumor) are drawn once for a still patient
+// board and shown again: the same pixels as an overlay that draws them anew every frame. A board
+// moved by 1 mm (about 2 px at 300 mm) draws them anew where they now lie, the same as drawn anew;
+// a move of 1 um (far below the quarter pixel allowed) keeps them; another palette redraws them.
+TEST_F(GuidanceTest, AnatomyPicturesAreKeptForAStillBoardAndRedrawnWhenItMoves) {
+  auto renderer = make_renderer(test_camera());
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context on this machine";
+  GuidanceSetup setup;
+  setup.camera = test_camera();
+  setup.T_ct_patient = T_ct_patient();
+  GuidanceOptions options;
+  options.ray_directions = 1500;
+  GuidanceOverlay kept(*plan_, setup, options);
+  options.anatomy_reuse_px = 0;
+  GuidanceOverlay fresh(*plan_, setup, options);
+  ASSERT_FALSE(kept.entry_patches().empty());
+  const auto image = [&](GuidanceOverlay& o, const tracking::TrackResult& t) {
+    o.update(*renderer, grey_frame(), t, {});
+    return renderer->render();
+  };
+  const tracking::TrackResult still = track(std::nullopt);
+  const cv::Mat first = image(kept, still);
+  EXPECT_EQ(kept.anatomy_pictures_drawn(), 1);
+  EXPECT_EQ(cv::norm(image(kept, still), first, cv::NORM_INF), 0);
+  EXPECT_EQ(kept.anatomy_pictures_drawn(), 1) << "a still board: the pictures are kept";
+  EXPECT_EQ(cv::norm(image(fresh, still), first, cv::NORM_INF), 0);
+  EXPECT_EQ(cv::norm(image(fresh, still), first, cv::NORM_INF), 0);
+  EXPECT_EQ(fresh.anatomy_pictures_drawn(), 2) << "no reuse: drawn every frame";
+
+  tracking::TrackResult moved = still;
+  moved.boards[0].T_cam_board.translation() += Eigen::Vector3d(1.0, 0.0, 0.0);
+  const cv::Mat after = image(kept, moved);
+  EXPECT_EQ(kept.anatomy_pictures_drawn(), 2) << "a moved board: drawn anew";
+  EXPECT_GT(cv::norm(after, first, cv::NORM_INF), 0);
+  EXPECT_EQ(cv::norm(image(fresh, moved), after, cv::NORM_INF), 0);
+
+  tracking::TrackResult nudged = moved;
+  nudged.boards[0].T_cam_board.translation() += Eigen::Vector3d(0.001, 0.0, 0.0);
+  EXPECT_EQ(cv::norm(image(kept, nudged), after, cv::NORM_INF), 0);
+  EXPECT_EQ(kept.anatomy_pictures_drawn(), 2) << "1 um: within the tolerance";
+
+  kept.set_palette(planning::Palette::kColorblind);
+  fresh.set_palette(planning::Palette::kColorblind);
+  const cv::Mat colourblind = image(kept, nudged);
+  EXPECT_EQ(kept.anatomy_pictures_drawn(), 3) << "another palette: drawn anew";
+  EXPECT_EQ(cv::norm(image(fresh, nudged), colourblind, cv::NORM_INF), 0);
+}
+
+// The targeting view's polar map is computed once for a still needle and kept; a needle moved to
+// another approach gets the map of its new line at once (the same cells as targeting_geometry
+// gives for it, different from the old ones): the old map is never shown for the moved needle.
+TEST_F(GuidanceTest, MovedNeedleUpdatesThePolarMapAndAStillOneKeepsIt) {
+  auto renderer = make_renderer(test_camera());
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context on this machine";
+  GuidanceSetup setup;
+  setup.camera = test_camera();
+  setup.T_ct_patient = T_ct_patient();
+  GuidanceOptions options;
+  options.ray_directions = 1500;
+  GuidanceOverlay o(*plan_, setup, options);
+  const Eigen::Vector3d c = plan_->tumor_centre;
+  // From the -x side (clear) and from the +x side, through the vessel at x = 16 mm.
+  const auto needle_from = [&](double azimuth_deg) {
+    const double az = azimuth_deg * M_PI / 180.0;
+    const Eigen::Vector3d out(std::cos(az), std::sin(az), 0.0);
+    return T_ct_needle_for(c + 60.0 * out, -out);
+  };
+  const auto expected_cells = [&](const Eigen::Isometry3d& T_ct_needle) {
+    const planning::NeedleState s =
+        o.needle_guide().evaluate(T_ct_needle, setup.tip_in_needle, setup.axis_in_needle);
+    planning::TargetingOptions to = options.targeting;
+    to.size_px = 240;  // half the 480 px image's height
+    to.right_hint = T_ct_cam().linear().col(0);
+    return planning::targeting_geometry(o.needle_guide(), s, o.tumor_surface(), 2.0, to).cells;
+  };
+  const auto same_cells = [](const std::vector<planning::PolarCell>& a,
+                             const std::vector<planning::PolarCell>& b) {
+    if (a.size() != b.size()) return false;
+    for (size_t i = 0; i < a.size(); ++i) {
+      if (a[i].safety != b[i].safety || (a[i].direction - b[i].direction).norm() > 1e-12) {
+        return false;
+      }
+    }
+    return true;
+  };
+  o.update(*renderer, grey_frame(), track(needle_from(180.0)), {});
+  EXPECT_EQ(o.targeting_maps_computed(), 1);
+  const std::vector<planning::PolarCell> clear = o.last_targeting().cells;
+  EXPECT_TRUE(same_cells(clear, expected_cells(needle_from(180.0))));
+  o.update(*renderer, grey_frame(), track(needle_from(180.0)), {});
+  EXPECT_EQ(o.targeting_maps_computed(), 1) << "a still needle: the map is kept";
+
+  o.update(*renderer, grey_frame(), track(needle_from(0.0)), {});
+  EXPECT_EQ(o.targeting_maps_computed(), 2) << "a moved needle: the map is computed anew";
+  const std::vector<planning::PolarCell>& through = o.last_targeting().cells;
+  EXPECT_TRUE(same_cells(through, expected_cells(needle_from(0.0))));
+  int changed = 0;
+  for (size_t i = 0; i < clear.size() && i < through.size(); ++i) {
+    changed += clear[i].safety != through[i].safety;
+  }
+  EXPECT_GT(changed, 0) << "the two approaches must differ for this test to mean anything";
+}
+
 TEST(GuidanceLayers, NamesParseBothWays) {
   for (int i = 0; i < kGuidanceLayerCount; ++i) {
     const auto layer = static_cast<GuidanceLayer>(i);

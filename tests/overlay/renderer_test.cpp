@@ -235,6 +235,43 @@ TEST(OverlayRenderer, TogglingALayerChangesExactlyItsPixels) {
   EXPECT_GT(cv::countNonZero(first_pixels & second_pixels), 0) << "the layers must overlap";
 }
 
+// A layer image given again with its revision shows the same pixels (kept in the texture, not
+// uploaded again); a new revision shows the new pixels, and revision 0 always the given ones.
+TEST(OverlayRenderer, LayerImageOfTheSameRevisionIsKeptAndANewOneReplacesIt) {
+  const auto cam = test_camera();
+  auto renderer = make_renderer(cam);
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context";
+  const cv::Mat frame = noise_frame(cam.width, cam.height, 5);
+  renderer->set_frame(frame);
+  const cv::Mat red(40, 60, CV_8UC4, cv::Scalar(0, 0, 255, 255));
+  const cv::Mat blue(40, 60, CV_8UC4, cv::Scalar(255, 0, 0, 255));
+  const cv::Point at(100, 50);
+  const cv::Rect box(at, red.size());
+  const auto shows = [&](const cv::Scalar& bgr) {
+    const cv::Mat image = renderer->render();
+    cv::Mat expected(box.size(), CV_8UC3, bgr);
+    return cv::norm(image(box), expected, cv::NORM_INF) == 0 &&
+           cv::norm(differing(image, frame)(cv::Rect(0, 0, cam.width, at.y)), cv::NORM_INF) == 0;
+  };
+  const uint64_t r1 = OverlayRenderer::new_image_revision();
+  const uint64_t r2 = OverlayRenderer::new_image_revision();
+  EXPECT_NE(r1, 0u);
+  EXPECT_NE(r1, r2);
+  renderer->add_layer_image("pictures", red, at, r1);
+  EXPECT_TRUE(shows(cv::Scalar(0, 0, 255)));
+  renderer->clear_layer("pictures");
+  renderer->add_layer_image("pictures", red, at, r1);  // the same pixels: kept
+  EXPECT_TRUE(shows(cv::Scalar(0, 0, 255)));
+  renderer->clear_layer("pictures");
+  renderer->add_layer_image("pictures", blue, at, r2);  // new pixels: uploaded
+  EXPECT_TRUE(shows(cv::Scalar(255, 0, 0)));
+  renderer->clear_layer("pictures");
+  renderer->add_layer_image("pictures", red, at);  // revision 0: always uploaded
+  EXPECT_TRUE(shows(cv::Scalar(0, 0, 255)));
+  renderer->clear_layer("pictures");
+  EXPECT_EQ(cv::norm(renderer->render(), frame, cv::NORM_INF), 0);
+}
+
 TEST(OverlayRenderer, RejectsFrameOfWrongSize) {
   const auto cam = test_camera();
   auto renderer = make_renderer(cam);

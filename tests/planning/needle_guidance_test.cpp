@@ -10,6 +10,7 @@
 #include <cmath>
 #include <filesystem>
 #include <random>
+#include <set>
 
 #include <Eigen/Geometry>
 
@@ -68,6 +69,35 @@ class NeedleGuidanceTest : public ::testing::Test {
 test::TemporaryFolder* NeedleGuidanceTest::dir_ = nullptr;
 ImageGeometry NeedleGuidanceTest::grid_;
 NeedleGuide* NeedleGuidanceTest::guide_ = nullptr;
+
+// line_safety() against evaluate() on lines around the tumor (fixed seed): tips 3 to 25 mm from
+// the tumor centre (in the body and in the air), aimed within 6 mm of it or anywhere (some point
+// away: kUnknown then). Returns the classes of the lines that do not point away; every line must
+// agree.
+std::set<NeedleSafety> expect_line_safety_equals_evaluate(const NeedleGuide& guide) {
+  std::mt19937 rng(20261124);
+  std::uniform_real_distribution<double> unit(-1.0, 1.0);
+  const auto random_unit = [&] {
+    Eigen::Vector3d d;
+    do d = Eigen::Vector3d(unit(rng), unit(rng), unit(rng));
+    while (d.norm() > 1.0 || d.norm() < 0.1);
+    return Eigen::Vector3d(d.normalized());
+  };
+  const Eigen::Vector3d c = guide.plan().tumor_centre;
+  std::set<NeedleSafety> seen;
+  for (int i = 0; i < 400; ++i) {
+    const Eigen::Vector3d tip = c + (14.0 + 11.0 * unit(rng)) * random_unit();
+    const Eigen::Vector3d axis =
+        i % 5 == 4 ? random_unit() : Eigen::Vector3d(c + 6.0 * unit(rng) * random_unit() - tip);
+    const NeedleState s = guide.evaluate(Eigen::Isometry3d::Identity(), tip, axis);
+    const NeedleSafety expected = s.points_away ? NeedleSafety::kUnknown : s.safety;
+    EXPECT_EQ(guide.line_safety(tip, axis), expected)
+        << "line " << i << ": tip " << tip.transpose() << ", axis " << axis.transpose()
+        << ", line integral " << s.evaluation.line_integral << ", tip class " << s.tip_class;
+    if (!s.points_away) seen.insert(s.safety);
+  }
+  return seen;
+}
 
 TEST_F(NeedleGuidanceTest, NeedleThroughEmptySpaceToTheTumorIsSafe) {
   const Eigen::Vector3d c = grid_.index_to_physical(11, 11, 11);
@@ -247,6 +277,14 @@ namespace {
 
 // A plan folder moved together with its inputs still finds its label map and tumor mask (plan.json
 // records their paths relative to the plan folder too).
+// The class-only evaluation the targeting view's polar map uses gives evaluate()'s class on every
+// line, safe and dangerous ones among them.
+TEST_F(NeedleGuidanceTest, LineSafetyEqualsTheClassOfEvaluate) {
+  const std::set<NeedleSafety> seen = expect_line_safety_equals_evaluate(*guide_);
+  EXPECT_TRUE(seen.count(NeedleSafety::kSafe));
+  EXPECT_TRUE(seen.count(NeedleSafety::kDangerous));
+}
+
 TEST_F(NeedleGuidanceTest, PlanMovedWithItsInputsFindsThem) {
   const fs::path moved = dir_->string() + "_moved";
   fs::remove_all(moved);
@@ -295,6 +333,25 @@ TEST(NeedleGuidanceUnknown, NeedleWhoseLineLeavesTheScanIsUnknownNotSafe) {
   const NeedleState inside = in_ct(guide, g.index_to_physical(11, 11, 17), -Eigen::Vector3d::UnitZ());
   EXPECT_FALSE(inside.evaluation.leaves_scan());
   EXPECT_EQ(inside.safety, NeedleSafety::kSafe);
+}
+
+// The class-only evaluation on the plan whose scan ends beside the tumor: lines that leave the
+// scan are unknown there too.
+TEST(NeedleGuidanceUnknown, LineSafetyEqualsTheClassOfEvaluateWhereTheScanEnds) {
+  test::TemporaryFolder dir;
+  const test::MiniPlanInputs inputs = test::write_mini_plan_inputs(dir);
+  ImageGeometry ct_grid = inputs.grid;
+  ct_grid.origin = inputs.grid.index_to_physical(7, 0, 0);
+  ct_grid.dims[0] -= 7;
+  write_volume(Volume<float>(ct_grid, 40.0f), dir.file("ct.nii.gz"));
+  PlanRequest r = inputs.request(dir.file("plan"));
+  r.ct = dir.file("ct.nii.gz");
+  r.margin.fwhm_mm = 0.0;
+  run_plan(r);
+  const NeedleGuide guide(dir.file("plan"));
+  const std::set<NeedleSafety> seen = expect_line_safety_equals_evaluate(guide);
+  EXPECT_TRUE(seen.count(NeedleSafety::kUnknown));
+  EXPECT_TRUE(seen.count(NeedleSafety::kDangerous));
 }
 
 }  // namespace
