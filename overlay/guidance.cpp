@@ -1,6 +1,8 @@
 #include "overlay/guidance.hpp"
 
 #include <algorithm>
+#include <functional>
+#include <future>
 #include <chrono>
 #include <filesystem>
 #include <limits>
@@ -927,7 +929,32 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
   if (drew) ++anatomy_pictures_drawn_;
 }
 
-void GuidanceOverlay::draw_needle(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct,
+// What a drawing adds to the renderer, recorded (in order) off the render thread and added on
+// it: the renderer's GL state belongs to one thread.
+class LayerCalls {
+ public:
+  explicit LayerCalls(const calibration::CameraModel& camera) : camera_(&camera) {}
+  void add_polyline(const std::string& layer, const Polyline& polyline) {
+    calls_.push_back([layer, polyline](OverlayRenderer& r) { r.add_polyline(layer, polyline); });
+  }
+  void add_layer_image(const std::string& layer, const cv::Mat& bgra, const cv::Point& origin,
+                       uint64_t revision = 0) {
+    calls_.push_back([layer, bgra, origin, revision](OverlayRenderer& r) {
+      r.add_layer_image(layer, bgra, origin, revision);
+    });
+  }
+  const calibration::CameraModel& camera() const { return *camera_; }
+  void replay(OverlayRenderer& renderer) const {
+    for (const auto& call : calls_) call(renderer);
+  }
+
+ private:
+  const calibration::CameraModel* camera_;
+  std::vector<std::function<void(OverlayRenderer&)>> calls_;
+};
+
+template <typename Renderer>
+void GuidanceOverlay::draw_needle(Renderer& renderer, const Eigen::Isometry3d& T_cam_ct,
                                   const Eigen::Isometry3d& T_cam_needle,
                                   const NeedleReading& reading) {
   const auto& s = reading.state;
@@ -1153,23 +1180,44 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
 
   info.upload_ms = ms_since(t);
   if (info.image && info.patient_tracked) {
-    t = Clock::now();
     const Eigen::Isometry3d T_cam_ct = patient->T_cam_board * setup_.T_ct_patient.inverse();
     info.anatomy_drawn = true;
+    // The needle's reading and drawing run beside the anatomy's: they share only what neither
+    // changes (plan, setup, options; each keeps its own pictures). Their renderer calls are
+    // recorded and made here afterwards, so the layers are the same as drawn one after the other.
+    struct NeedlePart {
+      NeedleReading reading;
+      LayerCalls calls;
+      double ms = 0.0;
+    };
+    std::future<NeedlePart> needle_part;
+    if (info.needle_tracked) {
+      const Eigen::Isometry3d T_cam_needle = needle->T_cam_board;
+      const Eigen::Isometry3d T_ct_needle =
+          setup_.T_ct_patient * patient->T_cam_board.inverse() * T_cam_needle;
+      needle_part = std::async(std::launch::async, [this, &renderer, T_cam_ct, T_cam_needle,
+                                                    T_ct_needle] {
+        const auto t0 = Clock::now();
+        NeedlePart part{NeedleReading{}, LayerCalls(renderer.camera())};
+        part.reading.T_ct_needle = T_ct_needle;
+        part.reading.state =
+            guide_->evaluate(T_ct_needle, setup_.tip_in_needle, setup_.axis_in_needle);
+        if (visible(GuidanceLayer::kNeedle) || visible(GuidanceLayer::kTarget)) {
+          draw_needle(part.calls, T_cam_ct, T_cam_needle, part.reading);
+        }
+        part.ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+        return part;
+      });
+    }
+    t = Clock::now();
     draw_anatomy(renderer, T_cam_ct);
     info.anatomy_ms = ms_since(t);
-    t = Clock::now();
-    if (info.needle_tracked) {
-      NeedleReading reading;
-      reading.T_ct_needle = setup_.T_ct_patient * patient->T_cam_board.inverse() * needle->T_cam_board;
-      reading.state =
-          guide_->evaluate(reading.T_ct_needle, setup_.tip_in_needle, setup_.axis_in_needle);
-      if (visible(GuidanceLayer::kNeedle) || visible(GuidanceLayer::kTarget)) {
-        draw_needle(renderer, T_cam_ct, needle->T_cam_board, reading);
-      }
-      info.needle = std::move(reading);
+    if (needle_part.valid()) {
+      NeedlePart part = needle_part.get();  // rethrows what the needle's part threw
+      part.calls.replay(renderer);
+      info.needle = std::move(part.reading);
+      info.needle_ms = part.ms;
     }
-    info.needle_ms = ms_since(t);
   }
   if (info.image && !info.patient_tracked) {
     info.warnings.push_back("PATIENT MARKER LOST: NO GUIDANCE SHOWN");

@@ -115,7 +115,7 @@ struct GuidanceFrameInfo {
   std::optional<NeedleReading> needle;
   std::vector<std::string> warnings;  // shown on screen
   // Where update() spent its time (ms): the video frame's upload, layers 1-4, the needle's
-  // evaluation and layer, the status layer.
+  // evaluation and layer (computed beside layers 1-4, on another thread), the status layer.
   double upload_ms = 0, anatomy_ms = 0, needle_ms = 0, status_ms = 0;
 };
 
@@ -206,7 +206,10 @@ class GuidanceOverlay {
   void build_tumor_surface();
   void build_entry_patches();
   void draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
-  void draw_needle(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct,
+  // Renderer: OverlayRenderer or a LayerCalls (guidance.cpp) that records what is added, so that
+  // the needle's part can be drawn beside the anatomy's and added afterwards.
+  template <typename Renderer>
+  void draw_needle(Renderer& renderer, const Eigen::Isometry3d& T_cam_ct,
                    const Eigen::Isometry3d& T_cam_needle, const NeedleReading& reading);
   void draw_status(OverlayRenderer& renderer, const GuidanceFrameInfo& info,
                    const GuidanceTiming& timing);
