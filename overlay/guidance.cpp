@@ -8,7 +8,6 @@
 #include <limits>
 #include <cmath>
 #include <map>
-#include <optional>
 #include <set>
 
 #include <fmt/format.h>
@@ -908,34 +907,23 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
       renderer.add_layer_image(layer, picture.bgra, picture.origin, picture.revision);
     }
   };
-  // The pictures to draw (each its own image) are drawn at the same time on worker threads, then
-  // added in layer order.
-  const cv::Scalar magenta(255, 0, 255);
-  std::future<Picture> cones, entry;
-  if (visible(GuidanceLayer::kRays) && !patches_.empty() && !anatomy_.cones.drawn) {
-    cones = std::async(std::launch::async, [&] {
-      return cone_image(patches_, plan_.tumor_centre, T_drawn, cam, palette);
-    });
-  }
-  if (visible(GuidanceLayer::kEntry) && !anatomy_.entry.drawn) {
-    entry = std::async(std::launch::async,
-                       [&] { return patch_image(patches_, planned_, T_drawn, cam, palette); });
-  }
-  std::optional<Picture> tumor;  // drawn here meanwhile
-  if (visible(GuidanceLayer::kTumor) && !anatomy_.tumor.drawn) {
-    tumor = tumor_image(tumor_surface_, tumor_voxel_mm_, T_drawn, cam, magenta);
-  }
   if (visible(GuidanceLayer::kRays)) {
     // One cone per safe region; the ray bundles where the plan has no area safety.
     if (patches_.empty()) {
       add_rays(renderer, rays_, T_cam_ct, palette);
     } else {
-      show("rays", anatomy_.cones, [&] { return cones.get(); });
+      show("rays", anatomy_.cones,
+           [&] { return cone_image(patches_, plan_.tumor_centre, T_drawn, cam, palette); });
     }
   }
-  if (visible(GuidanceLayer::kEntry)) show("entry", anatomy_.entry, [&] { return entry.get(); });
+  if (visible(GuidanceLayer::kEntry)) {
+    show("entry", anatomy_.entry,
+         [&] { return patch_image(patches_, planned_, T_drawn, cam, palette); });
+  }
   if (visible(GuidanceLayer::kTumor)) {
-    show("tumor", anatomy_.tumor, [&] { return *tumor; });
+    const cv::Scalar magenta(255, 0, 255);
+    show("tumor", anatomy_.tumor,
+         [&] { return tumor_image(tumor_surface_, tumor_voxel_mm_, T_drawn, cam, magenta); });
     add_tumor_centre(renderer, plan_.tumor_centre, T_cam_ct, magenta);
   }
   if (drew) ++anatomy_pictures_drawn_;
