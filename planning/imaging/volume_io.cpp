@@ -151,7 +151,17 @@ struct NiftiHeader {
     if (read < 348) return "file ends inside the NIfTI header";
     int32_t stored_size;
     std::memcpy(&stored_size, bytes, 4);
-    swapped = stored_size != 348 && stored_size != 540;
+    const int32_t reversed = int32_t(__builtin_bswap32(uint32_t(stored_size)));
+    if (stored_size == 348 || stored_size == 540) {
+      swapped = false;
+    } else if (reversed == 348 || reversed == 540) {
+      swapped = true;
+    } else {
+      // A damaged sizeof_hdr: niftilib then goes by dim[0] (1..7 in the file's byte order).
+      int16_t dim0;
+      std::memcpy(&dim0, bytes + 40, 2);
+      swapped = !(dim0 >= 1 && dim0 <= 7);
+    }
     return {};
   }
   template <typename T>
@@ -163,8 +173,10 @@ struct NiftiHeader {
     std::memcpy(&value, b, sizeof(T));
     return value;
   }
+  // A one-file NIfTI-1 by its magic "n+1", whatever sizeof_hdr says: the libraries read such a
+  // header all the same.
   bool nifti1() const {
-    return field<int32_t>(0) == 348 && std::memcmp(bytes + 344, "n+1", 4) == 0;
+    return field<int32_t>(0) != 540 && std::memcmp(bytes + 344, "n+1", 4) == 0;
   }
   bool nifti2() const {
     return field<int32_t>(0) == 540 && read == 540 && std::memcmp(bytes + 4, "n+2", 4) == 0;
@@ -335,7 +347,7 @@ std::string nifti_header_problem(const std::string& path) {
   if (!unreadable.empty()) return unreadable;
   const double sizeof_hdr = header.field<int32_t>(0);
   const bool v2 = sizeof_hdr == 540 && header.read == 540;
-  if (sizeof_hdr != 348 && !v2) return {};
+  if (!v2 && sizeof_hdr != 348 && !header.nifti1()) return {};
   const auto dim_at = [&](size_t d) {
     return v2 ? double(header.field<int64_t>(16 + 8 * d)) : double(header.field<int16_t>(40 + 2 * d));
   };
