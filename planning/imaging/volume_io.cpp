@@ -346,8 +346,13 @@ std::string nifti_header_problem(const std::string& path) {
   const std::string unreadable = header.open(path);
   if (!unreadable.empty()) return unreadable;
   const double sizeof_hdr = header.field<int32_t>(0);
+  if (sizeof_hdr != 348 && sizeof_hdr != 540) {
+    // Every NIfTI-1 and Analyze 7.5 header says 348, every NIfTI-2 header 540; niftilib reads a
+    // damaged one all the same, and ITK may then abort on what it finds.
+    return "NIfTI header: sizeof_hdr is " + value_text(sizeof_hdr) +
+           ", expected 348 (NIfTI-1) or 540 (NIfTI-2): a damaged header";
+  }
   const bool v2 = sizeof_hdr == 540 && header.read == 540;
-  if (!v2 && sizeof_hdr != 348 && !header.nifti1()) return {};
   const auto dim_at = [&](size_t d) {
     return v2 ? double(header.field<int64_t>(16 + 8 * d)) : double(header.field<int16_t>(40 + 2 * d));
   };
