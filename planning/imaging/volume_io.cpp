@@ -173,10 +173,8 @@ struct NiftiHeader {
     std::memcpy(&value, b, sizeof(T));
     return value;
   }
-  // A one-file NIfTI-1 by its magic "n+1", whatever sizeof_hdr says: the libraries read such a
-  // header all the same.
   bool nifti1() const {
-    return field<int32_t>(0) != 540 && std::memcmp(bytes + 344, "n+1", 4) == 0;
+    return field<int32_t>(0) == 348 && std::memcmp(bytes + 344, "n+1", 4) == 0;
   }
   bool nifti2() const {
     return field<int32_t>(0) == 540 && read == 540 && std::memcmp(bytes + 4, "n+2", 4) == 0;
@@ -554,10 +552,12 @@ std::string length_problem(const std::string& path, const char* io_class) {
   return {};
 }
 
-ImageGeometry geometry_of_image(const itk::ImageBase<3>& image) {
+// The grid of the first three axes (a 4D image's frames share it).
+template <unsigned N>
+ImageGeometry geometry_of_image(const itk::ImageBase<N>& image) {
   ImageGeometry g;
   const auto region = image.GetLargestPossibleRegion();
-  itk::Point<double, 3> origin;
+  itk::Point<double, N> origin;
   image.TransformIndexToPhysicalPoint(region.GetIndex(), origin);
   for (unsigned a = 0; a < 3; ++a) {
     g.dims[a] = int64_t(region.GetSize()[a]);
@@ -643,6 +643,28 @@ auto with_component_type(Component c, const std::string& path, F&& f) {
   }
 }
 
+// The ImageIO of a file with its header read (checked first for values ITK would abort on).
+itk::ImageIOBase::Pointer image_io_of(const std::string& path) {
+  register_io_factories();
+  std::error_code ec;
+  const fs::file_status status = fs::status(path, ec);
+  if (ec || !fs::exists(status)) throw Error(path + ": cannot read (file does not exist)");
+  if (fs::is_directory(status)) return nullptr;  // a DICOM series: 3D
+  if (!std::ifstream(path, std::ios::binary)) {
+    throw Error(path + ": cannot read (no permission to open the file)");
+  }
+  itk::ImageIOBase::Pointer io =
+      itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::IOFileModeEnum::ReadMode);
+  if (!io) {
+    throw Error(path + ": cannot read (not a NIfTI, NRRD, MetaImage or DICOM file, or a damaged one)");
+  }
+  io->SetFileName(path);
+  const std::string bad_header = header_problem(path, io->GetNameOfClass());
+  if (!bad_header.empty()) throw Error(path + ": cannot read (" + bad_header + ")");
+  io->ReadImageInformation();
+  return io;
+}
+
 // Opens `path` (file or DICOM folder), reads its voxels in their stored type S and returns
 // convert(Volume<S>&&). Every failure is an Error naming `path`.
 template <typename Convert>
@@ -679,19 +701,7 @@ auto read_native(const std::string& path, Convert&& convert) {
         return convert(read_series_pixels<S>(path, files));
       });
     }
-    if (!std::ifstream(path, std::ios::binary)) {
-      throw Error(path + ": cannot read (no permission to open the file)");
-    }
-    itk::ImageIOBase::Pointer io =
-        itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::IOFileModeEnum::ReadMode);
-    if (!io) {
-      throw Error(path +
-                  ": cannot read (not a NIfTI, NRRD, MetaImage or DICOM file, or a damaged one)");
-    }
-    io->SetFileName(path);
-    const std::string bad_header = header_problem(path, io->GetNameOfClass());
-    if (!bad_header.empty()) throw Error(path + ": cannot read (" + bad_header + ")");
-    io->ReadImageInformation();
+    itk::ImageIOBase::Pointer io = image_io_of(path);
     const ImageGeometry geometry = geometry_of_file(*io, path);
     const std::string short_data = length_problem(path, io->GetNameOfClass());
     if (!short_data.empty()) throw Error(path + ": cannot read (" + short_data + ")");
@@ -797,32 +807,6 @@ Volume<uint8_t> read_mask(const std::string& path) {
   });
 }
 
-namespace {
-
-// The ImageIO of a file with its header read (checked first for values ITK would abort on).
-itk::ImageIOBase::Pointer image_io_of(const std::string& path) {
-  register_io_factories();
-  std::error_code ec;
-  const fs::file_status status = fs::status(path, ec);
-  if (ec || !fs::exists(status)) throw Error(path + ": cannot read (file does not exist)");
-  if (fs::is_directory(status)) return nullptr;  // a DICOM series: 3D
-  if (!std::ifstream(path, std::ios::binary)) {
-    throw Error(path + ": cannot read (no permission to open the file)");
-  }
-  itk::ImageIOBase::Pointer io =
-      itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::IOFileModeEnum::ReadMode);
-  if (!io) {
-    throw Error(path + ": cannot read (not a NIfTI, NRRD, MetaImage or DICOM file, or a damaged one)");
-  }
-  io->SetFileName(path);
-  const std::string bad_header = header_problem(path, io->GetNameOfClass());
-  if (!bad_header.empty()) throw Error(path + ": cannot read (" + bad_header + ")");
-  io->ReadImageInformation();
-  return io;
-}
-
-}  // namespace
-
 int volume_frames(const std::string& path) {
   try {
     const itk::ImageIOBase::Pointer io = image_io_of(path);
@@ -862,16 +846,7 @@ void split_volume_frames(const std::string& path, const std::vector<std::string>
     reader->SetFileName(path);
     reader->Update();
     const Image4& image = *reader->GetOutput();
-    ImageGeometry g;
-    const auto region = image.GetLargestPossibleRegion();
-    itk::Point<double, 4> origin;
-    image.TransformIndexToPhysicalPoint(region.GetIndex(), origin);
-    for (unsigned a = 0; a < 3; ++a) {
-      g.dims[a] = int64_t(region.GetSize()[a]);
-      g.spacing[a] = image.GetSpacing()[a];
-      g.origin[a] = origin[a];
-      for (unsigned r = 0; r < 3; ++r) g.direction(r, a) = image.GetDirection()[r][a];
-    }
+    const ImageGeometry g = geometry_of_image(image);
     check_geometry(g, path);
     const int64_t per_frame = g.voxel_count();
     for (size_t t = 0; t < frame_paths.size(); ++t) {
