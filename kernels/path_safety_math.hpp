@@ -182,7 +182,7 @@ CREPUSCULAR_HD float blocking_at_index(const BlockingGrid<Real>& g, int i, int j
 
 // Trilinear interpolation at a continuous index (voxel centres at integers), zero outside.
 template <typename Real>
-CREPUSCULAR_HD Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Real> q) {
+CREPUSCULAR_HD_INLINE Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Real> q) {
   const Real fx = floor(q.x), fy = floor(q.y), fz = floor(q.z);
   const int i = int(fx), j = int(fy), k = int(fz);
   if (empty_brick(g, i, j, k)) return Real(0);
@@ -356,10 +356,10 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
 
 template <typename Real>
 struct RaySample {
-  Real b;     // b(x_k), risk per mm
-  Real step;  // l, mm
-  int k;      // 1..N
-  int n;      // N
+  Real b;      // b(x_k), risk per mm
+  Real step;   // l, mm
+  int k;       // 1..N
+  Real inv_n;  // 1 / N
 };
 
 template <typename Real>
@@ -447,7 +447,7 @@ struct BlockerVolume {
     Real sum = 0;
   };
   static CREPUSCULAR_HD void accumulate(Ray& r, const RaySample<Real>& s) {
-    const Real f = Real(s.k) / Real(s.n);
+    const Real f = Real(s.k) * s.inv_n;
     r.weighted += s.b * f * f * s.step;
   }
   static CREPUSCULAR_HD void combine(Voxel& v, const Ray& r, const RayContext<Real>& c) {
@@ -513,9 +513,10 @@ CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<double> 
     typename Isbv::Ray isbv_ray;
     typename Ivbv::Ray ivbv_ray;
     typename Bvv::Ray bvv_ray;
+    const Real inv_n = ray.n > 0 ? Real(1) / Real(ray.n) : Real(0);
     for (int k = 1; k <= ray.n; ++k) {
       const RaySample<Real> sample{Real(blocking_at(along(ray.q0, ray.dq, Real(k)))), ray.step,
-                                   k, ray.n};
+                                   k, inv_n};
       if constexpr ((Values & kSvv) != 0) Svv::accumulate(svv_ray, sample);
       if constexpr ((Values & kIsbv) != 0) Isbv::accumulate(isbv_ray, sample);
       if constexpr ((Values & kIvbv) != 0) Ivbv::accumulate(ivbv_ray, sample);
