@@ -15,6 +15,7 @@
 #include <functional>
 #include <map>
 #include <mutex>
+#include <optional>
 #include <sstream>
 
 #include <opencv2/core.hpp>
@@ -95,8 +96,29 @@ uniform vec2 size;
 uniform float with_alpha;  // 0: opaque video frame; 1: image layer with its own alpha
 uniform ivec2 offset;      // image position (top-left pixel) in the frame
 uniform float packed_bgr;  // 1: the video frame, B, G, R bytes side by side in one channel
+uniform float warped;      // 1: image placed by an affine map (from_frame), sampled bilinearly
+uniform mat3 from_frame;   // frame pixel -> image pixel (OpenCV convention: centres at integers)
+uniform ivec2 extent;      // the image's size (the texture may be larger)
 out vec4 out_colour;
+// One texel with its colour premultiplied by its alpha; nothing outside the image.
+vec4 premultiplied(ivec2 t) {
+  if (t.x < 0 || t.y < 0 || t.x >= extent.x || t.y >= extent.y) return vec4(0.0);
+  vec4 c = texelFetch(frame, t, 0);
+  return vec4(c.rgb * c.a, c.a);
+}
 void main() {
+  if (warped > 0.5) {
+    // Bilinear in premultiplied colour, so that transparent texels darken no edge.
+    vec2 pixel = vec2(gl_FragCoord.x - 0.5, size.y - gl_FragCoord.y - 0.5);
+    vec2 q = (from_frame * vec3(pixel, 1.0)).xy;
+    vec2 f0 = floor(q);
+    vec2 w = q - f0;
+    ivec2 t = ivec2(f0);
+    vec4 c = mix(mix(premultiplied(t), premultiplied(t + ivec2(1, 0)), w.x),
+                 mix(premultiplied(t + ivec2(0, 1)), premultiplied(t + ivec2(1, 1)), w.x), w.y);
+    out_colour = c.a > 0.0 ? vec4(c.rgb / c.a, c.a) : vec4(0.0);
+    return;
+  }
   ivec2 texel = ivec2(int(gl_FragCoord.x), int(size.y) - 1 - int(gl_FragCoord.y)) - offset;
   vec4 c;
   if (packed_bgr > 0.5) {
@@ -356,6 +378,8 @@ struct OverlayRenderer::Impl {
       int texture_width = 0, texture_height = 0;  // allocated; grows, never shrinks
       cv::Point origin;
       uint64_t revision = 0;  // of the pixels in the texture (0: not to be reused)
+      // add_layer_image_warped: image pixel -> frame pixel; unset: at `origin`, texel for pixel.
+      std::optional<Eigen::Matrix<double, 2, 3>> warp;
     };
     std::vector<Image> images;  // textures are kept for reuse; the first image_count are shown
     size_t image_count = 0;
@@ -676,6 +700,7 @@ void OverlayRenderer::add_layer_image(const std::string& layer_name, const cv::M
     auto& kept = layer.images[layer.image_count];
     if (kept.revision == revision && kept.width == bgra.cols && kept.height == bgra.rows) {
       kept.origin = origin;  // the same pixels: already in the texture
+      kept.warp.reset();
       ++layer.image_count;
       return;
     }
@@ -693,6 +718,7 @@ void OverlayRenderer::add_layer_image(const std::string& layer_name, const cv::M
   auto& image = layer.images[layer.image_count++];
   image.origin = origin;
   image.revision = revision;
+  image.warp.reset();
   glBindTexture(GL_TEXTURE_2D, image.texture);
   glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
   image.width = bgra.cols;
@@ -707,6 +733,19 @@ void OverlayRenderer::add_layer_image(const std::string& layer_name, const cv::M
   }
   glTexSubImage2D(GL_TEXTURE_2D, 0, 0, 0, image.width, image.height, GL_BGRA, GL_UNSIGNED_BYTE,
                   contiguous.data);
+}
+
+void OverlayRenderer::add_layer_image_warped(const std::string& layer_name, const cv::Mat& bgra,
+                                             const cv::Point& origin,
+                                             const Eigen::Matrix<double, 2, 3>& warp,
+                                             uint64_t revision) {
+  if (!warp.allFinite() || std::abs(warp.leftCols<2>().determinant()) < 1e-6) {
+    throw Error("overlay renderer: the placement of an image of layer '" + layer_name +
+                "' is not an invertible affine map");
+  }
+  add_layer_image(layer_name, bgra, origin, revision);
+  auto& layer = impl_->layer(layer_name);
+  if (!bgra.empty()) layer.images[layer.image_count - 1].warp = warp;
 }
 
 void OverlayRenderer::set_layer_draw(const std::string& layer,
@@ -790,15 +829,50 @@ void OverlayRenderer::draw() {
       glUniform1f(glGetUniformLocation(impl_->background_program, "with_alpha"), 1.0f);
       glUniform1f(glGetUniformLocation(impl_->background_program, "packed_bgr"), 0.0f);
       glEnable(GL_SCISSOR_TEST);
+      const GLint warped = glGetUniformLocation(impl_->background_program, "warped");
       for (size_t i = 0; i < l.image_count; ++i) {
         const auto& image = l.images[i];
         glBindTexture(GL_TEXTURE_2D, image.texture);
         glUniform2i(glGetUniformLocation(impl_->background_program, "offset"), image.origin.x,
                     image.origin.y);
-        glScissor(image.origin.x, camera_.height - image.origin.y - image.height, image.width,
-                  image.height);
+        if (!image.warp) {
+          glUniform1f(warped, 0.0f);
+          glScissor(image.origin.x, camera_.height - image.origin.y - image.height, image.width,
+                    image.height);
+        } else {
+          // Frame pixel -> image texel: the inverse of the placement, after the origin.
+          Eigen::Matrix3d forward = Eigen::Matrix3d::Identity();
+          forward.topRows<2>() = *image.warp;
+          Eigen::Matrix3d to_texel = forward.inverse();
+          to_texel.row(0) -= image.origin.x * to_texel.row(2);
+          to_texel.row(1) -= image.origin.y * to_texel.row(2);
+          const Eigen::Matrix3f m = to_texel.cast<float>();
+          glUniform1f(warped, 1.0f);
+          glUniformMatrix3fv(glGetUniformLocation(impl_->background_program, "from_frame"), 1,
+                             GL_FALSE, m.data());  // Eigen is column-major too
+          glUniform2i(glGetUniformLocation(impl_->background_program, "extent"), image.width,
+                      image.height);
+          // Only over the placed image's bounding box, a pixel to spare.
+          double lo[2] = {1e30, 1e30}, hi[2] = {-1e30, -1e30};
+          for (const double cx : {-1.0, double(image.width)}) {
+            for (const double cy : {-1.0, double(image.height)}) {
+              const Eigen::Vector2d c =
+                  *image.warp * Eigen::Vector3d(image.origin.x + cx, image.origin.y + cy, 1.0);
+              for (int a = 0; a < 2; ++a) {
+                lo[a] = std::min(lo[a], c[a]);
+                hi[a] = std::max(hi[a], c[a]);
+              }
+            }
+          }
+          const int x0 = std::clamp(int(std::floor(lo[0])), 0, camera_.width);
+          const int x1 = std::clamp(int(std::ceil(hi[0])) + 1, 0, camera_.width);
+          const int y0 = std::clamp(int(std::floor(lo[1])), 0, camera_.height);
+          const int y1 = std::clamp(int(std::ceil(hi[1])) + 1, 0, camera_.height);
+          glScissor(x0, camera_.height - y1, x1 - x0, y1 - y0);
+        }
         glDrawArrays(GL_TRIANGLES, 0, 3);
       }
+      glUniform1f(warped, 0.0f);
       glDisable(GL_SCISSOR_TEST);
     }
   }

@@ -94,6 +94,13 @@ class OverlayRenderer {
   // pixels are not uploaded again. 0: always uploaded.
   void add_layer_image(const std::string& layer, const cv::Mat& bgra, const cv::Point& origin,
                        uint64_t revision = 0);
+  // The same image placed by an affine map `warp` (2x3, frame pixels where the image would lie at
+  // `origin` -> frame pixels where it is shown; OpenCV convention) and sampled bilinearly, e.g. a
+  // picture drawn for a slightly earlier pose moved to the present one. Throws Error when the
+  // map is not invertible.
+  void add_layer_image_warped(const std::string& layer, const cv::Mat& bgra,
+                              const cv::Point& origin, const Eigen::Matrix<double, 2, 3>& warp,
+                              uint64_t revision = 0);
   // A revision number for add_layer_image(), unique in the process (never 0).
   static uint64_t new_image_revision();
   // A drawing step of the layer's own (e.g. a volume rendering), run before its shapes. An empty

@@ -272,6 +272,74 @@ TEST(OverlayRenderer, LayerImageOfTheSameRevisionIsKeptAndANewOneReplacesIt) {
   EXPECT_EQ(cv::norm(renderer->render(), frame, cv::NORM_INF), 0);
 }
 
+// An image placed by an affine map lands where OpenCV's warpAffine puts it: bilinear in
+// premultiplied colour (transparent texels darken no edge), blended over the frame.
+TEST(OverlayRenderer, WarpedLayerImageMatchesOpenCvsWarpAffine) {
+  const auto cam = test_camera();
+  auto renderer = make_renderer(cam);
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context";
+  const cv::Mat frame = noise_frame(cam.width, cam.height, 9);
+  renderer->set_frame(frame);
+  // Smooth colours, opaque in the middle, half transparent around it, transparent outside.
+  cv::Mat picture(50, 70, CV_8UC4, cv::Scalar(0, 0, 0, 0));
+  for (int y = 4; y < 46; ++y) {
+    for (int x = 4; x < 66; ++x) {
+      const bool core = y >= 12 && y < 38 && x >= 12 && x < 58;
+      picture.at<cv::Vec4b>(y, x) = cv::Vec4b(uchar(3 * x), uchar(200 - 3 * y), uchar(60 + x + y),
+                                              uchar(core ? 255 : 128));
+    }
+  }
+  const cv::Point at(200, 150);
+  // Drawn at `at`, now shown turned by 3 degrees, scaled 1.02 and moved by (15.3, -6.6) px.
+  const double a = 3.0 * M_PI / 180.0, k = 1.02;
+  const Eigen::Vector2d c(at.x + 35.0, at.y + 25.0);
+  Eigen::Matrix<double, 2, 3> warp;
+  warp.leftCols<2>() << k * std::cos(a), -k * std::sin(a), k * std::sin(a), k * std::cos(a);
+  warp.col(2) = c + Eigen::Vector2d(15.3, -6.6) - warp.leftCols<2>() * c;
+  renderer->add_layer_image_warped("pictures", picture, at, warp);
+  const cv::Mat image = renderer->render();
+
+  // The reference: premultiplied BGRA warped by OpenCV, then blended over the frame.
+  cv::Mat premultiplied(picture.size(), CV_32FC4);
+  for (int y = 0; y < picture.rows; ++y) {
+    for (int x = 0; x < picture.cols; ++x) {
+      const cv::Vec4b p = picture.at<cv::Vec4b>(y, x);
+      const float al = p[3] / 255.0f;
+      premultiplied.at<cv::Vec4f>(y, x) = cv::Vec4f(p[0] * al, p[1] * al, p[2] * al, al);
+    }
+  }
+  cv::Mat to_frame(2, 3, CV_64F);  // image pixel -> frame pixel
+  for (int r = 0; r < 2; ++r) {
+    for (int col = 0; col < 2; ++col) to_frame.at<double>(r, col) = warp(r, col);
+    to_frame.at<double>(r, 2) = warp(r, 2) + warp(r, 0) * at.x + warp(r, 1) * at.y;
+  }
+  cv::Mat warped;
+  cv::warpAffine(premultiplied, warped, to_frame, frame.size(), cv::INTER_LINEAR,
+                 cv::BORDER_CONSTANT, cv::Scalar::all(0));
+  int worst = 0, covered = 0;
+  for (int y = 0; y < frame.rows; ++y) {
+    for (int x = 0; x < frame.cols; ++x) {
+      const cv::Vec4f w = warped.at<cv::Vec4f>(y, x);
+      const cv::Vec3b f = frame.at<cv::Vec3b>(y, x), g = image.at<cv::Vec3b>(y, x);
+      covered += w[3] > 0.01f;
+      for (int ch = 0; ch < 3; ++ch) {
+        const double expected = w[ch] * 255.0 / 255.0 + f[ch] * (1.0 - w[3]);
+        worst = std::max(worst, int(std::lround(std::abs(expected - g[ch]))));
+      }
+    }
+  }
+  EXPECT_GT(covered, 2500);  // the picture shows (42 x 62 px of it are not transparent)
+  EXPECT_LE(worst, 3);
+  // Far from it, the frame is untouched.
+  EXPECT_EQ(cv::norm(image(cv::Rect(0, 0, cam.width, 100)), frame(cv::Rect(0, 0, cam.width, 100)),
+                     cv::NORM_INF),
+            0);
+  // A singular map is refused.
+  EXPECT_THROW(renderer->add_layer_image_warped("pictures", picture, at,
+                                                Eigen::Matrix<double, 2, 3>::Zero()),
+               Error);
+}
+
 TEST(OverlayRenderer, RejectsFrameOfWrongSize) {
   const auto cam = test_camera();
   auto renderer = make_renderer(cam);
