@@ -42,6 +42,7 @@ int main(int argc, char** argv) {
   std::string full_search = "background";
   std::string plan_dir;
   std::string volume_layer = "both";
+  bool anatomy_ahead = true;
   app.add_option("--spacing", spacing, "Phantom voxel size, mm")->capture_default_str();
   app.add_option("--frames", frames, "Frames per configuration (the first 5 are warm-up)")
       ->capture_default_str();
@@ -62,11 +63,15 @@ int main(int argc, char** argv) {
                  "Volume layer settings to measure: off, on or both")
       ->check(CLI::IsMember({"off", "on", "both"}))
       ->capture_default_str();
+  app.add_option("--anatomy-ahead", anatomy_ahead,
+                 "Anatomy pictures placed by an affine map and drawn ahead on another thread "
+                 "(false: drawn in the frame whenever the board moved)")
+      ->capture_default_str();
   app.add_option("--plan", plan_dir,
                  "Plan folder of the phantom to reuse (made there when it holds no plan.json yet; "
                  "kept afterwards)");
   CLI11_PARSE(app, argc, argv);
-  spdlog::set_level(spdlog::level::warn);
+  spdlog::set_level(std::getenv("GUIDE_BENCH_DEBUG") ? spdlog::level::debug : spdlog::level::warn);
   try {
     const fs::path dir = fs::temp_directory_path() / ("crepuscular_guide_bench_" +
                                                       std::to_string(::getpid()));
@@ -134,6 +139,7 @@ int main(int argc, char** argv) {
         overlay::GuidanceOptions go;
         go.visible[size_t(overlay::GuidanceLayer::kVolume)] = volume;
         go.volume_resolution_scale = volume_scale;
+        go.anatomy_ahead = anatomy_ahead;
         tracking::TrackerOptions to;
         // Frames are spread over the recording: allow the gaps between them.
         to.max_age_ms = 1000;
@@ -166,6 +172,7 @@ int main(int argc, char** argv) {
         j["size"] = size;
         j["volume_layer"] = volume;
         j["full_search"] = full_search;
+        j["anatomy_ahead"] = anatomy_ahead;
         j["frames"] = latency.size();
         j["needle_evaluated"] = needle;
         j["latency_median_ms"] = pipelines::percentile(latency, 50);
@@ -181,6 +188,9 @@ int main(int argc, char** argv) {
         j["overlay_parts_p95_ms"] = {{"anatomy", pipelines::percentile(anatomy, 95)},
                                      {"needle", pipelines::percentile(needle_ms, 95)}};
         j["render_p95_ms"] = pipelines::percentile(render, 95);
+        j["anatomy_pictures"] = {{"drawn", loop.overlay().anatomy_pictures_drawn()},
+                                 {"placed", loop.overlay().anatomy_pictures_warped()},
+                                 {"waited_for", loop.overlay().anatomy_pictures_waited()}};
         j["gl"] = loop.renderer().gl_description();
         std::cout << j.dump() << std::endl;
       }

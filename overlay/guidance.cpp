@@ -171,6 +171,30 @@ GuidanceOverlay::GuidanceOverlay(const planning::PlanData& plan, GuidanceSetup s
   for (int i = 0; i < 8; ++i) {
     anatomy_box_[size_t(i)] = box.corner(static_cast<Eigen::AlignedBox3d::CornerType>(i));
   }
+  // Points of everything the pictures show, for the placed pictures' error: patch points, cone
+  // lines half-way to the tumor, tumor surface points, the planned trajectory (about 150 in all).
+  const auto every = [](size_t n, size_t want) { return std::max<size_t>(1, n / want); };
+  size_t patch_points = 0;
+  for (const Patch& patch : patches_) patch_points += patch.points.size();
+  anatomy_anchors_.push_back(plan_.tumor_centre);
+  for (const Patch& patch : patches_) {
+    const size_t step = every(patch_points, 60);
+    for (size_t i = 0; i < patch.points.size(); i += step) {
+      anatomy_anchors_.push_back(patch.points[i]);
+      anatomy_anchors_.push_back(0.5 * (patch.points[i] + plan_.tumor_centre));
+    }
+  }
+  for (size_t i = 0; i < tumor_surface_.size(); i += every(tumor_surface_.size(), 30)) {
+    anatomy_anchors_.push_back(tumor_surface_[i]);
+  }
+  if (planned_) {
+    anatomy_anchors_.push_back(planned_->entry);
+    anatomy_anchors_.push_back(planned_->target);
+  }
+  // A plan without these still gets a placement only where its box moves as one.
+  if (anatomy_anchors_.size() < 8) {
+    anatomy_anchors_.insert(anatomy_anchors_.end(), anatomy_box_.begin(), anatomy_box_.end());
+  }
   spdlog::info("guidance: {} safe or medium rays of {} ({} not drawn: they reach the unknown "
                "outside the scan), {} entry contours, {} tumor surface points",
                rays_.size(), options_.ray_directions, unknown_rays_, contours_.size(),
@@ -861,7 +885,83 @@ void add_tumor_centre(OverlayRenderer& renderer, const Eigen::Vector3d& centre,
   }
 }
 
+// The anchors' projections (pixels); empty when one lies behind or within 1 mm of the camera
+// plane, where no picture is placed.
+std::vector<Eigen::Vector2d> project_anchors(const std::vector<Eigen::Vector3d>& anchors,
+                                             const Eigen::Isometry3d& T_cam_ct,
+                                             const calibration::CameraModel& camera) {
+  std::vector<Eigen::Vector2d> px;
+  px.reserve(anchors.size());
+  for (const Eigen::Vector3d& a : anchors) {
+    const Eigen::Vector3d p = T_cam_ct * a;
+    if (!(p.z() > 1.0)) return {};
+    px.push_back(camera.project(p));
+    if (!px.back().allFinite()) return {};
+  }
+  return px;
+}
+
+// The affine map that carries `from` onto `to` best (least squares) and its largest error there,
+// pixels; nullopt when the points do not determine one.
+struct PlacedPictures {
+  Eigen::Matrix<double, 2, 3> warp;
+  double error_px = 0;
+};
+std::optional<PlacedPictures> fit_placement(const std::vector<Eigen::Vector2d>& from,
+                                            const std::vector<Eigen::Vector2d>& to) {
+  if (from.size() < 3 || from.size() != to.size()) return std::nullopt;
+  Eigen::MatrixXd a(from.size(), 3);
+  Eigen::MatrixXd b(from.size(), 2);
+  for (size_t i = 0; i < from.size(); ++i) {
+    a.row(Eigen::Index(i)) << from[i].x(), from[i].y(), 1.0;
+    b.row(Eigen::Index(i)) = to[i].transpose();
+  }
+  const auto qr = a.colPivHouseholderQr();
+  if (qr.rank() < 3) return std::nullopt;
+  PlacedPictures placed;
+  placed.warp = qr.solve(b).transpose();
+  if (!placed.warp.allFinite() || std::abs(placed.warp.leftCols<2>().determinant()) < 1e-3) {
+    return std::nullopt;
+  }
+  for (size_t i = 0; i < from.size(); ++i) {
+    placed.error_px = std::max(
+        placed.error_px, (placed.warp * from[i].homogeneous() - to[i]).norm());
+  }
+  return placed;
+}
+
 }  // namespace
+
+GuidanceOverlay::AnatomyPictures GuidanceOverlay::draw_pictures(
+    const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& cam,
+    planning::Palette palette, std::array<bool, 3> layers) const {
+  AnatomyPictures pictures;
+  pictures.valid = true;
+  pictures.T_cam_ct = T_cam_ct;
+  pictures.palette = palette;
+  pictures.camera = cam;
+  pictures.anchors_px = project_anchors(anatomy_anchors_, T_cam_ct, cam);
+  const auto draw = [](LayerPicture& picture, const auto& make) {
+    const Picture p = make();
+    picture.bgra = p.bgra;
+    picture.origin = p.origin;
+    picture.revision = OverlayRenderer::new_image_revision();
+    picture.drawn = true;
+  };
+  if (layers[0] && !patches_.empty()) {
+    draw(pictures.cones,
+         [&] { return cone_image(patches_, plan_.tumor_centre, T_cam_ct, cam, palette); });
+  }
+  if (layers[1]) {
+    draw(pictures.entry, [&] { return patch_image(patches_, planned_, T_cam_ct, cam, palette); });
+  }
+  if (layers[2]) {
+    draw(pictures.tumor, [&] {
+      return tumor_image(tumor_surface_, tumor_voxel_mm_, T_cam_ct, cam, cv::Scalar(255, 0, 255));
+    });
+  }
+  return pictures;
+}
 
 void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct) {
   const auto palette = options_.palette;
@@ -880,34 +980,58 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
     renderer.set_layer_draw("volume", [volume](const DrawContext& c) { volume->draw(c); });
   }
   const calibration::CameraModel& cam = renderer.camera();
-  // The pictures drawn on the CPU are kept while the pose moves them by less than the tolerance
-  // (and the palette and the camera stay); they show the pose they were drawn for.
-  const bool keep =
-      anatomy_.valid && options_.anatomy_reuse_px > 0 && anatomy_.palette == palette &&
-      same_camera(anatomy_.camera, cam) &&
-      moves_less_than(anatomy_.T_cam_ct, T_cam_ct, anatomy_box_, cam, options_.anatomy_reuse_px);
-  if (!keep) {
-    anatomy_ = AnatomyPictures{};
-    anatomy_.valid = true;
-    anatomy_.T_cam_ct = T_cam_ct;
-    anatomy_.palette = palette;
-    anatomy_.camera = cam;
+  const std::array<bool, 3> layers = {visible(GuidanceLayer::kRays), visible(GuidanceLayer::kEntry),
+                                      visible(GuidanceLayer::kTumor)};
+  const auto usable = [&](const AnatomyPictures& p) {
+    return p.valid && p.palette == palette && same_camera(p.camera, cam);
+  };
+  // Pictures drawn ahead for the last frame's pose replace the kept ones.
+  if (anatomy_ahead_.valid()) {
+    AnatomyPictures ahead = anatomy_ahead_.get();  // rethrows what the drawing threw
+    if (usable(ahead)) {
+      anatomy_ = std::move(ahead);
+      ++anatomy_pictures_drawn_;
+    }
   }
-  const Eigen::Isometry3d T_drawn = anatomy_.T_cam_ct;
+  // The kept pictures show the pose they were drawn for: as they are while the pose moves them by
+  // less than the tolerance (and the palette and the camera stay), else placed by an affine map
+  // whose error over the anatomy's box is within the tolerance, else drawn anew now.
+  const double tol = options_.anatomy_reuse_px;
+  const bool usable_now = tol > 0 && usable(anatomy_);
+  const bool keep =
+      usable_now && moves_less_than(anatomy_.T_cam_ct, T_cam_ct, anatomy_box_, cam, tol);
+  std::optional<PlacedPictures> placed;
+  if (usable_now && !keep && options_.anatomy_ahead && !anatomy_.anchors_px.empty()) {
+    const std::vector<Eigen::Vector2d> now = project_anchors(anatomy_anchors_, T_cam_ct, cam);
+    placed = fit_placement(anatomy_.anchors_px, now);
+    if (placed && !(placed->error_px <= tol)) {
+      spdlog::debug("guidance: anatomy pictures drawn anew: the best affine placement is off by "
+                    "{:.2f} px", placed->error_px);
+      placed.reset();
+    }
+  }
+  if (!keep && !placed) {
+    anatomy_ = draw_pictures(T_cam_ct, cam, palette, {false, false, false});
+  }
   bool drew = false;
+  const Eigen::Isometry3d T_drawn = anatomy_.T_cam_ct;
   const auto show = [&](const char* layer, LayerPicture& picture, const auto& draw) {
-    if (!picture.drawn) {
+    if (!picture.drawn) {  // drawn for the pictures' own pose, also when placed
       Picture p = draw();
       picture.bgra = p.bgra;
       picture.origin = p.origin;
       picture.revision = OverlayRenderer::new_image_revision();
       picture.drawn = drew = true;
     }
-    if (!picture.bgra.empty()) {
+    if (picture.bgra.empty()) return;
+    if (placed) {
+      renderer.add_layer_image_warped(layer, picture.bgra, picture.origin, placed->warp,
+                                      picture.revision);
+    } else {
       renderer.add_layer_image(layer, picture.bgra, picture.origin, picture.revision);
     }
   };
-  if (visible(GuidanceLayer::kRays)) {
+  if (layers[0]) {
     // One cone per safe region; the ray bundles where the plan has no area safety.
     if (patches_.empty()) {
       add_rays(renderer, rays_, T_cam_ct, palette);
@@ -916,17 +1040,28 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
            [&] { return cone_image(patches_, plan_.tumor_centre, T_drawn, cam, palette); });
     }
   }
-  if (visible(GuidanceLayer::kEntry)) {
+  if (layers[1]) {
     show("entry", anatomy_.entry,
          [&] { return patch_image(patches_, planned_, T_drawn, cam, palette); });
   }
-  if (visible(GuidanceLayer::kTumor)) {
+  if (layers[2]) {
     const cv::Scalar magenta(255, 0, 255);
     show("tumor", anatomy_.tumor,
          [&] { return tumor_image(tumor_surface_, tumor_voxel_mm_, T_drawn, cam, magenta); });
     add_tumor_centre(renderer, plan_.tumor_centre, T_cam_ct, magenta);
   }
-  if (drew) ++anatomy_pictures_drawn_;
+  if (drew) {
+    ++anatomy_pictures_drawn_;
+    if (!keep && !placed) ++anatomy_pictures_waited_;
+  }
+  if (placed) ++anatomy_pictures_warped_;
+  // The pictures shown were drawn for another pose: those for this one are drawn beside the next
+  // frame's tracking, from the plan's geometry alone (the values captured here).
+  if (placed && options_.anatomy_ahead) {
+    anatomy_ahead_ = std::async(std::launch::async, [this, T_cam_ct, cam, palette, layers] {
+      return draw_pictures(T_cam_ct, cam, palette, layers);
+    });
+  }
 }
 
 // What a drawing adds to the renderer, recorded (in order) off the render thread and added on

@@ -36,6 +36,7 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <array>
+#include <future>
 #include <cstdint>
 #include <memory>
 #include <optional>
@@ -94,6 +95,14 @@ struct GuidanceOptions {
   // of the plan's geometry by more than this in the image (pixels; a still board under a still
   // camera); 0: drawn anew every frame.
   double anatomy_reuse_px = 0.25;
+  // When the board has moved them by more than that, the kept pictures are still shown, placed by
+  // the affine map that best carries them to the present pose, where that map's largest error
+  // over points of everything they show (patches, cones, tumor, planned trajectory) is within
+  // anatomy_reuse_px; meanwhile the pictures for the present pose are drawn on another thread and
+  // taken up at the next frame. The frame waits only when the pose jumped too far for any map (or
+  // the layers changed).
+  // false: only the still-board rule above.
+  bool anatomy_ahead = true;
 };
 
 // The needle part of one frame (present when both boards were tracked).
@@ -196,6 +205,11 @@ class GuidanceOverlay {
   // How many frames drew the anatomy layers' pictures anew (the others showed the kept ones), and
   // how many computed the targeting view's polar map anew; for tests and logs.
   int64_t anatomy_pictures_drawn() const { return anatomy_pictures_drawn_; }
+  // How many frames showed pictures drawn for an earlier pose, placed by an affine map, and how
+  // many waited for pictures drawn then and there (the others took them from the thread drawing
+  // ahead, or kept them for a still board).
+  int64_t anatomy_pictures_warped() const { return anatomy_pictures_warped_; }
+  int64_t anatomy_pictures_waited() const { return anatomy_pictures_waited_; }
   int64_t targeting_maps_computed() const { return targeting_maps_computed_; }
 
  private:
@@ -245,11 +259,21 @@ class GuidanceOverlay {
     planning::Palette palette = planning::Palette::kDefault;
     calibration::CameraModel camera;
     LayerPicture cones, entry, tumor;
+    std::vector<Eigen::Vector2d> anchors_px;  // anatomy_anchors_ in the image (empty: unusable)
   };
+  // The pictures of the visible layers for one pose, drawn from the plan's geometry only (safe
+  // to run on another thread).
+  AnatomyPictures draw_pictures(const Eigen::Isometry3d& T_cam_ct,
+                                const calibration::CameraModel& camera, planning::Palette palette,
+                                std::array<bool, 3> layers) const;
   AnatomyPictures anatomy_;
-  // The corners of a box (CT) around everything the pictures show, for the reuse test.
+  std::future<AnatomyPictures> anatomy_ahead_;  // drawn for the last frame's pose
+  // The corners of a box (CT) around everything the pictures show, for the reuse test, and
+  // points of it, for the placed pictures' error.
   std::array<Eigen::Vector3d, 8> anatomy_box_{};
+  std::vector<Eigen::Vector3d> anatomy_anchors_;  // points of what the pictures show
   int64_t anatomy_pictures_drawn_ = 0, targeting_maps_computed_ = 0;
+  int64_t anatomy_pictures_warped_ = 0, anatomy_pictures_waited_ = 0;
   planning::TargetingGeometry targeting_;
   LayerPicture targeting_picture_;  // the view of targeting_
   planning::Palette targeting_palette_ = planning::Palette::kDefault;

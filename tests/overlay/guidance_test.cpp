@@ -683,6 +683,66 @@ TEST_F(GuidanceTest, AnatomyPicturesAreKeptForAStillBoardAndRedrawnWhenItMoves) 
   EXPECT_EQ(cv::norm(image(fresh, nudged), colourblind, cv::NORM_INF), 0);
 }
 
+// A board that moves a little (more than the still-board tolerance, too little for parallax to
+// matter) gets the kept pictures placed by an affine map at once, close to pictures drawn for its
+// pose; the pictures for that pose, drawn meanwhile, are shown from the next frame on, pixel for
+// pixel as an overlay that never keeps anything draws them.
+TEST_F(GuidanceTest, SlightlyMovedBoardShowsPlacedPicturesThenThoseDrawnAhead) {
+  auto renderer = make_renderer(test_camera());
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context on this machine";
+  GuidanceSetup setup;
+  setup.camera = test_camera();
+  setup.T_ct_patient = T_ct_patient();
+  GuidanceOptions options;
+  options.ray_directions = 1500;
+  GuidanceOverlay kept(*plan_, setup, options);
+  options.anatomy_reuse_px = 0;
+  GuidanceOverlay fresh(*plan_, setup, options);
+  const auto image = [&](GuidanceOverlay& o, const tracking::TrackResult& t) {
+    o.update(*renderer, grey_frame(), t, {});
+    return renderer->render();
+  };
+  const tracking::TrackResult still = track(std::nullopt);
+  const cv::Mat first = image(kept, still);
+  EXPECT_EQ(kept.anatomy_pictures_waited(), 1);
+
+  tracking::TrackResult moved = still;
+  moved.boards[0].T_cam_board.translation() += Eigen::Vector3d(0.3, -0.2, 0.0);
+  const cv::Mat placed = image(kept, moved);
+  EXPECT_EQ(kept.anatomy_pictures_warped(), 1) << "placed, not drawn";
+  EXPECT_EQ(kept.anatomy_pictures_waited(), 1) << "the frame did not wait for a drawing";
+  const cv::Mat truth = image(fresh, moved);
+  // Where the anatomy lies: the centroid of each picture's difference from the grey frame, below
+  // the status panels. The placed pictures sit where the truth is; the old ones do not.
+  const cv::Mat grey = grey_frame().image;
+  const auto centroid = [&](const cv::Mat& img) {
+    const cv::Rect below(0, 110, img.cols, img.rows - 110);
+    cv::Mat d;
+    cv::absdiff(img(below), grey(below), d);
+    cv::Mat w;
+    cv::transform(d, w, cv::Matx13f(1, 1, 1));
+    const cv::Moments m = cv::moments(w);
+    return Eigen::Vector2d(m.m10 / m.m00, m.m01 / m.m00 + below.y);
+  };
+  const double placed_off = (centroid(placed) - centroid(truth)).norm();
+  const double stale_off = (centroid(first) - centroid(truth)).norm();
+  EXPECT_GT(stale_off, 0.2);
+  EXPECT_LT(placed_off, 0.25 * stale_off) << placed_off << " px vs " << stale_off << " px";
+  EXPECT_LT(placed_off, 0.1);
+  std::printf("anatomy centroid off by %.3f px placed, %.3f px stale\n", placed_off, stale_off);
+
+  // The next frame shows the pictures drawn for this pose meanwhile: exactly the fresh ones.
+  EXPECT_EQ(cv::norm(image(kept, moved), truth, cv::NORM_INF), 0);
+  EXPECT_EQ(kept.anatomy_pictures_warped(), 1);
+  EXPECT_EQ(kept.anatomy_pictures_waited(), 1);
+
+  // A jump no map can follow (parallax over the anatomy's depth) is drawn then and there.
+  tracking::TrackResult jumped = moved;
+  jumped.boards[0].T_cam_board.translation() += Eigen::Vector3d(40.0, 0.0, 0.0);
+  EXPECT_EQ(cv::norm(image(kept, jumped), image(fresh, jumped), cv::NORM_INF), 0);
+  EXPECT_EQ(kept.anatomy_pictures_waited(), 2);
+}
+
 // The targeting view's polar map is computed once for a still needle and kept; a needle moved to
 // another approach gets the map of its new line at once (the same cells as targeting_geometry
 // gives for it, different from the old ones): the old map is never shown for the moved needle.
