@@ -1176,10 +1176,13 @@ void GuidanceOverlay::draw_needle(Renderer& renderer, const Eigen::Isometry3d& T
                                  d.entry_mm, d.angle_deg)});
   }
 
+  // The panel's text is drawn beside the targeting view (layers keep their own order).
   const cv::Size frame(renderer.camera().width, renderer.camera().height);
-  cv::Point origin;
-  const cv::Mat panel = text_panel(lines, cv::Point(10, frame.height - 10), true, frame, &origin);
-  renderer.add_layer_image("needle", panel, origin);
+  std::future<Picture> panel = std::async(std::launch::async, [lines = std::move(lines), frame] {
+    Picture p;
+    p.bgra = text_panel(lines, cv::Point(10, frame.height - 10), true, frame, &p.origin);
+    return p;
+  });
 
   if (visible(GuidanceLayer::kTarget)) {
     // The targeting view, top right; right in it is the camera's right.
@@ -1211,6 +1214,8 @@ void GuidanceOverlay::draw_needle(Renderer& renderer, const Eigen::Isometry3d& T
                                targeting_picture_.revision);
     }
   }
+  const Picture p = panel.get();
+  renderer.add_layer_image("needle", p.bgra, p.origin);
 }
 
 void GuidanceOverlay::draw_status(OverlayRenderer& renderer, const GuidanceFrameInfo& info,
