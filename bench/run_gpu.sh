@@ -28,12 +28,16 @@ overlay() {
       >"$out/10_nvidia.json"
     export __EGL_VENDOR_LIBRARY_FILENAMES="$out/10_nvidia.json"
   fi
-  env -u DISPLAY .device/bin/overlay_bench --backend egl --frames "${OVERLAY_FRAMES:-300}" 2>&1 |
+  [ -n "${SKIP_OVERLAY_BENCH:-}" ] ||
+    env -u DISPLAY .device/bin/overlay_bench --backend egl --frames "${OVERLAY_FRAMES:-300}" 2>&1 |
     tee "$out/overlay.log"
   if [ -x .device/bin/guide_bench ]; then
     echo "== guidance loop end to end (tracking + overlay + rendering, EGL)"
-    env -u DISPLAY .device/bin/guide_bench --backend egl --frames "${GUIDE_FRAMES:-150}" \
-      2>&1 | tee "$out/guide.jsonl"
+    # GUIDE_RUNS runs of each configuration; GUIDE_ARGS adds guide_bench options.
+    for run in $(seq "${GUIDE_RUNS:-1}"); do
+      env -u DISPLAY .device/bin/guide_bench --backend egl --frames "${GUIDE_FRAMES:-150}" \
+        ${GUIDE_ARGS:-} 2>&1 | tee -a "$out/guide.jsonl"
+    done
   fi
 }
 # `crepuscular plan` end to end on the headline grid (513^3 at 0.7 mm, phantom at 0.7 mm) with a
