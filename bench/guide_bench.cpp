@@ -152,6 +152,7 @@ int main(int argc, char** argv) {
                                          : overlay::RendererBackend::kAuto;
         pipelines::GuideLoop loop(plan, setup, boards, go, to, ro);
         std::vector<double> latency, track, over, render, upload, anatomy, needle_ms, status;
+        std::vector<double> evaluate_ms, targeting_ms, panel_ms;
         int64_t needle = 0;
         for (size_t i = 0; i < video.size(); ++i) {
           const auto arrival = std::chrono::steady_clock::now();
@@ -165,6 +166,11 @@ int main(int argc, char** argv) {
           anatomy.push_back(r.info.anatomy_ms);
           needle_ms.push_back(r.info.needle_ms);
           status.push_back(r.info.status_ms);
+          if (r.info.needle) {
+            evaluate_ms.push_back(r.info.needle_evaluate_ms);
+            targeting_ms.push_back(r.info.targeting_ms);
+            panel_ms.push_back(r.info.needle_panel_ms);
+          }
           needle += r.info.needle ? 1 : 0;
         }
         nlohmann::json j;
@@ -184,7 +190,10 @@ int main(int argc, char** argv) {
         j["overlay_parts_median_ms"] = {{"upload", pipelines::percentile(upload, 50)},
                                         {"anatomy", pipelines::percentile(anatomy, 50)},
                                         {"needle", pipelines::percentile(needle_ms, 50)},
-                                        {"status", pipelines::percentile(status, 50)}};
+                                        {"status", pipelines::percentile(status, 50)},
+                                        {"needle_evaluate", pipelines::percentile(evaluate_ms, 50)},
+                                        {"targeting_view", pipelines::percentile(targeting_ms, 50)},
+                                        {"needle_panel", pipelines::percentile(panel_ms, 50)}};
         j["overlay_parts_p95_ms"] = {{"anatomy", pipelines::percentile(anatomy, 95)},
                                      {"needle", pipelines::percentile(needle_ms, 95)}};
         j["render_p95_ms"] = pipelines::percentile(render, 95);

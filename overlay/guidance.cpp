@@ -1178,11 +1178,17 @@ void GuidanceOverlay::draw_needle(Renderer& renderer, const Eigen::Isometry3d& T
 
   // The panel's text is drawn beside the targeting view (layers keep their own order).
   const cv::Size frame(renderer.camera().width, renderer.camera().height);
-  std::future<Picture> panel = std::async(std::launch::async, [lines = std::move(lines), frame] {
-    Picture p;
-    p.bgra = text_panel(lines, cv::Point(10, frame.height - 10), true, frame, &p.origin);
-    return p;
-  });
+  std::future<Picture> panel =
+      std::async(std::launch::async, [this, lines = std::move(lines), frame] {
+        const auto t0 = std::chrono::steady_clock::now();
+        Picture p;
+        p.bgra = text_panel(lines, cv::Point(10, frame.height - 10), true, frame, &p.origin);
+        needle_panel_ms_ = std::chrono::duration<double, std::milli>(
+                               std::chrono::steady_clock::now() - t0).count();
+        return p;
+      });
+  const auto targeting_start = std::chrono::steady_clock::now();
+  targeting_ms_ = 0;
 
   if (visible(GuidanceLayer::kTarget)) {
     // The targeting view, top right; right in it is the camera's right.
@@ -1213,6 +1219,8 @@ void GuidanceOverlay::draw_needle(Renderer& renderer, const Eigen::Isometry3d& T
       renderer.add_layer_image("target", targeting_picture_.bgra, targeting_origin_,
                                targeting_picture_.revision);
     }
+    targeting_ms_ = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() -
+                                                              targeting_start).count();
   }
   const Picture p = panel.get();
   renderer.add_layer_image("needle", p.bgra, p.origin);
@@ -1328,7 +1336,7 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
     struct NeedlePart {
       NeedleReading reading;
       LayerCalls calls;
-      double ms = 0.0;
+      double ms = 0.0, evaluate_ms = 0.0;
     };
     std::future<NeedlePart> needle_part;
     if (info.needle_tracked) {
@@ -1342,6 +1350,8 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
         part.reading.T_ct_needle = T_ct_needle;
         part.reading.state =
             guide_->evaluate(T_ct_needle, setup_.tip_in_needle, setup_.axis_in_needle);
+        part.evaluate_ms =
+            std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
         if (visible(GuidanceLayer::kNeedle) || visible(GuidanceLayer::kTarget)) {
           draw_needle(part.calls, T_cam_ct, T_cam_needle, part.reading);
         }
@@ -1357,6 +1367,9 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
       part.calls.replay(renderer);
       info.needle = std::move(part.reading);
       info.needle_ms = part.ms;
+      info.needle_evaluate_ms = part.evaluate_ms;
+      info.targeting_ms = targeting_ms_;
+      info.needle_panel_ms = needle_panel_ms_;
     }
   }
   if (info.image && !info.patient_tracked) {

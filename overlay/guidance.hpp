@@ -126,6 +126,9 @@ struct GuidanceFrameInfo {
   // Where update() spent its time (ms): the video frame's upload, layers 1-4, the needle's
   // evaluation and layer (computed beside layers 1-4, on another thread), the status layer.
   double upload_ms = 0, anatomy_ms = 0, needle_ms = 0, status_ms = 0;
+  // The needle part's pieces (ms): its evaluation, the targeting view (polar map and picture),
+  // the text panel (drawn beside the targeting view).
+  double needle_evaluate_ms = 0, targeting_ms = 0, needle_panel_ms = 0;
 };
 
 // Frame rate and latency shown in the status layer.
@@ -279,6 +282,8 @@ class GuidanceOverlay {
   planning::Palette targeting_palette_ = planning::Palette::kDefault;
   Eigen::Vector3d targeting_tip_ = Eigen::Vector3d::Zero(), targeting_right_ = Eigen::Vector3d::Zero();
   cv::Point targeting_origin_;
+  // Timings of the last draw_needle (ms), read once its thread is joined.
+  double targeting_ms_ = 0, needle_panel_ms_ = 0;
 };
 
 // One line per structure the needle's line crosses: "portal vein (high) at 43 mm, 6.2 mm long".
