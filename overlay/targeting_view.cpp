@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <map>
 
 #include <fmt/format.h>
 #include <opencv2/imgproc.hpp>
@@ -103,6 +104,9 @@ cv::Mat render_targeting_view(const planning::TargetingGeometry& g, planning::Pa
     const double ring_deg = g.max_tilt_deg / g.rings;
     const double sector_deg = 360.0 / g.sectors;
     cv::Mat cells(n, n, CV_8UC3, cv::Scalar(0, 0, 0)), cells_mask(n, n, CV_8U, cv::Scalar(0));
+    // One fill per class (cells of a class never overlap), and one for the mask.
+    std::map<int, std::vector<std::vector<cv::Point>>> by_class;
+    std::vector<std::vector<cv::Point>> all;
     for (const planning::PolarCell& c : g.cells) {
       std::vector<cv::Point> poly;
       const int arc = 6;
@@ -114,10 +118,14 @@ cv::Mat render_targeting_view(const planning::TargetingGeometry& g, planning::Pa
         const double az = c.azimuth_deg + sector_deg * (double(k) / arc - 0.5);
         poly.push_back(fixed(g.tilt_px(c.ring * ring_deg, az)));
       }
-      const std::vector<std::vector<cv::Point>> polys = {poly};
-      cv::fillPoly(cells, polys, class_colour(palette, c.safety), cv::LINE_8, kShift);
-      cv::fillPoly(cells_mask, polys, cv::Scalar(255), cv::LINE_8, kShift);
+      by_class[int(c.safety)].push_back(poly);
+      all.push_back(std::move(poly));
     }
+    for (const auto& [safety, polys] : by_class) {
+      cv::fillPoly(cells, polys, class_colour(palette, static_cast<planning::NeedleSafety>(safety)),
+                   cv::LINE_8, kShift);
+    }
+    if (!all.empty()) cv::fillPoly(cells_mask, all, cv::Scalar(255), cv::LINE_8, kShift);
     blend(image, cells_mask, cells, 0.75);
     // Tilt rings: every ring's outer edge, the outer ones labelled.
     const double ring_px = std::abs(g.pivot_to_plane_mm) / g.mm_per_px;
@@ -137,8 +145,11 @@ cv::Mat render_targeting_view(const planning::TargetingGeometry& g, planning::Pa
     const auto outlines = point_cloud_outlines(g.tumor_px, g.tumor_point_radius_px);
     std::vector<std::vector<cv::Point>> polys;
     for (const auto& o : outlines) {
+      // The outline steps from pixel to pixel: within half a pixel, far fewer segments to draw.
+      std::vector<cv::Point2f> simple;
+      cv::approxPolyDP(o, simple, 0.5, true);
       std::vector<cv::Point> p;
-      for (const auto& q : o) p.push_back(fixed(Eigen::Vector2d(q.x, q.y)));
+      for (const auto& q : simple) p.push_back(fixed(Eigen::Vector2d(q.x, q.y)));
       polys.push_back(std::move(p));
     }
     cv::Mat tumor_mask(n, n, CV_8U, cv::Scalar(0));
