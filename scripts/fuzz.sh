@@ -60,7 +60,10 @@ for t in "${targets[@]}"; do
     echo "fuzz $t: $runs inputs, no finding"
   else
     echo "fuzz $t: FINDING, see $log and build-fuzz/findings/$t/" >&2
-    grep -m 5 -E 'ERROR|fuzz .*escaped|SUMMARY|runtime error' "$log" >&2 || tail -n 20 "$log" >&2
+    # The reason and what the reader printed just before it (the readers' libraries print
+    # "** ERROR" lines of their own for every refused input, so those alone say nothing).
+    grep -B 12 -m 1 -E '==[0-9]+== ?ERROR|fuzz .*escaped|runtime error' "$log" >&2 || tail -n 20 "$log" >&2
+    grep -m 1 'SUMMARY' "$log" >&2 || true
     failed+=("$t")
   fi
 done

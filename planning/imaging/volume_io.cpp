@@ -350,7 +350,9 @@ std::string nifti_header_problem(const std::string& path) {
     return "NIfTI header: sizeof_hdr is " + value_text(sizeof_hdr) +
            ", expected 348 (NIfTI-1) or 540 (NIfTI-2): a damaged header";
   }
-  const bool v2 = sizeof_hdr == 540 && header.read == 540;
+  // A NIfTI-2 header is 540 bytes with the magic "n+2" at byte 4. Anything else, even when
+  // sizeof_hdr says 540, niftilib reads in the NIfTI-1 layout, so that is the layout checked.
+  const bool v2 = sizeof_hdr == 540 && header.nifti2();
   const auto dim_at = [&](size_t d) {
     return v2 ? double(header.field<int64_t>(16 + 8 * d)) : double(header.field<int16_t>(40 + 2 * d));
   };
