@@ -186,6 +186,20 @@ bool path_ends_with(const std::string& path, const std::string& suffix) {
          path.compare(path.size() - suffix.size(), suffix.size(), suffix) == 0;
 }
 
+// Bytes per voxel of a NIfTI datatype code (nifti1.h), 0 when the code is unknown.
+int64_t nifti_datatype_bytes(int datatype) {
+  switch (datatype) {
+    case 2: case 256: return 1;             // uint8, int8
+    case 4: case 512: return 2;             // int16, uint16
+    case 128: return 3;                     // RGB24
+    case 8: case 16: case 768: case 2304: return 4;  // int32, float32, uint32, RGBA32
+    case 32: case 64: case 1024: case 1280: return 8;  // complex64, float64, int64, uint64
+    case 1536: case 1792: return 16;        // float128, complex128
+    case 2048: return 32;                   // complex256
+    default: return 0;
+  }
+}
+
 std::string nifti_length_problem(const std::string& path) {
   NiftiHeader header;
   const std::string unreadable = header.open(path);
@@ -209,7 +223,9 @@ std::string nifti_length_problem(const std::string& path) {
   } else {
     return {};  // header and data in separate files (.hdr/.img), or Analyze: not checked here
   }
-  uint64_t data_bytes = uint64_t(std::max<int64_t>(bitpix, 0) / 8);
+  // niftilib sizes the data by the datatype code and ignores bitpix: go by the larger of the two.
+  const int datatype = header.nifti2() ? header.field<int16_t>(12) : header.field<int16_t>(70);
+  uint64_t data_bytes = uint64_t(std::max<int64_t>({bitpix / 8, nifti_datatype_bytes(datatype), 0}));
   for (int d = 1; d <= std::clamp<int64_t>(dim[0], 0, 7); ++d) {
     data_bytes *= uint64_t(std::max<int64_t>(dim[d], 1));
   }
