@@ -484,7 +484,7 @@ CREPUSCULAR_HD void finalize_values(const VoxelState<Real>& v, unsigned values, 
 template <typename Real>
 struct GridSampler {
   BlockingGrid<Real> grid;
-  CREPUSCULAR_HD Real operator()(Vec3<Real> q) const { return sample_blocking(grid, q); }
+  CREPUSCULAR_HD_INLINE Real operator()(Vec3<Real> q) const { return sample_blocking(grid, q); }
 };
 
 // Sampler: callable Real(Vec3<Real> blocking_index); the CUDA backend may pass a texture sampler.

@@ -41,8 +41,11 @@
 #include <itkImageIOBase.h>
 #include <itkImageIOFactory.h>
 #include <itkImageSeriesReader.h>
+#include <itkMetaImageIO.h>
 #include <itkMetaImageIOFactory.h>
+#include <itkNiftiImageIO.h>
 #include <itkNiftiImageIOFactory.h>
+#include <itkNrrdImageIO.h>
 #include <itkNrrdImageIOFactory.h>
 #include <itk_zlib.h>
 
@@ -671,8 +674,26 @@ itk::ImageIOBase::Pointer image_io_of(const std::string& path) {
   if (!std::ifstream(path, std::ios::binary)) {
     throw Error(path + ": cannot read (no permission to open the file)");
   }
-  itk::ImageIOBase::Pointer io =
-      itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::IOFileModeEnum::ReadMode);
+  // A file named as NIfTI, NRRD or MetaImage is read as that format only: when its own reader
+  // refuses it, the factory would hand it to GDCM, which parses any bytes as DICOM and may
+  // reserve gigabytes for one element of a damaged file before it gives up.
+  itk::ImageIOBase::Pointer io;
+  const char* format = nullptr;
+  if (path_ends_with(path, ".nii") || path_ends_with(path, ".nii.gz") ||
+      path_ends_with(path, ".hdr") || path_ends_with(path, ".img")) {
+    io = itk::NiftiImageIO::New();
+    format = "NIfTI";
+  } else if (path_ends_with(path, ".nrrd") || path_ends_with(path, ".nhdr")) {
+    io = itk::NrrdImageIO::New();
+    format = "NRRD";
+  } else if (path_ends_with(path, ".mha") || path_ends_with(path, ".mhd")) {
+    io = itk::MetaImageIO::New();
+    format = "MetaImage";
+  }
+  if (io && !io->CanReadFile(path.c_str())) {
+    throw Error(path + ": cannot read (not a " + format + " file, or a damaged one)");
+  }
+  if (!io) io = itk::ImageIOFactory::CreateImageIO(path.c_str(), itk::IOFileModeEnum::ReadMode);
   if (!io) {
     throw Error(path + ": cannot read (not a NIfTI, NRRD, MetaImage or DICOM file, or a damaged one)");
   }
