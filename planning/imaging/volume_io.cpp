@@ -398,6 +398,12 @@ std::string nifti_header_problem(const std::string& path) {
       return std::string("NIfTI header: ") + kNames[k] + " (orientation and origin) is " +
              value_text(v) + "; expected a finite number";
     }
+    // Beyond a kilometre the header is damaged; such values also stall ITK's SVD of the
+    // orientation for minutes.
+    if (std::fabs(v) > 1e6) {
+      return std::string("NIfTI header: ") + kNames[k] + " (orientation and origin) is " +
+             value_text(v) + "; expected at most 1e6 in magnitude (mm)";
+    }
   }
   return {};
 }
@@ -524,6 +530,23 @@ std::string integers_problem(const std::map<std::string, std::string>& fields, c
 }
 
 std::string metaimage_header_problem(const std::string& path) {
+  // MetaIO reads a key up to the next '=', across line ends: a line without one makes the next
+  // line's key part of its own ("NDims" + newline + "Offset = -10 20 5" set NDims to -10, and
+  // MetaIO then read Offset's numbers for minutes).
+  {
+    std::ifstream in(path, std::ios::binary);
+    std::string line;
+    for (int number = 1; std::getline(in, line) && number < 10000; ++number) {
+      const std::string text = trimmed(line);
+      if (text.empty()) continue;
+      const auto at = text.find('=');
+      if (at == std::string::npos) {
+        return "MetaImage header: line " + std::to_string(number) + " ('" +
+               text.substr(0, std::min<size_t>(text.size(), 40)) + "') has no '= value'";
+      }
+      if (trimmed(text.substr(0, at)) == "ElementDataFile") break;
+    }
+  }
   size_t data_start = 0;
   const auto fields = text_header(path, '=', data_start);
   std::string problem = numbers_problem(
