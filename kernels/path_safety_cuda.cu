@@ -595,12 +595,7 @@ class FastRun {
           VoxelState<float> sum{};
           for (const auto& part : partial_) {
             if (part.empty() || !inside) continue;
-            const VoxelState<float>& s = part[off];
-            sum.svv.visible += s.svv.visible;
-            sum.svv.clear += s.svv.clear;
-            sum.isbv.sum += s.isbv.sum;
-            sum.ivbv.sum += s.ivbv.sum;
-            sum.bvv.sum += s.bvv.sum;
+            add_state(sum, part[off]);
           }
           float res[kValueCount] = {nan, nan, nan, nan};
           if (inside) finalize_values(sum, values_, float(host_scene_.s2), res);
@@ -738,6 +733,41 @@ __global__ void path_safety_points_kernel(PathSafetyScene<float> scene, PointFra
   for (int v = 0; v < kValueCount; ++v) out[size_t(p) * kValueCount + v] = res[v];
 }
 
+// Few points (fast mode's self-check: 1000): one block per point, its threads splitting the
+// surface points, so that every multiprocessor has work. Thread states are summed in a tree.
+constexpr int kSplitThreads = 128;
+
+template <unsigned Values, typename Sampler>
+__global__ void __launch_bounds__(kSplitThreads)
+    path_safety_points_split_kernel(PathSafetyScene<float> scene, PointFrame frame,
+                                    const int32_t* __restrict__ ijk, Sampler sampler,
+                                    float* __restrict__ out) {
+  // Raw storage: a __shared__ array may not have VoxelState's member initializers run.
+  __shared__ alignas(VoxelState<float>) unsigned char raw[kSplitThreads * sizeof(VoxelState<float>)];
+  VoxelState<float>* part = reinterpret_cast<VoxelState<float>*>(raw);
+  const int p = blockIdx.x;
+  const Vec3<double> x =
+      grid_point(frame.origin, frame.axes, ijk[3 * p], ijk[3 * p + 1], ijk[3 * p + 2]);
+  VoxelState<float> state;
+  for (int t = threadIdx.x; t < scene.surface_count; t += kSplitThreads) {
+    combine_ray<float, Values>(state, scene, x, scene.surface[t], sampler);
+  }
+  part[threadIdx.x] = state;
+  __syncthreads();
+  for (int half = kSplitThreads / 2; half > 0; half /= 2) {
+    if (threadIdx.x < half) add_state(part[threadIdx.x], part[threadIdx.x + half]);
+    __syncthreads();
+  }
+  if (threadIdx.x == 0) {
+    float res[kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
+    finalize_values(part[0], Values, scene.s2, res);
+    for (int v = 0; v < kValueCount; ++v) out[size_t(p) * kValueCount + v] = res[v];
+  }
+}
+
+// Below this many points a call splits each point's rays over a block.
+constexpr int kSplitBelow = 8192;
+
 }  // namespace
 
 struct CudaPointEvaluator::Impl {
@@ -808,7 +838,17 @@ void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out)
       const unsigned blocks = unsigned((m + 127) / 128);
       with_value_set(impl_->values, [&](auto tag) {
         constexpr unsigned kValues = decltype(tag)::value;
-        if (impl_->storage == BlockingStorage::kTexture) {
+        if (m < kSplitBelow) {
+          if (impl_->storage == BlockingStorage::kTexture) {
+            path_safety_points_split_kernel<kValues><<<unsigned(m), kSplitThreads>>>(
+                ds.scene, impl_->frame, points.ptr,
+                TextureSampler{ds.texture, ds.scene.blocking}, values.ptr);
+          } else {
+            path_safety_points_split_kernel<kValues><<<unsigned(m), kSplitThreads>>>(
+                ds.scene, impl_->frame, points.ptr, GridSampler<float>{ds.scene.blocking},
+                values.ptr);
+          }
+        } else if (impl_->storage == BlockingStorage::kTexture) {
           path_safety_points_kernel<kValues><<<blocks, 128>>>(
               ds.scene, impl_->frame, points.ptr, m,
               TextureSampler{ds.texture, ds.scene.blocking}, values.ptr);

@@ -487,51 +487,60 @@ struct GridSampler {
   CREPUSCULAR_HD_INLINE Real operator()(Vec3<Real> q) const { return sample_blocking(grid, q); }
 };
 
+// COMBINEVALUES of the ray from p to one surface point into a voxel's state.
 // Sampler: callable Real(Vec3<Real> blocking_index); the CUDA backend may pass a texture sampler.
 template <typename Real, unsigned Values, typename Sampler>
-CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<double> p, float* out,
-                                   const Sampler& blocking_at) {
+CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>& s,
+                                Vec3<double> p, const SurfacePoint<double>& target,
+                                const Sampler& blocking_at) {
   using Svv = SurfaceVisibility<Real>;
   using Isbv = IntegralSurfaceBlocking<Real>;
   using Ivbv = IntegralVolumeBlocking<Real>;
   using Bvv = BlockerVolume<Real>;
   constexpr bool kWantFront = (Values & (kSvv | kIsbv)) != 0;
   constexpr bool kWantBack = (Values & (kIvbv | kBvv)) != 0;
+  const RayGeometry<Real> ray = make_ray(s, p, target);
+  const TumorCrossing crossing = cross_tumor(s.tumor, ray, target.offset, kWantBack);
+  if (!((kWantFront && crossing.front_facing) || (kWantBack && crossing.back_facing))) return;
 
-  typename Svv::Voxel svv;
-  typename Isbv::Voxel isbv;
-  typename Ivbv::Voxel ivbv;
-  typename Bvv::Voxel bvv;
-
-  for (int t = 0; t < s.surface_count; ++t) {
-    const SurfacePoint<double>& target = s.surface[t];
-    const RayGeometry<Real> ray = make_ray(s, p, target);
-    const TumorCrossing crossing = cross_tumor(s.tumor, ray, target.offset, kWantBack);
-    if (!((kWantFront && crossing.front_facing) || (kWantBack && crossing.back_facing))) continue;
-
-    typename Svv::Ray svv_ray;
-    typename Isbv::Ray isbv_ray;
-    typename Ivbv::Ray ivbv_ray;
-    typename Bvv::Ray bvv_ray;
-    const Real inv_n = ray.n > 0 ? Real(1) / Real(ray.n) : Real(0);
-    for (int k = 1; k <= ray.n; ++k) {
-      const RaySample<Real> sample{Real(blocking_at(along(ray.q0, ray.dq, Real(k)))), ray.step,
-                                   k, inv_n};
-      if constexpr ((Values & kSvv) != 0) Svv::accumulate(svv_ray, sample);
-      if constexpr ((Values & kIsbv) != 0) Isbv::accumulate(isbv_ray, sample);
-      if constexpr ((Values & kIvbv) != 0) Ivbv::accumulate(ivbv_ray, sample);
-      if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
-    }
-    const RayContext<Real> context{crossing, ray.step, ray.cos_alpha, s.eps};
-    if constexpr ((Values & kSvv) != 0) Svv::combine(svv, svv_ray, context);
-    if constexpr ((Values & kIsbv) != 0) Isbv::combine(isbv, isbv_ray, context);
-    if constexpr ((Values & kIvbv) != 0) Ivbv::combine(ivbv, ivbv_ray, context);
-    if constexpr ((Values & kBvv) != 0) Bvv::combine(bvv, bvv_ray, context);
+  typename Svv::Ray svv_ray;
+  typename Isbv::Ray isbv_ray;
+  typename Ivbv::Ray ivbv_ray;
+  typename Bvv::Ray bvv_ray;
+  const Real inv_n = ray.n > 0 ? Real(1) / Real(ray.n) : Real(0);
+  for (int k = 1; k <= ray.n; ++k) {
+    const RaySample<Real> sample{Real(blocking_at(along(ray.q0, ray.dq, Real(k)))), ray.step, k,
+                                 inv_n};
+    if constexpr ((Values & kSvv) != 0) Svv::accumulate(svv_ray, sample);
+    if constexpr ((Values & kIsbv) != 0) Isbv::accumulate(isbv_ray, sample);
+    if constexpr ((Values & kIvbv) != 0) Ivbv::accumulate(ivbv_ray, sample);
+    if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
   }
-  if constexpr ((Values & kSvv) != 0) out[value_slot(kSvv)] = float(Svv::finalize(svv, s.s2));
-  if constexpr ((Values & kIsbv) != 0) out[value_slot(kIsbv)] = float(Isbv::finalize(isbv, s.s2));
-  if constexpr ((Values & kIvbv) != 0) out[value_slot(kIvbv)] = float(Ivbv::finalize(ivbv, s.s2));
-  if constexpr ((Values & kBvv) != 0) out[value_slot(kBvv)] = float(Bvv::finalize(bvv, s.s2));
+  const RayContext<Real> context{crossing, ray.step, ray.cos_alpha, s.eps};
+  if constexpr ((Values & kSvv) != 0) Svv::combine(v.svv, svv_ray, context);
+  if constexpr ((Values & kIsbv) != 0) Isbv::combine(v.isbv, isbv_ray, context);
+  if constexpr ((Values & kIvbv) != 0) Ivbv::combine(v.ivbv, ivbv_ray, context);
+  if constexpr ((Values & kBvv) != 0) Bvv::combine(v.bvv, bvv_ray, context);
+}
+
+// The state of two disjoint sets of rays of one voxel, combined into `a`.
+template <typename Real>
+CREPUSCULAR_HD void add_state(VoxelState<Real>& a, const VoxelState<Real>& b) {
+  a.svv.visible += b.svv.visible;
+  a.svv.clear += b.svv.clear;
+  a.isbv.sum += b.isbv.sum;
+  a.ivbv.sum += b.ivbv.sum;
+  a.bvv.sum += b.bvv.sum;
+}
+
+template <typename Real, unsigned Values, typename Sampler>
+CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<double> p, float* out,
+                                   const Sampler& blocking_at) {
+  VoxelState<Real> state;
+  for (int t = 0; t < s.surface_count; ++t) {
+    combine_ray<Real, Values>(state, s, p, s.surface[t], blocking_at);
+  }
+  finalize_values(state, Values, s.s2, out);
 }
 
 template <typename Real, unsigned Values>

@@ -544,6 +544,11 @@ std::string metaimage_header_problem(const std::string& path) {
         return "MetaImage header: line " + std::to_string(number) + " ('" +
                text.substr(0, std::min<size_t>(text.size(), 40)) + "') has no '= value'";
       }
+      // MetaIO copies a key into a buffer of 255 characters without checking its length.
+      if (line.find('=') > 200) {
+        return "MetaImage header: line " + std::to_string(number) + " has a key of " +
+               std::to_string(line.find('=')) + " characters; expected a field name";
+      }
       if (trimmed(text.substr(0, at)) == "ElementDataFile") break;
     }
   }
@@ -557,6 +562,12 @@ std::string metaimage_header_problem(const std::string& path) {
   if (fields.count(kRepeatedKey)) {
     return "MetaImage header: '" + fields.at(kRepeatedKey) +
            "' appears more than once (or holds a NUL byte)";
+  }
+  // MetaIO takes a data file name with '%' for a numbered series "pattern first last step" and
+  // divides by the step as it finds it (0 crashed it); a plan reads one data file.
+  if (fields.count("ElementDataFile") && fields.at("ElementDataFile").find('%') != std::string::npos) {
+    return "MetaImage header: ElementDataFile '" + fields.at("ElementDataFile") +
+           "' names a numbered series of files; expected LOCAL or one data file";
   }
   // Counts MetaIO trusts for its loops and allocations (NDims of 10^96 hung it).
   size_t ndims = 0;

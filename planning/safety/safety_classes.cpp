@@ -3,19 +3,92 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <cstring>
 #include <utility>
 #include <vector>
 
 namespace crepuscular::planning {
 
-SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume) {
-  std::vector<float> positive;
-  if (value_bit != kernels::kSvv) {
-    for (const float x : volume.values()) {
-      if (std::isfinite(x) && x > 0.0f) positive.push_back(x);
+namespace {
+
+// Positive finite floats order as their bit patterns do; the top 16 bits name a bucket.
+constexpr int kBucketShift = 16;
+constexpr size_t kBuckets = size_t(1) << (32 - kBucketShift - 1);  // sign bit 0
+
+bool counted(float x) { return std::isfinite(x) && x > 0.0f; }
+uint32_t bucket_of(float x) {
+  uint32_t bits;
+  std::memcpy(&bits, &x, 4);
+  return bits >> kBucketShift;
+}
+
+// The order statistics of a volume's positive finite values that default_classes_of takes by
+// nth_element, found without copying the values: a parallel histogram of their top bits names the
+// bucket that holds each rank, and only that bucket's values are gathered and ordered.
+class PositiveValues {
+ public:
+  explicit PositiveValues(const std::vector<float>& values) : values_(values), cumulative_(kBuckets + 1, 0) {
+    const int64_t n = int64_t(values.size());
+    std::vector<uint64_t> histogram(kBuckets, 0);
+#pragma omp parallel
+    {
+      std::vector<uint64_t> mine(kBuckets, 0);
+      float most = 0.0f;
+#pragma omp for schedule(static) nowait
+      for (int64_t i = 0; i < n; ++i) {
+        const float x = values[size_t(i)];
+        if (!counted(x)) continue;
+        ++mine[bucket_of(x)];
+        most = std::max(most, x);
+      }
+#pragma omp critical
+      {
+        for (size_t b = 0; b < kBuckets; ++b) histogram[b] += mine[b];
+        largest_ = std::max(largest_, most);
+      }
     }
+    for (size_t b = 0; b < kBuckets; ++b) cumulative_[b + 1] = cumulative_[b] + histogram[b];
   }
-  return default_classes_of(value_bit, std::move(positive));
+  uint64_t count() const { return cumulative_[kBuckets]; }
+  float largest() const { return largest_; }
+
+  // The value of rank i (0-based) in ascending order.
+  float at_rank(uint64_t i) const {
+    const size_t b = size_t(std::upper_bound(cumulative_.begin(), cumulative_.end(), i) -
+                            cumulative_.begin()) - 1;
+    std::vector<float> bucket;
+    bucket.reserve(size_t(cumulative_[b + 1] - cumulative_[b]));
+    for (const float x : values_) {
+      if (counted(x) && bucket_of(x) == b) bucket.push_back(x);
+    }
+    const size_t k = size_t(i - cumulative_[b]);
+    std::nth_element(bucket.begin(), bucket.begin() + std::ptrdiff_t(k), bucket.end());
+    return bucket[k];
+  }
+
+ private:
+  const std::vector<float>& values_;
+  std::vector<uint64_t> cumulative_;
+  float largest_ = 0.0f;
+};
+
+}  // namespace
+
+SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume) {
+  if (value_bit == kernels::kSvv) return default_classes_of(value_bit, {});
+  // The same thresholds as default_classes_of over the volume's positive values.
+  const PositiveValues positive(volume.values());
+  SafetyClasses c;
+  const uint64_t n = positive.count();
+  const auto percentile = [&](double q) -> double {
+    if (n == 0) return 0.0;
+    return positive.at_rank(std::min(n - 1, uint64_t(q * double(n - 1) + 0.5)));
+  };
+  const double insignificant = kInsignificantShare * double(positive.largest());
+  c.safe = std::max(percentile(0.2), insignificant);
+  c.dangerous = std::max(percentile(0.6), c.safe);
+  return c;
 }
 
 SafetyClasses default_classes_of(unsigned value_bit, std::vector<float> values) {

@@ -1,10 +1,12 @@
 // Analytic cases of the path safety values (DESIGN.md §4) and the input checks of the planner.
 #include "planning/safety/path_safety.hpp"
+#include "planning/safety/safety_classes.hpp"
 
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <limits>
+#include <random>
 
 #include "foundation/error.hpp"
 #include "tests/support/errors.hpp"
@@ -173,8 +175,12 @@ TEST(TumorSampling, ResampledBallHasTheBallsVoxelsAtTheNewSpacing) {
         const Eigen::Vector3d q = grid.geometry.physical_to_index(p);
         ASSERT_NEAR((q - q.array().round().matrix()).norm(), 0.0, 1e-9);
         const double r = (p - Eigen::Vector3d(3.0, -2.0, 1.0)).norm();
-        if (r < radius - 0.45) EXPECT_EQ(coarse(i, j, k), 1) << r;
-        if (r > radius + 0.45) EXPECT_EQ(coarse(i, j, k), 0) << r;
+        if (r < radius - 0.45) {
+          EXPECT_EQ(coarse(i, j, k), 1) << r;
+        }
+        if (r > radius + 0.45) {
+          EXPECT_EQ(coarse(i, j, k), 0) << r;
+        }
         tumor += coarse(i, j, k);
       }
     }
@@ -265,6 +271,40 @@ TEST(PathSafety, FrontFacingSetOfCubeIsNearFace) {
   for (const auto& f : front) EXPECT_EQ(f[2], 18);
   ASSERT_EQ(back.size(), 25u);
   for (const auto& b : back) EXPECT_EQ(b[2], 22);
+}
+
+TEST(PathSafety, DefaultClassesOfAVolumeAreThoseOfItsPositiveValues) {
+  // The volume's thresholds (found from a histogram of the values' bits) against nth_element over
+  // a copy of its positive finite values: equal, bit for bit, for values with ties, NaN (unknown),
+  // infinities, zeros and negatives among them, and for one of 0.6 M voxels.
+  std::mt19937 rng(5);
+  for (int64_t side : {1, 7, 23, 85}) {
+    Volume<float> v(centred_cube_grid(side, 1.0), 0.0f);
+    std::lognormal_distribution<float> size(0.0f, 1.0f);
+    std::uniform_int_distribution<int> kind(0, 19);
+    for (float& x : v.values()) {
+      const int k = kind(rng);
+      x = k == 0 ? std::numeric_limits<float>::quiet_NaN()
+        : k == 1 ? std::numeric_limits<float>::infinity()
+        : k == 2 ? -size(rng)
+        : k <= 5 ? 0.0f
+        : k <= 7 ? 2.5f  // ties
+                 : size(rng);
+    }
+    for (unsigned bit : {kernels::kIsbv, kernels::kIvbv, kernels::kBvv, kernels::kSvv}) {
+      std::vector<float> copy(v.values().begin(), v.values().end());
+      const SafetyClasses want = default_classes_of(bit, copy);
+      const SafetyClasses got = default_classes(bit, v);
+      EXPECT_EQ(got.safe, want.safe) << "side " << side << " value " << bit;
+      EXPECT_EQ(got.dangerous, want.dangerous) << "side " << side << " value " << bit;
+      EXPECT_EQ(got.higher_is_safer, want.higher_is_safer);
+      if (side > 1 && bit != kernels::kSvv) EXPECT_LT(got.safe, got.dangerous);
+    }
+  }
+  // Nothing positive: both thresholds 0.
+  const Volume<float> empty(centred_cube_grid(5, 1.0), 0.0f);
+  EXPECT_EQ(default_classes(kernels::kBvv, empty).safe, 0.0);
+  EXPECT_EQ(default_classes(kernels::kBvv, empty).dangerous, 0.0);
 }
 
 TEST(PathSafety, MirroredSceneGivesMirroredVolume) {
