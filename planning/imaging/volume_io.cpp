@@ -544,7 +544,12 @@ std::string metaimage_header_problem(const std::string& path) {
         return "MetaImage header: line " + std::to_string(number) + " ('" +
                text.substr(0, std::min<size_t>(text.size(), 40)) + "') has no '= value'";
       }
-      // MetaIO copies a key into a buffer of 255 characters without checking its length.
+      // MetaIO copies keys and text values into buffers of 255 characters without checking
+      // their length.
+      if (line.size() > 250) {
+        return "MetaImage header: line " + std::to_string(number) + " is " +
+               std::to_string(line.size()) + " characters long; MetaIO reads at most 250";
+      }
       if (line.find('=') > 200) {
         return "MetaImage header: line " + std::to_string(number) + " has a key of " +
                std::to_string(line.find('=')) + " characters; expected a field name";
