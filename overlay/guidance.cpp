@@ -457,6 +457,9 @@ struct Picture {
   cv::Point origin;
 };
 
+// The tumor's outline and centre (BGR magenta: no safety class uses it).
+const cv::Scalar kTumorColour(255, 0, 255);
+
 // The frame's pixels within `pad` of the bounding box of the points that fits() (pixels); empty
 // when there are none or the box misses the frame.
 cv::Rect region_around(const std::vector<Eigen::Vector2d>& px, int pad, const cv::Size& frame) {
@@ -941,26 +944,34 @@ GuidanceOverlay::AnatomyPictures GuidanceOverlay::draw_pictures(
   pictures.palette = palette;
   pictures.camera = cam;
   pictures.anchors_px = project_anchors(anatomy_anchors_, T_cam_ct, cam);
-  const auto draw = [](LayerPicture& picture, const auto& make) {
-    const Picture p = make();
-    picture.bgra = p.bgra;
-    picture.origin = p.origin;
-    picture.revision = OverlayRenderer::new_image_revision();
-    picture.drawn = true;
-  };
   if (layers[0] && !patches_.empty()) {
-    draw(pictures.cones,
-         [&] { return cone_image(patches_, plan_.tumor_centre, T_cam_ct, cam, palette); });
+    draw_picture(AnatomyPicture::kCones, pictures.cones, T_cam_ct, cam, palette);
   }
-  if (layers[1]) {
-    draw(pictures.entry, [&] { return patch_image(patches_, planned_, T_cam_ct, cam, palette); });
-  }
-  if (layers[2]) {
-    draw(pictures.tumor, [&] {
-      return tumor_image(tumor_surface_, tumor_voxel_mm_, T_cam_ct, cam, cv::Scalar(255, 0, 255));
-    });
-  }
+  if (layers[1]) draw_picture(AnatomyPicture::kEntry, pictures.entry, T_cam_ct, cam, palette);
+  if (layers[2]) draw_picture(AnatomyPicture::kTumor, pictures.tumor, T_cam_ct, cam, palette);
   return pictures;
+}
+
+void GuidanceOverlay::draw_picture(AnatomyPicture which, LayerPicture& picture,
+                                   const Eigen::Isometry3d& T_cam_ct,
+                                   const calibration::CameraModel& cam,
+                                   planning::Palette palette) const {
+  Picture p;
+  switch (which) {
+    case AnatomyPicture::kCones:
+      p = cone_image(patches_, plan_.tumor_centre, T_cam_ct, cam, palette);
+      break;
+    case AnatomyPicture::kEntry:
+      p = patch_image(patches_, planned_, T_cam_ct, cam, palette);
+      break;
+    case AnatomyPicture::kTumor:
+      p = tumor_image(tumor_surface_, tumor_voxel_mm_, T_cam_ct, cam, kTumorColour);
+      break;
+  }
+  picture.bgra = p.bgra;
+  picture.origin = p.origin;
+  picture.revision = OverlayRenderer::new_image_revision();
+  picture.drawn = true;
 }
 
 void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct) {
@@ -1015,13 +1026,10 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
   }
   bool drew = false;
   const Eigen::Isometry3d T_drawn = anatomy_.T_cam_ct;
-  const auto show = [&](const char* layer, LayerPicture& picture, const auto& draw) {
+  const auto show = [&](const char* layer, LayerPicture& picture, AnatomyPicture which) {
     if (!picture.drawn) {  // drawn for the pictures' own pose, also when placed
-      Picture p = draw();
-      picture.bgra = p.bgra;
-      picture.origin = p.origin;
-      picture.revision = OverlayRenderer::new_image_revision();
-      picture.drawn = drew = true;
+      draw_picture(which, picture, T_drawn, cam, palette);
+      drew = true;
     }
     if (picture.bgra.empty()) return;
     if (placed) {
@@ -1036,19 +1044,13 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
     if (patches_.empty()) {
       add_rays(renderer, rays_, T_cam_ct, palette);
     } else {
-      show("rays", anatomy_.cones,
-           [&] { return cone_image(patches_, plan_.tumor_centre, T_drawn, cam, palette); });
+      show("rays", anatomy_.cones, AnatomyPicture::kCones);
     }
   }
-  if (layers[1]) {
-    show("entry", anatomy_.entry,
-         [&] { return patch_image(patches_, planned_, T_drawn, cam, palette); });
-  }
+  if (layers[1]) show("entry", anatomy_.entry, AnatomyPicture::kEntry);
   if (layers[2]) {
-    const cv::Scalar magenta(255, 0, 255);
-    show("tumor", anatomy_.tumor,
-         [&] { return tumor_image(tumor_surface_, tumor_voxel_mm_, T_drawn, cam, magenta); });
-    add_tumor_centre(renderer, plan_.tumor_centre, T_cam_ct, magenta);
+    show("tumor", anatomy_.tumor, AnatomyPicture::kTumor);
+    add_tumor_centre(renderer, plan_.tumor_centre, T_cam_ct, kTumorColour);
   }
   if (drew) {
     ++anatomy_pictures_drawn_;

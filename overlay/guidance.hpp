@@ -264,8 +264,13 @@ class GuidanceOverlay {
     LayerPicture cones, entry, tumor;
     std::vector<Eigen::Vector2d> anchors_px;  // anatomy_anchors_ in the image (empty: unusable)
   };
-  // The pictures of the visible layers for one pose, drawn from the plan's geometry only (safe
-  // to run on another thread).
+  // The three anatomy pictures, in the order of AnatomyPictures and of draw_pictures' layers.
+  enum class AnatomyPicture { kCones, kEntry, kTumor };
+  // One picture for one pose, drawn from the plan's geometry only (safe to run on another
+  // thread), into `picture`, which it marks drawn.
+  void draw_picture(AnatomyPicture which, LayerPicture& picture, const Eigen::Isometry3d& T_cam_ct,
+                    const calibration::CameraModel& camera, planning::Palette palette) const;
+  // The pictures of the visible layers for one pose.
   AnatomyPictures draw_pictures(const Eigen::Isometry3d& T_cam_ct,
                                 const calibration::CameraModel& camera, planning::Palette palette,
                                 std::array<bool, 3> layers) const;
