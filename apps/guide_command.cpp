@@ -90,6 +90,7 @@ void add_guide_command(CLI::App& app) {
   cmd->add_option("--snapshots", r.snapshot_dir,
                   "Folder for PNG snapshots (default: the video's folder, else .)");
   cmd->add_option("--snapshot-at", "Snapshot of a frame: FRAME or FRAME:NAME.png (repeatable)")
+      ->multi_option_policy(CLI::MultiOptionPolicy::TakeAll)
       ->each([&r](const std::string& s) { r.snapshots.push_back(pipelines::parse_snapshot(s)); });
   cmd->add_option("--snapshot-every", r.snapshot_every, "Snapshot every N-th frame (0: never)")
       ->capture_default_str()

@@ -28,6 +28,7 @@
 #include "pipelines/demo_scenario.hpp"
 #include "planning/simulation/phantom.hpp"
 #include "pipelines/plan.hpp"
+#include "tests/support/cli.hpp"
 #include "tests/support/errors.hpp"
 #include "tests/support/network.hpp"
 #include "tests/support/plans.hpp"
@@ -215,6 +216,27 @@ TEST_F(GuideTest, HeadlessRunShowsSafeThenDangerousAndWritesEveryOutput) {
 // A recording with every fault a camera gives: blank frames whose timestamps stop advancing, then
 // go backwards; a corrupt JPEG (it decodes, with libjpeg's warning); a frame of another size.
 // Frame by frame, the log shows that nothing is drawn from a pose that is not current.
+TEST_F(GuideTest, CommandLineTakesSeveralSnapshotFrames) {
+  // `--snapshot-at` is repeatable, as its help says: two frames, two pictures, from the command
+  // line as a user types it.
+  test::TemporaryFolder out;
+  const fs::path d = *dir_;
+  std::string output;
+  const int code = test::run_cli(
+      "guide --plan " + (d / "plan").string() + " --camera " + (d / "setup/camera.yaml").string() +
+          " --registration " + (d / "setup/registration.yaml").string() + " --needle " +
+          (d / "setup/needle.yaml").string() + " --source recording:" +
+          (d / "recording").string() + " --headless --max-frames 6 --rays 500 --snapshots " +
+          out.path().string() + " --snapshot-at 2:first.png --snapshot-at 5:second.png",
+      &output);
+  ASSERT_EQ(code, 0) << output;
+  for (const char* name : {"first.png", "second.png"}) {
+    const cv::Mat picture = cv::imread((out.path() / name).string());
+    ASSERT_FALSE(picture.empty()) << name << "\n" << output;
+    EXPECT_EQ(picture.cols, request(out.path().string()).setup.camera.width) << name;
+  }
+}
+
 TEST_F(GuideTest, FaultsNeverDrawFromAPoseThatIsNotCurrent) {
   const fs::path faulty = *dir_ / "faulty_recording";
   fs::remove_all(faulty);
