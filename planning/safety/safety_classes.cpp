@@ -75,48 +75,45 @@ class PositiveValues {
 
 }  // namespace
 
-SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume) {
-  if (value_bit == kernels::kSvv) return default_classes_of(value_bit, {});
-  // The same thresholds as default_classes_of over the volume's positive values.
-  const PositiveValues positive(volume.values());
-  SafetyClasses c;
-  const uint64_t n = positive.count();
+// The blocking values' classes from n positive values: the 20th and 60th percentile (the value of
+// rank round(q (n - 1)), from at_rank) and the value `largest`. Blocking under a thousandth of the
+// largest in the region (the far tails of a safety margin, a path grazing a structure) is no
+// blocking: neither level sits among such values, where it would split voxels that differ by
+// nothing a needle meets.
+template <typename AtRank>
+SafetyClasses blocking_classes(uint64_t n, double largest, const AtRank& at_rank) {
   const auto percentile = [&](double q) -> double {
     if (n == 0) return 0.0;
-    return positive.at_rank(std::min(n - 1, uint64_t(q * double(n - 1) + 0.5)));
+    return at_rank(std::min(n - 1, uint64_t(q * double(n - 1) + 0.5)));
   };
-  const double insignificant = kInsignificantShare * double(positive.largest());
-  c.safe = std::max(percentile(0.2), insignificant);
+  SafetyClasses c;
+  c.safe = std::max(percentile(0.2), kInsignificantShare * largest);
   c.dangerous = std::max(percentile(0.6), c.safe);
   return c;
 }
 
+SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume) {
+  if (value_bit == kernels::kSvv) return default_classes_of(value_bit, {});
+  const PositiveValues positive(volume.values());
+  return blocking_classes(positive.count(), double(positive.largest()),
+                          [&](uint64_t i) { return double(positive.at_rank(i)); });
+}
+
 SafetyClasses default_classes_of(unsigned value_bit, std::vector<float> values) {
-  SafetyClasses c;
   if (value_bit == kernels::kSvv) {
+    SafetyClasses c;
     c.higher_is_safer = true;
     c.safe = 90.0;
     c.dangerous = 50.0;
     return c;
   }
   std::vector<float>& v = values;
-  v.erase(std::remove_if(v.begin(), v.end(),
-                         [](float x) { return !(std::isfinite(x) && x > 0.0f); }),
-          v.end());
-  const auto percentile = [&](double q) -> double {
-    if (v.empty()) return 0.0;
-    const size_t i = std::min(v.size() - 1, size_t(q * double(v.size() - 1) + 0.5));
-    std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(i), v.end());
-    return v[i];
-  };
-  // Blocking under a thousandth of the largest in the region (the far tails of a safety margin,
-  // a path grazing a structure) is no blocking: neither level sits among such values, where it
-  // would split voxels that differ by nothing a needle meets.
+  v.erase(std::remove_if(v.begin(), v.end(), [](float x) { return !counted(x); }), v.end());
   const double largest = v.empty() ? 0.0 : double(*std::max_element(v.begin(), v.end()));
-  const double insignificant = kInsignificantShare * largest;
-  c.safe = std::max(percentile(0.2), insignificant);
-  c.dangerous = std::max(percentile(0.6), c.safe);
-  return c;
+  return blocking_classes(uint64_t(v.size()), largest, [&](uint64_t i) {
+    std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(i), v.end());
+    return double(v[size_t(i)]);
+  });
 }
 
 ModeDifference compare_volumes(const std::array<Volume<float>, kernels::kValueCount>& reference,
