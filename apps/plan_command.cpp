@@ -91,13 +91,20 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
       ->default_str("auto");
   cmd->add_option("--mode", req->path_safety.mode,
                   "exact: every ray marched (the reference). fast: the grid sampled coarse to "
-                  "fine, every 4th voxel first; voxels where the safety classes change are "
+                  "fine, every 4th voxel first, one ray per block of 2x2x2 tumor voxels "
+                  "(--fast-surface-block); voxels where the safety classes change are "
                   "computed exactly, the inside of a region of one class is interpolated "
-                  "(about 10x faster on large grids). tables: rays cast once from each tumor "
+                  "(about 30x faster on large grids). tables: rays cast once from each tumor "
                   "surface point and looked up by direction and distance. fast and tables "
                   "recompute 1000 random voxels exactly and report the difference in plan.json")
       ->transform(enum_names(mode_names()))
       ->default_str("exact");
+  cmd->add_option("--fast-surface-block", req->path_safety.fast_surface_block,
+                  "Fast mode: one ray per block of this many tumor voxels a side, cast to the "
+                  "block's middle surface point and counted for each of its surface points (1: "
+                  "every surface point, as exact mode; 2: about a quarter of the rays)")
+      ->capture_default_str()
+      ->check(in_range(1, 4));
   cmd->add_option("--threads", req->path_safety.threads,
                   "CPU threads, 1 to 1024 (default: all cores)")
       ->check(in_range(1, 1024, true));

@@ -72,6 +72,11 @@ int main(int argc, char** argv) {
   app.add_option("--radius", radius, "region of interest R, mm");
   app.add_option("--mode", mode, "exact, fast or tables");
   app.add_option("--fast-stride", fast_stride, "fast mode: coarsest lattice stride");
+  int fast_surface_block = PathSafetyOptions{}.fast_surface_block;
+  app.add_option("--fast-surface-block", fast_surface_block,
+                 "fast mode: one ray per block of this many tumor voxels a side");
+  int check_voxels = PathSafetyOptions{}.fast_check_voxels;
+  app.add_option("--check-voxels", check_voxels, "fast mode: voxels of the self-check");
   app.add_flag("--fast-no-dilate", no_dilate, "fast mode: refine only cells that disagree");
   app.add_option("--fast-svv-margin", svv_margin, "fast mode: SVV points near a threshold refine");
   app.add_option("--fast-blocking-margin", blocking_margin,
@@ -113,6 +118,8 @@ int main(int argc, char** argv) {
   req.path_safety.fast_refine_relative = fast_refine_relative;
   req.path_safety.fast_stride = fast_stride;
   req.path_safety.fast_dilate = !no_dilate;
+  req.path_safety.fast_surface_block = fast_surface_block;
+  req.path_safety.fast_check_voxels = check_voxels;
   req.path_safety.fast_svv_margin = svv_margin;
   req.path_safety.fast_blocking_margin = blocking_margin;
   req.path_safety.cuda_texture = texture;
@@ -134,6 +141,7 @@ int main(int argc, char** argv) {
                          {"tables", {fast_angular, fast_refine, fast_refine_relative}},
                          {"fast_stride", fast_stride},
                          {"fast_dilate", !no_dilate},
+                         {"fast_surface_block", fast_surface_block},
                          {"fast_margins", {svv_margin, blocking_margin}},
                          {"texture", texture},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},

@@ -156,6 +156,9 @@ struct SurfacePoint {
   Vec3<Real> position;  // voxel centre, LPS mm
   Vec3<Real> normal;    // outward unit normal (DESIGN.md §4); zero when undefined
   int offset;           // linear offset of its voxel in the tumor mask
+  // Surface points this one stands for (fast mode's representatives of a block of the surface;
+  // 1 in exact mode): its ray counts `weight` times in every value.
+  int weight = 1;
 };
 
 // Everything a pass needs, passed by value to kernels. Real is the precision of blocking samples
@@ -368,6 +371,7 @@ struct RayContext {
   Real step;       // l, mm
   Real cos_alpha;  // |cos alpha_t|
   Real eps;
+  int weight = 1;  // surface points the ray stands for (SurfacePoint::weight)
 };
 
 // SVV = 100 |{t in F(p) : L(p,t) <= eps}| / |F(p)|, 0 when F(p) is empty.
@@ -386,8 +390,8 @@ struct SurfaceVisibility {
   }
   static CREPUSCULAR_HD void combine(Voxel& v, const Ray& r, const RayContext<Real>& c) {
     if (!c.crossing.front_facing) return;
-    ++v.visible;
-    if (r.line_integral <= c.eps) ++v.clear;
+    v.visible += c.weight;
+    if (r.line_integral <= c.eps) v.clear += c.weight;
   }
   static CREPUSCULAR_HD Real finalize(const Voxel& v, Real /*s2*/) {
     return v.visible > 0 ? Real(100) * Real(v.clear) / Real(v.visible) : Real(0);
@@ -409,7 +413,7 @@ struct IntegralSurfaceBlocking {
     r.line_integral += s.b * s.step;
   }
   static CREPUSCULAR_HD void combine(Voxel& v, const Ray& r, const RayContext<Real>& c) {
-    if (c.crossing.front_facing) v.sum += r.line_integral;
+    if (c.crossing.front_facing) v.sum += Real(c.weight) * r.line_integral;
   }
   static CREPUSCULAR_HD Real finalize(const Voxel& v, Real s2) { return v.sum * s2; }
 };
@@ -430,7 +434,7 @@ struct IntegralVolumeBlocking {
   }
   static CREPUSCULAR_HD void combine(Voxel& v, const Ray& r, const RayContext<Real>& c) {
     if (c.crossing.back_facing)
-      v.sum += r.line_integral * (c.step * Real(c.crossing.samples_in_tumor));
+      v.sum += Real(c.weight) * r.line_integral * (c.step * Real(c.crossing.samples_in_tumor));
   }
   static CREPUSCULAR_HD Real finalize(const Voxel& v, Real s2) { return v.sum * s2; }
 };
@@ -451,7 +455,7 @@ struct BlockerVolume {
     r.weighted += s.b * f * f * s.step;
   }
   static CREPUSCULAR_HD void combine(Voxel& v, const Ray& r, const RayContext<Real>& c) {
-    if (c.crossing.back_facing) v.sum += c.cos_alpha * r.weighted;
+    if (c.crossing.back_facing) v.sum += Real(c.weight) * c.cos_alpha * r.weighted;
   }
   static CREPUSCULAR_HD Real finalize(const Voxel& v, Real s2) { return v.sum * s2; }
 };
@@ -516,7 +520,7 @@ CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>
     if constexpr ((Values & kIvbv) != 0) Ivbv::accumulate(ivbv_ray, sample);
     if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
   }
-  const RayContext<Real> context{crossing, ray.step, ray.cos_alpha, s.eps};
+  const RayContext<Real> context{crossing, ray.step, ray.cos_alpha, s.eps, target.weight};
   if constexpr ((Values & kSvv) != 0) Svv::combine(v.svv, svv_ray, context);
   if constexpr ((Values & kIsbv) != 0) Isbv::combine(v.isbv, isbv_ray, context);
   if constexpr ((Values & kIvbv) != 0) Ivbv::combine(v.ivbv, ivbv_ray, context);

@@ -170,6 +170,9 @@ nlohmann::json fast_check_json(const PlanRequest& req, const PathSafetyResult& r
     check["angular_oversampling"] = req.path_safety.fast_angular;
   } else {
     check["coarsest_stride"] = req.path_safety.fast_stride;
+    check["surface_block"] = req.path_safety.fast_surface_block;
+    check["rays_per_voxel"] =
+        result.fast_surface_points > 0 ? result.fast_surface_points : result.surface_points;
     check["points_computed_exactly"] = result.evaluated_points;
     check["voxels_interpolated"] = result.interpolated_voxels;
   }

@@ -1,6 +1,8 @@
 // Coarse-to-fine sampling of the output grid (fast mode): see adaptive_sampling.hpp.
 #include "planning/safety/adaptive_sampling.hpp"
 
+#include <omp.h>
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -29,6 +31,10 @@ class SampleStore {
   }
   int64_t offset(int64_t i, int64_t j, int64_t k) const { return (k * n_ + j) * n_ + i; }
   uint8_t& state(int64_t i, int64_t j, int64_t k) { return state_[size_t(offset(i, j, k))]; }
+  // The state as it is now, while other threads may change it.
+  uint8_t state_now(int64_t i, int64_t j, int64_t k) const {
+    return __atomic_load_n(&state_[size_t(offset(i, j, k))], __ATOMIC_RELAXED);
+  }
 
   // Queues a point for evaluation unless it has values already, is queued, or is unknown (its
   // values stay NaN).
@@ -56,6 +62,19 @@ class SampleStore {
     queue.push_back({int32_t(i), int32_t(j), int32_t(k)});
   }
 
+  // request() for a voxel of the grid, safe to call from several threads at once: true when the
+  // voxel is newly queued (the caller queues it).
+  bool claim(int64_t i, int64_t j, int64_t k,
+             const std::function<bool(int64_t, int64_t, int64_t)>& known) {
+    return take(i, j, k, known, kQueued);
+  }
+  // Marks a pending voxel of the grid interpolated, from several threads at once: true when the
+  // caller is to write its values (false: it has values, is queued, or lies outside the scan).
+  bool claim_interpolated(int64_t i, int64_t j, int64_t k,
+                          const std::function<bool(int64_t, int64_t, int64_t)>& known) {
+    return take(i, j, k, known, kInterpolated);
+  }
+
   void store(const GridPoint& p, const float* values) {
     if (inside(p.i, p.j, p.k)) {
       const int64_t off = offset(p.i, p.j, p.k);
@@ -81,6 +100,29 @@ class SampleStore {
   static uint64_t key(int64_t i, int64_t j, int64_t k) {
     constexpr int64_t kBias = 1 << 20;  // corners lie at most one cell beyond the grid
     return (uint64_t(i + kBias) << 42) | (uint64_t(j + kBias) << 21) | uint64_t(k + kBias);
+  }
+
+  // Moves a voxel from pending (or, for kQueued, interpolated) to `to`, or to unknown where it
+  // lies outside the scan; atomic on the voxel's state.
+  bool take(int64_t i, int64_t j, int64_t k,
+            const std::function<bool(int64_t, int64_t, int64_t)>& known, uint8_t to) {
+    const int64_t off = offset(i, j, k);
+    uint8_t* s = &state_[size_t(off)];
+    uint8_t cur = __atomic_load_n(s, __ATOMIC_RELAXED);
+    for (;;) {
+      if (!(cur == kPending || (to == kQueued && cur == kInterpolated))) return false;
+      const uint8_t next = (known && !known(i, j, k)) ? kUnknown : to;
+      if (__atomic_compare_exchange_n(s, &cur, next, false, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
+        if (next == kUnknown) {
+          for (int v = 0; v < kSlots; ++v) {
+            if (out_[v]) out_[v][off] = std::numeric_limits<float>::quiet_NaN();
+          }
+          return false;
+        }
+        if (cur == kInterpolated) __atomic_fetch_add(&reclaimed_, 1, __ATOMIC_RELAXED);
+        return true;
+      }
+    }
   }
 
   int64_t n_;
@@ -156,6 +198,135 @@ bool near_threshold(const SafetyClasses& c, double v, const AdaptiveOptions& o) 
   return false;
 }
 
+// Queues the points that `points_of(c, offer)` offers for items c = 0..count-1, in parallel: grid
+// voxels are claimed atomically, the few corners beyond the grid's edge are requested afterwards
+// on one thread. The queue keeps the items' order (threads take contiguous ranges).
+template <typename PointsOf>
+void gather_requests(int64_t count, const PointsOf& points_of, const AdaptiveOptions& options,
+                     SampleStore& store, std::vector<GridPoint>& queue) {
+  queue.clear();
+  const int threads = omp_get_max_threads();
+  std::vector<std::vector<GridPoint>> mine(static_cast<size_t>(threads));
+  std::vector<std::vector<GridPoint>> beyond(static_cast<size_t>(threads));
+#pragma omp parallel num_threads(threads)
+  {
+    const size_t t = size_t(omp_get_thread_num());
+#pragma omp for schedule(static)
+    for (int64_t c = 0; c < count; ++c) {
+      points_of(c, [&](int64_t i, int64_t j, int64_t k) {
+        if (!store.inside(i, j, k)) {
+          beyond[t].push_back({int32_t(i), int32_t(j), int32_t(k)});
+        } else if (store.claim(i, j, k, options.known)) {
+          mine[t].push_back({int32_t(i), int32_t(j), int32_t(k)});
+        }
+      });
+    }
+  }
+  for (const auto& m : mine) queue.insert(queue.end(), m.begin(), m.end());
+  for (const auto& b : beyond) {
+    for (const GridPoint& g : b) store.request(g.i, g.j, g.k, options.known, queue);
+  }
+}
+
+// Computes the queued points and stores their values (grid voxels in parallel).
+void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& evaluate,
+                    SampleStore& store, std::vector<float>& values) {
+  values.assign(queue.size() * kSlots, 0.0f);
+  if (queue.empty()) return;
+  evaluate(queue, values);
+#pragma omp parallel for schedule(static)
+  for (int64_t p = 0; p < int64_t(queue.size()); ++p) {
+    const GridPoint& g = queue[size_t(p)];
+    if (store.inside(g.i, g.j, g.k)) store.store(g, &values[size_t(p) * kSlots]);
+  }
+  for (size_t p = 0; p < queue.size(); ++p) {
+    if (!store.inside(queue[p].i, queue[p].j, queue[p].k)) store.store(queue[p], &values[p * kSlots]);
+  }
+}
+
+// Do these points (all evaluated or beyond the grid with values) share every requested value's
+// class, none near a threshold, none unknown?
+bool uniform_points(const GridPoint* points, int count, const std::vector<int>& slots,
+                    const AdaptiveReport& report, const AdaptiveOptions& options,
+                    const SampleStore& store) {
+  for (const int s : slots) {
+    const SafetyClasses& classes = report.classes[size_t(s)];
+    SafetyClass first = SafetyClass::kUnknown;
+    for (int q = 0; q < count; ++q) {
+      const double v = store.value(points[q].i, points[q].j, points[q].k, s);
+      const SafetyClass k = classes.classify(v);
+      if (k == SafetyClass::kUnknown) return false;
+      if (q == 0) first = k;
+      if (k != first || near_threshold(classes, v, options)) return false;
+    }
+  }
+  return true;
+}
+
+// The finest level, point by point: inside the refined cells of edge 2, an edge's midpoint, a
+// face's centre and the cell's centre are computed where the points around them (the edge's ends,
+// the face's corners, the cell's corners) differ in a class or lie near a threshold, and
+// interpolated from them where they agree. A class boundary crossing a cell is computed on the
+// edges and faces it crosses; the cell's uniform edges and faces are interpolated, as a uniform
+// cell is. Returns the points computed.
+int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
+                      const AdaptiveOptions& options, const std::vector<int>& slots,
+                      const PointEvaluator& evaluate, AdaptiveReport& report, SampleStore& store) {
+  int64_t computed = 0;
+  std::vector<GridPoint> queue;
+  std::vector<float> values;
+  // Pass 1: edge midpoints (between two corners), pass 2: face centres (four corners), pass 3:
+  // cell centres (eight corners). Each point's decision depends only on its own corners, so a
+  // point shared by neighbouring cells is decided alike from each; the first to claim it acts.
+  for (int pass = 1; pass <= 3; ++pass) {
+    int64_t interpolated = 0;
+    gather_requests(
+        int64_t(refined.size()),
+        [&](int64_t c, const auto& offer) {
+          const Cell& cell = refined[size_t(c)];
+          for (int m = 0; m < 27; ++m) {
+            const int di = m % 3, dj = (m / 3) % 3, dk = m / 9;
+            if ((di == 1) + (dj == 1) + (dk == 1) != pass) continue;
+            const int64_t i = cell.i + di, j = cell.j + dj, k = cell.k + dk;
+            if (!store.inside(i, j, k) || !grid.in_roi(i, j, k)) continue;
+            const uint8_t st = store.state_now(i, j, k);
+            if (st == kEvaluated || st == kQueued || st == kUnknown) continue;
+            // The corners of the smallest box of the cell's corners around the point.
+            GridPoint ends[8];
+            int count = 0;
+            for (int q = 0; q < (1 << pass); ++q) {
+              int bit = 0;
+              const auto corner = [&](int d, int64_t at, int64_t lo) {
+                return d == 1 ? lo + 2 * ((q >> bit++) & 1) : at;
+              };
+              const int64_t ci = corner(di, i, cell.i);
+              const int64_t cj = corner(dj, j, cell.j);
+              const int64_t ck = corner(dk, k, cell.k);
+              ends[count++] = {int32_t(ci), int32_t(cj), int32_t(ck)};
+            }
+            if (!uniform_points(ends, count, slots, report, options, store)) {
+              offer(i, j, k);  // computed (an interpolation from a coarser cell is reclaimed)
+            } else if (store.claim_interpolated(i, j, k, options.known)) {
+              const int64_t off = store.offset(i, j, k);
+              for (const int s : slots) {
+                float sum = 0.0f;
+                for (int q = 0; q < count; ++q) {
+                  sum += store.value(ends[q].i, ends[q].j, ends[q].k, s);
+                }
+                store.set(off, s, sum / float(count));
+              }
+              __atomic_fetch_add(&interpolated, int64_t(1), __ATOMIC_RELAXED);
+            }
+          }
+        },
+        options, store, queue);
+    report.interpolated += interpolated;
+    evaluate_queue(queue, evaluate, store, values);
+    computed += int64_t(queue.size());
+  }
+  return computed;
+}
+
 }  // namespace
 
 AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& options,
@@ -213,15 +384,16 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   while (!cells.empty()) {
     const int size = cells.front().size;
     // Evaluate every corner not known yet.
-    queue.clear();
-    for (const Cell& c : cells) {
-      for (int corner = 0; corner < 8; ++corner) {
-        store.request(c.ci(corner), c.cj(corner), c.ck(corner), options.known, queue);
-      }
-    }
-    values.assign(queue.size() * kSlots, 0.0f);
-    if (!queue.empty()) evaluate(queue, values);
-    for (size_t p = 0; p < queue.size(); ++p) store.store(queue[p], &values[p * kSlots]);
+    gather_requests(
+        int64_t(cells.size()),
+        [&](int64_t c, const auto& offer) {
+          const Cell& cell = cells[size_t(c)];
+          for (int corner = 0; corner < 8; ++corner) {
+            offer(cell.ci(corner), cell.cj(corner), cell.ck(corner));
+          }
+        },
+        options, store, queue);
+    evaluate_queue(queue, evaluate, store, values);
     report.evaluated += int64_t(queue.size());
     report.levels.emplace_back(size, int64_t(queue.size()));
 
@@ -285,11 +457,16 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       refine.swap(grown);
     }
 
-    // Split the cells to refine.
-    std::vector<Cell> next;
+    // Split the cells to refine (cells of edge 2 that only agree, refined for an unknown corner,
+    // are split too: their known voxels are all computed).
+    std::vector<Cell> next, finest;
     for (size_t c = 0; c < cells.size(); ++c) {
       const Cell& cell = cells[c];
       if (!refine[c]) continue;
+      if (size == 2 && options.pointwise_finest && refine[c] == 1) {
+        finest.push_back(cell);
+        continue;
+      }
       const int h = size / 2;
       for (int child = 0; child < 8; ++child) {
         const Cell sub{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
@@ -311,6 +488,12 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
         interpolated += fill_cell(cell, grid, options, slots, store);
       }
       report.interpolated += interpolated;
+    }
+    if (!finest.empty()) {
+      const int64_t computed =
+          sample_finest(finest, grid, options, slots, evaluate, report, store);
+      report.evaluated += computed;
+      report.levels.emplace_back(0, computed);
     }
     cells.swap(next);
     ++level;

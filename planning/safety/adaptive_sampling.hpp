@@ -40,6 +40,9 @@ struct AdaptiveOptions {
   // Cells beside a refined cell of the coarsest lattice are refined as well, so that a shadow
   // thinner than a cell, seen by the corners of only one of the cells it crosses, is found.
   bool dilate = true;
+  // The finest level point by point (sample_finest): inside a refined cell of edge 2, only the
+  // points whose surrounding corners differ in class (or lie near a threshold) are computed.
+  bool pointwise_finest = true;
   // Whether a point (output grid indices, possibly beyond the grid) lies in the scan; points
   // that do not are never computed (NaN), and a cell with such a corner is always refined, so
   // nothing is interpolated from the unknown. Null: every point is known.
@@ -50,7 +53,7 @@ struct AdaptiveOptions {
 struct AdaptiveReport {
   int64_t evaluated = 0;     // voxels (and lattice corners) whose values were computed
   int64_t interpolated = 0;  // ROI voxels filled by interpolation
-  // Points evaluated per lattice level, coarsest first.
+  // Points evaluated per lattice level, coarsest first; stride 0: the finest level point by point.
   std::vector<std::pair<int, int64_t>> levels;
   std::array<SafetyClasses, kernels::kValueCount> classes{};  // the thresholds refinement used
 };

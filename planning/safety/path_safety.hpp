@@ -64,6 +64,12 @@ struct PathSafetyOptions {
   double fast_svv_margin = 3.0;
   double fast_blocking_margin = 0.25;
   bool fast_dilate = true;  // refine the neighbours of refined coarsest cells too
+  // Fast mode: one ray per block of fast_surface_block^3 tumor voxels, cast to the block's surface
+  // point nearest the mean of its surface points and counted once for each of them (1: every
+  // surface point, as exact mode). Rays to the points of a block of 2 stay within about one
+  // voxel of each other along their whole length, where the blocking volume is smooth (the
+  // safety margin); the self-check compares with exact mode's every ray.
+  int fast_surface_block = 1;
   // Tables mode: octahedral direction cells per (distance / spacing), i.e. the angular sampling of
   // the rays cast from each surface point (cost ~ square). 2: neighbouring rays about 1.75
   // voxels apart at the far edge; the rays between cells that disagree are marched exactly, so
@@ -143,6 +149,8 @@ struct PathSafetyResult {
   double tumor_spacing_mm = 0.0;   // spacing of the tumor grid the rays end on
   bool tumor_resampled = false;    // the mask was resampled to tumor_spacing_mm
   int64_t mask_surface_points = 0;  // surface points of the mask as given
+  // Fast mode: rays cast per voxel (surface points standing for blocks of them), else 0.
+  int64_t fast_surface_points = 0;
   double s2_mm2 = 0.0;
   double gamma_mm = 0.0;
   double eps = 0.0;

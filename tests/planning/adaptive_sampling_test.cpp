@@ -87,6 +87,47 @@ TEST(AdaptiveSampling, EveryVoxelHasTheClassOfTheFieldAndMostAreInterpolated) {
   EXPECT_EQ(run.report.levels[0].first, 4);
 }
 
+// The finest level point by point: inside a refined cell of edge 2 only the points whose own
+// corners differ are computed; the same field is right at every voxel either way, with fewer
+// points computed than when every voxel of a refined cell is.
+TEST(AdaptiveSampling, FinestLevelComputesOnlyBetweenCornersThatDiffer) {
+  const OutputGrid g = ball_grid(24);
+  AdaptiveOptions o;
+  o.values = kernels::kSvv;
+  o.pointwise_finest = false;
+  const Sampled cellwise = sample(g, o);
+  o.pointwise_finest = true;
+  const Sampled pointwise = sample(g, o);
+  const int64_t n = g.geometry.dims[0];
+  int64_t wrong = 0;
+  for (int64_t k = 0; k < n; ++k)
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < n; ++i) {
+        if (!g.in_roi(i, j, k)) continue;
+        wrong += pointwise.svv[size_t((k * n + j) * n + i)] != shadow_svv(i, j, k, int(g.half));
+      }
+  EXPECT_EQ(wrong, 0);
+  ASSERT_EQ(cellwise.report.levels.size(), 3u);
+  ASSERT_EQ(pointwise.report.levels.size(), 3u);
+  EXPECT_EQ(cellwise.report.levels[2].first, 1);
+  EXPECT_EQ(pointwise.report.levels[2].first, 0);  // the point-by-point level
+  const int64_t cell_finest = cellwise.report.levels[2].second;
+  const int64_t point_finest = pointwise.report.levels[2].second;
+  EXPECT_GT(cell_finest, 0);
+  EXPECT_LT(point_finest, cell_finest * 3 / 4) << point_finest << " vs " << cell_finest;
+  // Every point computed at the finest level lies next to the shadow's boundary: some voxel
+  // within one step along each axis belongs to the other class.
+  for (const auto& [i, j, k] : pointwise.evaluated) {
+    if ((i - g.half) % 2 == 0 && (j - g.half) % 2 == 0 && (k - g.half) % 2 == 0) continue;
+    const float here = shadow_svv(i, j, k, int(g.half));
+    bool boundary = false;
+    for (int d = 0; d < 27; ++d) {
+      boundary |= shadow_svv(i + d % 3 - 1, j + (d / 3) % 3 - 1, k + d / 9 - 1, int(g.half)) != here;
+    }
+    EXPECT_TRUE(boundary) << "computed away from the boundary: " << i << "," << j << "," << k;
+  }
+}
+
 TEST(AdaptiveSampling, UnknownVoxelsAreNeitherComputedNorInterpolated) {
   const OutputGrid g = ball_grid(24);
   AdaptiveOptions o;
