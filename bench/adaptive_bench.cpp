@@ -96,6 +96,9 @@ int main(int argc, char** argv) {
   o.pointwise_finest = !cellwise;
   // 60 % of the ball in the scan: a plane at 0.3 R.
   o.known = [half](int64_t i, int64_t, int64_t) { return double(i - half) < 0.3 * half; };
+  std::vector<uint8_t> known_mask(size_t(n) * n * n);
+  for (size_t v = 0; v < known_mask.size(); ++v) known_mask[v] = o.known(int64_t(v % size_t(n)), 0, 0);
+  o.known_mask = known_mask.data();  // as plan passes the scan's mask
 
   const auto t0 = std::chrono::steady_clock::now();
   const AdaptiveReport report = sample_adaptively(g, o, evaluate, out);

@@ -21,9 +21,18 @@ constexpr int kSlots = kernels::kValueCount;
 // slots kept here), lattice corners beyond the grid's edge in a map.
 class SampleStore {
  public:
-  SampleStore(const OutputGrid& grid, float* const out[kSlots])
-      : n_(grid.geometry.dims[0]), state_(size_t(n_ * n_ * n_), kPending) {
+  SampleStore(const OutputGrid& grid, const AdaptiveOptions& options, float* const out[kSlots])
+      : n_(grid.geometry.dims[0]),
+        state_(size_t(n_ * n_ * n_), kPending),
+        known_(options.known),
+        known_mask_(options.known_mask) {
     for (int s = 0; s < kSlots; ++s) out_[s] = out[s];
+  }
+
+  // Whether a point lies in the scan (AdaptiveOptions::known, known_mask).
+  bool known(int64_t i, int64_t j, int64_t k) const {
+    if (known_mask_ && inside(i, j, k)) return known_mask_[offset(i, j, k)] != 0;
+    return !known_ || known_(i, j, k);
   }
 
   bool inside(int64_t i, int64_t j, int64_t k) const {
@@ -38,13 +47,11 @@ class SampleStore {
 
   // Queues a point for evaluation unless it has values already, is queued, or is unknown (its
   // values stay NaN).
-  void request(int64_t i, int64_t j, int64_t k,
-               const std::function<bool(int64_t, int64_t, int64_t)>& known,
-               std::vector<GridPoint>& queue) {
+  void request(int64_t i, int64_t j, int64_t k, std::vector<GridPoint>& queue) {
     if (inside(i, j, k)) {
       uint8_t& s = state(i, j, k);
       if (s == kEvaluated || s == kQueued || s == kUnknown) return;
-      if (known && !known(i, j, k)) {
+      if (!known(i, j, k)) {
         s = kUnknown;
         for (int v = 0; v < kSlots; ++v) {
           if (out_[v]) out_[v][offset(i, j, k)] = std::numeric_limits<float>::quiet_NaN();
@@ -57,22 +64,18 @@ class SampleStore {
       auto [it, added] = outside_.try_emplace(key(i, j, k));
       if (!added) return;
       it->second.fill(std::numeric_limits<float>::quiet_NaN());
-      if (known && !known(i, j, k)) return;
+      if (!known(i, j, k)) return;
     }
     queue.push_back({int32_t(i), int32_t(j), int32_t(k)});
   }
 
   // request() for a voxel of the grid, safe to call from several threads at once: true when the
   // voxel is newly queued (the caller queues it).
-  bool claim(int64_t i, int64_t j, int64_t k,
-             const std::function<bool(int64_t, int64_t, int64_t)>& known) {
-    return take(i, j, k, known, kQueued);
-  }
+  bool claim(int64_t i, int64_t j, int64_t k) { return take(i, j, k, kQueued); }
   // Marks a pending voxel of the grid interpolated, from several threads at once: true when the
   // caller is to write its values (false: it has values, is queued, or lies outside the scan).
-  bool claim_interpolated(int64_t i, int64_t j, int64_t k,
-                          const std::function<bool(int64_t, int64_t, int64_t)>& known) {
-    return take(i, j, k, known, kInterpolated);
+  bool claim_interpolated(int64_t i, int64_t j, int64_t k) {
+    return take(i, j, k, kInterpolated);
   }
 
   void store(const GridPoint& p, const float* values) {
@@ -104,14 +107,13 @@ class SampleStore {
 
   // Moves a voxel from pending (or, for kQueued, interpolated) to `to`, or to unknown where it
   // lies outside the scan; atomic on the voxel's state.
-  bool take(int64_t i, int64_t j, int64_t k,
-            const std::function<bool(int64_t, int64_t, int64_t)>& known, uint8_t to) {
+  bool take(int64_t i, int64_t j, int64_t k, uint8_t to) {
     const int64_t off = offset(i, j, k);
     uint8_t* s = &state_[size_t(off)];
     uint8_t cur = __atomic_load_n(s, __ATOMIC_RELAXED);
     for (;;) {
       if (!(cur == kPending || (to == kQueued && cur == kInterpolated))) return false;
-      const uint8_t next = (known && !known(i, j, k)) ? kUnknown : to;
+      const uint8_t next = known(i, j, k) ? to : kUnknown;
       if (__atomic_compare_exchange_n(s, &cur, next, false, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
         if (next == kUnknown) {
           for (int v = 0; v < kSlots; ++v) {
@@ -127,6 +129,8 @@ class SampleStore {
 
   int64_t n_;
   std::vector<uint8_t> state_;
+  std::function<bool(int64_t, int64_t, int64_t)> known_;
+  const uint8_t* known_mask_ = nullptr;
   float* out_[kSlots] = {};
   std::unordered_map<uint64_t, std::array<float, kSlots>> outside_;
   int64_t reclaimed_ = 0;
@@ -143,7 +147,7 @@ struct Cell {
 
 // Fills the voxels of a uniform cell by trilinear interpolation of its corners (never a voxel
 // evaluated or outside the scan); returns how many voxels became interpolated.
-int64_t fill_cell(const Cell& cell, const OutputGrid& grid, const AdaptiveOptions& options,
+int64_t fill_cell(const Cell& cell, const OutputGrid& grid,
                   const std::vector<int>& slots, SampleStore& store) {
   const int64_t n = grid.geometry.dims[0];
   const int size = cell.size;
@@ -165,7 +169,7 @@ int64_t fill_cell(const Cell& cell, const OutputGrid& grid, const AdaptiveOption
         if (st == kEvaluated || st == kUnknown) continue;
         // A voxel between known corners may itself lie outside the scan (a thin gap): unknown
         // too, never interpolated.
-        if (options.known && !options.known(i, j, k)) {
+        if (!store.known(i, j, k)) {
           st = kUnknown;
           continue;
         }
@@ -202,8 +206,8 @@ bool near_threshold(const SafetyClasses& c, double v, const AdaptiveOptions& o) 
 // voxels are claimed atomically, the few corners beyond the grid's edge are requested afterwards
 // on one thread. The queue keeps the items' order (threads take contiguous ranges).
 template <typename PointsOf>
-void gather_requests(int64_t count, const PointsOf& points_of, const AdaptiveOptions& options,
-                     SampleStore& store, std::vector<GridPoint>& queue) {
+void gather_requests(int64_t count, const PointsOf& points_of, SampleStore& store,
+                     std::vector<GridPoint>& queue) {
   queue.clear();
   const int threads = omp_get_max_threads();
   std::vector<std::vector<GridPoint>> mine(static_cast<size_t>(threads));
@@ -216,7 +220,7 @@ void gather_requests(int64_t count, const PointsOf& points_of, const AdaptiveOpt
       points_of(c, [&](int64_t i, int64_t j, int64_t k) {
         if (!store.inside(i, j, k)) {
           beyond[t].push_back({int32_t(i), int32_t(j), int32_t(k)});
-        } else if (store.claim(i, j, k, options.known)) {
+        } else if (store.claim(i, j, k)) {
           mine[t].push_back({int32_t(i), int32_t(j), int32_t(k)});
         }
       });
@@ -224,7 +228,7 @@ void gather_requests(int64_t count, const PointsOf& points_of, const AdaptiveOpt
   }
   for (const auto& m : mine) queue.insert(queue.end(), m.begin(), m.end());
   for (const auto& b : beyond) {
-    for (const GridPoint& g : b) store.request(g.i, g.j, g.k, options.known, queue);
+    for (const GridPoint& g : b) store.request(g.i, g.j, g.k, queue);
   }
 }
 
@@ -306,7 +310,7 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
             }
             if (!uniform_points(ends, count, slots, report, options, store)) {
               offer(i, j, k);  // computed (an interpolation from a coarser cell is reclaimed)
-            } else if (store.claim_interpolated(i, j, k, options.known)) {
+            } else if (store.claim_interpolated(i, j, k)) {
               const int64_t off = store.offset(i, j, k);
               for (const int s : slots) {
                 float sum = 0.0f;
@@ -319,7 +323,7 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
             }
           }
         },
-        options, store, queue);
+        store, queue);
     report.interpolated += interpolated;
     evaluate_queue(queue, evaluate, store, values);
     computed += int64_t(queue.size());
@@ -341,7 +345,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   const int64_t half = grid.half;
   const double radius_sq = double(grid.max_sq);
   AdaptiveReport report;
-  SampleStore store(grid, out);
+  SampleStore store(grid, options, out);
   std::vector<int> slots;
   for (int s = 0; s < kSlots; ++s) {
     if (options.values & (1u << s)) slots.push_back(s);
@@ -392,7 +396,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
             offer(cell.ci(corner), cell.cj(corner), cell.ck(corner));
           }
         },
-        options, store, queue);
+        store, queue);
     evaluate_queue(queue, evaluate, store, values);
     report.evaluated += int64_t(queue.size());
     report.levels.emplace_back(size, int64_t(queue.size()));
@@ -485,7 +489,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
         const int64_t a = (cell.i - half) / size, b = (cell.j - half) / size,
                       d = (cell.k - half) / size;
         if (int((a & 1) | ((b & 1) << 1) | ((d & 1) << 2)) != parity) continue;
-        interpolated += fill_cell(cell, grid, options, slots, store);
+        interpolated += fill_cell(cell, grid, slots, store);
       }
       report.interpolated += interpolated;
     }

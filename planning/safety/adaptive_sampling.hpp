@@ -47,6 +47,9 @@ struct AdaptiveOptions {
   // that do not are never computed (NaN), and a cell with such a corner is always refined, so
   // nothing is interpolated from the unknown. Null: every point is known.
   std::function<bool(int64_t i, int64_t j, int64_t k)> known;
+  // The same for the grid's own voxels, one byte each (x fastest, 1: in the scan), where given:
+  // `known` is then asked only about lattice corners beyond the grid's edge.
+  const uint8_t* known_mask = nullptr;
   std::function<void(double)> progress;
 };
 

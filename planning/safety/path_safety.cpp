@@ -606,6 +606,7 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
       return coverage->contains(g.index_to_physical(Eigen::Vector3d(double(i), double(j), double(k))));
     };
   }
+  adaptive.known_mask = known;
   adaptive.values = options.values;
   adaptive.stride = options.fast_stride;
   adaptive.svv_margin = options.fast_svv_margin;
