@@ -104,5 +104,33 @@ TEST(PathSafetyFast, SafetyClassAgreesWithExactModeOnScene3) { expect_fast_agree
 
 TEST(PathSafetyFast, SafetyClassAgreesWithExactModeOnScene11) { expect_fast_agrees_with_exact(11); }
 
+// --fast-surface-block 2: one ray per block of 2^3 tumor voxels, counted once for each surface
+// point of its block. The values keep their size (a weightless quarter of the rays would give
+// blocking sums ~3.5x too small), and the classes stay close to exact mode's; the self-check
+// compares with exact mode's every ray. Measured here: relative L2 3.6 % (svv) to 9.8 % (ivbv),
+// classes 99.5-99.8 %.
+TEST(PathSafetyFast, SurfaceBlocksStandForTheirPointsWithTheirWeight) {
+  const Scene s = vessel_scene(3);
+  PathSafetyOptions o;
+  o.radius_mm = 50.0;
+  o.device = Device::kCpu;
+  const PathSafetyResult exact = compute_path_safety(s.blocking, s.tumor, o);
+  o.mode = Mode::kFast;
+  o.fast_surface_block = 2;
+  o.fast_check_voxels = 300;
+  const PathSafetyResult fast = compute_path_safety(s.blocking, s.tumor, o);
+  EXPECT_EQ(fast.surface_points, exact.surface_points);
+  EXPECT_GT(fast.fast_surface_points, exact.surface_points / 5);
+  EXPECT_LT(fast.fast_surface_points, exact.surface_points / 2);
+  const ModeDifference d = compare_volumes(exact.volumes, fast.volumes, kernels::kAllValues);
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    std::printf("surface blocks %s: relative L2 %.3e, class agreement %.4f\n",
+                value_name(1u << v), d.relative_l2[size_t(v)], d.class_agreement[size_t(v)]);
+    EXPECT_LE(d.relative_l2[size_t(v)], 0.2) << value_name(1u << v);
+    EXPECT_GE(d.class_agreement[size_t(v)], 0.97) << value_name(1u << v);
+  }
+  EXPECT_EQ(fast.check_voxels, 300);
+}
+
 }  // namespace
 }  // namespace crepuscular::planning
