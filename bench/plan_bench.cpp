@@ -77,6 +77,8 @@ int main(int argc, char** argv) {
                  "fast mode: one ray per block of this many tumor voxels a side");
   int check_voxels = PathSafetyOptions{}.fast_check_voxels;
   app.add_option("--check-voxels", check_voxels, "fast mode: voxels of the self-check");
+  double finest_margin = PathSafetyOptions{}.fast_finest_margin;
+  app.add_option("--fast-finest-margin", finest_margin, "fast mode: the finest level's margins");
   app.add_flag("--fast-no-dilate", no_dilate, "fast mode: refine only cells that disagree");
   app.add_option("--fast-svv-margin", svv_margin, "fast mode: SVV points near a threshold refine");
   app.add_option("--fast-blocking-margin", blocking_margin,
@@ -120,6 +122,7 @@ int main(int argc, char** argv) {
   req.path_safety.fast_dilate = !no_dilate;
   req.path_safety.fast_surface_block = fast_surface_block;
   req.path_safety.fast_check_voxels = check_voxels;
+  req.path_safety.fast_finest_margin = finest_margin;
   req.path_safety.fast_svv_margin = svv_margin;
   req.path_safety.fast_blocking_margin = blocking_margin;
   req.path_safety.cuda_texture = texture;
@@ -142,6 +145,7 @@ int main(int argc, char** argv) {
                          {"fast_stride", fast_stride},
                          {"fast_dilate", !no_dilate},
                          {"fast_surface_block", fast_surface_block},
+                         {"fast_finest_margin", finest_margin},
                          {"fast_margins", {svv_margin, blocking_margin}},
                          {"texture", texture},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},

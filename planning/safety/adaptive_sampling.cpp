@@ -191,11 +191,14 @@ int64_t fill_cell(const Cell& cell, const OutputGrid& grid,
   return interpolated;
 }
 
-bool near_threshold(const SafetyClasses& c, double v, const AdaptiveOptions& o) {
+// `scale` shrinks the margins (the finest level's points lie one voxel from computed ones).
+bool near_threshold(const SafetyClasses& c, double v, const AdaptiveOptions& o,
+                    double scale = 1.0) {
   if (c.higher_is_safer) {
-    return std::abs(v - c.safe) < o.svv_margin || std::abs(v - c.dangerous) < o.svv_margin;
+    const double m = scale * o.svv_margin;
+    return std::abs(v - c.safe) < m || std::abs(v - c.dangerous) < m;
   }
-  const double f = 1.0 + o.blocking_margin;
+  const double f = 1.0 + scale * o.blocking_margin;
   for (const double t : {c.safe, c.dangerous}) {
     if (t > 0.0 && v > t / f && v < t * f) return true;
   }
@@ -261,7 +264,7 @@ bool uniform_points(const GridPoint* points, int count, const std::vector<int>& 
       const SafetyClass k = classes.classify(v);
       if (k == SafetyClass::kUnknown) return false;
       if (q == 0) first = k;
-      if (k != first || near_threshold(classes, v, options)) return false;
+      if (k != first || near_threshold(classes, v, options, options.finest_margin)) return false;
     }
   }
   return true;

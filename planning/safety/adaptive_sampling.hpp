@@ -43,6 +43,9 @@ struct AdaptiveOptions {
   // The finest level point by point (sample_finest): inside a refined cell of edge 2, only the
   // points whose surrounding corners differ in class (or lie near a threshold) are computed.
   bool pointwise_finest = true;
+  // The finest level's margins, as a fraction of svv_margin and blocking_margin: a point between
+  // two computed voxels is interpolated unless their values lie this close to a threshold.
+  double finest_margin = 1.0;
   // Whether a point (output grid indices, possibly beyond the grid) lies in the scan; points
   // that do not are never computed (NaN), and a cell with such a corner is always refined, so
   // nothing is interpolated from the unknown. Null: every point is known.

@@ -612,6 +612,7 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
   adaptive.svv_margin = options.fast_svv_margin;
   adaptive.blocking_margin = options.fast_blocking_margin;
   adaptive.dilate = options.fast_dilate;
+  adaptive.finest_margin = options.fast_finest_margin;
   adaptive.progress = options.progress;
   float* out[kernels::kValueCount] = {};
   value_outputs(result, options.values, out);

@@ -64,6 +64,7 @@ struct PathSafetyOptions {
   double fast_svv_margin = 3.0;
   double fast_blocking_margin = 0.25;
   bool fast_dilate = true;  // refine the neighbours of refined coarsest cells too
+  double fast_finest_margin = 0.5;  // the finest level's share of the margins (adaptive_sampling.hpp)
   // Fast mode: one ray per block of fast_surface_block^3 tumor voxels, cast to the block's surface
   // point nearest the mean of its surface points and counted once for each of them (1: every
   // surface point, as exact mode). Rays to the points of a block of 2 stay within about one
