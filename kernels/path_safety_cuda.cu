@@ -55,9 +55,10 @@ Affine<float> to_float(const Affine<double>& a) {
 // Hardware-filtered blocking lookups: unnormalised coordinates, voxel centres at +0.5, border 0.
 struct TextureSampler {
   cudaTextureObject_t texture;
-  BlockingGrid<float> grid;  // for its bricks: empty-space skipping as in sample_blocking
+  BlockingGrid<float> grid;  // for its bricks: uniform-space skipping as in sample_blocking
   __device__ float operator()(Vec3<float> q) const {
-    if (empty_brick(grid, int(floorf(q.x)), int(floorf(q.y)), int(floorf(q.z)))) return 0.0f;
+    const float uniform = uniform_brick(grid, int(floorf(q.x)), int(floorf(q.y)), int(floorf(q.z)));
+    if (uniform >= 0.0f) return uniform;
     return tex3D<float>(texture, q.x + 0.5f, q.y + 0.5f, q.z + 0.5f);
   }
 };
@@ -97,7 +98,7 @@ __global__ void path_safety_kernel(PathSafetyScene<float> scene, SlabGrid grid, 
 // Everything one device needs, uploaded once.
 struct DeviceScene {
   DeviceBuffer<float> blocking;
-  DeviceBuffer<uint8_t> bricks;
+  DeviceBuffer<float> bricks;
   DeviceBuffer<uint8_t> tumor;
   DeviceBuffer<SurfacePoint<double>> surface;
   cudaArray_t array = nullptr;
@@ -127,7 +128,7 @@ struct DeviceScene {
   }
 
  private:
-  // The blocking volume (global memory, or a texture: `storage`) and its empty bricks.
+  // The blocking volume (global memory, or a texture: `storage`) and its uniform bricks.
   void upload_blocking(const BlockingGrid<double>& host, BlockingStorage storage) {
     const size_t nb = size_t(host.nx) * host.ny * host.nz;
     scene.blocking.nx = host.nx;
@@ -138,7 +139,8 @@ struct DeviceScene {
     if (host.bricks) {
       const size_t count = size_t(host.bx) * host.by * host.bz;
       bricks.allocate(count);
-      check(cudaMemcpy(bricks.ptr, host.bricks, count, cudaMemcpyHostToDevice), "upload bricks");
+      check(cudaMemcpy(bricks.ptr, host.bricks, count * sizeof(float), cudaMemcpyHostToDevice),
+            "upload bricks");
       scene.blocking.bricks = bricks.ptr;
       scene.blocking.bx = host.bx;
       scene.blocking.by = host.by;

@@ -116,28 +116,30 @@ CREPUSCULAR_HD Vec3<double> apply_rn(const Affine<double>& a, Vec3<double> p) {
 
 // Blocking volume b (risk per mm), x fastest. Sampled with trilinear interpolation between voxel
 // centres; voxels outside the grid count as 0 (CUDA's border addressing).
-// Empty-space skipping, exact: bricks of 2^kBrickShift voxels per axis; a brick is marked 0 when
-// every voxel it covers, and the next voxel along each axis (the trilinear support), is 0, so a
-// sample whose lower corner lies in an unmarked brick is 0 without reading the volume.
+// Uniform-space skipping, exact: bricks of 2^kBrickShift voxels per axis; a brick holds the value
+// c >= 0 when every voxel it covers, and the next voxel along each axis (the trilinear support,
+// 0 beyond the grid), equals c, so a sample whose lower corner lies in it is c without reading
+// the volume (trilinear interpolation of equal values is that value, exactly); -1 otherwise.
+// Empty space (c = 0: air, fat) and the inside of an organ away from its margin are uniform.
 template <typename Real>
 struct BlockingGrid {
   const float* values;
   int nx, ny, nz;
   Affine<Real> physical_to_index;
-  const uint8_t* bricks;  // may be null: no skipping
-  int bx, by, bz;         // bricks per axis
+  const float* bricks;  // may be null: no skipping
+  int bx, by, bz;       // bricks per axis
 };
 constexpr int kBrickShift = 2;
 
 CREPUSCULAR_HD int bricks_along(int n) { return (n + (1 << kBrickShift) - 1) >> kBrickShift; }
 
-// True when the sample at a lower corner (i, j, k) is certainly 0.
+// The value every sample at a lower corner (i, j, k) takes when its brick is uniform, else -1.
 template <typename Real>
-CREPUSCULAR_HD bool empty_brick(const BlockingGrid<Real>& g, int i, int j, int k) {
-  if (!g.bricks || i < 0 || j < 0 || k < 0) return false;
+CREPUSCULAR_HD float uniform_brick(const BlockingGrid<Real>& g, int i, int j, int k) {
+  if (!g.bricks || i < 0 || j < 0 || k < 0) return -1.0f;
   const int bi = i >> kBrickShift, bj = j >> kBrickShift, bk = k >> kBrickShift;
-  if (bi >= g.bx || bj >= g.by || bk >= g.bz) return false;
-  return g.bricks[(int64_t(bk) * g.by + bj) * g.bx + bi] == 0;
+  if (bi >= g.bx || bj >= g.by || bk >= g.bz) return -1.0f;
+  return g.bricks[(int64_t(bk) * g.by + bj) * g.bx + bi];
 }
 
 // Tumor mask (0/1), x fastest, looked up at the nearest voxel. [lo, hi] is the index bounding box
@@ -188,7 +190,8 @@ template <typename Real>
 CREPUSCULAR_HD_INLINE Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Real> q) {
   const Real fx = floor(q.x), fy = floor(q.y), fz = floor(q.z);
   const int i = int(fx), j = int(fy), k = int(fz);
-  if (empty_brick(g, i, j, k)) return Real(0);
+  const float uniform = uniform_brick(g, i, j, k);
+  if (uniform >= 0.0f) return Real(uniform);
   const Real wx = q.x - fx, wy = q.y - fy, wz = q.z - fz;
   if (i >= 0 && j >= 0 && k >= 0 && i + 1 < g.nx && j + 1 < g.ny && k + 1 < g.nz) {
     const int64_t sx = 1, sy = g.nx, sz = int64_t(g.nx) * g.ny;

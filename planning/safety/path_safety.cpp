@@ -319,27 +319,31 @@ OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>
   return out;
 }
 
-std::vector<uint8_t> blocking_bricks(const Volume<float>& blocking) {
+std::vector<float> blocking_bricks(const Volume<float>& blocking) {
   const auto& d = blocking.dims();
   const int bx = kernels::bricks_along(int(d[0])), by = kernels::bricks_along(int(d[1])),
             bz = kernels::bricks_along(int(d[2]));
-  std::vector<uint8_t> bricks(size_t(bx) * by * bz, 0);
+  std::vector<float> bricks(size_t(bx) * by * bz, -1.0f);
   constexpr int64_t kSide = int64_t(1) << kernels::kBrickShift;
-  // A brick is marked when a voxel it covers, or the next voxel along an axis (the trilinear
-  // support of its samples), is > 0.
+  // A brick's samples read the voxels it covers and the next one along each axis (the trilinear
+  // support); beyond the grid's last voxel that next one is 0.
 #pragma omp parallel for collapse(2) schedule(dynamic, 4)
   for (int z = 0; z < bz; ++z) {
     for (int y = 0; y < by; ++y) {
       for (int x = 0; x < bx; ++x) {
-        bool any = false;
-        for (int64_t k = z * kSide; !any && k <= std::min<int64_t>(z * kSide + kSide, d[2] - 1); ++k)
-          for (int64_t j = y * kSide; !any && j <= std::min<int64_t>(y * kSide + kSide, d[1] - 1); ++j)
-            for (int64_t i = x * kSide; i <= std::min<int64_t>(x * kSide + kSide, d[0] - 1); ++i)
-              if (blocking(i, j, k) != 0.0f) {
-                any = true;
+        const int64_t lo[3] = {x * kSide, y * kSide, z * kSide};
+        bool beyond = false;
+        for (int a = 0; a < 3; ++a) beyond |= lo[a] + kSide > d[a] - 1;
+        float value = beyond ? 0.0f : blocking(lo[0], lo[1], lo[2]);
+        bool uniform = true;
+        for (int64_t k = lo[2]; uniform && k <= std::min<int64_t>(lo[2] + kSide, d[2] - 1); ++k)
+          for (int64_t j = lo[1]; uniform && j <= std::min<int64_t>(lo[1] + kSide, d[1] - 1); ++j)
+            for (int64_t i = lo[0]; i <= std::min<int64_t>(lo[0] + kSide, d[0] - 1); ++i)
+              if (blocking(i, j, k) != value) {
+                uniform = false;
                 break;
               }
-        bricks[size_t((int64_t(z) * by + y) * bx + x)] = any ? 1 : 0;
+        bricks[size_t((int64_t(z) * by + y) * bx + x)] = uniform ? value : -1.0f;
       }
     }
   }
@@ -349,7 +353,7 @@ std::vector<uint8_t> blocking_bricks(const Volume<float>& blocking) {
 kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
                                             const Volume<uint8_t>& tumor,
                                             const TumorSurface& surface, double gamma_mm,
-                                            double eps, const std::vector<uint8_t>& bricks) {
+                                            double eps, const std::vector<float>& bricks) {
   kernels::PathSafetyScene<double> s{};
   s.blocking = blocking_grid(blocking);
   if (!bricks.empty()) {
@@ -1061,7 +1065,7 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                mode_name(options.mode), grid.roi_voxels, surface.points.size(),
                double(result.rays), grid.radius_mm, grid.geometry.spacing[0],
                device == Device::kCuda ? "cuda" : "cpu");
-  const std::vector<uint8_t> bricks = blocking_bricks(blocking);
+  const std::vector<float> bricks = blocking_bricks(blocking);
   const auto scene =
       make_scene(blocking, ray_tumor, surface, result.gamma_mm, options.eps, bricks);
   // Fast mode casts one ray per block of the surface; exact mode's scene stays the self-check's

@@ -175,16 +175,17 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                                      const std::string& blocking_source = "blocking volume",
                                      const std::string& tumor_source = "tumor mask");
 
-// Occupancy of the blocking volume's bricks (kernels::kBrickShift): 1 where a sample may be > 0.
-std::vector<uint8_t> blocking_bricks(const Volume<float>& blocking);
+// The blocking volume's bricks (kernels::kBrickShift): the value every sample whose lower corner
+// lies in the brick takes where that is one value (0 in empty space), else -1.
+std::vector<float> blocking_bricks(const Volume<float>& blocking);
 
 // Builds the scene the kernels read. The returned views point into `blocking`, `tumor`,
-// `surface` and `bricks` (may be empty: no empty-space skipping), which must outlive them.
+// `surface` and `bricks` (may be empty: no uniform-space skipping), which must outlive them.
 kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
                                             const Volume<uint8_t>& tumor,
                                             const TumorSurface& surface, double gamma_mm,
                                             double eps,
-                                            const std::vector<uint8_t>& bricks = {});
+                                            const std::vector<float>& bricks = {});
 
 // Bytes of memory available to this process now (MemAvailable), 0 when unknown.
 uint64_t available_memory_bytes();

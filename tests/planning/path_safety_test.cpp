@@ -237,6 +237,54 @@ TEST(TumorSampling, FineMaskPlansLikeTheCoarseMaskItResamplesTo) {
   EXPECT_GT(at_1mm.surface_points, 3 * from_fine.surface_points);
 }
 
+// Uniform bricks: a sample whose lower corner lies in one is the brick's value without reading
+// the volume. On a volume of constant organs, empty space, a smooth margin and values up to its
+// last voxel, every sample equals the sample taken without bricks, bit for bit, and the bricks
+// that are uniform are found (inside the organ, in the empty corner), those at the grid's far
+// edge holding a nonzero value are not (beyond the edge is 0).
+TEST(PathSafety, UniformBricksGiveTheSamplesOfTheVolume) {
+  ImageGeometry g;
+  g.dims = {37, 29, 23};
+  g.spacing = Eigen::Vector3d(1.0, 1.2, 0.9);
+  Volume<float> blocking(g, 0.0f);
+  for (int64_t k = 0; k < 23; ++k)
+    for (int64_t j = 0; j < 29; ++j)
+      for (int64_t i = 0; i < 37; ++i) {
+        float v = 0.0f;
+        if (i >= 8) v = 0.1f;                                // an organ up to the far edge
+        if (i >= 20 && j >= 10) v = 1.0f;                    // a higher-risk organ
+        if (i >= 14 && i < 18) v = 0.1f + 0.05f * float(j);  // a margin, smooth across
+        blocking(i, j, k) = v;
+      }
+  const std::vector<float> bricks = blocking_bricks(blocking);
+  const int bx = kernels::bricks_along(37), by = kernels::bricks_along(29);
+  const auto brick = [&](int x, int y, int z) { return bricks[size_t((z * by + y) * bx + x)]; };
+  EXPECT_EQ(brick(0, 0, 0), 0.0f);   // voxels 0..4 along i: empty
+  EXPECT_EQ(brick(2, 0, 0), 0.1f);   // voxels 8..12: the organ
+  EXPECT_EQ(brick(6, 3, 1), 1.0f);   // i 24..28, j 12..16: the higher-risk organ
+  EXPECT_EQ(brick(1, 0, 0), -1.0f);  // i 4..8: the organ's edge
+  EXPECT_EQ(brick(3, 0, 0), -1.0f);  // the margin
+  EXPECT_EQ(brick(9, 3, 1), -1.0f);  // i 36..: the next voxel lies beyond the grid (0)
+  EXPECT_EQ(brick(6, 3, 5), -1.0f);  // k 20..22 + 1: beyond the grid
+
+  const Volume<uint8_t> tumor(g, 0);
+  const TumorSurface none;
+  const auto with = make_scene(blocking, tumor, none, 0.5, 0.0, bricks);
+  const auto without = make_scene(blocking, tumor, none, 0.5, 0.0);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> x(-1.5, 37.5), y(-1.5, 29.5), z(-1.5, 23.5);
+  int64_t uniform_samples = 0;
+  for (int n = 0; n < 200000; ++n) {
+    const kernels::Vec3<double> q{x(rng), y(rng), z(rng)};
+    const double a = kernels::sample_blocking(with.blocking, q);
+    const double b = kernels::sample_blocking(without.blocking, q);
+    ASSERT_EQ(a, b) << q.x << "," << q.y << "," << q.z;
+    uniform_samples += kernels::uniform_brick(with.blocking, int(std::floor(q.x)),
+                                              int(std::floor(q.y)), int(std::floor(q.z))) >= 0.0f;
+  }
+  EXPECT_GT(uniform_samples, 40000);
+}
+
 // Front- and back-facing sets of the surface seen from p.
 void facing_sets(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                  const Eigen::Vector3d& p, std::vector<Index3>& front, std::vector<Index3>& back) {
