@@ -7,6 +7,7 @@
 #include <cmath>
 #include <limits>
 #include <unordered_map>
+#include <utility>
 
 #include "foundation/error.hpp"
 
@@ -278,7 +279,8 @@ bool uniform_points(const GridPoint* points, int count, const std::vector<int>& 
 // cell is. Returns the points computed.
 int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
                       const AdaptiveOptions& options, const std::vector<int>& slots,
-                      const PointEvaluator& evaluate, AdaptiveReport& report, SampleStore& store) {
+                      const PointEvaluator& evaluate, AdaptiveReport& report, SampleStore& store,
+                      const std::function<void(double)>& passes_done) {
   int64_t computed = 0;
   std::vector<GridPoint> queue;
   std::vector<float> values;
@@ -330,9 +332,37 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
     report.interpolated += interpolated;
     evaluate_queue(queue, evaluate, store, values);
     computed += int64_t(queue.size());
+    // Edges and faces hold about three points a cell each, centres one.
+    passes_done(pass == 1 ? 3.0 / 7.0 : pass == 2 ? 6.0 / 7.0 : 1.0);
   }
   return computed;
 }
+
+// Progress through the levels: each level computes about four times the points of the one
+// before (a class boundary's area at half the stride), so level k of L weighs 4^k.
+class LevelProgress {
+ public:
+  LevelProgress(int levels, std::function<void(double)> report)
+      : levels_(levels), report_(std::move(report)) {}
+  // Level `level` (0: the coarsest) done to `fraction`.
+  void at(int level, double fraction) {
+    if (!report_) return;
+    double done = 0.0, total = 0.0;
+    for (int k = 0; k < levels_; ++k) {
+      const double w = std::pow(4.0, k);
+      total += w;
+      if (k < level) done += w;
+      if (k == level) done += w * fraction;
+    }
+    const double f = std::min(1.0, done / total);
+    if (f > last_) report_(last_ = f);
+  }
+
+ private:
+  int levels_;
+  std::function<void(double)> report_;
+  double last_ = 0.0;
+};
 
 }  // namespace
 
@@ -384,6 +414,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
 
   int levels = 1;
   for (int s = s0; s > 1; s /= 2) ++levels;
+  LevelProgress progress(levels, options.progress);
   int level = 0;
   std::vector<GridPoint> queue;
   std::vector<float> values;
@@ -403,6 +434,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     evaluate_queue(queue, evaluate, store, values);
     report.evaluated += int64_t(queue.size());
     report.levels.emplace_back(size, int64_t(queue.size()));
+    progress.at(level, 1.0);
 
     // Thresholds from the coarsest lattice's samples inside the region (a uniform sample of it).
     if (!classes_known) {
@@ -498,13 +530,14 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     }
     if (!finest.empty()) {
       const int64_t computed =
-          sample_finest(finest, grid, options, slots, evaluate, report, store);
+          sample_finest(finest, grid, options, slots, evaluate, report, store,
+                        [&](double f) { progress.at(level + 1, f); });
       report.evaluated += computed;
       report.levels.emplace_back(0, computed);
     }
     cells.swap(next);
     ++level;
-    if (options.progress) options.progress(std::min(1.0, double(level) / double(levels)));
+
   }
 
   report.interpolated -= store.reclaimed();
@@ -518,7 +551,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
           for (const int s : slots) store.set(store.offset(i, j, k), s, nan);
         }
       }
-  if (options.progress) options.progress(1.0);
+  progress.at(levels - 1, 1.0);
   return report;
 }
 

@@ -156,6 +156,23 @@ TEST(AdaptiveSampling, UnknownVoxelsAreNeitherComputedNorInterpolated) {
   EXPECT_EQ(known_wrong, 0);
 }
 
+// Progress follows the work: each level weighs four times the one before, the finest level's
+// three passes (edges, faces, centres) report on their own, and the fraction only grows to 1.
+TEST(AdaptiveSampling, ProgressGrowsWithTheLevelsToOne) {
+  const OutputGrid g = ball_grid(24);
+  AdaptiveOptions o;
+  o.values = kernels::kSvv;
+  std::vector<double> reported;
+  o.progress = [&](double f) { reported.push_back(f); };
+  sample(g, o);
+  ASSERT_GE(reported.size(), 5u);
+  for (size_t r = 1; r < reported.size(); ++r) EXPECT_GT(reported[r], reported[r - 1]);
+  EXPECT_NEAR(reported.front(), 1.0 / 21.0, 1e-12);  // the coarsest of three levels: 1 of 1+4+16
+  EXPECT_NEAR(reported[1], 5.0 / 21.0, 1e-12);       // the second level done
+  EXPECT_NEAR(reported[2], (5.0 + 16.0 * 3.0 / 7.0) / 21.0, 1e-12);  // the finest level's edges
+  EXPECT_EQ(reported.back(), 1.0);
+}
+
 TEST(AdaptiveSampling, RefusesAStrideThatIsNotAPowerOfTwo) {
   const OutputGrid g = ball_grid(8);
   AdaptiveOptions o;

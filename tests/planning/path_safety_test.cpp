@@ -346,7 +346,9 @@ TEST(PathSafety, DefaultClassesOfAVolumeAreThoseOfItsPositiveValues) {
       EXPECT_EQ(got.safe, want.safe) << "side " << side << " value " << bit;
       EXPECT_EQ(got.dangerous, want.dangerous) << "side " << side << " value " << bit;
       EXPECT_EQ(got.higher_is_safer, want.higher_is_safer);
-      if (side > 1 && bit != kernels::kSvv) EXPECT_LT(got.safe, got.dangerous);
+      if (side > 1 && bit != kernels::kSvv) {
+        EXPECT_LT(got.safe, got.dangerous);
+      }
     }
   }
   // Nothing positive: both thresholds 0.
