@@ -91,10 +91,10 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
       ->default_str("auto");
   cmd->add_option("--mode", req->path_safety.mode,
                   "exact: every ray marched (the reference). fast: the grid sampled coarse to "
-                  "fine, every 4th voxel first, one ray per block of 2x2x2 tumor voxels "
-                  "(--fast-surface-block); voxels where the safety classes change are "
+                  "fine, every 4th voxel first; voxels where the safety classes change are "
                   "computed exactly, the inside of a region of one class is interpolated "
-                  "(about 30x faster on large grids). tables: rays cast once from each tumor "
+                  "(about 3x faster than exact on a 513^3 grid, the same class on 99.5 % or "
+                  "more of the voxels). tables: rays cast once from each tumor "
                   "surface point and looked up by direction and distance. fast and tables "
                   "recompute 1000 random voxels exactly and report the difference in plan.json")
       ->transform(enum_names(mode_names()))
@@ -102,7 +102,8 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
   cmd->add_option("--fast-surface-block", req->path_safety.fast_surface_block,
                   "Fast mode: one ray per block of this many tumor voxels a side, cast to the "
                   "block's middle surface point and counted for each of its surface points (1: "
-                  "every surface point, as exact mode; 2: about a quarter of the rays)")
+                  "every surface point, as exact mode; 2: about a third of the rays, 1.5-2.5x "
+                  "faster, exact mode's class on only 98-99.5 % of the voxels: a first look)")
       ->capture_default_str()
       ->check(in_range(1, 4));
   cmd->add_option("--threads", req->path_safety.threads,
