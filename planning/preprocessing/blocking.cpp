@@ -57,11 +57,19 @@ typename Image::Pointer make_image(const ImageGeometry& g) {
 // (§3.1: the safety margin never lowers a structure). G is in physical units (mm), so anisotropic
 // spacing gets the same profile in mm. The volume is extended by its border values (zero flux), so
 // a structure cut by the field of view is smoothed as if it went on.
+// Buffers of add_level kept from one level to the next (a level's mask and smoothing are a
+// volume each: fresh memory for every level would have the system clear gigabytes).
+struct LevelBuffers {
+  std::vector<float> mask, scratch;
+  SmoothedBox smoothed;
+};
+
 template <typename InMask>
 void add_level(std::vector<float>& b, const ImageGeometry& g, double coeff, double fwhm_mm,
-               InMask in_mask) {
+               InMask in_mask, LevelBuffers& buffers) {
   const int64_t n = g.voxel_count();
-  std::vector<float> mask(static_cast<size_t>(n));
+  std::vector<float>& mask = buffers.mask;
+  mask.resize(static_cast<size_t>(n));
   float* m = mask.data();
 #pragma omp parallel for schedule(static)
   for (int64_t v = 0; v < n; ++v) m[v] = in_mask(v) ? 1.0f : 0.0f;
@@ -86,10 +94,19 @@ void add_level(std::vector<float>& b, const ImageGeometry& g, double coeff, doub
   gaussian.variance_mm2 = sigma_mm * sigma_mm;
   gaussian.maximum_error = 1e-3;
   gaussian.maximum_kernel_width = std::max(32u, max_width);
-  const std::vector<float> smoothed = discrete_gaussian(mask, g, gaussian);
-#pragma omp parallel for schedule(static)
-  for (int64_t v = 0; v < n; ++v) {
-    b[size_t(v)] = std::max(b[size_t(v)], c * std::max(m[v], smoothed[size_t(v)]));
+  SmoothedBox& smoothed = buffers.smoothed;
+  discrete_gaussian_box(mask, g, gaussian, smoothed, buffers.scratch);
+  // Outside the smoothed box the smoothing is 0 (and so is the mask).
+  if (smoothed.empty()) return;
+  const int64_t nx = g.dims[0], ny = g.dims[1];
+#pragma omp parallel for collapse(2) schedule(static)
+  for (int64_t k = smoothed.lo[2]; k < smoothed.lo[2] + smoothed.dims[2]; ++k) {
+    for (int64_t j = smoothed.lo[1]; j < smoothed.lo[1] + smoothed.dims[1]; ++j) {
+      for (int64_t i = smoothed.lo[0]; i < smoothed.lo[0] + smoothed.dims[0]; ++i) {
+        const int64_t v = (k * ny + j) * nx + i;
+        b[size_t(v)] = std::max(b[size_t(v)], c * std::max(m[v], smoothed.at(i, j, k)));
+      }
+    }
   }
 }
 
@@ -245,6 +262,7 @@ Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const Vulnerab
   }
 
   Volume<float> b(labels.geometry(), 0.0f);
+  LevelBuffers buffers;
   for (size_t l = 0; l < table.levels.size(); ++l) {
     const VulnerabilityLevel& level = table.levels[l];
     if (level.blocking_per_mm <= 0.0 || voxels_per_level[l] == 0) {
@@ -255,7 +273,8 @@ Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const Vulnerab
     spdlog::info("blocking: level {} '{}' ({} per mm), {} voxels, margin FWHM {} mm", level.level,
                  level.name, level.blocking_per_mm, voxels_per_level[l], margin.fwhm_mm);
     add_level(b.values(), labels.geometry(), level.blocking_per_mm, margin.fwhm_mm,
-              [&](int64_t v) { return lab[v] > 0 && level_of_value[size_t(lab[v])] == int(l); });
+              [&](int64_t v) { return lab[v] > 0 && level_of_value[size_t(lab[v])] == int(l); },
+              buffers);
   }
   return b;
 }
@@ -294,7 +313,8 @@ Volume<float> blocking_from_ct(const Volume<float>& ct_hu, const CtThresholds& t
 
   Volume<float> b(g, 0.0f);
   if (impassable > 0) {
-    add_level(b.values(), g, thresholds.impassable_per_mm, margin.fwhm_mm, blocked);
+    LevelBuffers buffers;
+    add_level(b.values(), g, thresholds.impassable_per_mm, margin.fwhm_mm, blocked, buffers);
   }
   return b;
 }

@@ -38,8 +38,26 @@ std::vector<double> taps_along(int a, const ImageGeometry& g, const DiscreteGaus
 
 std::vector<float> discrete_gaussian(const std::vector<float>& values, const ImageGeometry& g,
                                      const DiscreteGaussian& gaussian) {
-  const std::array<int64_t, 3> n = {g.dims[0], g.dims[1], g.dims[2]};
+  SmoothedBox box;
+  std::vector<float> scratch;
+  discrete_gaussian_box(values, g, gaussian, box, scratch);
   std::vector<float> out(values.size(), 0.0f);
+  if (box.empty()) return out;
+  const int64_t nx = g.dims[0], ny = g.dims[1];
+  for (int64_t k = box.lo[2]; k < box.lo[2] + box.dims[2]; ++k)
+    for (int64_t j = box.lo[1]; j < box.lo[1] + box.dims[1]; ++j)
+      std::copy_n(&box.values[size_t(((k - box.lo[2]) * box.dims[1] + (j - box.lo[1])) *
+                                     box.dims[0])],
+                  box.dims[0], out.data() + (k * ny + j) * nx + box.lo[0]);
+  return out;
+}
+
+void discrete_gaussian_box(const std::vector<float>& values, const ImageGeometry& g,
+                           const DiscreteGaussian& gaussian, SmoothedBox& result,
+                           std::vector<float>& scratch) {
+  const std::array<int64_t, 3> n = {g.dims[0], g.dims[1], g.dims[2]};
+  result.lo = {0, 0, 0};
+  result.dims = {0, 0, 0};
   // The box of non-zero input.
   std::array<int64_t, 3> lo = n, hi = {-1, -1, -1};
 #pragma omp parallel
@@ -61,7 +79,7 @@ std::vector<float> discrete_gaussian(const std::vector<float>& values, const Ima
       hi[size_t(a)] = std::max(hi[size_t(a)], h[size_t(a)]);
     }
   }
-  if (hi[0] < 0) return out;  // all zero: so is its smoothing
+  if (hi[0] < 0) return;  // all zero: so is its smoothing
 
   // Grown by each axis' kernel radius: outside this box every pass's values are exactly zero.
   std::array<std::vector<double>, 3> taps;
@@ -76,7 +94,11 @@ std::vector<float> discrete_gaussian(const std::vector<float>& values, const Ima
   const auto box = [&](int64_t i, int64_t j, int64_t k) {
     return size_t(((k - b0[2]) * m[1] + (j - b0[1])) * m[0] + (i - b0[0]));
   };
-  std::vector<float> a(size_t(m[0] * m[1] * m[2])), b(a.size());
+  // Reused buffers: resize() keeps their memory (no fresh pages) and never shrinks it.
+  std::vector<float>& a = scratch;
+  std::vector<float>& b = result.values;
+  a.resize(size_t(m[0] * m[1] * m[2]));
+  b.resize(a.size());
   for (int64_t k = b0[2]; k <= b1[2]; ++k)
     for (int64_t j = b0[1]; j <= b1[1]; ++j)
       std::copy_n(values.data() + (k * n[1] + j) * n[0] + b0[0], m[0], &a[box(b0[0], j, k)]);
@@ -124,10 +146,8 @@ std::vector<float> discrete_gaussian(const std::vector<float>& values, const Ima
   pass(2, a, b);
   pass(1, b, a);
   pass(0, a, b);
-  for (int64_t k = b0[2]; k <= b1[2]; ++k)
-    for (int64_t j = b0[1]; j <= b1[1]; ++j)
-      std::copy_n(&b[box(b0[0], j, k)], m[0], out.data() + (k * n[1] + j) * n[0] + b0[0]);
-  return out;
+  result.lo = b0;
+  result.dims = m;
 }
 
 std::vector<float> discrete_gaussian_itk(const std::vector<float>& values, const ImageGeometry& g,

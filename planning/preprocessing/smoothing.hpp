@@ -5,6 +5,8 @@
 // fraction of the time.
 #pragma once
 
+#include <array>
+#include <cstdint>
 #include <vector>
 
 #include "planning/imaging/volume.hpp"
@@ -21,6 +23,22 @@ struct DiscreteGaussian {
 // in double in ITK's order with float results between passes, as ITK does.
 std::vector<float> discrete_gaussian(const std::vector<float>& values, const ImageGeometry& g,
                                      const DiscreteGaussian& gaussian);
+
+// The same smoothing kept to the box where it is not zero (the input's non-zero voxels grown by
+// the kernel's radius; empty when the input is all zero): values x fastest, `lo` its first voxel
+// in the image, `dims` its size. `box` and `scratch` are reused from call to call, so smoothing
+// several masks of one image allocates (and has the system clear) its memory once.
+struct SmoothedBox {
+  std::array<int64_t, 3> lo{}, dims{};
+  std::vector<float> values;
+  bool empty() const { return dims[0] == 0; }
+  float at(int64_t i, int64_t j, int64_t k) const {  // image indices inside the box
+    return values[size_t(((k - lo[2]) * dims[1] + (j - lo[1])) * dims[0] + (i - lo[0]))];
+  }
+};
+void discrete_gaussian_box(const std::vector<float>& values, const ImageGeometry& g,
+                           const DiscreteGaussian& gaussian, SmoothedBox& box,
+                           std::vector<float>& scratch);
 
 // ITK's DiscreteGaussianImageFilter itself: the reference the separable passes are tested against.
 std::vector<float> discrete_gaussian_itk(const std::vector<float>& values, const ImageGeometry& g,

@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cmath>
 #include <random>
+#include <tuple>
 #include <vector>
 
 namespace crepuscular::planning {
@@ -85,6 +86,46 @@ TEST(DiscreteGaussian, NothingGivesNothing) {
   const std::vector<float> zeros(size_t(g.voxel_count()), 0.0f);
   const std::vector<float> out = discrete_gaussian(zeros, g, DiscreteGaussian{});
   EXPECT_TRUE(std::all_of(out.begin(), out.end(), [](float v) { return v == 0.0f; }));
+}
+
+// The box form with buffers reused from a larger input before it (as the blocking levels reuse
+// them): inside its box it equals the full smoothing bit for bit, outside the box the full
+// smoothing is zero, and an all-zero input after them gives an empty box.
+TEST(DiscreteGaussian, BoxWithReusedBuffersEqualsTheFullSmoothing) {
+  const ImageGeometry g = grid(40, 36, 30, 0.8, 0.8, 1.5);
+  DiscreteGaussian gaussian;
+  gaussian.variance_mm2 = 4.0;
+  SmoothedBox box;
+  std::vector<float> scratch;
+  for (const auto& [blobs, edges, seed] :
+       {std::make_tuple(12, true, 3u), std::make_tuple(1, false, 4u), std::make_tuple(3, false, 5u)}) {
+    const std::vector<float> in = random_blobs(g, blobs, edges, seed);
+    const std::vector<float> full = discrete_gaussian(in, g, gaussian);
+    discrete_gaussian_box(in, g, gaussian, box, scratch);
+    ASSERT_FALSE(box.empty());
+    int64_t inside = 0, outside_nonzero = 0, differ = 0;
+    for (int64_t k = 0; k < g.dims[2]; ++k)
+      for (int64_t j = 0; j < g.dims[1]; ++j)
+        for (int64_t i = 0; i < g.dims[0]; ++i) {
+          const float f = full[size_t(g.offset(i, j, k))];
+          const bool in_box = i >= box.lo[0] && i < box.lo[0] + box.dims[0] && j >= box.lo[1] &&
+                              j < box.lo[1] + box.dims[1] && k >= box.lo[2] &&
+                              k < box.lo[2] + box.dims[2];
+          if (!in_box) {
+            outside_nonzero += f != 0.0f;
+            continue;
+          }
+          ++inside;
+          differ += box.at(i, j, k) != f;
+        }
+    EXPECT_EQ(differ, 0) << blobs << " blobs";
+    EXPECT_EQ(outside_nonzero, 0) << blobs << " blobs";
+    EXPECT_GT(inside, 0);
+    if (blobs == 1) EXPECT_LT(inside, g.voxel_count() / 2);  // a small box, not the image
+  }
+  discrete_gaussian_box(std::vector<float>(size_t(g.voxel_count()), 0.0f), g, gaussian, box,
+                        scratch);
+  EXPECT_TRUE(box.empty());
 }
 
 }  // namespace
