@@ -50,17 +50,8 @@ class SampleStore {
   // values stay NaN).
   void request(int64_t i, int64_t j, int64_t k, std::vector<GridPoint>& queue) {
     if (inside(i, j, k)) {
-      uint8_t& s = state(i, j, k);
-      if (s == kEvaluated || s == kQueued || s == kUnknown) return;
-      if (!known(i, j, k)) {
-        s = kUnknown;
-        for (int v = 0; v < kSlots; ++v) {
-          if (out_[v]) out_[v][offset(i, j, k)] = std::numeric_limits<float>::quiet_NaN();
-        }
-        return;
-      }
-      if (s == kInterpolated) ++reclaimed_;  // filled from a coarser cell, now computed
-      s = kQueued;
+      // An interpolated voxel (filled from a coarser cell) is reclaimed: now computed.
+      if (!claim(i, j, k)) return;
     } else {
       auto [it, added] = outside_.try_emplace(key(i, j, k));
       if (!added) return;

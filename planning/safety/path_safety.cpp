@@ -715,12 +715,10 @@ void check_fast_mode(const OutputGrid& grid, const uint8_t* known,
 // that every sum and count keeps its size while a block^2-th of the rays are cast.
 TumorSurface surface_representatives(const TumorSurface& surface, const ImageGeometry& tumor,
                                      int block) {
-  const int64_t nx = tumor.dims[0], ny = tumor.dims[1];
   std::map<std::array<int64_t, 3>, std::vector<size_t>> blocks;
   for (size_t n = 0; n < surface.points.size(); ++n) {
-    const int64_t off = surface.points[n].offset;
-    const int64_t i = off % nx, j = (off / nx) % ny, k = off / (nx * ny);
-    blocks[{i / block, j / block, k / block}].push_back(n);
+    const Index3 v = tumor.index_of_offset(surface.points[n].offset);
+    blocks[{v[0] / block, v[1] / block, v[2] / block}].push_back(n);
   }
   TumorSurface out = surface;
   out.points.clear();
@@ -735,9 +733,8 @@ TumorSurface surface_representatives(const TumorSurface& surface, const ImageGeo
     size_t best = members.front();
     double best_d2 = std::numeric_limits<double>::infinity();
     for (size_t n : members) {
-      const auto& q = surface.points[n].position;
-      const double d2 = (q.x - mean.x) * (q.x - mean.x) + (q.y - mean.y) * (q.y - mean.y) +
-                        (q.z - mean.z) * (q.z - mean.z);
+      const kernels::Vec3<double> d = surface.points[n].position - mean;
+      const double d2 = kernels::dot(d, d);
       if (d2 < best_d2) best_d2 = d2, best = n;
     }
     kernels::SurfacePoint<double> rep = surface.points[best];
