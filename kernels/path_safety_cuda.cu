@@ -838,28 +838,23 @@ void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out)
                        cudaMemcpyHostToDevice),
             "upload points");
       const unsigned blocks = unsigned((m + 127) / 128);
-      with_value_set(impl_->values, [&](auto tag) {
-        constexpr unsigned kValues = decltype(tag)::value;
-        if (m < kSplitBelow) {
-          if (impl_->storage == BlockingStorage::kTexture) {
+      const auto launch = [&](auto sampler) {
+        with_value_set(impl_->values, [&](auto tag) {
+          constexpr unsigned kValues = decltype(tag)::value;
+          if (m < kSplitBelow) {
             path_safety_points_split_kernel<kValues><<<unsigned(m), kSplitThreads>>>(
-                ds.scene, impl_->frame, points.ptr,
-                TextureSampler{ds.texture, ds.scene.blocking}, values.ptr);
+                ds.scene, impl_->frame, points.ptr, sampler, values.ptr);
           } else {
-            path_safety_points_split_kernel<kValues><<<unsigned(m), kSplitThreads>>>(
-                ds.scene, impl_->frame, points.ptr, GridSampler<float>{ds.scene.blocking},
-                values.ptr);
+            path_safety_points_kernel<kValues><<<blocks, 128>>>(ds.scene, impl_->frame,
+                                                                points.ptr, m, sampler, values.ptr);
           }
-        } else if (impl_->storage == BlockingStorage::kTexture) {
-          path_safety_points_kernel<kValues><<<blocks, 128>>>(
-              ds.scene, impl_->frame, points.ptr, m,
-              TextureSampler{ds.texture, ds.scene.blocking}, values.ptr);
-        } else {
-          path_safety_points_kernel<kValues><<<blocks, 128>>>(
-              ds.scene, impl_->frame, points.ptr, m, GridSampler<float>{ds.scene.blocking},
-              values.ptr);
-        }
-      });
+        });
+      };
+      if (impl_->storage == BlockingStorage::kTexture) {
+        launch(TextureSampler{ds.texture, ds.scene.blocking});
+      } else {
+        launch(GridSampler<float>{ds.scene.blocking});
+      }
       check(cudaGetLastError(), "points kernel launch");
       check(cudaMemcpy(out + kValueCount * c0, values.ptr,
                        size_t(kValueCount * m) * sizeof(float), cudaMemcpyDeviceToHost),

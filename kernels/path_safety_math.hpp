@@ -1,10 +1,12 @@
 // The path safety values of DESIGN.md §4 (paper §3.2, Algorithm 1), written once as host/device
 // functions: the CPU backend and the CUDA kernels call exactly these. Plain structs, raw buffers,
-// no Eigen or STL, so nvcc and the host compiler read the same code.
+// no Eigen or STL containers, so nvcc and the host compiler read the same code.
 #pragma once
 
 #include <math.h>
 #include <stdint.h>
+
+#include <type_traits>
 
 #include "kernels/hd.hpp"
 
@@ -139,7 +141,7 @@ CREPUSCULAR_HD float uniform_brick(const BlockingGrid<Real>& g, int i, int j, in
   if (!g.bricks || i < 0 || j < 0 || k < 0) return -1.0f;
   const int bi = i >> kBrickShift, bj = j >> kBrickShift, bk = k >> kBrickShift;
   if (bi >= g.bx || bj >= g.by || bk >= g.bz) return -1.0f;
-  return g.bricks[(int64_t(bk) * g.by + bj) * g.bx + bi];
+  return g.bricks[(bk * g.by + bj) * g.bx + bi];  // < 2^31 bricks: 32-bit index arithmetic
 }
 
 // Tumor mask (0/1), x fastest, looked up at the nearest voxel. [lo, hi] is the index bounding box
@@ -377,14 +379,19 @@ struct RayContext {
   int weight = 1;  // surface points the ray stands for (SurfacePoint::weight)
 };
 
+// The ray state of SVV, ISBV and IVBV: the line integral L(p, t) = sum_k b(x_k) l. One
+// accumulation serves the three (combine_ray).
+template <typename Real>
+struct LineIntegral {
+  Real line_integral = 0;
+};
+
 // SVV = 100 |{t in F(p) : L(p,t) <= eps}| / |F(p)|, 0 when F(p) is empty.
 template <typename Real>
 struct SurfaceVisibility {
   static constexpr unsigned kBit = kSvv;
   static constexpr bool kFront = true, kBack = false;
-  struct Ray {
-    Real line_integral = 0;
-  };
+  using Ray = LineIntegral<Real>;
   struct Voxel {
     int visible = 0, clear = 0;
   };
@@ -406,9 +413,7 @@ template <typename Real>
 struct IntegralSurfaceBlocking {
   static constexpr unsigned kBit = kIsbv;
   static constexpr bool kFront = true, kBack = false;
-  struct Ray {
-    Real line_integral = 0;
-  };
+  using Ray = LineIntegral<Real>;
   struct Voxel {
     Real sum = 0;
   };
@@ -426,9 +431,7 @@ template <typename Real>
 struct IntegralVolumeBlocking {
   static constexpr unsigned kBit = kIvbv;
   static constexpr bool kFront = false, kBack = true;
-  struct Ray {
-    Real line_integral = 0;
-  };
+  using Ray = LineIntegral<Real>;
   struct Voxel {
     Real sum = 0;
   };
@@ -510,23 +513,24 @@ CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>
   const TumorCrossing crossing = cross_tumor(s.tumor, ray, target.offset, kWantBack);
   if (!((kWantFront && crossing.front_facing) || (kWantBack && crossing.back_facing))) return;
 
-  typename Svv::Ray svv_ray;
-  typename Isbv::Ray isbv_ray;
-  typename Ivbv::Ray ivbv_ray;
+  // SVV, ISBV and IVBV share their ray state and its accumulation (the line integral): done once.
+  static_assert(std::is_same_v<typename Svv::Ray, typename Isbv::Ray> &&
+                    std::is_same_v<typename Svv::Ray, typename Ivbv::Ray>,
+                "one line integral for SVV, ISBV and IVBV");
+  constexpr bool kLine = (Values & (kSvv | kIsbv | kIvbv)) != 0;
+  typename Svv::Ray line_ray;
   typename Bvv::Ray bvv_ray;
   const Real inv_n = ray.n > 0 ? Real(1) / Real(ray.n) : Real(0);
   for (int k = 1; k <= ray.n; ++k) {
     const RaySample<Real> sample{Real(blocking_at(along(ray.q0, ray.dq, Real(k)))), ray.step, k,
                                  inv_n};
-    if constexpr ((Values & kSvv) != 0) Svv::accumulate(svv_ray, sample);
-    if constexpr ((Values & kIsbv) != 0) Isbv::accumulate(isbv_ray, sample);
-    if constexpr ((Values & kIvbv) != 0) Ivbv::accumulate(ivbv_ray, sample);
+    if constexpr (kLine) Svv::accumulate(line_ray, sample);  // = Isbv's = Ivbv's
     if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
   }
   const RayContext<Real> context{crossing, ray.step, ray.cos_alpha, s.eps, target.weight};
-  if constexpr ((Values & kSvv) != 0) Svv::combine(v.svv, svv_ray, context);
-  if constexpr ((Values & kIsbv) != 0) Isbv::combine(v.isbv, isbv_ray, context);
-  if constexpr ((Values & kIvbv) != 0) Ivbv::combine(v.ivbv, ivbv_ray, context);
+  if constexpr ((Values & kSvv) != 0) Svv::combine(v.svv, line_ray, context);
+  if constexpr ((Values & kIsbv) != 0) Isbv::combine(v.isbv, line_ray, context);
+  if constexpr ((Values & kIvbv) != 0) Ivbv::combine(v.ivbv, line_ray, context);
   if constexpr ((Values & kBvv) != 0) Bvv::combine(v.bvv, bvv_ray, context);
 }
 
