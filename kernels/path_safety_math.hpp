@@ -116,6 +116,23 @@ CREPUSCULAR_HD Vec3<double> apply_rn(const Affine<double>& a, Vec3<double> p) {
   return {add_rn(l.x, a.m[0][3]), add_rn(l.y, a.m[1][3]), add_rn(l.z, a.m[2][3])};
 }
 
+// floor(x) as an int: one round-down conversion on the GPU, floor and conversion on the host
+// (the same value for every x in int's range).
+CREPUSCULAR_HD_INLINE int floor_int(float x) {
+#ifdef __CUDA_ARCH__
+  return __float2int_rd(x);
+#else
+  return int(floorf(x));
+#endif
+}
+CREPUSCULAR_HD_INLINE int floor_int(double x) {
+#ifdef __CUDA_ARCH__
+  return __double2int_rd(x);
+#else
+  return int(floor(x));
+#endif
+}
+
 // Blocking volume b (risk per mm), x fastest. Sampled with trilinear interpolation between voxel
 // centres; voxels outside the grid count as 0 (CUDA's border addressing).
 // Uniform-space skipping, exact: bricks of 2^kBrickShift voxels per axis; a brick holds the value
@@ -138,10 +155,12 @@ CREPUSCULAR_HD int bricks_along(int n) { return (n + (1 << kBrickShift) - 1) >> 
 // The value every sample at a lower corner (i, j, k) takes when its brick is uniform, else -1.
 template <typename Real>
 CREPUSCULAR_HD float uniform_brick(const BlockingGrid<Real>& g, int i, int j, int k) {
-  if (!g.bricks || i < 0 || j < 0 || k < 0) return -1.0f;
-  const int bi = i >> kBrickShift, bj = j >> kBrickShift, bk = k >> kBrickShift;
-  if (bi >= g.bx || bj >= g.by || bk >= g.bz) return -1.0f;
-  return g.bricks[(bk * g.by + bj) * g.bx + bi];  // < 2^31 bricks: 32-bit index arithmetic
+  if (!g.bricks) return -1.0f;
+  // A negative index is a huge unsigned one: one comparison per axis bounds both sides.
+  const unsigned bi = unsigned(i) >> kBrickShift, bj = unsigned(j) >> kBrickShift,
+                 bk = unsigned(k) >> kBrickShift;
+  if (bi >= unsigned(g.bx) || bj >= unsigned(g.by) || bk >= unsigned(g.bz)) return -1.0f;
+  return g.bricks[(bk * unsigned(g.by) + bj) * unsigned(g.bx) + bi];  // < 2^31 bricks
 }
 
 // Tumor mask (0/1), x fastest, looked up at the nearest voxel. [lo, hi] is the index bounding box
@@ -230,10 +249,13 @@ CREPUSCULAR_HD_INLINE Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Rea
 // lattice (a resampled tumor, DESIGN.md §4): samples every h/2 along an axis land on faces.
 CREPUSCULAR_HD int tumor_offset_at(const TumorGrid<double>& g, Vec3<double> r) {
   constexpr double kHalfBelowTies = 0.5 - 1e-10;
-  const int i = int(floor(add_rn(r.x, kHalfBelowTies)));
-  const int j = int(floor(add_rn(r.y, kHalfBelowTies)));
-  const int k = int(floor(add_rn(r.z, kHalfBelowTies)));
-  if (i < g.lo[0] || j < g.lo[1] || k < g.lo[2] || i > g.hi[0] || j > g.hi[1] || k > g.hi[2])
+  const int i = floor_int(add_rn(r.x, kHalfBelowTies));
+  const int j = floor_int(add_rn(r.y, kHalfBelowTies));
+  const int k = floor_int(add_rn(r.z, kHalfBelowTies));
+  // Below lo wraps to a huge unsigned: one comparison per axis bounds both sides.
+  if (unsigned(i - g.lo[0]) > unsigned(g.hi[0] - g.lo[0]) ||
+      unsigned(j - g.lo[1]) > unsigned(g.hi[1] - g.lo[1]) ||
+      unsigned(k - g.lo[2]) > unsigned(g.hi[2] - g.lo[2]))
     return -1;
   const int offset = (k * g.ny + j) * g.nx + i;
   return g.mask[offset] ? offset : -1;
@@ -451,14 +473,18 @@ struct BlockerVolume {
   static constexpr unsigned kBit = kBvv;
   static constexpr bool kFront = false, kBack = true;
   struct Ray {
-    Real weighted = 0;  // sum_k b_k (k/N)^2 l
+    Real weighted = 0;  // sum_k b_k (k/N)^2 l; while marching, sum_k b_k k^2 (close)
   };
   struct Voxel {
     Real sum = 0;
   };
   static CREPUSCULAR_HD void accumulate(Ray& r, const RaySample<Real>& s) {
-    const Real f = Real(s.k) * s.inv_n;
-    r.weighted += s.b * f * f * s.step;
+    const Real k = Real(s.k);
+    r.weighted += s.b * (k * k);
+  }
+  // The ray's end: its factor (1/N)^2 l, taken once instead of at every sample.
+  static CREPUSCULAR_HD void close(Ray& r, Real inv_n, Real step) {
+    r.weighted *= inv_n * inv_n * step;
   }
   static CREPUSCULAR_HD void combine(Voxel& v, const Ray& r, const RayContext<Real>& c) {
     if (c.crossing.back_facing) v.sum += Real(c.weight) * c.cos_alpha * r.weighted;
@@ -527,6 +553,7 @@ CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>
     if constexpr (kLine) Svv::accumulate(line_ray, sample);  // = Isbv's = Ivbv's
     if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
   }
+  if constexpr ((Values & kBvv) != 0) Bvv::close(bvv_ray, inv_n, ray.step);
   const RayContext<Real> context{crossing, ray.step, ray.cos_alpha, s.eps, target.weight};
   if constexpr ((Values & kSvv) != 0) Svv::combine(v.svv, line_ray, context);
   if constexpr ((Values & kIsbv) != 0) Isbv::combine(v.isbv, line_ray, context);
