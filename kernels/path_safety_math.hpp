@@ -242,16 +242,17 @@ CREPUSCULAR_HD_INLINE Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Rea
   return c0 + wz * (c1 - c0);
 }
 
-// Offset of the tumor voxel nearest to continuous tumor index r, or -1 when that voxel is outside
-// the grid or not tumor. A point on a face between two voxels belongs to the lower one: the tie
-// is broken by 1e-10 voxel, far above rounding noise (1e-12 at index 4096), so that it does not
-// depend on where the grid's origin lies. Ties are common where the tumor lies on the output
-// lattice (a resampled tumor, DESIGN.md §4): samples every h/2 along an axis land on faces.
-CREPUSCULAR_HD int tumor_offset_at(const TumorGrid<double>& g, Vec3<double> r) {
-  constexpr double kHalfBelowTies = 0.5 - 1e-10;
-  const int i = floor_int(add_rn(r.x, kHalfBelowTies));
-  const int j = floor_int(add_rn(r.y, kHalfBelowTies));
-  const int k = floor_int(add_rn(r.z, kHalfBelowTies));
+// Tumor lookups take the voxel nearest to a continuous tumor index r. A point on a face between
+// two voxels belongs to the lower one: the tie is broken by 1e-10 voxel, far above rounding noise
+// (1e-12 at index 4096), so that it does not depend on where the grid's origin lies. Ties are
+// common where the tumor lies on the output lattice (a resampled tumor, DESIGN.md §4): samples
+// every h/2 along an axis land on faces. The voxel is floor(r + kHalfBelowTies) per axis.
+constexpr double kHalfBelowTies = 0.5 - 1e-10;
+
+// Offset of the tumor voxel at the shifted point r + kHalfBelowTies, or -1 when that voxel is
+// outside the grid or not tumor. A ray shifts its origin once (shift_for_ties), not every sample.
+CREPUSCULAR_HD int tumor_offset_at_shifted(const TumorGrid<double>& g, Vec3<double> shifted) {
+  const int i = floor_int(shifted.x), j = floor_int(shifted.y), k = floor_int(shifted.z);
   // Below lo wraps to a huge unsigned: one comparison per axis bounds both sides.
   if (unsigned(i - g.lo[0]) > unsigned(g.hi[0] - g.lo[0]) ||
       unsigned(j - g.lo[1]) > unsigned(g.hi[1] - g.lo[1]) ||
@@ -259,6 +260,15 @@ CREPUSCULAR_HD int tumor_offset_at(const TumorGrid<double>& g, Vec3<double> r) {
     return -1;
   const int offset = (k * g.ny + j) * g.nx + i;
   return g.mask[offset] ? offset : -1;
+}
+
+CREPUSCULAR_HD Vec3<double> shift_for_ties(Vec3<double> r) {
+  return {add_rn(r.x, kHalfBelowTies), add_rn(r.y, kHalfBelowTies), add_rn(r.z, kHalfBelowTies)};
+}
+
+// Offset of the tumor voxel nearest to r, or -1 when that voxel is outside the grid or not tumor.
+CREPUSCULAR_HD int tumor_offset_at(const TumorGrid<double>& g, Vec3<double> r) {
+  return tumor_offset_at_shifted(g, shift_for_ties(r));
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -354,8 +364,11 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
   int k_first = k_in < 1.0 ? 1 : int(floor(k_in));
   if (k_first < 1) k_first = 1;
   const int k_last = k_out > 2e9 ? 2000000000 : int(ceil(k_out));
+  // Samples at shifted0 + k dr: the tie's half voxel added to the origin once, not per sample
+  // (rounded differently by far less than the tie's 1e-10 voxel; the same on every backend).
+  const Vec3<double> shifted0 = shift_for_ties(ray.r0);
   for (int k = k_first; k <= ray.n && k <= k_last; ++k) {
-    const int off = tumor_offset_at(g, along_rn(ray.r0, ray.dr, double(k)));
+    const int off = tumor_offset_at_shifted(g, along_rn(shifted0, ray.dr, double(k)));
     if (off >= 0) {
       ++c.samples_in_tumor;
       if (off != own_offset && k < ray.n) c.front_facing = false;
@@ -369,7 +382,7 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
     const double step_voxels = sqrt(dot_rn(ray.dr, ray.dr));
     if (step_voxels < 0.01) stride = 0.01 / step_voxels;
     for (double k = double(ray.n) + stride; k <= k_out; k = add_rn(k, stride)) {
-      const int off = tumor_offset_at(g, along_rn(ray.r0, ray.dr, k));
+      const int off = tumor_offset_at_shifted(g, along_rn(shifted0, ray.dr, k));
       if (off >= 0 && off != own_offset) {
         c.back_facing = false;
         break;

@@ -1,6 +1,8 @@
 // Default safety classes and the comparison of two path safety results.
 #include "planning/safety/safety_classes.hpp"
 
+#include <omp.h>
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -57,11 +59,22 @@ class PositiveValues {
   float at_rank(uint64_t i) const {
     const size_t b = size_t(std::upper_bound(cumulative_.begin(), cumulative_.end(), i) -
                             cumulative_.begin()) - 1;
+    // The bucket's values gathered on every core (a pass over the volume), then joined.
+    const size_t threads = size_t(omp_get_max_threads());
+    std::vector<std::vector<float>> parts(threads);
+    const int64_t n = int64_t(values_.size());
+#pragma omp parallel
+    {
+      std::vector<float>& mine = parts[size_t(omp_get_thread_num())];
+#pragma omp for schedule(static) nowait
+      for (int64_t v = 0; v < n; ++v) {
+        const float x = values_[size_t(v)];
+        if (counted(x) && bucket_of(x) == b) mine.push_back(x);
+      }
+    }
     std::vector<float> bucket;
     bucket.reserve(size_t(cumulative_[b + 1] - cumulative_[b]));
-    for (const float x : values_) {
-      if (counted(x) && bucket_of(x) == b) bucket.push_back(x);
-    }
+    for (const auto& part : parts) bucket.insert(bucket.end(), part.begin(), part.end());
     const size_t k = size_t(i - cumulative_[b]);
     std::nth_element(bucket.begin(), bucket.begin() + std::ptrdiff_t(k), bucket.end());
     return bucket[k];
