@@ -4,6 +4,7 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <limits>
 #include <unordered_map>
@@ -197,6 +198,27 @@ bool near_threshold(const SafetyClasses& c, double v, const AdaptiveOptions& o,
   return false;
 }
 
+// Wall time of the sampler's steps, summed over its levels.
+class StepClock {
+ public:
+  enum Step { kRequests, kStore, kRefine, kFill, kFinish, kEvaluate, kSteps };
+  void add(Step step, std::chrono::steady_clock::time_point since) {
+    seconds_[step] +=
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+  }
+  std::vector<std::pair<std::string, double>> named() const {
+    static const char* const kNames[kSteps] = {"sampler_requests", "sampler_store",
+                                               "sampler_refine",   "sampler_fill",
+                                               "sampler_finish",   "sampler_evaluate"};
+    std::vector<std::pair<std::string, double>> out;
+    for (int s = 0; s < kSteps; ++s) out.emplace_back(kNames[s], seconds_[s]);
+    return out;
+  }
+
+ private:
+  double seconds_[kSteps] = {};
+};
+
 // Queues the points that `points_of(c, offer)` offers for items c = 0..count-1, in parallel: grid
 // voxels are claimed atomically, the few corners beyond the grid's edge are requested afterwards
 // on one thread. The queue keeps the items' order (threads take contiguous ranges).
@@ -229,10 +251,20 @@ void gather_requests(int64_t count, const PointsOf& points_of, SampleStore& stor
 
 // Computes the queued points and stores their values (grid voxels in parallel).
 void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& evaluate,
-                    SampleStore& store, std::vector<float>& values) {
+                    SampleStore& store, std::vector<float>& values, StepClock& clock) {
+  auto t = std::chrono::steady_clock::now();
   values.assign(queue.size() * kSlots, 0.0f);
+  clock.add(StepClock::kStore, t);
   if (queue.empty()) return;
+  t = std::chrono::steady_clock::now();
   evaluate(queue, values);
+  clock.add(StepClock::kEvaluate, t);
+  t = std::chrono::steady_clock::now();
+  struct Done {
+    StepClock& clock;
+    std::chrono::steady_clock::time_point t;
+    ~Done() { clock.add(StepClock::kStore, t); }
+  } done{clock, t};
 #pragma omp parallel for schedule(static)
   for (int64_t p = 0; p < int64_t(queue.size()); ++p) {
     const GridPoint& g = queue[size_t(p)];
@@ -271,7 +303,7 @@ bool uniform_points(const GridPoint* points, int count, const std::vector<int>& 
 int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
                       const AdaptiveOptions& options, const std::vector<int>& slots,
                       const PointEvaluator& evaluate, AdaptiveReport& report, SampleStore& store,
-                      const std::function<void(double)>& passes_done) {
+                      StepClock& clock, const std::function<void(double)>& passes_done) {
   int64_t computed = 0;
   std::vector<GridPoint> queue;
   std::vector<float> values;
@@ -280,6 +312,7 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
   // point shared by neighbouring cells is decided alike from each; the first to claim it acts.
   for (int pass = 1; pass <= 3; ++pass) {
     int64_t interpolated = 0;
+    const auto t = std::chrono::steady_clock::now();
     gather_requests(
         int64_t(refined.size()),
         [&](int64_t c, const auto& offer) {
@@ -320,8 +353,9 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
           }
         },
         store, queue);
+    clock.add(StepClock::kRequests, t);
     report.interpolated += interpolated;
-    evaluate_queue(queue, evaluate, store, values);
+    evaluate_queue(queue, evaluate, store, values, clock);
     computed += int64_t(queue.size());
     // Edges and faces hold about three points a cell each, centres one.
     passes_done(pass == 1 ? 3.0 / 7.0 : pass == 2 ? 6.0 / 7.0 : 1.0);
@@ -369,6 +403,8 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   const int64_t half = grid.half;
   const double radius_sq = double(grid.max_sq);
   AdaptiveReport report;
+  StepClock clock;
+  auto t = std::chrono::steady_clock::now();
   SampleStore store(grid, options, out);
   std::vector<int> slots;
   for (int s = 0; s < kSlots; ++s) {
@@ -410,9 +446,11 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   std::vector<GridPoint> queue;
   std::vector<float> values;
   bool classes_known = false;
+  clock.add(StepClock::kRequests, t);
   while (!cells.empty()) {
     const int size = cells.front().size;
     // Evaluate every corner not known yet.
+    t = std::chrono::steady_clock::now();
     gather_requests(
         int64_t(cells.size()),
         [&](int64_t c, const auto& offer) {
@@ -422,7 +460,9 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
           }
         },
         store, queue);
-    evaluate_queue(queue, evaluate, store, values);
+    clock.add(StepClock::kRequests, t);
+    evaluate_queue(queue, evaluate, store, values, clock);
+    t = std::chrono::steady_clock::now();
     report.evaluated += int64_t(queue.size());
     report.levels.emplace_back(size, int64_t(queue.size()));
     progress.at(level, 1.0);
@@ -504,6 +544,8 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
         if (meets_roi(sub.i, sub.j, sub.k, h)) next.push_back(sub);
       }
     }
+    clock.add(StepClock::kRefine, t);
+    t = std::chrono::steady_clock::now();
     // Fill the uniform cells (size 1: every voxel is a corner, evaluated), in parallel: eight
     // passes by the parity of the cell's lattice position, so no two cells of a pass share a voxel.
     for (int parity = 0; size > 1 && parity < 8; ++parity) {
@@ -519,9 +561,10 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       }
       report.interpolated += interpolated;
     }
+    clock.add(StepClock::kFill, t);
     if (!finest.empty()) {
       const int64_t computed =
-          sample_finest(finest, grid, options, slots, evaluate, report, store,
+          sample_finest(finest, grid, options, slots, evaluate, report, store, clock,
                         [&](double f) { progress.at(level + 1, f); });
       report.evaluated += computed;
       report.levels.emplace_back(0, computed);
@@ -531,6 +574,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
 
   }
 
+  t = std::chrono::steady_clock::now();
   report.interpolated -= store.reclaimed();
   // Corners evaluated outside the region are not part of the result.
   const float nan = std::numeric_limits<float>::quiet_NaN();
@@ -542,6 +586,8 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
           for (const int s : slots) store.set(store.offset(i, j, k), s, nan);
         }
       }
+  clock.add(StepClock::kFinish, t);
+  report.seconds = clock.named();
   progress.at(levels - 1, 1.0);
   return report;
 }

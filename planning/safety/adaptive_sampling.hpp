@@ -11,6 +11,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <string>
 #include <vector>
 
 #include "kernels/path_safety_math.hpp"
@@ -62,6 +63,10 @@ struct AdaptiveReport {
   // Points evaluated per lattice level, coarsest first; stride 0: the finest level point by point.
   std::vector<std::pair<int, int64_t>> levels;
   std::array<SafetyClasses, kernels::kValueCount> classes{};  // the thresholds refinement used
+  // Wall seconds of the sampler's own work, by step ("sampler_requests", "sampler_store",
+  // "sampler_refine", "sampler_fill", "sampler_finish"), and of the evaluator's calls
+  // ("sampler_evaluate").
+  std::vector<std::pair<std::string, double>> seconds;
 };
 
 // Fills out[slot] (n^3 floats of the output grid; requested values only) for every voxel of the

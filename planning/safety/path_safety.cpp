@@ -623,6 +623,7 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
   const AdaptiveReport report = sample_adaptively(grid, adaptive, evaluate, out);
   result.evaluated_points = report.evaluated;
   result.interpolated_voxels = report.interpolated;
+  result.phases.insert(result.phases.end(), report.seconds.begin(), report.seconds.end());
   std::string levels;
   for (const auto& [stride, count] : report.levels) {
     levels += (levels.empty() ? "" : ", ") + std::to_string(count) + " at stride " +
@@ -952,7 +953,7 @@ class CudaBackend {
       clock.done("self_check");
     }
     result.device = evaluator.devices() + " (texture)";
-    result.phases = clock.phases;
+    result.phases.insert(result.phases.begin(), clock.phases.begin(), clock.phases.end());
     result.phases.emplace_back("gpu_kernels", kernel_s);
   }
 
