@@ -2,8 +2,11 @@
 // interpolates, where it computes, and that it never computes nor interpolates the unknown.
 #include <gtest/gtest.h>
 
+#include <chrono>
 #include <cmath>
 #include <set>
+#include <string>
+#include <thread>
 #include <tuple>
 
 #include "foundation/error.hpp"
@@ -171,6 +174,42 @@ TEST(AdaptiveSampling, ProgressGrowsWithTheLevelsToOne) {
   EXPECT_NEAR(reported[1], 5.0 / 21.0, 1e-12);       // the second level done
   EXPECT_NEAR(reported[2], (5.0 + 16.0 * 3.0 / 7.0) / 21.0, 1e-12);  // the finest level's edges
   EXPECT_EQ(reported.back(), 1.0);
+}
+
+// The sampler's steps are reported by name, in order, and they account for its wall time: an
+// evaluator that takes 20 ms a call shows as at least that much in "sampler_evaluate", and the
+// steps together never exceed the wall time of the whole call.
+TEST(AdaptiveSampling, StepsReportTheirWallTime) {
+  const OutputGrid g = ball_grid(12);
+  AdaptiveOptions o;
+  o.values = kernels::kSvv;
+  const int64_t n = g.geometry.dims[0];
+  std::vector<float> svv(size_t(n * n * n), std::nanf(""));
+  float* out[kernels::kValueCount] = {svv.data(), nullptr, nullptr, nullptr};
+  int calls = 0;
+  const PointEvaluator evaluate = [&](const std::vector<GridPoint>& points,
+                                      std::vector<float>& values) {
+    ++calls;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    for (size_t p = 0; p < points.size(); ++p) {
+      values[p * kernels::kValueCount] = shadow_svv(points[p].i, points[p].j, points[p].k, 12);
+    }
+  };
+  const auto t0 = std::chrono::steady_clock::now();
+  const AdaptiveReport report = sample_adaptively(g, o, evaluate, out);
+  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const std::vector<std::string> names = {"sampler_requests", "sampler_store", "sampler_refine",
+                                          "sampler_fill",     "sampler_finish", "sampler_evaluate"};
+  ASSERT_EQ(report.seconds.size(), names.size());
+  double sum = 0.0;
+  for (size_t s = 0; s < names.size(); ++s) {
+    EXPECT_EQ(report.seconds[s].first, names[s]);
+    EXPECT_GE(report.seconds[s].second, 0.0);
+    sum += report.seconds[s].second;
+  }
+  ASSERT_GE(calls, 3);  // the levels and the finest passes
+  EXPECT_GE(report.seconds.back().second, 0.020 * calls);
+  EXPECT_LE(sum, wall + 1e-6);
 }
 
 TEST(AdaptiveSampling, RefusesAStrideThatIsNotAPowerOfTwo) {
