@@ -105,7 +105,10 @@ int main(int argc, char** argv) {
   const double total = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   nlohmann::json levels = nlohmann::json::array();
   for (const auto& [stride, count] : report.levels) levels.push_back({stride, count});
+  nlohmann::json steps = nlohmann::json::object();
+  for (const auto& [name, seconds] : report.seconds) steps[name] = seconds;
   std::cout << nlohmann::json{{"grid", n},
+                              {"steps_s", steps},
                               {"pointwise_finest", !cellwise},
                               {"evaluated", report.evaluated},
                               {"interpolated", report.interpolated},
