@@ -260,11 +260,6 @@ void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& e
   evaluate(queue, values);
   clock.add(StepClock::kEvaluate, t);
   t = std::chrono::steady_clock::now();
-  struct Done {
-    StepClock& clock;
-    std::chrono::steady_clock::time_point t;
-    ~Done() { clock.add(StepClock::kStore, t); }
-  } done{clock, t};
 #pragma omp parallel for schedule(static)
   for (int64_t p = 0; p < int64_t(queue.size()); ++p) {
     const GridPoint& g = queue[size_t(p)];
@@ -273,6 +268,7 @@ void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& e
   for (size_t p = 0; p < queue.size(); ++p) {
     if (!store.inside(queue[p].i, queue[p].j, queue[p].k)) store.store(queue[p], &values[p * kSlots]);
   }
+  clock.add(StepClock::kStore, t);
 }
 
 // Do these points (all evaluated or beyond the grid with values) share every requested value's
@@ -529,41 +525,19 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
 
     // Split the cells to refine (cells of edge 2 that only agree, refined for an unknown corner,
     // are split too: their known voxels are all computed).
-    // In parallel and in the cells' order: each cell's children (bit mask) and its place among
-    // the next level's cells and the finest cells, from prefix sums.
-    const int h = size / 2;
-    const auto child_of = [h](const Cell& cell, int child) {
-      return Cell{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
-                  cell.k + ((child >> 2) & 1) * h, h};
-    };
-    const auto to_finest = [&](size_t c) {
-      return size == 2 && options.pointwise_finest && refine[c] == 1;
-    };
-    const int64_t count = int64_t(cells.size());
-    std::vector<uint8_t> children(cells.size(), 0);
-#pragma omp parallel for schedule(static)
-    for (int64_t c = 0; c < count; ++c) {
-      if (!refine[size_t(c)] || to_finest(size_t(c))) continue;
-      uint8_t mask = 0;
-      for (int child = 0; child < 8; ++child) {
-        const Cell sub = child_of(cells[size_t(c)], child);
-        if (meets_roi(sub.i, sub.j, sub.k, h)) mask = uint8_t(mask | (1u << child));
-      }
-      children[size_t(c)] = mask;
-    }
-    std::vector<int64_t> next_at(cells.size() + 1, 0), finest_at(cells.size() + 1, 0);
+    std::vector<Cell> next, finest;
     for (size_t c = 0; c < cells.size(); ++c) {
-      next_at[c + 1] = next_at[c] + __builtin_popcount(children[c]);
-      finest_at[c + 1] = finest_at[c] + (to_finest(c) ? 1 : 0);
-    }
-    std::vector<Cell> next(size_t(next_at.back())), finest(size_t(finest_at.back()));
-#pragma omp parallel for schedule(static)
-    for (int64_t c = 0; c < count; ++c) {
-      const Cell& cell = cells[size_t(c)];
-      if (to_finest(size_t(c))) finest[size_t(finest_at[size_t(c)])] = cell;
-      int64_t at = next_at[size_t(c)];
+      const Cell& cell = cells[c];
+      if (!refine[c]) continue;
+      if (size == 2 && options.pointwise_finest && refine[c] == 1) {
+        finest.push_back(cell);
+        continue;
+      }
+      const int h = size / 2;
       for (int child = 0; child < 8; ++child) {
-        if (children[size_t(c)] & (1u << child)) next[size_t(at++)] = child_of(cell, child);
+        const Cell sub{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
+                       cell.k + ((child >> 2) & 1) * h, h};
+        if (meets_roi(sub.i, sub.j, sub.k, h)) next.push_back(sub);
       }
     }
     clock.add(StepClock::kRefine, t);
@@ -593,7 +567,6 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     }
     cells.swap(next);
     ++level;
-
   }
 
   t = std::chrono::steady_clock::now();
