@@ -140,6 +140,9 @@ CREPUSCULAR_HD_INLINE int floor_int(double x) {
 // 0 beyond the grid), equals c, so a sample whose lower corner lies in it is c without reading
 // the volume (trilinear interpolation of equal values is that value, exactly); -1 otherwise.
 // Empty space (c = 0: air, fat) and the inside of an organ away from its margin are uniform.
+// Empty-space leaping, exact: an empty brick whose every brick within Chebyshev distance d - 1
+// (d >= 2, in bricks) is empty too holds -d instead of 0 (kEmptyRunBelow), so that a ray may leap
+// over the samples that stay in that cube of empty bricks: their values are 0 exactly.
 template <typename Real>
 struct BlockingGrid {
   const float* values;
@@ -149,18 +152,40 @@ struct BlockingGrid {
   int bx, by, bz;       // bricks per axis
 };
 constexpr int kBrickShift = 2;
+constexpr float kMixedBrick = -1.0f;     // a brick of more than one value
+constexpr float kEmptyRunBelow = -1.5f;  // codes below: empty, with empty neighbours (-d, d >= 2)
+constexpr int kMaxEmptyRun = 32;         // the largest d stored
 
 CREPUSCULAR_HD int bricks_along(int n) { return (n + (1 << kBrickShift) - 1) >> kBrickShift; }
+
+// The code of the brick holding a lower corner (i, j, k): c >= 0 uniform, kMixedBrick, or -d
+// (empty, and so is every brick within d - 1). Beyond the bricks: kMixedBrick.
+template <typename Real>
+CREPUSCULAR_HD_INLINE float brick_code(const BlockingGrid<Real>& g, int i, int j, int k) {
+  if (!g.bricks) return kMixedBrick;
+  // A negative index is a huge unsigned one: one comparison per axis bounds both sides.
+  const unsigned bi = unsigned(i) >> kBrickShift, bj = unsigned(j) >> kBrickShift,
+                 bk = unsigned(k) >> kBrickShift;
+  if (bi >= unsigned(g.bx) || bj >= unsigned(g.by) || bk >= unsigned(g.bz)) return kMixedBrick;
+  return g.bricks[(bk * unsigned(g.by) + bj) * unsigned(g.bx) + bi];  // < 2^31 bricks
+}
 
 // The value every sample at a lower corner (i, j, k) takes when its brick is uniform, else -1.
 template <typename Real>
 CREPUSCULAR_HD float uniform_brick(const BlockingGrid<Real>& g, int i, int j, int k) {
-  if (!g.bricks) return -1.0f;
-  // A negative index is a huge unsigned one: one comparison per axis bounds both sides.
-  const unsigned bi = unsigned(i) >> kBrickShift, bj = unsigned(j) >> kBrickShift,
-                 bk = unsigned(k) >> kBrickShift;
-  if (bi >= unsigned(g.bx) || bj >= unsigned(g.by) || bk >= unsigned(g.bz)) return -1.0f;
-  return g.bricks[(bk * unsigned(g.by) + bj) * unsigned(g.bx) + bi];  // < 2^31 bricks
+  const float code = brick_code(g, i, j, k);
+  return code < kEmptyRunBelow ? 0.0f : code;
+}
+
+// How many samples after this one a ray may leap when this one's brick code is -d (d >= 2): they
+// move the lower corner by at most 2^kBrickShift (d - 1) - 1/100 voxel along every axis, so their
+// bricks lie within d - 1 of this one and are empty (the 1/100 voxel covers the rounding of the
+// samples' positions). step: the ray's blocking index step per sample; at most n.
+template <typename Real>
+CREPUSCULAR_HD_INLINE int empty_leap(float code, Vec3<Real> step, int n) {
+  const Real step_max = fmax(fabs(step.x), fmax(fabs(step.y), fabs(step.z)));
+  const Real reach = Real(-code - 1.0f) * Real(1 << kBrickShift) - Real(0.01);
+  return reach < Real(n) * step_max ? int(reach / step_max) : n;
 }
 
 // Tumor mask (0/1), x fastest, looked up at the nearest voxel. [lo, hi] is the index bounding box
@@ -207,12 +232,11 @@ CREPUSCULAR_HD float blocking_at_index(const BlockingGrid<Real>& g, int i, int j
 }
 
 // Trilinear interpolation at a continuous index (voxel centres at integers), zero outside.
+// Without looking at the bricks.
 template <typename Real>
-CREPUSCULAR_HD_INLINE Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Real> q) {
+CREPUSCULAR_HD_INLINE Real trilinear_blocking(const BlockingGrid<Real>& g, Vec3<Real> q) {
   const Real fx = floor(q.x), fy = floor(q.y), fz = floor(q.z);
   const int i = int(fx), j = int(fy), k = int(fz);
-  const float uniform = uniform_brick(g, i, j, k);
-  if (uniform >= 0.0f) return Real(uniform);
   const Real wx = q.x - fx, wy = q.y - fy, wz = q.z - fz;
   if (i >= 0 && j >= 0 && k >= 0 && i + 1 < g.nx && j + 1 < g.ny && k + 1 < g.nz) {
     const int64_t sx = 1, sy = g.nx, sz = int64_t(g.nx) * g.ny;
@@ -240,6 +264,13 @@ CREPUSCULAR_HD_INLINE Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Rea
   const Real c0 = c00 + wy * (c10 - c00);
   const Real c1 = c01 + wy * (c11 - c01);
   return c0 + wz * (c1 - c0);
+}
+
+template <typename Real>
+CREPUSCULAR_HD_INLINE Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Real> q) {
+  const float uniform = uniform_brick(g, floor_int(q.x), floor_int(q.y), floor_int(q.z));
+  if (uniform >= 0.0f) return Real(uniform);
+  return trilinear_blocking(g, q);
 }
 
 // Tumor lookups take the voxel nearest to a continuous tumor index r. A point on a face between
@@ -534,11 +565,21 @@ template <typename Real>
 struct GridSampler {
   BlockingGrid<Real> grid;
   CREPUSCULAR_HD_INLINE Real operator()(Vec3<Real> q) const { return sample_blocking(grid, q); }
+  // The sample where its brick is mixed (combine_ray has looked at the brick).
+  CREPUSCULAR_HD_INLINE Real mixed(Vec3<Real> q) const { return trilinear_blocking(grid, q); }
 };
 
+// How a ray crosses empty space: leaping over the samples in a cube of empty bricks
+// (kLeapEmptySpace), or sampling each (kMarchEverySample: the sampler maps every brick code to its
+// value). The values are the same bits either way.
+enum EmptySpace { kLeapEmptySpace, kMarchEverySample };
+
 // COMBINEVALUES of the ray from p to one surface point into a voxel's state.
-// Sampler: callable Real(Vec3<Real> blocking_index); the CUDA backend may pass a texture sampler.
-template <typename Real, unsigned Values, typename Sampler>
+// Sampler: mixed(q), the sample at blocking index q where its brick holds more than one value
+// (uniform bricks are read here, empty ones leapt over), and operator()(q), any sample
+// (kMarchEverySample); the CUDA backend may pass a texture sampler. Every sample takes the value sample_blocking gives it: results do not depend on the
+// bricks.
+template <typename Real, unsigned Values, typename Sampler, EmptySpace Empty = kLeapEmptySpace>
 CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>& s,
                                 Vec3<double> p, const SurfacePoint<double>& target,
                                 const Sampler& blocking_at) {
@@ -560,11 +601,30 @@ CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>
   typename Svv::Ray line_ray;
   typename Bvv::Ray bvv_ray;
   const Real inv_n = ray.n > 0 ? Real(1) / Real(ray.n) : Real(0);
-  for (int k = 1; k <= ray.n; ++k) {
-    const RaySample<Real> sample{Real(blocking_at(along(ray.q0, ray.dq, Real(k)))), ray.step, k,
-                                 inv_n};
-    if constexpr (kLine) Svv::accumulate(line_ray, sample);  // = Isbv's = Ivbv's
-    if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
+  if constexpr (Empty == kMarchEverySample) {
+    for (int k = 1; k <= ray.n; ++k) {
+      const RaySample<Real> sample{Real(blocking_at(along(ray.q0, ray.dq, Real(k)))), ray.step,
+                                   k, inv_n};
+      if constexpr (kLine) Svv::accumulate(line_ray, sample);  // = Isbv's = Ivbv's
+      if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
+    }
+  } else {
+    for (int k = 1; k <= ray.n; ++k) {
+      const Vec3<Real> q = along(ray.q0, ray.dq, Real(k));
+      const float code = brick_code(s.blocking, floor_int(q.x), floor_int(q.y), floor_int(q.z));
+      Real b;
+      if (code >= 0.0f) {
+        b = Real(code);
+      } else if (code < kEmptyRunBelow) {  // 0 here and at the samples leapt over: nothing to add
+        k += empty_leap(code, ray.dq, ray.n);
+        continue;
+      } else {
+        b = Real(blocking_at.mixed(q));
+      }
+      const RaySample<Real> sample{b, ray.step, k, inv_n};
+      if constexpr (kLine) Svv::accumulate(line_ray, sample);  // = Isbv's = Ivbv's
+      if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
+    }
   }
   if constexpr ((Values & kBvv) != 0) Bvv::close(bvv_ray, inv_n, ray.step);
   const RayContext<Real> context{crossing, ray.step, ray.cos_alpha, s.eps, target.weight};
@@ -584,12 +644,12 @@ CREPUSCULAR_HD void add_state(VoxelState<Real>& a, const VoxelState<Real>& b) {
   a.bvv.sum += b.bvv.sum;
 }
 
-template <typename Real, unsigned Values, typename Sampler>
+template <typename Real, unsigned Values, typename Sampler, EmptySpace Empty = kLeapEmptySpace>
 CREPUSCULAR_HD void path_safety_at(const PathSafetyScene<Real>& s, Vec3<double> p, float* out,
                                    const Sampler& blocking_at) {
   VoxelState<Real> state;
   for (int t = 0; t < s.surface_count; ++t) {
-    combine_ray<Real, Values>(state, s, p, s.surface[t], blocking_at);
+    combine_ray<Real, Values, Sampler, Empty>(state, s, p, s.surface[t], blocking_at);
   }
   finalize_values(state, Values, s.s2, out);
 }

@@ -319,6 +319,72 @@ OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>
   return out;
 }
 
+namespace {
+
+// Empty-space leaping (kernels::brick_code): every empty brick (code 0) gets -d where d >= 2 is its
+// Chebyshev distance, in bricks, to the nearest brick that is not empty, capped at
+// kernels::kMaxEmptyRun. The bricks just beyond the grid count as not empty: a sample there reads
+// the grid's edge voxels. Separable: the distance along x, then the nearest along y of
+// max(|dy|, that), then along z.
+void mark_empty_runs(std::vector<float>& bricks, const std::array<int, 3>& n) {
+  constexpr int kCap = kernels::kMaxEmptyRun;
+  std::vector<uint8_t> dist(bricks.size());
+  const auto at = [&](int x, int y, int z) { return size_t((int64_t(z) * n[1] + y) * n[0] + x); };
+#pragma omp parallel for collapse(2) schedule(static)
+  for (int z = 0; z < n[2]; ++z) {
+    for (int y = 0; y < n[1]; ++y) {
+      int run = 0;  // distance to the last brick that is not empty (the one before x = 0)
+      for (int x = 0; x < n[0]; ++x) {
+        run = bricks[at(x, y, z)] == 0.0f ? std::min(run + 1, kCap) : 0;
+        dist[at(x, y, z)] = uint8_t(run);
+      }
+      run = 0;
+      for (int x = n[0] - 1; x >= 0; --x) {
+        run = bricks[at(x, y, z)] == 0.0f ? std::min(run + 1, kCap) : 0;
+        dist[at(x, y, z)] = uint8_t(std::min<int>(dist[at(x, y, z)], run));
+      }
+    }
+  }
+  // Along one more axis: the nearest of max(|d|, dist) over the line, the line's ends beyond the
+  // grid at distance 0.
+  const auto pass = [&](int axis) {
+    const int len = n[size_t(axis)];
+    const int other = n[0];                          // lines along y or z, one per x
+    const int outer = axis == 1 ? n[2] : n[1];       // and per z or y
+#pragma omp parallel
+    {
+      std::vector<uint8_t> line(static_cast<size_t>(len));
+#pragma omp for collapse(2) schedule(static)
+      for (int o = 0; o < outer; ++o) {
+        for (int a = 0; a < other; ++a) {
+          const auto index = [&](int t) {
+            return axis == 1 ? at(a, t, o) : at(a, o, t);
+          };
+          for (int t = 0; t < len; ++t) line[size_t(t)] = dist[index(t)];
+          for (int t = 0; t < len; ++t) {
+            int best = line[size_t(t)];
+            for (int d = 1; d < best; ++d) {
+              const int lo = t - d, hi = t + d;
+              const int below = lo < 0 ? 0 : line[size_t(lo)];
+              const int above = hi >= len ? 0 : line[size_t(hi)];
+              best = std::min(best, std::max(d, std::min(below, above)));
+            }
+            dist[index(t)] = uint8_t(best);
+          }
+        }
+      }
+    }
+  };
+  pass(1);
+  pass(2);
+#pragma omp parallel for schedule(static)
+  for (int64_t b = 0; b < int64_t(bricks.size()); ++b) {
+    if (dist[size_t(b)] >= 2) bricks[size_t(b)] = -float(dist[size_t(b)]);
+  }
+}
+
+}  // namespace
+
 std::vector<float> blocking_bricks(const Volume<float>& blocking) {
   const auto& d = blocking.dims();
   const int bx = kernels::bricks_along(int(d[0])), by = kernels::bricks_along(int(d[1])),
@@ -343,10 +409,11 @@ std::vector<float> blocking_bricks(const Volume<float>& blocking) {
                 uniform = false;
                 break;
               }
-        bricks[size_t((int64_t(z) * by + y) * bx + x)] = uniform ? value : -1.0f;
+        bricks[size_t((int64_t(z) * by + y) * bx + x)] = uniform ? value : kernels::kMixedBrick;
       }
     }
   }
+  mark_empty_runs(bricks, {bx, by, bz});
   return bricks;
 }
 

@@ -175,8 +175,10 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                                      const std::string& blocking_source = "blocking volume",
                                      const std::string& tumor_source = "tumor mask");
 
-// The blocking volume's bricks (kernels::kBrickShift): the value every sample whose lower corner
-// lies in the brick takes where that is one value (0 in empty space), else -1.
+// The blocking volume's bricks (kernels::kBrickShift, kernels::brick_code): the value every
+// sample whose lower corner lies in the brick takes where that is one value (0 in empty space),
+// else -1; an empty brick at Chebyshev distance d >= 2 bricks from the nearest brick that is not
+// empty holds -d (capped at kernels::kMaxEmptyRun), so rays leap over the cube of empty bricks.
 std::vector<float> blocking_bricks(const Volume<float>& blocking);
 
 // Builds the scene the kernels read. The returned views point into `blocking`, `tumor`,

@@ -285,6 +285,108 @@ TEST(PathSafety, UniformBricksGiveTheSamplesOfTheVolume) {
   EXPECT_GT(uniform_samples, 40000);
 }
 
+// Empty bricks far from anything that blocks hold their Chebyshev distance to it (in bricks), so
+// rays leap over them; checked against a brute-force search over every brick.
+TEST(PathSafety, EmptyBricksHoldTheirDistanceToBlocking) {
+  ImageGeometry g;
+  g.dims = {150, 97, 61};  // 38 x 25 x 16 bricks, the last ones partial
+  Volume<float> blocking(g, 0.0f);
+  std::mt19937 rng(11);
+  std::uniform_int_distribution<int> x(0, 149), y(0, 96), z(0, 60);
+  for (int blob = 0; blob < 6; ++blob) {  // small cubes of blocking
+    const int cx = x(rng), cy = y(rng), cz = z(rng);
+    for (int k = std::max(0, cz - 2); k <= std::min(60, cz + 2); ++k)
+      for (int j = std::max(0, cy - 2); j <= std::min(96, cy + 2); ++j)
+        for (int i = std::max(0, cx - 2); i <= std::min(149, cx + 2); ++i) blocking(i, j, k) = 0.5f;
+  }
+  const std::vector<float> bricks = blocking_bricks(blocking);
+  const int n[3] = {kernels::bricks_along(150), kernels::bricks_along(97), kernels::bricks_along(61)};
+  const auto code = [&](int bx, int by, int bz) {
+    return bricks[size_t((int64_t(bz) * n[1] + by) * n[0] + bx)];
+  };
+  // Truth: a brick is empty when all voxels of it and its trilinear support are 0.
+  const auto empty = [&](int bx, int by, int bz) {
+    for (int k = bz * 4; k <= std::min(bz * 4 + 4, 60); ++k)
+      for (int j = by * 4; j <= std::min(by * 4 + 4, 96); ++j)
+        for (int i = bx * 4; i <= std::min(bx * 4 + 4, 149); ++i)
+          if (blocking(i, j, k) != 0.0f) return false;
+    return true;
+  };
+  std::vector<uint8_t> is_empty(size_t(n[0]) * n[1] * n[2]);
+  for (int bz = 0; bz < n[2]; ++bz)
+    for (int by = 0; by < n[1]; ++by)
+      for (int bx = 0; bx < n[0]; ++bx)
+        is_empty[size_t((int64_t(bz) * n[1] + by) * n[0] + bx)] = empty(bx, by, bz);
+  int leaping = 0, far = 0;
+  for (int bz = 0; bz < n[2]; ++bz)
+    for (int by = 0; by < n[1]; ++by)
+      for (int bx = 0; bx < n[0]; ++bx) {
+        const float c = code(bx, by, bz);
+        if (!is_empty[size_t((int64_t(bz) * n[1] + by) * n[0] + bx)]) {
+          EXPECT_GE(c, -1.0f);
+          EXPECT_NE(c, 0.0f);
+          continue;
+        }
+        // Distance to the nearest brick that is not empty, the bricks beyond the grid included.
+        int d = std::min({bx + 1, by + 1, bz + 1, n[0] - bx, n[1] - by, n[2] - bz});
+        for (int cz = 0; cz < n[2]; ++cz)
+          for (int cy = 0; cy < n[1]; ++cy)
+            for (int cx = 0; cx < n[0]; ++cx)
+              if (!is_empty[size_t((int64_t(cz) * n[1] + cy) * n[0] + cx)])
+                d = std::min(d, std::max({std::abs(cx - bx), std::abs(cy - by), std::abs(cz - bz)}));
+        d = std::min(d, kernels::kMaxEmptyRun);
+        ASSERT_EQ(c, d >= 2 ? -float(d) : 0.0f) << bx << "," << by << "," << bz;
+        leaping += d >= 2;
+        far += d >= 5;
+      }
+  EXPECT_GT(leaping, 1000);  // the test has cubes to leap through
+  EXPECT_GT(far, 50);
+}
+
+// Leaping over empty bricks changes no value, bit for bit: rays through wide empty space to a
+// tumor among a few blocking structures, with and without the bricks.
+TEST(PathSafety, LeapingOverEmptyBricksChangesNoValue) {
+  const ImageGeometry g = centred_cube_grid(81, 1.0);
+  Volume<float> blocking(g, 0.0f);
+  Volume<uint8_t> tumor(g, 0);
+  for (int64_t k = 0; k < 81; ++k)
+    for (int64_t j = 0; j < 81; ++j)
+      for (int64_t i = 0; i < 81; ++i) {
+        const Eigen::Vector3d p = g.index_to_physical(i, j, k);
+        if (p.norm() <= 4.0) tumor(i, j, k) = 1;
+        if ((p - Eigen::Vector3d(14, 3, -2)).norm() <= 5.0) blocking(i, j, k) = 0.8f;  // an organ
+        if (std::abs(p.x() + 12) < 1.5 && std::abs(p.z() - 6) < 1.5) {               // a vessel
+          blocking(i, j, k) = 1.0f + 0.01f * float(j);
+        }
+      }
+  const TumorSurface surface = extract_tumor_surface(tumor, "ball");
+  const std::vector<float> bricks = blocking_bricks(blocking);
+  int64_t leaping = 0;
+  for (float c : bricks) leaping += c < kernels::kEmptyRunBelow;
+  ASSERT_GT(leaping, 500);
+  const auto with = make_scene(blocking, tumor, surface, 0.5, 0.01, bricks);
+  const auto without = make_scene(blocking, tumor, surface, 0.5, 0.01);
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> u(-39.0, 39.0);
+  int blocked = 0;
+  for (int n = 0; n < 300; ++n) {
+    const kernels::Vec3<double> p{u(rng), u(rng), u(rng)};
+    float a[4] = {-1, -1, -1, -1}, b[4] = {-2, -2, -2, -2}, c[4] = {-3, -3, -3, -3};
+    kernels::path_safety_at<double, kAllValues>(with, p, a);
+    kernels::path_safety_at<double, kAllValues>(without, p, b);
+    // The march that samples every step (the GPU point kernel's) reads the same codes as 0.
+    kernels::path_safety_at<double, kAllValues, kernels::GridSampler<double>,
+                            kernels::kMarchEverySample>(with, p, c,
+                                                        kernels::GridSampler<double>{with.blocking});
+    for (int v = 0; v < 4; ++v) {
+      ASSERT_EQ(a[v], b[v]) << "value " << v << " at sample " << n;
+      ASSERT_EQ(c[v], b[v]) << "value " << v << " at sample " << n;
+    }
+    blocked += b[1] > 0.0f;
+  }
+  EXPECT_GT(blocked, 20);  // some rays cross the organ or the vessel
+}
+
 // Front- and back-facing sets of the surface seen from p.
 void facing_sets(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                  const Eigen::Vector3d& p, std::vector<Index3>& front, std::vector<Index3>& back) {
