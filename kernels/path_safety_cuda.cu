@@ -744,7 +744,6 @@ __global__ void __launch_bounds__(128, 8)
   for (int v = 0; v < kValueCount; ++v) out[size_t(p) * kValueCount + v] = res[v];
 }
 
-
 // Few points (fast mode's self-check: 1000): one block per point, its threads splitting the
 // surface points, so that every multiprocessor has work. Thread states are summed in a tree.
 constexpr int kSplitThreads = 128;

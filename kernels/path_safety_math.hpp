@@ -577,8 +577,8 @@ enum EmptySpace { kLeapEmptySpace, kMarchEverySample };
 // COMBINEVALUES of the ray from p to one surface point into a voxel's state.
 // Sampler: mixed(q), the sample at blocking index q where its brick holds more than one value
 // (uniform bricks are read here, empty ones leapt over), and operator()(q), any sample
-// (kMarchEverySample); the CUDA backend may pass a texture sampler. Every sample takes the value sample_blocking gives it: results do not depend on the
-// bricks.
+// (kMarchEverySample); the CUDA backend may pass a texture sampler. Every sample takes the value
+// sample_blocking gives it: results do not depend on the bricks.
 template <typename Real, unsigned Values, typename Sampler, EmptySpace Empty = kLeapEmptySpace>
 CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>& s,
                                 Vec3<double> p, const SurfacePoint<double>& target,
@@ -601,12 +601,14 @@ CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>
   typename Svv::Ray line_ray;
   typename Bvv::Ray bvv_ray;
   const Real inv_n = ray.n > 0 ? Real(1) / Real(ray.n) : Real(0);
+  const auto accumulate = [&](Real b, int k) {
+    const RaySample<Real> sample{b, ray.step, k, inv_n};
+    if constexpr (kLine) Svv::accumulate(line_ray, sample);  // = Isbv's = Ivbv's
+    if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
+  };
   if constexpr (Empty == kMarchEverySample) {
     for (int k = 1; k <= ray.n; ++k) {
-      const RaySample<Real> sample{Real(blocking_at(along(ray.q0, ray.dq, Real(k)))), ray.step,
-                                   k, inv_n};
-      if constexpr (kLine) Svv::accumulate(line_ray, sample);  // = Isbv's = Ivbv's
-      if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
+      accumulate(Real(blocking_at(along(ray.q0, ray.dq, Real(k)))), k);
     }
   } else {
     for (int k = 1; k <= ray.n; ++k) {
@@ -621,9 +623,7 @@ CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>
       } else {
         b = Real(blocking_at.mixed(q));
       }
-      const RaySample<Real> sample{b, ray.step, k, inv_n};
-      if constexpr (kLine) Svv::accumulate(line_ray, sample);  // = Isbv's = Ivbv's
-      if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
+      accumulate(b, k);
     }
   }
   if constexpr ((Values & kBvv) != 0) Bvv::close(bvv_ray, inv_n, ray.step);

@@ -349,17 +349,15 @@ void mark_empty_runs(std::vector<float>& bricks, const std::array<int, 3>& n) {
   // grid at distance 0.
   const auto pass = [&](int axis) {
     const int len = n[size_t(axis)];
-    const int other = n[0];                          // lines along y or z, one per x
-    const int outer = axis == 1 ? n[2] : n[1];       // and per z or y
+    const int other = n[0];                     // lines along y or z: one per x
+    const int outer = axis == 1 ? n[2] : n[1];  // and one per z or y
 #pragma omp parallel
     {
       std::vector<uint8_t> line(static_cast<size_t>(len));
 #pragma omp for collapse(2) schedule(static)
       for (int o = 0; o < outer; ++o) {
         for (int a = 0; a < other; ++a) {
-          const auto index = [&](int t) {
-            return axis == 1 ? at(a, t, o) : at(a, o, t);
-          };
+          const auto index = [&](int t) { return axis == 1 ? at(a, t, o) : at(a, o, t); };
           for (int t = 0; t < len; ++t) line[size_t(t)] = dist[index(t)];
           for (int t = 0; t < len; ++t) {
             int best = line[size_t(t)];
