@@ -219,32 +219,44 @@ class StepClock {
   double seconds_[kSteps] = {};
 };
 
+// Per-thread lists of gather_requests, kept from call to call: lists that grow afresh in each
+// call spend much of the sampler's time in the kernel clearing their new pages.
+struct RequestLists {
+  std::vector<std::vector<GridPoint>> mine, beyond;
+};
+
 // Queues the points that `points_of(c, offer)` offers for items c = 0..count-1, in parallel: grid
 // voxels are claimed atomically, the few corners beyond the grid's edge are requested afterwards
 // on one thread. The queue keeps the items' order (threads take contiguous ranges).
 template <typename PointsOf>
 void gather_requests(int64_t count, const PointsOf& points_of, SampleStore& store,
-                     std::vector<GridPoint>& queue) {
+                     RequestLists& lists, std::vector<GridPoint>& queue) {
   queue.clear();
   const int threads = omp_get_max_threads();
-  std::vector<std::vector<GridPoint>> mine(static_cast<size_t>(threads));
-  std::vector<std::vector<GridPoint>> beyond(static_cast<size_t>(threads));
+  lists.mine.resize(size_t(threads));
+  lists.beyond.resize(size_t(threads));
+  for (int t = 0; t < threads; ++t) {
+    lists.mine[size_t(t)].clear();
+    lists.beyond[size_t(t)].clear();
+  }
 #pragma omp parallel num_threads(threads)
   {
     const size_t t = size_t(omp_get_thread_num());
+    std::vector<GridPoint>& mine = lists.mine[t];
+    std::vector<GridPoint>& beyond = lists.beyond[t];
 #pragma omp for schedule(static)
     for (int64_t c = 0; c < count; ++c) {
       points_of(c, [&](int64_t i, int64_t j, int64_t k) {
         if (!store.inside(i, j, k)) {
-          beyond[t].push_back({int32_t(i), int32_t(j), int32_t(k)});
+          beyond.push_back({int32_t(i), int32_t(j), int32_t(k)});
         } else if (store.claim(i, j, k)) {
-          mine[t].push_back({int32_t(i), int32_t(j), int32_t(k)});
+          mine.push_back({int32_t(i), int32_t(j), int32_t(k)});
         }
       });
     }
   }
-  for (const auto& m : mine) queue.insert(queue.end(), m.begin(), m.end());
-  for (const auto& b : beyond) {
+  for (const auto& m : lists.mine) queue.insert(queue.end(), m.begin(), m.end());
+  for (const auto& b : lists.beyond) {
     for (const GridPoint& g : b) store.request(g.i, g.j, g.k, queue);
   }
 }
@@ -271,92 +283,111 @@ void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& e
   clock.add(StepClock::kStore, t);
 }
 
-// Do these points (all evaluated or beyond the grid with values) share every requested value's
-// class, none near a threshold, none unknown?
-bool uniform_points(const GridPoint* points, int count, const std::vector<int>& slots,
-                    const AdaptiveReport& report, const AdaptiveOptions& options,
-                    const SampleStore& store) {
+// A corner's classes as one byte, so that points compare by one comparison: two bits per
+// requested value's class, or kMixedKey where a value is unknown or lies near a threshold (such
+// a corner agrees with nothing, not even itself).
+constexpr uint16_t kMixedKey = 0x100;
+
+uint16_t class_key(const SampleStore& store, int64_t i, int64_t j, int64_t k,
+                   const std::vector<int>& slots, const AdaptiveReport& report,
+                   const AdaptiveOptions& options) {
+  uint16_t key = 0;
   for (const int s : slots) {
     const SafetyClasses& classes = report.classes[size_t(s)];
-    SafetyClass first = SafetyClass::kUnknown;
-    for (int q = 0; q < count; ++q) {
-      const double v = store.value(points[q].i, points[q].j, points[q].k, s);
-      const SafetyClass k = classes.classify(v);
-      if (k == SafetyClass::kUnknown) return false;
-      if (q == 0) first = k;
-      if (k != first || near_threshold(classes, v, options, options.finest_margin)) return false;
+    const double v = store.value(i, j, k, s);
+    const SafetyClass c = classes.classify(v);
+    if (c == SafetyClass::kUnknown || near_threshold(classes, v, options, options.finest_margin)) {
+      return kMixedKey;
     }
+    key = uint16_t(key | (uint16_t(c) & 3u) << (2 * s));
   }
-  return true;
+  return key;
+}
+
+// The points of a cell of edge 2 other than its corners (edge midpoints, face centres, the
+// centre: 19 of the 27), each with the corners of the smallest box of corners around it, in the
+// order in which their values are summed (bit b of the box's corner number on the b-th axis
+// along which the point lies half-way, axes in the order i, j, k).
+struct FinestPoint {
+  int di, dj, dk;
+  int ends;          // 2, 4 or 8
+  int corner[8];     // corner numbers of the cell (bit 0: +i, bit 1: +j, bit 2: +k)
+};
+
+std::vector<FinestPoint> finest_points() {
+  std::vector<FinestPoint> points;
+  for (int m = 0; m < 27; ++m) {
+    const int d[3] = {m % 3, (m / 3) % 3, m / 9};
+    const int halves = (d[0] == 1) + (d[1] == 1) + (d[2] == 1);
+    if (halves == 0) continue;
+    FinestPoint p{d[0], d[1], d[2], 1 << halves, {}};
+    for (int q = 0; q < p.ends; ++q) {
+      int bit = 0, corner = 0;
+      for (int a = 0; a < 3; ++a) {
+        const int high = d[a] == 1 ? (q >> bit++) & 1 : d[a] / 2;
+        corner |= high << a;
+      }
+      p.corner[q] = corner;
+    }
+    points.push_back(p);
+  }
+  return points;
 }
 
 // The finest level, point by point: inside the refined cells of edge 2, an edge's midpoint, a
-// face's centre and the cell's centre are computed where the points around them (the edge's ends,
-// the face's corners, the cell's corners) differ in a class or lie near a threshold, and
+// face's centre and the cell's centre are computed where the corners around them (the edge's
+// ends, the face's corners, the cell's corners) differ in a class or lie near a threshold, and
 // interpolated from them where they agree. A class boundary crossing a cell is computed on the
 // edges and faces it crosses; the cell's uniform edges and faces are interpolated, as a uniform
-// cell is. Returns the points computed.
+// cell is. Each point's decision depends only on its own corners, so a point shared by
+// neighbouring cells is decided alike from each; the first to claim it acts, and all are
+// gathered in one pass. Returns the points computed.
 int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
                       const AdaptiveOptions& options, const std::vector<int>& slots,
                       const PointEvaluator& evaluate, AdaptiveReport& report, SampleStore& store,
-                      StepClock& clock, const std::function<void(double)>& passes_done) {
-  int64_t computed = 0;
-  std::vector<GridPoint> queue;
-  std::vector<float> values;
-  // Pass 1: edge midpoints (between two corners), pass 2: face centres (four corners), pass 3:
-  // cell centres (eight corners). Each point's decision depends only on its own corners, so a
-  // point shared by neighbouring cells is decided alike from each; the first to claim it acts.
-  for (int pass = 1; pass <= 3; ++pass) {
-    int64_t interpolated = 0;
-    const auto t = std::chrono::steady_clock::now();
-    gather_requests(
-        int64_t(refined.size()),
-        [&](int64_t c, const auto& offer) {
-          const Cell& cell = refined[size_t(c)];
-          for (int m = 0; m < 27; ++m) {
-            const int di = m % 3, dj = (m / 3) % 3, dk = m / 9;
-            if ((di == 1) + (dj == 1) + (dk == 1) != pass) continue;
-            const int64_t i = cell.i + di, j = cell.j + dj, k = cell.k + dk;
-            if (!store.inside(i, j, k) || !grid.in_roi(i, j, k)) continue;
-            const uint8_t st = store.state_now(i, j, k);
-            if (st == kEvaluated || st == kQueued || st == kUnknown) continue;
-            // The corners of the smallest box of the cell's corners around the point.
-            GridPoint ends[8];
-            int count = 0;
-            for (int q = 0; q < (1 << pass); ++q) {
-              int bit = 0;
-              const auto corner = [&](int d, int64_t at, int64_t lo) {
-                return d == 1 ? lo + 2 * ((q >> bit++) & 1) : at;
-              };
-              const int64_t ci = corner(di, i, cell.i);
-              const int64_t cj = corner(dj, j, cell.j);
-              const int64_t ck = corner(dk, k, cell.k);
-              ends[count++] = {int32_t(ci), int32_t(cj), int32_t(ck)};
+                      RequestLists& lists, std::vector<GridPoint>& queue,
+                      std::vector<float>& values, StepClock& clock,
+                      const std::function<void(double)>& done) {
+  static const std::vector<FinestPoint> kPoints = finest_points();
+  int64_t interpolated = 0;
+  const auto t = std::chrono::steady_clock::now();
+  gather_requests(
+      int64_t(refined.size()),
+      [&](int64_t c, const auto& offer) {
+        const Cell& cell = refined[size_t(c)];
+        uint16_t key[8];
+        float value[8][kSlots] = {};
+        for (int q = 0; q < 8; ++q) {
+          const int64_t i = cell.ci(q), j = cell.cj(q), k = cell.ck(q);
+          key[q] = class_key(store, i, j, k, slots, report, options);
+          for (const int s : slots) value[q][s] = store.value(i, j, k, s);
+        }
+        for (const FinestPoint& p : kPoints) {
+          const int64_t i = cell.i + p.di, j = cell.j + p.dj, k = cell.k + p.dk;
+          if (!store.inside(i, j, k) || !grid.in_roi(i, j, k)) continue;
+          const uint8_t st = store.state_now(i, j, k);
+          if (st == kEvaluated || st == kQueued || st == kUnknown) continue;
+          bool uniform = key[p.corner[0]] != kMixedKey;
+          for (int q = 1; q < p.ends && uniform; ++q) uniform = key[p.corner[q]] == key[p.corner[0]];
+          if (!uniform) {
+            offer(i, j, k);  // computed (an interpolation from a coarser cell is reclaimed)
+          } else if (store.claim_interpolated(i, j, k)) {
+            const int64_t off = store.offset(i, j, k);
+            for (const int s : slots) {
+              float sum = 0.0f;
+              for (int q = 0; q < p.ends; ++q) sum += value[p.corner[q]][s];
+              store.set(off, s, sum / float(p.ends));
             }
-            if (!uniform_points(ends, count, slots, report, options, store)) {
-              offer(i, j, k);  // computed (an interpolation from a coarser cell is reclaimed)
-            } else if (store.claim_interpolated(i, j, k)) {
-              const int64_t off = store.offset(i, j, k);
-              for (const int s : slots) {
-                float sum = 0.0f;
-                for (int q = 0; q < count; ++q) {
-                  sum += store.value(ends[q].i, ends[q].j, ends[q].k, s);
-                }
-                store.set(off, s, sum / float(count));
-              }
-              __atomic_fetch_add(&interpolated, int64_t(1), __ATOMIC_RELAXED);
-            }
+            __atomic_fetch_add(&interpolated, int64_t(1), __ATOMIC_RELAXED);
           }
-        },
-        store, queue);
-    clock.add(StepClock::kRequests, t);
-    report.interpolated += interpolated;
-    evaluate_queue(queue, evaluate, store, values, clock);
-    computed += int64_t(queue.size());
-    // Edges and faces hold about three points a cell each, centres one.
-    passes_done(pass == 1 ? 3.0 / 7.0 : pass == 2 ? 6.0 / 7.0 : 1.0);
-  }
-  return computed;
+        }
+      },
+      store, lists, queue);
+  clock.add(StepClock::kRequests, t);
+  report.interpolated += interpolated;
+  evaluate_queue(queue, evaluate, store, values, clock);
+  done(1.0);
+  return int64_t(queue.size());
 }
 
 // Progress through the levels: each level computes about four times the points of the one
@@ -439,8 +470,13 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   for (int s = s0; s > 1; s /= 2) ++levels;
   LevelProgress progress(levels, options.progress);
   int level = 0;
+  // Kept from level to level (their capacity: fresh pages cost the kernel's clearing).
   std::vector<GridPoint> queue;
   std::vector<float> values;
+  RequestLists lists;
+  std::vector<uint8_t> refine, children;
+  std::vector<int64_t> next_at, finest_at;
+  std::vector<Cell> next, finest;
   bool classes_known = false;
   clock.add(StepClock::kRequests, t);
   while (!cells.empty()) {
@@ -455,7 +491,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
             offer(cell.ci(corner), cell.cj(corner), cell.ck(corner));
           }
         },
-        store, queue);
+        store, lists, queue);
     clock.add(StepClock::kRequests, t);
     evaluate_queue(queue, evaluate, store, values, clock);
     t = std::chrono::steady_clock::now();
@@ -480,7 +516,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     // One class at all corners, none near a threshold: uniform. refine: 1 where the classes
     // disagree or lie near a threshold, 2 where only a corner outside the scan keeps the cell from
     // being filled (its known voxels are reached by splitting; no class boundary was seen there).
-    std::vector<uint8_t> refine(cells.size(), 0);
+    refine.assign(cells.size(), 0);
 #pragma omp parallel for schedule(dynamic, 256) if (size > 1)
     for (int64_t c = 0; c < int64_t(cells.size()); ++c) {
       const Cell& cell = cells[size_t(c)];
@@ -524,20 +560,44 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     }
 
     // Split the cells to refine (cells of edge 2 that only agree, refined for an unknown corner,
-    // are split too: their known voxels are all computed).
-    std::vector<Cell> next, finest;
-    for (size_t c = 0; c < cells.size(); ++c) {
-      const Cell& cell = cells[c];
-      if (!refine[c]) continue;
-      if (size == 2 && options.pointwise_finest && refine[c] == 1) {
-        finest.push_back(cell);
-        continue;
-      }
-      const int h = size / 2;
+    // are split too: their known voxels are all computed), in parallel: each cell's children
+    // counted, then written at their offsets, in the order of a split cell by cell.
+    const int64_t count = int64_t(cells.size());
+    children.assign(cells.size(), 0);  // bit `child`: that child meets the region
+    const auto to_finest = [&](int64_t c) {
+      return size == 2 && options.pointwise_finest && refine[size_t(c)] == 1;
+    };
+    const int h = size / 2;
+#pragma omp parallel for schedule(static)
+    for (int64_t c = 0; c < count; ++c) {
+      if (!refine[size_t(c)] || to_finest(c)) continue;
+      const Cell& cell = cells[size_t(c)];
+      uint8_t bits = 0;
       for (int child = 0; child < 8; ++child) {
-        const Cell sub{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
-                       cell.k + ((child >> 2) & 1) * h, h};
-        if (meets_roi(sub.i, sub.j, sub.k, h)) next.push_back(sub);
+        if (meets_roi(cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
+                      cell.k + ((child >> 2) & 1) * h, h)) {
+          bits = uint8_t(bits | 1u << child);
+        }
+      }
+      children[size_t(c)] = bits;
+    }
+    next_at.assign(cells.size() + 1, 0);
+    finest_at.assign(cells.size() + 1, 0);
+    for (int64_t c = 0; c < count; ++c) {
+      next_at[size_t(c) + 1] = next_at[size_t(c)] + __builtin_popcount(children[size_t(c)]);
+      finest_at[size_t(c) + 1] = finest_at[size_t(c)] + (to_finest(c) ? 1 : 0);
+    }
+    next.resize(size_t(next_at.back()));
+    finest.resize(size_t(finest_at.back()));
+#pragma omp parallel for schedule(static)
+    for (int64_t c = 0; c < count; ++c) {
+      const Cell& cell = cells[size_t(c)];
+      if (to_finest(c)) finest[size_t(finest_at[size_t(c)])] = cell;
+      int64_t at = next_at[size_t(c)];
+      for (int child = 0; child < 8; ++child) {
+        if (!(children[size_t(c)] & (1u << child))) continue;
+        next[size_t(at++)] = {cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
+                              cell.k + ((child >> 2) & 1) * h, h};
       }
     }
     clock.add(StepClock::kRefine, t);
@@ -560,8 +620,8 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     clock.add(StepClock::kFill, t);
     if (!finest.empty()) {
       const int64_t computed =
-          sample_finest(finest, grid, options, slots, evaluate, report, store, clock,
-                        [&](double f) { progress.at(level + 1, f); });
+          sample_finest(finest, grid, options, slots, evaluate, report, store, lists, queue,
+                        values, clock, [&](double f) { progress.at(level + 1, f); });
       report.evaluated += computed;
       report.levels.emplace_back(0, computed);
     }

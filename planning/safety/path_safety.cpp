@@ -383,6 +383,12 @@ void mark_empty_runs(std::vector<float>& bricks, const std::array<int, 3>& n) {
 
 }  // namespace
 
+int coarsest_stride(double spacing_mm) {
+  int stride = 4;
+  while (stride < 64 && 2.0 * stride * spacing_mm <= 8.0 + 1e-9) stride *= 2;
+  return stride;
+}
+
 std::vector<float> blocking_bricks(const Volume<float>& blocking) {
   const auto& d = blocking.dims();
   const int bx = kernels::bricks_along(int(d[0])), by = kernels::bricks_along(int(d[1])),
@@ -677,7 +683,9 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
   }
   adaptive.known_mask = known;
   adaptive.values = options.values;
-  adaptive.stride = options.fast_stride;
+  adaptive.stride = options.fast_stride > 0 ? options.fast_stride
+                                            : coarsest_stride(grid.geometry.spacing[0]);
+  result.fast_stride = adaptive.stride;
   adaptive.svv_margin = options.fast_svv_margin;
   adaptive.blocking_margin = options.fast_blocking_margin;
   adaptive.dilate = options.fast_dilate;
@@ -688,6 +696,7 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
   const AdaptiveReport report = sample_adaptively(grid, adaptive, evaluate, out);
   result.evaluated_points = report.evaluated;
   result.interpolated_voxels = report.interpolated;
+  result.sampler_levels = report.levels;
   result.phases.insert(result.phases.end(), report.seconds.begin(), report.seconds.end());
   std::string levels;
   for (const auto& [stride, count] : report.levels) {
