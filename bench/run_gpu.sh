@@ -49,11 +49,16 @@ plan() {
     echo "$t: exit $?"; tail -3 "$out/$t.log"
   done
   echo "== plan end to end, headline grid"
+  # PLAN_VARIANTS: option sets separated by '|', each run in every mode (A/B in one call).
+  local variants=("")
+  [ -z "${PLAN_VARIANTS:-}" ] || IFS='|' read -ra variants <<<"$PLAN_VARIANTS"
   for m in ${PLAN_MODES:-fast exact}; do
-    .device/bin/bench_plan --phantom-spacing 0.7 --tumor-diameter 20 --tumor-spacing 0.7 \
-      --spacing 0.7 --radius 179.2 --mode "$m" --device cuda --work /tmp/plan_bench \
-      ${PLAN_ARGS:-} 2>&1 |
-      tee -a "$out/plan_headline.jsonl"
+    for v in "${variants[@]}"; do
+      .device/bin/bench_plan --phantom-spacing 0.7 --tumor-diameter 20 --tumor-spacing 0.7 \
+        --spacing 0.7 --radius 179.2 --mode "$m" --device cuda --work /tmp/plan_bench \
+        ${PLAN_ARGS:-} $v 2>&1 |
+        tee -a "$out/plan_headline.jsonl"
+    done
   done
   df -h /tmp | tail -1 | tee -a "$out/plan_headline.jsonl"
 }

@@ -107,21 +107,36 @@ nlohmann::json statistics_json(const Volume<float>& vol) {
 // runs at ~100 MB/s a core while the disk takes GB/s (bench/RESULTS.md, plan end to end).
 constexpr int64_t kUncompressedAboveVoxels = 32 * 1024 * 1024;
 
-// Step 3: blocking, voxel states and path safety volumes into the staged folder, concurrently.
-Written write_volumes(const StagedDirectory& out, const Volume<float>& blocking,
-                      const Volume<uint8_t>& tumor, const PathSafetyResult& result,
-                      const Volume<uint8_t>& region) {
-  const std::string ext =
-      result.grid.geometry.voxel_count() > kUncompressedAboveVoxels ? ".nii" : ".nii.gz";
-  Written w;
-  w.outputs = {{"blocking", "blocking" + ext}, {"roi", "roi" + ext}, {"tumor", "tumor.nii.gz"}};
+// The NIfTI extension of a volume of `voxels` voxels.
+std::string volume_extension(int64_t voxels) {
+  return voxels > kUncompressedAboveVoxels ? ".nii" : ".nii.gz";
+}
+
+// Step 3a, while path safety runs (they depend on the inputs alone): the blocking volume and the
+// planned lesion itself (a label of a label map, or one of several lesions: what slices,
+// evaluate and guidance outline) into the staged folder. `outputs` gets their names.
+std::vector<std::future<void>> write_inputs(const StagedDirectory& out, const PlanInputs& in,
+                                            nlohmann::json& outputs) {
+  const std::string blocking = "blocking" + volume_extension(in.blocking.voxel_count());
+  outputs["blocking"] = blocking;
+  outputs["tumor"] = "tumor.nii.gz";
   std::vector<std::future<void>> writes;
   writes.push_back(std::async(std::launch::async,
-                              [&] { write_volume(blocking, out.file("blocking" + ext)); }));
-  // The planned lesion itself (a label of a label map, or one of several lesions): what slices,
-  // evaluate and guidance outline.
+                              [&out, &in, blocking] { write_volume(in.blocking, out.file(blocking)); }));
   writes.push_back(std::async(std::launch::async,
-                              [&] { write_volume(tumor, out.file("tumor.nii.gz")); }));
+                              [&out, &in] { write_volume(in.tumor, out.file("tumor.nii.gz")); }));
+  return writes;
+}
+
+// Step 3b: voxel states and path safety volumes into the staged folder, concurrently, and the
+// writes of step 3a finished.
+Written write_volumes(const StagedDirectory& out, const PathSafetyResult& result,
+                      const Volume<uint8_t>& region, std::vector<std::future<void>> writes,
+                      const nlohmann::json& outputs) {
+  const std::string ext = volume_extension(result.grid.geometry.voxel_count());
+  Written w;
+  w.outputs = outputs;
+  w.outputs["roi"] = "roi" + ext;
   // The voxel states (RegionState): ITK-based readers (3D Slicer among them) turn NaN into 0 when
   // they load NIfTI, so "not computed" and "unknown" must also be visible without NaN.
   writes.push_back(std::async(std::launch::async,
@@ -169,12 +184,17 @@ nlohmann::json fast_check_json(const PlanRequest& req, const PathSafetyResult& r
     check["direction_cells"] = result.direction_cells;
     check["angular_oversampling"] = req.path_safety.fast_angular;
   } else {
-    check["coarsest_stride"] = req.path_safety.fast_stride;
+    check["coarsest_stride"] = result.fast_stride;
     check["surface_block"] = req.path_safety.fast_surface_block;
     check["rays_per_voxel"] =
         result.fast_surface_points > 0 ? result.fast_surface_points : result.surface_points;
     check["points_computed_exactly"] = result.evaluated_points;
     check["voxels_interpolated"] = result.interpolated_voxels;
+    nlohmann::json levels = nlohmann::json::array();
+    for (const auto& [stride, count] : result.sampler_levels) {
+      levels.push_back({{"stride", stride}, {"points", count}});
+    }
+    check["points_per_level"] = levels;
   }
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (!(result.values & (1u << v))) continue;
@@ -401,7 +421,9 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   // The plan's own files: the combination, with the first phase's blocking, tumor and labels.
   const PhaseInputs& first = phases.front();
   t = Clock::now();
-  Written written = write_volumes(out, first.inputs.blocking, first.inputs.tumor, combined, region);
+  nlohmann::json outputs;
+  std::vector<std::future<void>> input_writes = write_inputs(out, first.inputs, outputs);
+  Written written = write_volumes(out, combined, region, std::move(input_writes), outputs);
   timings["write_s"] = seconds_since(t);
   nlohmann::json breathing;
   if (!list.file.empty()) {
@@ -578,6 +600,10 @@ nlohmann::json run_plan(const PlanRequest& req) {
   auto t = Clock::now();
   const PlanInputs in = read_plan_inputs(req);
   timings["read_and_preprocess_s"] = seconds_since(t);
+  timings["read_and_preprocess_phases"] = in.seconds;
+  // The inputs' volumes are written while path safety runs.
+  nlohmann::json input_outputs;
+  std::vector<std::future<void>> input_writes = write_inputs(out, in, input_outputs);
 
   t = Clock::now();
   PathSafetyResult result = compute(req, in);
@@ -592,19 +618,33 @@ nlohmann::json run_plan(const PlanRequest& req) {
   warn_about_coverage(coverage, req.crop_to_scan);
   timings["scan_coverage_s"] = seconds_since(t);
 
+  // Step 4, area safety (§3.3) of the first computed value, on the cores while the volumes
+  // are written (the writes wait on the disk).
+  nlohmann::json area_safety;
+  AreaSafetyGeometry geometry;
+  std::future<double> area;
+  if (req.area_safety.enabled) {
+    area = std::async(std::launch::async, [&] {
+      const auto ta = Clock::now();
+      area_safety = plan_area_safety(in.tumor, result, req.area_safety,
+                                     out.file("area_safety.vtk"), &region, &geometry);
+      return seconds_since(ta);
+    });
+  }
   t = Clock::now();
-  Written written = write_volumes(out, in.blocking, in.tumor, result, region);
+  Written written;
+  try {
+    written = write_volumes(out, result, region, std::move(input_writes), input_outputs);
+  } catch (...) {
+    if (area.valid()) area.wait();  // before the staged folder goes
+    throw;
+  }
   timings["write_s"] = seconds_since(t);
 
-  // Step 4, area safety (§3.3): the first computed value.
-  nlohmann::json area_safety;
-  if (req.area_safety.enabled) {
-    t = Clock::now();
-    AreaSafetyGeometry geometry;
-    area_safety = plan_area_safety(in.tumor, result, req.area_safety, out.file("area_safety.vtk"),
-                                   &region, &geometry);
+  if (area.valid()) {
+    timings["area_safety_s"] = area.get();  // rethrows its failure
+    timings["write_and_area_safety_s"] = seconds_since(t);
     written.outputs["area_safety"] = "area_safety.vtk";
-    timings["area_safety_s"] = seconds_since(t);
     // The planned trajectories for 3D Slicer: one line per safe region, and their entries.
     const std::string value = area_safety["value"].get<std::string>();
     const std::vector<RegionTrajectory> planned = region_trajectories(

@@ -6,7 +6,9 @@
 #include <algorithm>
 #include <cctype>
 #include <deque>
+#include <chrono>
 #include <filesystem>
+#include <future>
 
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
@@ -225,8 +227,21 @@ std::string tumor_file(const std::string& tumor_spec) {
 
 PlanInputs read_plan_inputs(const PlanInputOptions& o) {
   PlanInputs in;
+  using Clock = std::chrono::steady_clock;
+  const auto since = [](Clock::time_point t) {
+    return std::chrono::duration<double>(Clock::now() - t).count();
+  };
+  // The tumor (reading, lesion selection) on its own thread while the blocking volume is made:
+  // they share nothing. A failure of the blocking is reported first, as it would be in turn.
+  std::future<double> tumor = std::async(std::launch::async, [&] {
+    const auto t = Clock::now();
+    read_tumor(o, in);
+    return since(t);
+  });
+  const auto t = Clock::now();
   make_blocking(o, in);
-  read_tumor(o, in);
+  in.seconds["blocking"] = since(t);
+  in.seconds["tumor"] = tumor.get();
   return in;
 }
 

@@ -42,6 +42,7 @@ struct PlanInputs {
   nlohmann::json tumor_source;        // plan.json "tumor_source": file, label, lesion
   planning::ScanCoverage coverage;    // the scanned volume: the anatomy inputs' grids
   planning::Volume<int32_t> labels;   // the (combined) label map, for the skin; empty without one
+  nlohmann::json seconds;             // the steps' wall times (blocking, tumor: concurrent)
 };
 
 // A breathing cycle (DESIGN.md §10) as phases.json lists it: per phase its label maps, tumor and
