@@ -36,6 +36,7 @@ class SampleStore {
     if (known_mask_ && inside(i, j, k)) return known_mask_[offset(i, j, k)] != 0;
     return !known_ || known_(i, j, k);
   }
+  bool everything_known() const { return !known_mask_ && !known_; }
 
   bool inside(int64_t i, int64_t j, int64_t k) const {
     return i >= 0 && j >= 0 && k >= 0 && i < n_ && j < n_ && k < n_;
@@ -47,28 +48,29 @@ class SampleStore {
     return __atomic_load_n(&state_[size_t(offset(i, j, k))], __ATOMIC_RELAXED);
   }
 
-  // Queues a point for evaluation unless it has values already, is queued, or is unknown (its
-  // values stay NaN).
-  void request(int64_t i, int64_t j, int64_t k, std::vector<GridPoint>& queue) {
-    if (inside(i, j, k)) {
-      // An interpolated voxel (filled from a coarser cell) is reclaimed: now computed.
-      if (!claim(i, j, k)) return;
-    } else {
-      auto [it, added] = outside_.try_emplace(key(i, j, k));
-      if (!added) return;
-      it->second.fill(std::numeric_limits<float>::quiet_NaN());
-      if (!known(i, j, k)) return;
-    }
+  // Queues a lattice corner beyond the grid's edge for evaluation unless it has values already:
+  // an interpolation support (below), computed in or outside the scan.
+  void request_beyond(int64_t i, int64_t j, int64_t k, std::vector<GridPoint>& queue) {
+    auto [it, added] = outside_.try_emplace(key(i, j, k));
+    if (!added) return;
+    it->second.fill(std::numeric_limits<float>::quiet_NaN());
     queue.push_back({int32_t(i), int32_t(j), int32_t(k)});
   }
 
-  // request() for a voxel of the grid, safe to call from several threads at once: true when the
-  // voxel is newly queued (the caller queues it).
-  bool claim(int64_t i, int64_t j, int64_t k) { return take(i, j, k, kQueued); }
+  // A voxel of the grid to compute, safe to call from several threads at once: true when it is
+  // newly queued (the caller queues it); false when it has values, is queued, or lies outside
+  // the scan (it becomes unknown: NaN). An interpolated voxel (filled from a coarser cell) is
+  // reclaimed: now computed.
+  bool claim(int64_t i, int64_t j, int64_t k) { return take(i, j, k, kQueued, true); }
+  // The same for a lattice corner of a cell that reaches into the scan: an interpolation
+  // support, computed even where it lies outside the scan (the values are defined there, rays
+  // and all; the voxel itself is reported unknown, NaN, when the sampling finishes). So a cell
+  // crossing the scan's edge is refined where classes change, as any other, not split to voxels.
+  bool claim_support(int64_t i, int64_t j, int64_t k) { return take(i, j, k, kQueued, false); }
   // Marks a pending voxel of the grid interpolated, from several threads at once: true when the
   // caller is to write its values (false: it has values, is queued, or lies outside the scan).
   bool claim_interpolated(int64_t i, int64_t j, int64_t k) {
-    return take(i, j, k, kInterpolated);
+    return take(i, j, k, kInterpolated, true);
   }
 
   void store(const GridPoint& p, const float* values) {
@@ -98,15 +100,15 @@ class SampleStore {
     return (uint64_t(i + kBias) << 42) | (uint64_t(j + kBias) << 21) | uint64_t(k + kBias);
   }
 
-  // Moves a voxel from pending (or, for kQueued, interpolated) to `to`, or to unknown where it
-  // lies outside the scan; atomic on the voxel's state.
-  bool take(int64_t i, int64_t j, int64_t k, uint8_t to) {
+  // Moves a voxel from pending (or, for kQueued, interpolated) to `to`, or, when `in_scan_only`,
+  // to unknown where it lies outside the scan; atomic on the voxel's state.
+  bool take(int64_t i, int64_t j, int64_t k, uint8_t to, bool in_scan_only) {
     const int64_t off = offset(i, j, k);
     uint8_t* s = &state_[size_t(off)];
     uint8_t cur = __atomic_load_n(s, __ATOMIC_RELAXED);
     for (;;) {
       if (!(cur == kPending || (to == kQueued && cur == kInterpolated))) return false;
-      const uint8_t next = known(i, j, k) ? to : kUnknown;
+      const uint8_t next = !in_scan_only || known(i, j, k) ? to : kUnknown;
       if (__atomic_compare_exchange_n(s, &cur, next, false, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
         if (next == kUnknown) {
           for (int v = 0; v < kSlots; ++v) {
@@ -160,12 +162,9 @@ int64_t fill_cell(const Cell& cell, const OutputGrid& grid,
         if (!grid.in_roi(i, j, k)) continue;
         uint8_t& st = store.state(i, j, k);
         if (st == kEvaluated || st == kUnknown) continue;
-        // A voxel between known corners may itself lie outside the scan (a thin gap): unknown
-        // too, never interpolated.
-        if (!store.known(i, j, k)) {
-          st = kUnknown;
-          continue;
-        }
+        // A voxel outside the scan is never interpolated. It stays pending (unknown when the
+        // sampling finishes), so that a finer cell may still compute it as a support.
+        if (!store.known(i, j, k)) continue;
         if (st != kInterpolated) ++interpolated;
         st = kInterpolated;
         const float wx = float(i - cell.i) * inv;
@@ -230,7 +229,7 @@ struct RequestLists {
 // on one thread. The queue keeps the items' order (threads take contiguous ranges).
 template <typename PointsOf>
 void gather_requests(int64_t count, const PointsOf& points_of, SampleStore& store,
-                     RequestLists& lists, std::vector<GridPoint>& queue) {
+                     RequestLists& lists, std::vector<GridPoint>& queue, bool supports = false) {
   queue.clear();
   const int threads = omp_get_max_threads();
   lists.mine.resize(size_t(threads));
@@ -249,7 +248,7 @@ void gather_requests(int64_t count, const PointsOf& points_of, SampleStore& stor
       points_of(c, [&](int64_t i, int64_t j, int64_t k) {
         if (!store.inside(i, j, k)) {
           beyond.push_back({int32_t(i), int32_t(j), int32_t(k)});
-        } else if (store.claim(i, j, k)) {
+        } else if (supports ? store.claim_support(i, j, k) : store.claim(i, j, k)) {
           mine.push_back({int32_t(i), int32_t(j), int32_t(k)});
         }
       });
@@ -257,7 +256,7 @@ void gather_requests(int64_t count, const PointsOf& points_of, SampleStore& stor
   }
   for (const auto& m : lists.mine) queue.insert(queue.end(), m.begin(), m.end());
   for (const auto& b : lists.beyond) {
-    for (const GridPoint& g : b) store.request(g.i, g.j, g.k, queue);
+    for (const GridPoint& g : b) store.request_beyond(g.i, g.j, g.k, queue);
   }
 }
 
@@ -450,6 +449,25 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     return d2 <= radius_sq;
   };
 
+  // Does the box [lo, lo + size]^3 hold a voxel of the region inside the scan? Cells that do not
+  // are never sampled: their voxels are unknown.
+  const auto reaches_scan = [&](int64_t i, int64_t j, int64_t k, int64_t size) {
+    if (store.everything_known()) return true;
+    for (int q = 0; q < 8; ++q) {
+      const int64_t ci = i + (q & 1) * size, cj = j + ((q >> 1) & 1) * size,
+                    ck = k + ((q >> 2) & 1) * size;
+      if (store.inside(ci, cj, ck) && grid.in_roi(ci, cj, ck) && store.known(ci, cj, ck)) {
+        return true;
+      }
+    }
+    for (int64_t kk = std::max<int64_t>(k, 0); kk <= std::min<int64_t>(k + size, n - 1); ++kk)
+      for (int64_t jj = std::max<int64_t>(j, 0); jj <= std::min<int64_t>(j + size, n - 1); ++jj)
+        for (int64_t ii = std::max<int64_t>(i, 0); ii <= std::min<int64_t>(i + size, n - 1); ++ii) {
+          if (grid.in_roi(ii, jj, kk) && store.known(ii, jj, kk)) return true;
+        }
+    return false;
+  };
+
   // The coarsest cells, lattice through the centre voxel, as a dense array for dilation.
   const int64_t a_lo = -((half + s0 - 1) / s0), a_hi = (n - 1 - half + s0 - 1) / s0 - 1;
   const int64_t na = a_hi - a_lo + 1;
@@ -459,7 +477,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     for (int64_t b = a_lo; b <= a_hi; ++b) {
       for (int64_t a = a_lo; a <= a_hi; ++a) {
         const int64_t i = half + a * s0, j = half + b * s0, k = half + c * s0;
-        if (!meets_roi(i, j, k, s0)) continue;
+        if (!meets_roi(i, j, k, s0) || !reaches_scan(i, j, k, s0)) continue;
         cell_at[size_t(((c - a_lo) * na + (b - a_lo)) * na + (a - a_lo))] = int32_t(cells.size());
         cells.push_back({int32_t(i), int32_t(j), int32_t(k), s0});
       }
@@ -491,7 +509,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
             offer(cell.ci(corner), cell.cj(corner), cell.ck(corner));
           }
         },
-        store, lists, queue);
+        store, lists, queue, /*supports=*/size > 1);
     clock.add(StepClock::kRequests, t);
     evaluate_queue(queue, evaluate, store, values, clock);
     t = std::chrono::steady_clock::now();
@@ -506,7 +524,9 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
         for (size_t p = 0; p < queue.size(); ++p) {
           const GridPoint& g = queue[p];
           const double di = g.i - half, dj = g.j - half, dk = g.k - half;
-          if (di * di + dj * dj + dk * dk <= radius_sq) sample.push_back(values[p * kSlots + s]);
+          if (di * di + dj * dj + dk * dk <= radius_sq && store.known(g.i, g.j, g.k)) {
+            sample.push_back(values[p * kSlots + s]);
+          }
         }
         report.classes[size_t(s)] = default_classes_of(1u << s, std::move(sample));
       }
@@ -574,8 +594,9 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       const Cell& cell = cells[size_t(c)];
       uint8_t bits = 0;
       for (int child = 0; child < 8; ++child) {
-        if (meets_roi(cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
-                      cell.k + ((child >> 2) & 1) * h, h)) {
+        const int64_t i = cell.i + (child & 1) * h, j = cell.j + ((child >> 1) & 1) * h,
+                      k = cell.k + ((child >> 2) & 1) * h;
+        if (meets_roi(i, j, k, h) && reaches_scan(i, j, k, h)) {
           bits = uint8_t(bits | 1u << child);
         }
       }
@@ -631,13 +652,24 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
 
   t = std::chrono::steady_clock::now();
   report.interpolated -= store.reclaimed();
-  // Corners evaluated outside the region are not part of the result.
+  // Corners evaluated outside the region are not part of the result, nor are those outside the
+  // scan.
   const float nan = std::numeric_limits<float>::quiet_NaN();
 #pragma omp parallel for schedule(static)
   for (int64_t k = 0; k < n; ++k)
     for (int64_t j = 0; j < n; ++j)
       for (int64_t i = 0; i < n; ++i) {
-        if (store.state(i, j, k) == kEvaluated && !grid.in_roi(i, j, k)) {
+        uint8_t& st = store.state(i, j, k);
+        if (!grid.in_roi(i, j, k)) {
+          if (st == kEvaluated) {
+            for (const int s : slots) store.set(store.offset(i, j, k), s, nan);
+          }
+          continue;
+        }
+        // Interpolation supports outside the scan, and the voxels of cells that never reached
+        // into it: unknown.
+        if (st == kUnknown || st == kPending || (st == kEvaluated && !store.known(i, j, k))) {
+          st = kUnknown;
           for (const int s : slots) store.set(store.offset(i, j, k), s, nan);
         }
       }

@@ -48,8 +48,11 @@ struct AdaptiveOptions {
   // two computed voxels is interpolated unless their values lie this close to a threshold.
   double finest_margin = 1.0;
   // Whether a point (output grid indices, possibly beyond the grid) lies in the scan; points
-  // that do not are never computed (NaN), and a cell with such a corner is always refined, so
-  // nothing is interpolated from the unknown. Null: every point is known.
+  // that do not are unknown (NaN) in the result. Cells with no voxel in the scan are never
+  // sampled. The corners of a cell that reaches into the scan are computed wherever they lie
+  // (the values are defined outside the scan too, rays and all): they are supports from which
+  // the cell's voxels in the scan are interpolated or refined, as in any cell, and are reported
+  // unknown themselves. Null: every point is known.
   std::function<bool(int64_t i, int64_t j, int64_t k)> known;
   // The same for the grid's own voxels, one byte each (x fastest, 1: in the scan), where given:
   // `known` is then asked only about lattice corners beyond the grid's edge.

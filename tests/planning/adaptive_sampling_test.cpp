@@ -131,7 +131,11 @@ TEST(AdaptiveSampling, FinestLevelComputesOnlyBetweenCornersThatDiffer) {
   }
 }
 
-TEST(AdaptiveSampling, UnknownVoxelsAreNeitherComputedNorInterpolated) {
+// Outside the scan nothing is reported: every voxel there is NaN, every voxel inside has the
+// field's value. Outside it only the corners of cells that reach into the scan are computed (the
+// supports of those cells), none farther than a coarsest cell; the scan's edge is sampled as any
+// class boundary, so no level splits cells down to single voxels.
+TEST(AdaptiveSampling, UnknownVoxelsAreNeverReportedAndOnlyCornersNearTheScanAreComputed) {
   const OutputGrid g = ball_grid(24);
   AdaptiveOptions o;
   o.values = kernels::kSvv;
@@ -139,7 +143,17 @@ TEST(AdaptiveSampling, UnknownVoxelsAreNeitherComputedNorInterpolated) {
   const int64_t edge = g.half - 5;
   o.known = [edge](int64_t i, int64_t, int64_t) { return i >= edge; };
   const Sampled run = sample(g, o);
-  for (const auto& [i, j, k] : run.evaluated) EXPECT_GE(i, edge) << "computed an unknown point";
+  int64_t supports = 0;
+  for (const auto& [i, j, k] : run.evaluated) {
+    if (i >= edge) continue;
+    ++supports;
+    EXPECT_GE(i, edge - o.stride) << "computed far outside the scan";
+    const bool corner = (i - g.half) % 2 == 0 && (j - g.half) % 2 == 0 && (k - g.half) % 2 == 0;
+    EXPECT_TRUE(corner) << "computed an unknown point that is no lattice corner: " << i << ","
+                        << j << "," << k;
+  }
+  EXPECT_GT(supports, 0);
+  for (const auto& [stride, count] : run.report.levels) EXPECT_NE(stride, 1) << count;
   const int64_t n = g.geometry.dims[0];
   int64_t unknown_nan = 0, unknown = 0, known_wrong = 0;
   for (int64_t k = 0; k < n; ++k)
