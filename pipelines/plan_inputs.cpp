@@ -110,7 +110,10 @@ void add_label_spec(const std::string& text, const PlanInputOptions& o, LabelSou
 
 void blocking_from_label_specs(const PlanInputOptions& o, PlanInputs& in) {
   LabelSources s;
+  const auto t = std::chrono::steady_clock::now();
   for (const std::string& spec : o.labels) add_label_spec(spec, o, s);
+  in.seconds["read_labels"] =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
   if (s.inputs.size() == 1 && s.segmentations.empty()) {
     // One plain map: on its own grid, exactly as always.
     const LabelMapInput& only = s.inputs.front();

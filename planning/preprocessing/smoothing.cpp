@@ -122,10 +122,13 @@ void discrete_gaussian_box(const std::vector<float>& values, const ImageGeometry
               const int64_t x = std::clamp<int64_t>(b0[0] - r + p, 0, n[0] - 1);
               padded[size_t(p)] = x >= b0[0] && x <= b1[0] ? in[box(x, j, k)] : 0.0f;
             }
-            for (int64_t i = 0; i < m[0]; ++i) {
-              double s = 0.0;
-              for (size_t q = 0; q < t.size(); ++q) s += t[q] * double(padded[size_t(i) + q]);
-              acc[size_t(i)] = s;
+            // Tap by tap across the row (each output still sums its taps in order, so the
+            // values are the same bits): the loop over i vectorizes, where a dot product per
+            // output waited on each addition.
+            for (size_t q = 0; q < t.size(); ++q) {
+              const double w = t[q];
+              const float* src = padded.data() + q;
+              for (int64_t i = 0; i < m[0]; ++i) acc[size_t(i)] += w * double(src[i]);
             }
           } else {
             const int64_t c = axis == 1 ? j : k;
