@@ -383,9 +383,10 @@ void mark_empty_runs(std::vector<float>& bricks, const std::array<int, 3>& n) {
 
 }  // namespace
 
-int coarsest_stride(double spacing_mm) {
+int coarsest_stride(double spacing_mm, double radius_mm) {
+  const double widest = std::min(8.0, radius_mm / 4.0) + 1e-9;
   int stride = 4;
-  while (stride < 64 && 2.0 * stride * spacing_mm <= 8.0 + 1e-9) stride *= 2;
+  while (stride < 64 && 2.0 * stride * spacing_mm <= widest) stride *= 2;
   return stride;
 }
 
@@ -684,7 +685,8 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
   adaptive.known_mask = known;
   adaptive.values = options.values;
   adaptive.stride = options.fast_stride > 0 ? options.fast_stride
-                                            : coarsest_stride(grid.geometry.spacing[0]);
+                                            : coarsest_stride(grid.geometry.spacing[0],
+                                                              grid.radius_mm);
   result.fast_stride = adaptive.stride;
   adaptive.svv_margin = options.fast_svv_margin;
   adaptive.blocking_margin = options.fast_blocking_margin;

@@ -183,11 +183,12 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                                      const std::string& blocking_source = "blocking volume",
                                      const std::string& tumor_source = "tumor mask");
 
-// Fast mode's automatic coarsest stride at output spacing h: the largest power of two whose
-// lattice is at most 8 mm apart, at least 4 (h = 2 mm: 4; h = 0.7 or 1 mm: 8). A coarser lattice
-// in voxels costs fewer points on fine grids; in millimetres it is never coarser than the 8 mm
-// that the 2 mm plans were measured with.
-int coarsest_stride(double spacing_mm);
+// Fast mode's automatic coarsest stride at output spacing h and region radius R: the largest
+// power of two whose lattice is at most min(8 mm, R / 4) apart, at least 4 (h = 2 mm: 4; h = 0.7
+// or 1 mm with R >= 32 mm: 8). A coarser lattice in voxels costs fewer points on fine grids; in
+// millimetres it is never coarser than the 8 mm that the 2 mm plans were measured with, and a
+// small region keeps at least four cells across its radius.
+int coarsest_stride(double spacing_mm, double radius_mm);
 
 // The blocking volume's bricks (kernels::kBrickShift, kernels::brick_code): the value every
 // sample whose lower corner lies in the brick takes where that is one value (0 in empty space),

@@ -105,18 +105,21 @@ TEST(PathSafetyFast, SafetyClassAgreesWithExactModeOnScene3) { expect_fast_agree
 TEST(PathSafetyFast, SafetyClassAgreesWithExactModeOnScene11) { expect_fast_agrees_with_exact(11); }
 
 // Finer grids start from a coarser lattice in voxels (coarsest_stride: every 8th voxel at 1 mm,
-// every 4th at 2 mm; never more than 8 mm apart), and the finest level computes only points
-// whose neighbours differ in a class. The scene of seed 3 planned at 1 mm output spacing (its
-// tumor resampled to 1 mm) keeps exact mode's class on >= 99.5 % of the voxels.
+// every 4th at 2 mm; never more than 8 mm nor a quarter of the region's radius apart), and the
+// finest level computes only points whose neighbours differ in a class. The scene of seed 3
+// planned at 1 mm output spacing (its tumor resampled to 1 mm) keeps exact mode's class on
+// >= 99.5 % of the voxels.
 TEST(PathSafetyFast, AutomaticStrideOnAFinerGridAgreesWithExactMode) {
-  EXPECT_EQ(coarsest_stride(2.0), 4);
-  EXPECT_EQ(coarsest_stride(3.0), 4);
-  EXPECT_EQ(coarsest_stride(1.0), 8);
-  EXPECT_EQ(coarsest_stride(0.7), 8);
-  EXPECT_EQ(coarsest_stride(0.5), 16);
+  EXPECT_EQ(coarsest_stride(2.0, 100.0), 4);
+  EXPECT_EQ(coarsest_stride(3.0, 100.0), 4);
+  EXPECT_EQ(coarsest_stride(1.0, 100.0), 8);
+  EXPECT_EQ(coarsest_stride(0.7, 179.2), 8);
+  EXPECT_EQ(coarsest_stride(0.5, 100.0), 16);
+  EXPECT_EQ(coarsest_stride(0.7, 12.0), 4);  // a small region: four cells across its radius
+  EXPECT_EQ(coarsest_stride(1.0, 30.0), 4);
   const Scene s = vessel_scene(3);
   PathSafetyOptions o;
-  o.radius_mm = 30.0;
+  o.radius_mm = 34.0;
   o.spacing_mm = 1.0;
   o.eps = 0.5;
   o.device = Device::kCpu;
