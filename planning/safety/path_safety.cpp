@@ -1139,6 +1139,12 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                mode_name(options.mode), grid.roi_voxels, surface.points.size(),
                double(result.rays), grid.radius_mm, grid.geometry.spacing[0],
                device == Device::kCuda ? "cuda" : "cpu");
+  // The scan's mask on the output grid, made on another thread while the bricks are.
+  std::future<Volume<uint8_t>> scan_mask;
+  if (options.coverage && !options.coverage->empty() && options.mode != Mode::kTables) {
+    scan_mask = std::async(std::launch::async,
+                           [&] { return options.coverage->mask(grid.geometry); });
+  }
   const std::vector<float> bricks = blocking_bricks(blocking);
   const auto scene =
       make_scene(blocking, ray_tumor, surface, result.gamma_mm, options.eps, bricks);
@@ -1159,9 +1165,9 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   clock.done("bricks");
   // Unknown is never computed: voxels outside the scan stay NaN (the plan marks them unknown).
   Volume<uint8_t> known_mask;
-  if (options.coverage && !options.coverage->empty() && options.mode != Mode::kTables) {
-    known_mask = options.coverage->mask(grid.geometry);
-    clock.done("scan_mask");
+  if (scan_mask.valid()) {
+    known_mask = scan_mask.get();
+    clock.done("scan_mask");  // the wait for it beyond the bricks
   }
   const uint8_t* known = known_mask.geometry().voxel_count() > 0 ? known_mask.data() : nullptr;
   if (device == Device::kCuda) {
@@ -1170,6 +1176,7 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
     volumes.collect(result);
     run_on_cpu(options.mode == Mode::kFast ? fast_scene : scene, grid, known, options, result);
   }
+  result.scan_mask = std::move(known_mask);
   result.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   // Fast mode on the GPU checked itself there; otherwise the CPU recomputes the sample.

@@ -153,6 +153,9 @@ struct PathSafetyResult {
   // One volume per value slot (svv, isbv, ivbv, bvv); only requested ones are filled. Voxels
   // outside the region of interest are NaN (not computed).
   std::array<Volume<float>, kernels::kValueCount> volumes;
+  // The scan's mask on the output grid (1 in the scan) where the inputs do not cover the whole
+  // grid and path safety used it; empty otherwise (apply_scan_coverage takes it over).
+  Volume<uint8_t> scan_mask;
   int64_t tumor_voxels = 0;
   int64_t surface_points = 0;
   double tumor_spacing_mm = 0.0;   // spacing of the tumor grid the rays end on

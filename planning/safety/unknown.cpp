@@ -74,7 +74,12 @@ Volume<uint8_t> apply_scan_coverage(PathSafetyResult& result, const ScanCoverage
                                     const Volume<uint8_t>& tumor, const CoverageOptions& options,
                                     CoverageReport* report) {
   const OutputGrid& grid = result.grid;
-  Volume<uint8_t> state = coverage.mask(grid.geometry);  // 1 covered, 0 not
+  // 1 covered, 0 not: path safety's own mask where it made one for this grid.
+  Volume<uint8_t> state = result.scan_mask.geometry().same_grid(grid.geometry, 0.0) &&
+                                  result.scan_mask.voxel_count() > 0
+                              ? std::move(result.scan_mask)
+                              : coverage.mask(grid.geometry);
+  result.scan_mask = Volume<uint8_t>();
   const Index3& d = grid.geometry.dims;
   const uint8_t outside_scan = options.crop_to_scan ? kRegionNotComputed : kRegionUnknown;
   const float nan = std::numeric_limits<float>::quiet_NaN();

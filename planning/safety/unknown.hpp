@@ -47,7 +47,8 @@ struct CoverageReport {
 
 // Marks the result's voxels outside `coverage` (NaN in every volume) and returns the voxel states
 // (RegionState) on the result's grid with the report. `tumor` is the tumor mask (for the edge
-// check). An empty coverage covers everything.
+// check). An empty coverage covers everything. `coverage` must be the one path safety was given
+// (PathSafetyOptions::coverage): its mask, kept in result.scan_mask, is taken over.
 Volume<uint8_t> apply_scan_coverage(PathSafetyResult& result, const ScanCoverage& coverage,
                                     const Volume<uint8_t>& tumor, const CoverageOptions& options,
                                     CoverageReport* report);
