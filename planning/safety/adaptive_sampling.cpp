@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
+#include <memory>
 #include <unordered_map>
 #include <utility>
 
@@ -25,10 +26,13 @@ class SampleStore {
  public:
   SampleStore(const OutputGrid& grid, const AdaptiveOptions& options, float* const out[kSlots])
       : n_(grid.geometry.dims[0]),
-        state_(size_t(n_ * n_ * n_), kPending),
+        state_(new uint8_t[size_t(n_ * n_ * n_)]),  // not zeroed here: filled on every core
         known_(options.known),
         known_mask_(options.known_mask) {
     for (int s = 0; s < kSlots; ++s) out_[s] = out[s];
+    const int64_t count = n_ * n_ * n_;
+#pragma omp parallel for schedule(static)
+    for (int64_t v = 0; v < count; ++v) state_[size_t(v)] = kPending;
   }
 
   // Whether a point lies in the scan (AdaptiveOptions::known, known_mask).
@@ -123,7 +127,7 @@ class SampleStore {
   }
 
   int64_t n_;
-  std::vector<uint8_t> state_;
+  std::unique_ptr<uint8_t[]> state_;
   std::function<bool(int64_t, int64_t, int64_t)> known_;
   const uint8_t* known_mask_ = nullptr;
   float* out_[kSlots] = {};
@@ -254,7 +258,15 @@ void gather_requests(int64_t count, const PointsOf& points_of, SampleStore& stor
       });
     }
   }
-  for (const auto& m : lists.mine) queue.insert(queue.end(), m.begin(), m.end());
+  // The lists joined in thread order, each copied at its offset on its own core.
+  std::vector<size_t> at(size_t(threads) + 1, 0);
+  for (int t = 0; t < threads; ++t) at[size_t(t) + 1] = at[size_t(t)] + lists.mine[size_t(t)].size();
+  queue.resize(at.back());
+#pragma omp parallel for schedule(static, 1) num_threads(threads)
+  for (int t = 0; t < threads; ++t) {
+    std::copy(lists.mine[size_t(t)].begin(), lists.mine[size_t(t)].end(),
+              queue.begin() + std::ptrdiff_t(at[size_t(t)]));
+  }
   for (const auto& b : lists.beyond) {
     for (const GridPoint& g : b) store.request_beyond(g.i, g.j, g.k, queue);
   }
@@ -264,7 +276,9 @@ void gather_requests(int64_t count, const PointsOf& points_of, SampleStore& stor
 void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& evaluate,
                     SampleStore& store, std::vector<float>& values, StepClock& clock) {
   auto t = std::chrono::steady_clock::now();
-  values.assign(queue.size() * kSlots, 0.0f);
+  // Grown, never cleared: the evaluator writes every requested slot of every point, and only
+  // those are read back.
+  if (values.size() < queue.size() * kSlots) values.resize(queue.size() * kSlots);
   clock.add(StepClock::kStore, t);
   if (queue.empty()) return;
   t = std::chrono::steady_clock::now();
@@ -471,15 +485,27 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   // The coarsest cells, lattice through the centre voxel, as a dense array for dilation.
   const int64_t a_lo = -((half + s0 - 1) / s0), a_hi = (n - 1 - half + s0 - 1) / s0 - 1;
   const int64_t na = a_hi - a_lo + 1;
+  // Which lattice cells to sample, decided on every core, then numbered in lattice order.
   std::vector<Cell> cells;
   std::vector<int32_t> cell_at(size_t(na * na * na), -1);
+#pragma omp parallel for schedule(dynamic, 1) collapse(2)
   for (int64_t c = a_lo; c <= a_hi; ++c) {
     for (int64_t b = a_lo; b <= a_hi; ++b) {
       for (int64_t a = a_lo; a <= a_hi; ++a) {
         const int64_t i = half + a * s0, j = half + b * s0, k = half + c * s0;
-        if (!meets_roi(i, j, k, s0) || !reaches_scan(i, j, k, s0)) continue;
-        cell_at[size_t(((c - a_lo) * na + (b - a_lo)) * na + (a - a_lo))] = int32_t(cells.size());
-        cells.push_back({int32_t(i), int32_t(j), int32_t(k), s0});
+        if (meets_roi(i, j, k, s0) && reaches_scan(i, j, k, s0)) {
+          cell_at[size_t(((c - a_lo) * na + (b - a_lo)) * na + (a - a_lo))] = 0;
+        }
+      }
+    }
+  }
+  for (int64_t c = a_lo; c <= a_hi; ++c) {
+    for (int64_t b = a_lo; b <= a_hi; ++b) {
+      for (int64_t a = a_lo; a <= a_hi; ++a) {
+        int32_t& at = cell_at[size_t(((c - a_lo) * na + (b - a_lo)) * na + (a - a_lo))];
+        if (at < 0) continue;
+        at = int32_t(cells.size());
+        cells.push_back({int32_t(half + a * s0), int32_t(half + b * s0), int32_t(half + c * s0), s0});
       }
     }
   }
