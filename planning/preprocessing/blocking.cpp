@@ -116,12 +116,23 @@ std::vector<int32_t> distinct_labels(const Volume<int32_t>& labels) {
   std::set<int32_t> others;  // outside 0..65535: never in a table, reported as unknown
   const int32_t* p = labels.data();
   const int64_t n = labels.voxel_count();
-  for (int64_t v = 0; v < n; ++v) {
-    const int32_t x = p[v];
-    if (x >= 0 && x <= kMaxLabelValue) {
-      seen[size_t(x)] = 1;
-    } else {
-      others.insert(x);
+#pragma omp parallel
+  {
+    std::vector<uint8_t> mine(seen.size(), 0);
+    std::set<int32_t> mine_others;
+#pragma omp for schedule(static) nowait
+    for (int64_t v = 0; v < n; ++v) {
+      const int32_t x = p[v];
+      if (x >= 0 && x <= kMaxLabelValue) {
+        mine[size_t(x)] = 1;
+      } else {
+        mine_others.insert(x);
+      }
+    }
+#pragma omp critical
+    {
+      for (size_t x = 0; x < seen.size(); ++x) seen[x] |= mine[x];
+      others.insert(mine_others.begin(), mine_others.end());
     }
   }
   std::vector<int32_t> out(others.begin(), others.end());
@@ -256,9 +267,16 @@ Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const Vulnerab
   }
   const int64_t n = labels.voxel_count();
   const int32_t* lab = labels.data();
-  for (int64_t v = 0; v < n; ++v) {
-    const int l = lab[v] > 0 ? level_of_value[size_t(lab[v])] : -1;
-    if (l >= 0) ++voxels_per_level[size_t(l)];
+#pragma omp parallel
+  {
+    std::vector<int64_t> mine(voxels_per_level.size(), 0);
+#pragma omp for schedule(static) nowait
+    for (int64_t v = 0; v < n; ++v) {
+      const int l = lab[v] > 0 ? level_of_value[size_t(lab[v])] : -1;
+      if (l >= 0) ++mine[size_t(l)];
+    }
+#pragma omp critical
+    for (size_t l = 0; l < mine.size(); ++l) voxels_per_level[l] += mine[l];
   }
 
   Volume<float> b(labels.geometry(), 0.0f);

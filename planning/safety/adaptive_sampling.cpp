@@ -296,7 +296,7 @@ void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& e
   clock.add(StepClock::kStore, t);
 }
 
-// A corner's classes as one byte, so that points compare by one comparison: two bits per
+// A corner's classes as one key, so that points compare by one comparison: two bits per
 // requested value's class, or kMixedKey where a value is unknown or lies near a threshold (such
 // a corner agrees with nothing, not even itself).
 constexpr uint16_t kMixedKey = 0x100;
