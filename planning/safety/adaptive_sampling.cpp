@@ -301,13 +301,12 @@ void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& e
 // a corner agrees with nothing, not even itself).
 constexpr uint16_t kMixedKey = 0x100;
 
-uint16_t class_key(const SampleStore& store, int64_t i, int64_t j, int64_t k,
-                   const std::vector<int>& slots, const AdaptiveReport& report,
-                   const AdaptiveOptions& options) {
+uint16_t class_key(const float* values, const std::vector<int>& slots,
+                   const AdaptiveReport& report, const AdaptiveOptions& options) {
   uint16_t key = 0;
   for (const int s : slots) {
     const SafetyClasses& classes = report.classes[size_t(s)];
-    const double v = store.value(i, j, k, s);
+    const double v = values[s];
     const SafetyClass c = classes.classify(v);
     if (c == SafetyClass::kUnknown || near_threshold(classes, v, options, options.finest_margin)) {
       return kMixedKey;
@@ -372,8 +371,8 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
         float value[8][kSlots] = {};
         for (int q = 0; q < 8; ++q) {
           const int64_t i = cell.ci(q), j = cell.cj(q), k = cell.ck(q);
-          key[q] = class_key(store, i, j, k, slots, report, options);
           for (const int s : slots) value[q][s] = store.value(i, j, k, s);
+          key[q] = class_key(value[q], slots, report, options);
         }
         for (const FinestPoint& p : kPoints) {
           const int64_t i = cell.i + p.di, j = cell.j + p.dj, k = cell.k + p.dk;
@@ -560,8 +559,9 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     }
 
     // One class at all corners, none near a threshold: uniform. refine: 1 where the classes
-    // disagree or lie near a threshold, 2 where only a corner outside the scan keeps the cell from
-    // being filled (its known voxels are reached by splitting; no class boundary was seen there).
+    // disagree or lie near a threshold, 2 where only a corner without a value (NaN) keeps the cell
+    // from being filled (its voxels are reached by splitting; no class boundary was seen there).
+    // Corners outside the scan have values (supports), so this is a safeguard.
     refine.assign(cells.size(), 0);
 #pragma omp parallel for schedule(dynamic, 256) if (size > 1)
     for (int64_t c = 0; c < int64_t(cells.size()); ++c) {
@@ -605,9 +605,9 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       refine.swap(grown);
     }
 
-    // Split the cells to refine (cells of edge 2 that only agree, refined for an unknown corner,
-    // are split too: their known voxels are all computed), in parallel: each cell's children
-    // counted, then written at their offsets, in the order of a split cell by cell.
+    // Split the cells to refine (cells of edge 2 that only agree, refined for a corner without a
+    // value, are split too: their known voxels are all computed), in parallel: each cell's
+    // children counted, then written at their offsets, in the order of a split cell by cell.
     const int64_t count = int64_t(cells.size());
     children.assign(cells.size(), 0);  // bit `child`: that child meets the region
     const auto to_finest = [&](int64_t c) {
