@@ -116,18 +116,22 @@ CREPUSCULAR_HD Vec3<double> apply_rn(const Affine<double>& a, Vec3<double> p) {
   return {add_rn(l.x, a.m[0][3]), add_rn(l.y, a.m[1][3]), add_rn(l.z, a.m[2][3])};
 }
 
-// floor(x) as an int: one round-down conversion on the GPU, floor and conversion on the host
-// (the same value for every x in int's range).
+// floor(x) of a grid index as an int, the same value on host and device for |x| < 2^22. On the
+// GPU one round-down addition instead of a conversion: x + 1.5 * 2^23 (float; 1.5 * 2^52 for
+// double) has a unit in the last place of 1, so rounding it down leaves floor(x) in the low bits
+// of its mantissa. Conversions issue at an eighth of the rate of additions on the H100, and the
+// ray marches take three per sample (fast mode's GPU kernels -2 %, bench/RESULTS.md, twelfth
+// session).
 CREPUSCULAR_HD_INLINE int floor_int(float x) {
 #ifdef __CUDA_ARCH__
-  return __float2int_rd(x);
+  return __float_as_int(__fadd_rd(x, 12582912.0f)) - 0x4B400000;
 #else
   return int(floorf(x));
 #endif
 }
 CREPUSCULAR_HD_INLINE int floor_int(double x) {
 #ifdef __CUDA_ARCH__
-  return __double2int_rd(x);
+  return __double2loint(__dadd_rd(x, 6755399441055744.0));
 #else
   return int(floor(x));
 #endif
@@ -398,8 +402,10 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
   // Samples at shifted0 + k dr: the tie's half voxel added to the origin once, not per sample
   // (rounded differently by far less than the tie's 1e-10 voxel; the same on every backend).
   const Vec3<double> shifted0 = shift_for_ties(ray.r0);
+  double kd = double(k_first) - 1.0;  // k as a double, counted rather than converted (exact)
   for (int k = k_first; k <= ray.n && k <= k_last; ++k) {
-    const int off = tumor_offset_at_shifted(g, along_rn(shifted0, ray.dr, double(k)));
+    kd += 1.0;
+    const int off = tumor_offset_at_shifted(g, along_rn(shifted0, ray.dr, kd));
     if (off >= 0) {
       ++c.samples_in_tumor;
       if (off != own_offset && k < ray.n) c.front_facing = false;
@@ -432,7 +438,7 @@ template <typename Real>
 struct RaySample {
   Real b;      // b(x_k), risk per mm
   Real step;   // l, mm
-  int k;       // 1..N
+  Real k;      // 1..N (exact: N < 2^24)
   Real inv_n;  // 1 / N
 };
 
@@ -523,8 +529,7 @@ struct BlockerVolume {
     Real sum = 0;
   };
   static CREPUSCULAR_HD void accumulate(Ray& r, const RaySample<Real>& s) {
-    const Real k = Real(s.k);
-    r.weighted += s.b * (k * k);
+    r.weighted += s.b * (s.k * s.k);
   }
   // The ray's end: its factor (1/N)^2 l, taken once instead of at every sample.
   static CREPUSCULAR_HD void close(Ray& r, Real inv_n, Real step) {
@@ -601,29 +606,36 @@ CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>
   typename Svv::Ray line_ray;
   typename Bvv::Ray bvv_ray;
   const Real inv_n = ray.n > 0 ? Real(1) / Real(ray.n) : Real(0);
-  const auto accumulate = [&](Real b, int k) {
+  const auto accumulate = [&](Real b, Real k) {
     const RaySample<Real> sample{b, ray.step, k, inv_n};
     if constexpr (kLine) Svv::accumulate(line_ray, sample);  // = Isbv's = Ivbv's
     if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
   };
+  // k as a Real is counted alongside k rather than converted (exact below 2^24 samples; the
+  // conversion is the march's slowest instruction on the GPU).
   if constexpr (Empty == kMarchEverySample) {
+    Real kr = Real(0);
     for (int k = 1; k <= ray.n; ++k) {
-      accumulate(Real(blocking_at(along(ray.q0, ray.dq, Real(k)))), k);
+      kr += Real(1);
+      accumulate(Real(blocking_at(along(ray.q0, ray.dq, kr))), kr);
     }
   } else {
+    Real kr = Real(0);
     for (int k = 1; k <= ray.n; ++k) {
-      const Vec3<Real> q = along(ray.q0, ray.dq, Real(k));
+      kr += Real(1);
+      const Vec3<Real> q = along(ray.q0, ray.dq, kr);
       const float code = brick_code(s.blocking, floor_int(q.x), floor_int(q.y), floor_int(q.z));
       Real b;
       if (code >= 0.0f) {
         b = Real(code);
       } else if (code < kEmptyRunBelow) {  // 0 here and at the samples leapt over: nothing to add
         k += empty_leap(code, ray.dq, ray.n);
+        kr = Real(k);
         continue;
       } else {
         b = Real(blocking_at.mixed(q));
       }
-      accumulate(b, k);
+      accumulate(b, kr);
     }
   }
   if constexpr ((Values & kBvv) != 0) Bvv::close(bvv_ray, inv_n, ray.step);
