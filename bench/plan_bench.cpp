@@ -1,6 +1,7 @@
 // `crepuscular plan` end to end as a user runs it (read, preprocess, path safety, scan coverage,
 // write, area safety), phase by phase: the built-in phantom at a given spacing with a ball tumor of
-// a given diameter segmented at a given spacing. The phantom is written first (not timed); the
+// a given diameter segmented at a given spacing, or (--phases N) the breathing phantom's N phases
+// with their own tumors, planned over the cycle. The phantom is written first (not timed); the
 // plan's own timings (plan.json "timings") and the wall time are printed as one JSON line.
 #include <spdlog/spdlog.h>
 
@@ -65,6 +66,7 @@ int main(int argc, char** argv) {
   double svv_margin = PathSafetyOptions{}.fast_svv_margin;
   double blocking_margin = PathSafetyOptions{}.fast_blocking_margin;
   bool texture = false;
+  int phases = 0;
   app.add_option("--phantom-spacing", phantom_spacing, "phantom voxel size, mm");
   app.add_option("--tumor-diameter", tumor_diameter, "ball tumor diameter, mm");
   app.add_option("--tumor-spacing", tumor_spacing, "tumor mask voxel size, mm");
@@ -86,6 +88,9 @@ int main(int argc, char** argv) {
   app.add_flag("--texture", texture, "CUDA: blocking volume through a texture (hardware filtering)");
   app.add_option("--device", device, "auto, cpu or cuda");
   app.add_option("--value", values, "values (svv,isbv,ivbv,bvv or all)");
+  app.add_option("--phases", phases,
+                 "breathing: plan the breathing phantom's phases (their own tumors; "
+                 "--tumor-diameter and --tumor-spacing do not apply)");
   app.add_option("--work", work, "working folder (phantom and plan)");
   app.add_flag("--keep", keep, "keep the working folder");
   app.add_option("--fast-angular", fast_angular, "tables mode: direction cells per distance/h");
@@ -100,16 +105,21 @@ int main(int argc, char** argv) {
   PhantomOptions po;
   po.spacing_mm = phantom_spacing;
   const auto t_setup = std::chrono::steady_clock::now();
-  const Phantom phantom = make_phantom(po);
-  write_phantom(phantom, work + "/phantom");
-  write_volume(ball_tumor(phantom.tumor, tumor_diameter, tumor_spacing), work + "/tumor.nii.gz");
+  pipelines::PlanRequest req;
+  if (phases > 0) {
+    write_breathing_phantom(po, phases, work + "/cycle");
+    req.phases = work + "/cycle/phases.json";
+  } else {
+    const Phantom phantom = make_phantom(po);
+    write_phantom(phantom, work + "/phantom");
+    write_volume(ball_tumor(phantom.tumor, tumor_diameter, tumor_spacing), work + "/tumor.nii.gz");
+    req.labels = {work + "/phantom/labels.nii.gz"};
+    req.tumor = work + "/tumor.nii.gz";
+  }
   const double setup_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t_setup).count();
 
-  pipelines::PlanRequest req;
-  req.labels = {work + "/phantom/labels.nii.gz"};
   req.preset = "phantom";
-  req.tumor = work + "/tumor.nii.gz";
   req.path_safety.values = parse_value_set(values);
   req.path_safety.mode = parse_mode(mode);
   req.path_safety.device = parse_device(device);
@@ -139,7 +149,10 @@ int main(int argc, char** argv) {
                          {"spacing_mm", plan["parameters"]["spacing_mm"]},
                          {"radius_mm", plan["parameters"]["radius_mm"]},
                          {"grid", plan["grid"]["dims"]},
-                         {"surface_points", plan["tumor"]["surface_points"]},
+                         {"phases", phases},
+                         {"breathing", phases > 0 ? plan["breathing"] : nlohmann::json()},
+                         {"surface_points", plan.contains("tumor") ? plan["tumor"].value("surface_points", nlohmann::json())
+                                                               : nlohmann::json()},
                          {"mode", mode},
                          {"tables", {fast_angular, fast_refine, fast_refine_relative}},
                          {"fast_stride", fast_stride},

@@ -61,6 +61,14 @@ plan() {
     done
   done
   df -h /tmp | tail -1 | tee -a "$out/plan_headline.jsonl"
+  # PLAN_PHASES=N: the breathing phantom's N phases on the headline grid, planned over the cycle
+  # (issue 17's case: fast mode, all four values).
+  if [ -n "${PLAN_PHASES:-}" ]; then
+    echo "== breathing, $PLAN_PHASES phases, headline grid"
+    .device/bin/bench_plan --phases "$PLAN_PHASES" --phantom-spacing 0.7 --spacing 0.7 \
+      --radius 179.2 --mode fast --device cuda --work /tmp/plan_bench_breathing 2>&1 |
+      tee -a "$out/plan_breathing.jsonl"
+  fi
 }
 if [ "${ONLY:-}" = overlay ]; then
   overlay
