@@ -106,6 +106,13 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
                   "faster, exact mode's class on only 98-99.5 % of the voxels: a first look)")
       ->capture_default_str()
       ->check(in_range(1, 4));
+  cmd->add_option("--fast-ray-stride", req->path_safety.fast_ray_stride,
+                  "Fast mode: blocking samples per quadrature point along each ray (1: every "
+                  "sample, as exact mode; 2: pairs of samples taken at their midpoint, half the "
+                  "samples; 0: automatic, runs of at most 0.75 mm: 2 at 0.7 mm spacing, 1 from "
+                  "0.76 mm on)")
+      ->capture_default_str()
+      ->check(in_range(0, 4));
   cmd->add_option("--threads", req->path_safety.threads,
                   "CPU threads, 1 to 1024 (default: all cores)")
       ->check(in_range(1, 1024, true));

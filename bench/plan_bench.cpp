@@ -77,6 +77,9 @@ int main(int argc, char** argv) {
   int fast_surface_block = PathSafetyOptions{}.fast_surface_block;
   app.add_option("--fast-surface-block", fast_surface_block,
                  "fast mode: one ray per block of this many tumor voxels a side");
+  int fast_ray_stride = PathSafetyOptions{}.fast_ray_stride;
+  app.add_option("--fast-ray-stride", fast_ray_stride,
+                 "fast mode: blocking samples per quadrature point along a ray");
   int check_voxels = PathSafetyOptions{}.fast_check_voxels;
   app.add_option("--check-voxels", check_voxels, "fast mode: voxels of the self-check");
   double finest_margin = PathSafetyOptions{}.fast_finest_margin;
@@ -131,6 +134,7 @@ int main(int argc, char** argv) {
   req.path_safety.fast_stride = fast_stride;
   req.path_safety.fast_dilate = !no_dilate;
   req.path_safety.fast_surface_block = fast_surface_block;
+  req.path_safety.fast_ray_stride = fast_ray_stride;
   req.path_safety.fast_check_voxels = check_voxels;
   req.path_safety.fast_finest_margin = finest_margin;
   req.path_safety.fast_svv_margin = svv_margin;
@@ -158,6 +162,7 @@ int main(int argc, char** argv) {
                          {"fast_stride", fast_stride},
                          {"fast_dilate", !no_dilate},
                          {"fast_surface_block", fast_surface_block},
+                         {"fast_ray_stride", fast_ray_stride},
                          {"fast_finest_margin", finest_margin},
                          {"fast_margins", {svv_margin, blocking_margin}},
                          {"texture", texture},

@@ -124,6 +124,7 @@ struct DeviceScene {
     scene.gamma = float(host.gamma);
     scene.eps = float(host.eps);
     scene.s2 = float(host.s2);
+    scene.blocking_stride = host.blocking_stride;
   }
   ~DeviceScene() {
     if (texture) cudaDestroyTextureObject(texture);

@@ -224,6 +224,10 @@ struct PathSafetyScene {
   Real gamma;  // sampling step bound, mm (h / 2)
   Real eps;    // insignificant blocking for SVV (integral of b, dimensionless)
   Real s2;     // s_T^2 = (tumor voxel volume)^(2/3), mm^2
+  // Blocking samples per quadrature point: 1, every sample x_k (the definition, exact mode);
+  // fast mode may take runs of `blocking_stride` samples at their midpoints (combine_ray), the
+  // tumor's occupancy still looked up at every sample.
+  int blocking_stride = 1;
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -579,6 +583,42 @@ struct GridSampler {
 // value). The values are the same bits either way.
 enum EmptySpace { kLeapEmptySpace, kMarchEverySample };
 
+// The blocking samples origin + k step, k = 1..n, each handed to visit(b, k) (k as a Real):
+// every one sampled (kMarchEverySample), or uniform bricks read from their code and the samples
+// in a cube of empty bricks leapt over (kLeapEmptySpace; they are 0 and not visited). The same
+// values either way.
+template <EmptySpace Empty, typename Real, typename Sampler, typename Visit>
+CREPUSCULAR_HD_INLINE void march_samples(const BlockingGrid<Real>& g, const Sampler& blocking_at,
+                                         Vec3<Real> origin, Vec3<Real> step, int n,
+                                         const Visit& visit) {
+  // k as a Real is counted alongside k rather than converted (exact below 2^24 samples; the
+  // conversion is the march's slowest instruction on the GPU).
+  Real kr = Real(0);
+  if constexpr (Empty == kMarchEverySample) {
+    for (int k = 1; k <= n; ++k) {
+      kr += Real(1);
+      visit(Real(blocking_at(along(origin, step, kr))), kr);
+    }
+  } else {
+    for (int k = 1; k <= n; ++k) {
+      kr += Real(1);
+      const Vec3<Real> q = along(origin, step, kr);
+      const float code = brick_code(g, floor_int(q.x), floor_int(q.y), floor_int(q.z));
+      Real b;
+      if (code >= 0.0f) {
+        b = Real(code);
+      } else if (code < kEmptyRunBelow) {  // 0 here and at the samples leapt over: nothing to add
+        k += empty_leap(code, step, n);
+        kr = Real(k);
+        continue;
+      } else {
+        b = Real(blocking_at.mixed(q));
+      }
+      visit(b, kr);
+    }
+  }
+}
+
 // COMBINEVALUES of the ray from p to one surface point into a voxel's state.
 // Sampler: mixed(q), the sample at blocking index q where its brick holds more than one value
 // (uniform bricks are read here, empty ones leapt over), and operator()(q), any sample
@@ -611,31 +651,33 @@ CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>
     if constexpr (kLine) Svv::accumulate(line_ray, sample);  // = Isbv's = Ivbv's
     if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
   };
-  // k as a Real is counted alongside k rather than converted (exact below 2^24 samples; the
-  // conversion is the march's slowest instruction on the GPU).
-  if constexpr (Empty == kMarchEverySample) {
-    Real kr = Real(0);
-    for (int k = 1; k <= ray.n; ++k) {
+  const int stride = s.blocking_stride;
+  if (stride <= 1) {
+    march_samples<Empty>(s.blocking, blocking_at, ray.q0, ray.dq, ray.n, accumulate);
+  } else {
+    // Fast mode's quadrature (PathSafetyScene::blocking_stride): the samples k = 1..N taken in
+    // runs of `stride`, each run by one sample at its midpoint k_c = stride j - (stride - 1) / 2,
+    // weighted by the run's length; the samples after the last whole run one by one, as exact
+    // mode takes them. Midpoint rule: a run's error is second order in its length.
+    const int runs = ray.n / stride;
+    const Real sr = Real(stride), half = Real(stride - 1) * Real(0.5);
+    const RaySample<Real> run_sample{Real(0), ray.step * sr, Real(0), inv_n};
+    typename Bvv::Ray bvv_runs;
+    const auto accumulate_run = [&](Real b, Real j) {
+      RaySample<Real> sample = run_sample;
+      sample.b = b;
+      sample.k = sr * j - half;
+      if constexpr (kLine) Svv::accumulate(line_ray, sample);
+      if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_runs, sample);
+    };
+    const Vec3<Real> dq_run = {ray.dq.x * sr, ray.dq.y * sr, ray.dq.z * sr};
+    march_samples<Empty>(s.blocking, blocking_at, along(ray.q0, ray.dq, -half), dq_run, runs,
+                         accumulate_run);
+    if constexpr ((Values & kBvv) != 0) bvv_ray.weighted = bvv_runs.weighted * sr;
+    Real kr = Real(runs) * sr;
+    for (int k = runs * stride + 1; k <= ray.n; ++k) {
       kr += Real(1);
       accumulate(Real(blocking_at(along(ray.q0, ray.dq, kr))), kr);
-    }
-  } else {
-    Real kr = Real(0);
-    for (int k = 1; k <= ray.n; ++k) {
-      kr += Real(1);
-      const Vec3<Real> q = along(ray.q0, ray.dq, kr);
-      const float code = brick_code(s.blocking, floor_int(q.x), floor_int(q.y), floor_int(q.z));
-      Real b;
-      if (code >= 0.0f) {
-        b = Real(code);
-      } else if (code < kEmptyRunBelow) {  // 0 here and at the samples leapt over: nothing to add
-        k += empty_leap(code, ray.dq, ray.n);
-        kr = Real(k);
-        continue;
-      } else {
-        b = Real(blocking_at.mixed(q));
-      }
-      accumulate(b, kr);
     }
   }
   if constexpr ((Values & kBvv) != 0) Bvv::close(bvv_ray, inv_n, ray.step);

@@ -186,6 +186,7 @@ nlohmann::json fast_check_json(const PlanRequest& req, const PathSafetyResult& r
   } else {
     check["coarsest_stride"] = result.fast_stride;
     check["surface_block"] = req.path_safety.fast_surface_block;
+    check["ray_stride"] = result.fast_ray_stride;
     check["rays_per_voxel"] =
         result.fast_surface_points > 0 ? result.fast_surface_points : result.surface_points;
     check["points_computed_exactly"] = result.evaluated_points;

@@ -390,6 +390,13 @@ int coarsest_stride(double spacing_mm, double radius_mm) {
   return stride;
 }
 
+int automatic_ray_stride(double spacing_mm) {
+  const double gamma = 0.5 * spacing_mm;
+  int stride = 1;
+  while (stride < 4 && (stride + 1) * gamma <= kMaxQuadratureStepMm + 1e-9) ++stride;
+  return stride;
+}
+
 std::vector<float> blocking_bricks(const Volume<float>& blocking) {
   const auto& d = blocking.dims();
   const int bx = kernels::bricks_along(int(d[0])), by = kernels::bricks_along(int(d[1])),
@@ -1152,11 +1159,23 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   // reference.
   TumorSurface fast_surface;
   kernels::PathSafetyScene<double> fast_scene = scene;
+  if (options.mode == Mode::kFast) {
+    result.fast_ray_stride = options.fast_ray_stride > 0
+                                 ? options.fast_ray_stride
+                                 : automatic_ray_stride(grid.geometry.spacing[0]);
+    fast_scene.blocking_stride = result.fast_ray_stride;
+    if (result.fast_ray_stride > 1) {
+      spdlog::info("fast mode: the blocking volume sampled in runs of {} samples ({:.2f} mm), "
+                   "each at its midpoint",
+                   result.fast_ray_stride, result.fast_ray_stride * result.gamma_mm);
+    }
+  }
   if (options.mode == Mode::kFast && options.fast_surface_block > 1) {
     fast_surface = surface_representatives(surface, ray_tumor.geometry(),
                                            options.fast_surface_block);
     fast_scene = make_scene(blocking, ray_tumor, fast_surface, result.gamma_mm, options.eps,
                             bricks);
+    fast_scene.blocking_stride = result.fast_ray_stride;
     result.fast_surface_points = int64_t(fast_surface.points.size());
     spdlog::info("fast mode: {} rays per voxel stand for the {} surface points (blocks of {}^3 "
                  "tumor voxels)",

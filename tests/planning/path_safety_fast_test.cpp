@@ -139,6 +139,40 @@ TEST(PathSafetyFast, AutomaticStrideOnAFinerGridAgreesWithExactMode) {
               (long long)fast.evaluated_points, (long long)fast.interpolated_voxels,
               (long long)fast.grid.roi_voxels);
   EXPECT_GT(fast.interpolated_voxels, fast.grid.roi_voxels / 4);
+  EXPECT_EQ(fast.fast_ray_stride, 1);  // automatic at 1 mm: runs of 0.5 mm would be single samples
+}
+
+// Runs of blocking samples taken at their midpoints (fast mode's quadrature, --fast-ray-stride):
+// automatic from the output spacing (runs of at most 0.75 mm), and on the scene of seed 3 at 1 mm
+// with runs of two samples (1 mm, beyond the automatic choice) still exact mode's class on
+// >= 99.5 % of the voxels (measured 99.98 %). Runs of 2 mm on the 2 mm scenes keep only 99.0 %
+// (seed 11, isbv): the automatic choice never takes them.
+TEST(PathSafetyFast, RunsOfSamplesAtTheirMidpointsAgreeWithExactMode) {
+  EXPECT_EQ(automatic_ray_stride(0.7), 2);
+  EXPECT_EQ(automatic_ray_stride(0.75), 2);
+  EXPECT_EQ(automatic_ray_stride(0.76), 1);
+  EXPECT_EQ(automatic_ray_stride(1.0), 1);
+  EXPECT_EQ(automatic_ray_stride(2.0), 1);
+  EXPECT_EQ(automatic_ray_stride(0.5), 3);
+  EXPECT_EQ(automatic_ray_stride(0.3), 4);  // at most 4
+  const Scene s = vessel_scene(3);
+  PathSafetyOptions o;
+  o.radius_mm = 34.0;
+  o.spacing_mm = 1.0;
+  o.eps = 0.5;
+  o.device = Device::kCpu;
+  const PathSafetyResult exact = compute_path_safety(s.blocking, s.tumor, o);
+  o.mode = Mode::kFast;
+  o.fast_check_voxels = 0;
+  o.fast_ray_stride = 2;
+  const PathSafetyResult fast = compute_path_safety(s.blocking, s.tumor, o);
+  EXPECT_EQ(fast.fast_ray_stride, 2);
+  const ModeDifference d = compare_volumes(exact.volumes, fast.volumes, kernels::kAllValues);
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    std::printf("1 mm, runs of 2 samples, %s: relative L2 %.3e, class agreement %.4f\n",
+                value_name(1u << v), d.relative_l2[size_t(v)], d.class_agreement[size_t(v)]);
+    EXPECT_GE(d.class_agreement[size_t(v)], kRequiredAgreement) << value_name(1u << v);
+  }
 }
 
 // --fast-surface-block 2: one ray per block of 2^3 tumor voxels, counted once for each surface

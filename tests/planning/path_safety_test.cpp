@@ -387,6 +387,85 @@ TEST(PathSafety, LeapingOverEmptyBricksChangesNoValue) {
   EXPECT_GT(blocked, 20);  // some rays cross the organ or the vessel
 }
 
+// A sampler that counts its samples (the march's cost) and reads the grid.
+struct CountingSampler {
+  kernels::GridSampler<double> grid;
+  int64_t* samples;
+  double operator()(kernels::Vec3<double> q) const {
+    ++*samples;
+    return grid(q);
+  }
+  double mixed(kernels::Vec3<double> q) const {
+    ++*samples;
+    return grid.mixed(q);
+  }
+};
+
+// Fast mode's quadrature (blocking_stride 2) against the definition, one ray at a time, in a
+// blocking volume that is linear in space: trilinear interpolation of a linear field is that
+// field, and the midpoint of a run of two samples is their mean, so the line integral of every
+// ray is the definition's (SVV, ISBV, IVBV) and BVV's sum of b_k k^2 differs by exactly
+// f''(k_c) / 4 per run, f(k) = b(x_k) k^2 (a cubic in k). Half the samples are read.
+TEST(PathSafety, RaysTakenInRunsOfTwoSamplesKeepTheLineIntegralOfALinearField) {
+  const ImageGeometry g = centred_cube_grid(61, 1.0);
+  Volume<float> blocking(g, 0.0f);
+  Volume<uint8_t> tumor(g, 0);
+  const Eigen::Vector3d grad(0.004, -0.003, 0.002);
+  const auto field = [&](const Eigen::Vector3d& x) { return 0.3 + grad.dot(x); };
+  for (int64_t k = 0; k < 61; ++k)
+    for (int64_t j = 0; j < 61; ++j)
+      for (int64_t i = 0; i < 61; ++i) {
+        const Eigen::Vector3d p = g.index_to_physical(i, j, k);
+        blocking(i, j, k) = float(field(p));
+        if (p.norm() <= 3.5) tumor(i, j, k) = 1;
+      }
+  const TumorSurface surface = extract_tumor_surface(tumor, "ball");
+  auto exact = make_scene(blocking, tumor, surface, 0.5, 5.0);
+  auto runs = exact;
+  runs.blocking_stride = 2;
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-25.0, 25.0);
+  int rays = 0;
+  for (int n = 0; n < 40; ++n) {
+    const kernels::Vec3<double> p{u(rng), u(rng), u(rng)};
+    if (std::sqrt(kernels::dot(p, p)) < 6.0) continue;
+    for (size_t t = 0; t < surface.points.size(); t += 7) {
+      const auto& target = surface.points[t];
+      const auto ray = kernels::make_ray(exact, p, target);
+      const auto crossing = kernels::cross_tumor(exact.tumor, ray, target.offset, true);
+      if (!crossing.front_facing && !crossing.back_facing) continue;
+      int64_t samples_exact = 0, samples_runs = 0;
+      kernels::VoxelState<double> a, b;
+      kernels::combine_ray<double, kAllValues, CountingSampler, kernels::kMarchEverySample>(
+          a, exact, p, target, CountingSampler{{exact.blocking}, &samples_exact});
+      kernels::combine_ray<double, kAllValues, CountingSampler, kernels::kMarchEverySample>(
+          b, runs, p, target, CountingSampler{{runs.blocking}, &samples_runs});
+      ASSERT_EQ(samples_exact, ray.n);
+      ASSERT_EQ(samples_runs, ray.n / 2 + ray.n % 2);
+      ASSERT_GT(a.isbv.sum + a.ivbv.sum, 0.0);
+      EXPECT_NEAR(b.isbv.sum, a.isbv.sum, 1e-6 * a.isbv.sum);  // float texels
+      EXPECT_NEAR(b.ivbv.sum, a.ivbv.sum, 1e-6 * a.ivbv.sum);
+      EXPECT_EQ(b.svv.visible, a.svv.visible);
+      EXPECT_EQ(b.svv.clear, a.svv.clear);
+      // BVV: the runs' midpoints k_c = 2 j - 1/2, j = 1..N/2; f''(k) = 2 b(x_k) + 4 k b' + ...
+      // for b(x_k) = b0 + beta k: f''(k) = 2 b0 + 6 beta k.
+      const Eigen::Vector3d pe(p.x, p.y, p.z), te(target.position.x, target.position.y,
+                                                  target.position.z);
+      const double b0 = field(pe), beta = grad.dot(te - pe) / ray.n;
+      double correction = 0.0;
+      for (int j = 1; j <= ray.n / 2; ++j) {
+        const double kc = 2.0 * j - 0.5;
+        correction += (2.0 * b0 + 6.0 * beta * kc) / 4.0;
+      }
+      const double scale = (crossing.back_facing ? ray.cos_alpha : 0.0) * double(ray.step) / (double(ray.n) * ray.n);
+      EXPECT_NEAR(a.bvv.sum - b.bvv.sum, correction * scale, 1e-6 * a.bvv.sum);
+      if (crossing.back_facing) EXPECT_GT(std::abs(correction * scale), 2e-5 * a.bvv.sum);  // the difference is seen
+      ++rays;
+    }
+  }
+  EXPECT_GT(rays, 100);
+}
+
 // Front- and back-facing sets of the surface seen from p.
 void facing_sets(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                  const Eigen::Vector3d& p, std::vector<Index3>& front, std::vector<Index3>& back) {
