@@ -9,6 +9,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <string>
 #include <thread>
 
@@ -248,22 +249,36 @@ TEST(FrameSource, SynthAndRecordCommandsWriteReplayableRecordings) {
   // Killed while recording: DIR.partial holds every complete frame and replays.
   const std::string live = (dir / "live").string();
   const std::string pid_file = (dir / "pid").string();
+  const std::string live_log = (dir / "live.log").string();
   ASSERT_EQ(std::system((bin + " record --source recording:" + rec + "?realtime=1\\&loop=1 --out " +
-                         live + " > /dev/null 2>&1 & echo $! > " + pid_file)
+                         live + " > " + live_log + " 2>&1 & echo $! > " + pid_file)
                             .c_str()),
             0);
+  // What the recorder said, for a failure's message.
+  const auto recorder_log = [&] {
+    std::ifstream in(live_log);
+    return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  };
   const fs::path partial_csv = fs::path(live + ".partial") / "frames.csv";
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(20);
+  size_t seen = 0;
   while (std::chrono::steady_clock::now() < deadline) {
     if (fs::exists(partial_csv)) {
-      recordings::RecordingReader growing(live + ".partial");
-      if (growing.entries().size() >= 4) break;
+      try {
+        seen = recordings::RecordingReader(live + ".partial").entries().size();
+      } catch (const std::exception&) {
+        // Caught between two files of a frame being written: look again.
+      }
+      if (seen >= 4) break;
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
   }
+  EXPECT_GE(seen, 4u) << "the recorder wrote " << seen << " frames in 20 s; it said:\n"
+                      << recorder_log();
   ASSERT_EQ(std::system(("kill -9 $(cat " + pid_file + ")").c_str()), 0);
   std::this_thread::sleep_for(std::chrono::milliseconds(100));
   EXPECT_FALSE(fs::exists(live));
+  SCOPED_TRACE("recorder log: " + recorder_log());
   auto replay = open_frame_source("recording:" + live + ".partial");
   int frames = 0;
   while (auto f = replay->next()) {
