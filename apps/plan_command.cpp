@@ -91,10 +91,10 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
       ->default_str("auto");
   cmd->add_option("--mode", req->path_safety.mode,
                   "exact: every ray marched (the reference). fast: the grid sampled coarse to "
-                  "fine, every 4th voxel first; voxels where the safety classes change are "
-                  "computed exactly, the inside of a region of one class is interpolated "
-                  "(about 3x faster than exact on a 513^3 grid, the same class on 99.5 % or "
-                  "more of the voxels). tables: rays cast once from each tumor "
+                  "fine, a lattice about 8 mm apart first; voxels where the safety classes change "
+                  "are computed, the inside of a region of one class is interpolated (on one "
+                  "H100 about 10x faster than exact on a 513^3 grid at 0.7 mm: 7 s against "
+                  "68 s; the same class on 99.5 % or more of the voxels). tables: rays cast once from each tumor "
                   "surface point and looked up by direction and distance. fast and tables "
                   "recompute 1000 random voxels exactly and report the difference in plan.json")
       ->transform(enum_names(mode_names()))

@@ -120,8 +120,8 @@ CREPUSCULAR_HD Vec3<double> apply_rn(const Affine<double>& a, Vec3<double> p) {
 // GPU one round-down addition instead of a conversion: x + 1.5 * 2^23 (float; 1.5 * 2^52 for
 // double) has a unit in the last place of 1, so rounding it down leaves floor(x) in the low bits
 // of its mantissa. Conversions issue at an eighth of the rate of additions on the H100, and the
-// ray marches take three per sample (fast mode's GPU kernels -2 %, bench/RESULTS.md, twelfth
-// session).
+// ray marches take three per sample (with the sample counters kept as reals: fast mode's GPU
+// kernels 4.95 s in the eleventh session, 4.61 s in the twelfth, bench/RESULTS.md).
 CREPUSCULAR_HD_INLINE int floor_int(float x) {
 #ifdef __CUDA_ARCH__
   return __float_as_int(__fadd_rd(x, 12582912.0f)) - 0x4B400000;
