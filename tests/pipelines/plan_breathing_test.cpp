@@ -2,6 +2,7 @@
 // checked against the single-phase plan, the per-phase volumes, a vessel that moves across a path
 // and a rigid shift of the whole scene.
 #include <gtest/gtest.h>
+#include <omp.h>
 
 #include <cmath>
 #include <filesystem>
@@ -249,6 +250,49 @@ TEST(PlanBreathing, BadPhaseListsAreRefusedNamingTheFile) {
   EXPECT_FALSE(fs::exists(dir.file("plan")));
 }
 
+// Phases are read side by side, one reader per four threads: with 8 threads two readers take the
+// phases, and the plan is the one read a phase at a time (1 thread), volume for volume; an error
+// is the first failing phase's in the list's order, whichever reader met it first.
+TEST(PlanBreathing, PhasesReadSideBySidePlanAsReadOneByOne) {
+  const test::TemporaryFolder dir;
+  const test::MiniPlanInputs in = test::write_mini_plan_inputs(dir.path());
+  const std::string a = write_labels_with_vessel_at(dir.path(), "labels_a.nii.gz", 16);
+  const std::string b = write_labels_with_vessel_at(dir.path(), "labels_b.nii.gz", 4);
+  const std::string list =
+      write_phase_list(dir.path(), {{a, in.tumor}, {b, in.tumor}, {in.labels, in.tumor}});
+  const int threads = omp_get_max_threads();
+  omp_set_num_threads(1);
+  run_plan(phases_request(list, dir.file("one_by_one")));
+  omp_set_num_threads(8);
+  run_plan(phases_request(list, dir.file("side_by_side")));
+  for (const char* v : kValues) {
+    expect_identical(read_volume<float>(dir.file("one_by_one/path_safety_") + v + ".nii.gz"),
+                     read_volume<float>(dir.file("side_by_side/path_safety_") + v + ".nii.gz"),
+                     v);
+    for (int k = 0; k < 3; ++k) {
+      const std::string phase = "_phase0" + std::to_string(k) + ".nii.gz";
+      expect_identical(
+          read_volume<float>(dir.file("one_by_one/path_safety_") + v + phase),
+          read_volume<float>(dir.file("side_by_side/path_safety_") + v + phase), v + phase);
+    }
+  }
+  // Files that exist but are no label maps: met while reading, not before.
+  std::ofstream(dir.file("corrupt_first.nii.gz")) << "not a label map";
+  std::ofstream(dir.file("corrupt_second.nii.gz")) << "not one either";
+  std::ofstream(dir.file("phases.json"))
+      << R"({"vulnerability": "table.json", "phases": [
+           {"labels": "labels_a.nii.gz", "tumor": "tumor.nii.gz"},
+           {"labels": "corrupt_first.nii.gz", "tumor": "tumor.nii.gz"},
+           {"labels": "corrupt_second.nii.gz", "tumor": "tumor.nii.gz"}]})";
+  try {
+    run_plan(phases_request(dir.file("phases.json"), dir.file("plan")));
+    ADD_FAILURE() << "corrupt label maps accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("corrupt_first.nii.gz"), std::string::npos) << e.what();
+  }
+  omp_set_num_threads(threads);
+  EXPECT_FALSE(fs::exists(dir.file("plan")));
+}
 
 // A 4D label map (phases along the 4th axis, as a 4D CT's segmentation comes) plans exactly like
 // the phase list of its frames; the 3D tumor serves every phase; nothing of the split frames stays.
