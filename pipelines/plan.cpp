@@ -344,6 +344,7 @@ std::vector<PhaseInputs> read_phases(const PlanRequest& req, const PhaseList& li
   for (size_t r = 1; r < readers; ++r) threads.emplace_back(read);
   read();
   for (auto& t : threads) t.join();
+  omp_set_num_threads(cores);  // this thread plans on every core again
   for (const auto& e : errors) {
     if (e) std::rethrow_exception(e);
   }

@@ -265,6 +265,7 @@ TEST(PlanBreathing, PhasesReadSideBySidePlanAsReadOneByOne) {
   run_plan(phases_request(list, dir.file("one_by_one")));
   omp_set_num_threads(8);
   run_plan(phases_request(list, dir.file("side_by_side")));
+  EXPECT_EQ(omp_get_max_threads(), 8);  // the plan's own steps had every thread again
   for (const char* v : kValues) {
     expect_identical(read_volume<float>(dir.file("one_by_one/path_safety_") + v + ".nii.gz"),
                      read_volume<float>(dir.file("side_by_side/path_safety_") + v + ".nii.gz"),
