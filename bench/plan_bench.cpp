@@ -3,7 +3,10 @@
 // a given diameter segmented at a given spacing, or (--phases N) the breathing phantom's N phases
 // with their own tumors, planned over the cycle. The phantom is written first (not timed); the
 // plan's own timings (plan.json "timings") and the wall time are printed as one JSON line.
+#include <execinfo.h>
 #include <spdlog/spdlog.h>
+
+#include <csignal>
 
 #include <CLI/CLI.hpp>
 #include <chrono>
@@ -89,6 +92,9 @@ int main(int argc, char** argv) {
   app.add_option("--fast-blocking-margin", blocking_margin,
                  "fast mode: relative margin of the blocking values' thresholds");
   app.add_flag("--texture", texture, "CUDA: blocking volume through a texture (hardware filtering)");
+  bool no_tumor_leaps = false;
+  app.add_flag("--no-tumor-leaps", no_tumor_leaps,
+               "rays look up every sample of the tumor's box (no leaps over voxels of one kind)");
   app.add_option("--device", device, "auto, cpu or cuda");
   app.add_option("--value", values, "values (svv,isbv,ivbv,bvv or all)");
   app.add_option("--phases", phases,
@@ -99,8 +105,18 @@ int main(int argc, char** argv) {
   app.add_option("--fast-angular", fast_angular, "tables mode: direction cells per distance/h");
   app.add_option("--fast-refine", fast_refine, "tables mode: spread marched exactly (< 0: never)");
   app.add_option("--fast-refine-relative", fast_refine_relative, "tables mode: relative spread");
+  bool verbose = false;
+  app.add_flag("--verbose", verbose, "log the plan's progress (info) instead of warnings only");
   CLI11_PARSE(app, argc, argv);
-  spdlog::set_level(spdlog::level::warn);
+  spdlog::set_level(verbose ? spdlog::level::info : spdlog::level::warn);
+  // A crash on the GPU machine (no debugger there) leaves its call stack on stderr.
+  std::signal(SIGSEGV, [](int sig) {
+    void* frames[64];
+    const int n = backtrace(frames, 64);
+    backtrace_symbols_fd(frames, n, 2);
+    std::signal(sig, SIG_DFL);
+    std::raise(sig);
+  });
   namespace fs = std::filesystem;
   fs::remove_all(work);
   fs::create_directories(work);
@@ -140,6 +156,7 @@ int main(int argc, char** argv) {
   req.path_safety.fast_svv_margin = svv_margin;
   req.path_safety.fast_blocking_margin = blocking_margin;
   req.path_safety.cuda_texture = texture;
+  req.path_safety.tumor_leaps = !no_tumor_leaps;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
   const nlohmann::json plan = pipelines::run_plan(req);
@@ -166,6 +183,7 @@ int main(int argc, char** argv) {
                          {"fast_finest_margin", finest_margin},
                          {"fast_margins", {svv_margin, blocking_margin}},
                          {"texture", texture},
+                         {"tumor_leaps", !no_tumor_leaps},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},
                          {"device", plan["parameters"]["device"]},
                          {"setup_s_not_counted", setup_s},

@@ -66,7 +66,8 @@ plan() {
   if [ -n "${PLAN_PHASES:-}" ]; then
     echo "== breathing, $PLAN_PHASES phases, headline grid"
     .device/bin/bench_plan --phases "$PLAN_PHASES" --phantom-spacing 0.7 --spacing 0.7 \
-      --radius 179.2 --mode fast --device cuda --work /tmp/plan_bench_breathing 2>&1 |
+      --radius 179.2 --mode fast --device cuda --work /tmp/plan_bench_breathing \
+      ${BREATHING_ARGS:-} 2>&1 |
       tee -a "$out/plan_breathing.jsonl"
   fi
 }

@@ -103,6 +103,7 @@ struct DeviceScene {
   DeviceBuffer<float> blocking;
   DeviceBuffer<float> bricks;
   DeviceBuffer<uint8_t> tumor;
+  DeviceBuffer<uint8_t> tumor_leap;
   DeviceBuffer<SurfacePoint<double>> surface;
   cudaArray_t array = nullptr;
   cudaTextureObject_t texture = 0;
@@ -110,6 +111,7 @@ struct DeviceScene {
 
   DeviceScene(const PathSafetyScene<double>& host, BlockingStorage storage)
       : tumor(size_t(host.tumor.nx) * host.tumor.ny * host.tumor.nz),
+        tumor_leap(host.tumor.leap ? tumor_box_voxels(host.tumor) : 1),
         surface(size_t(std::max(host.surface_count, 1))) {
     upload_blocking(host.blocking, storage);
     upload_tumor(host.tumor);
@@ -197,6 +199,17 @@ struct DeviceScene {
       scene.tumor.lo[a] = host.lo[a];
       scene.tumor.hi[a] = host.hi[a];
     }
+    scene.tumor.leap = nullptr;
+    if (host.leap) {
+      check(cudaMemcpy(tumor_leap.ptr, host.leap, tumor_box_voxels(host), cudaMemcpyHostToDevice),
+            "upload tumor leaps");
+      scene.tumor.leap = tumor_leap.ptr;
+    }
+  }
+
+  static size_t tumor_box_voxels(const TumorGrid<double>& g) {
+    return size_t(g.hi[0] - g.lo[0] + 1) * size_t(g.hi[1] - g.lo[1] + 1) *
+           size_t(g.hi[2] - g.lo[2] + 1);
   }
 };
 

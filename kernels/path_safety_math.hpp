@@ -194,13 +194,22 @@ CREPUSCULAR_HD_INLINE int empty_leap(float code, Vec3<Real> step, int n) {
 
 // Tumor mask (0/1), x fastest, looked up at the nearest voxel. [lo, hi] is the index bounding box
 // of the tumor voxels.
+// Leaping, exact: `leap` (may be null: every sample looked up in the mask) holds one byte per
+// voxel of the box [lo, hi] (x fastest): kTumorLeapInside when the voxel is tumor, plus its
+// Chebyshev distance d (1..kMaxTumorLeap) to the nearest voxel of the other kind (voxels outside
+// the box are not tumor). Every voxel within d - 1 of it is of its kind, so a ray walks over the
+// samples that stay in that cube without looking at them: outside the tumor they are outside,
+// inside they are inside (and counted).
 template <typename Real>
 struct TumorGrid {
   const uint8_t* mask;
   int nx, ny, nz;
   Affine<Real> physical_to_index;
   int lo[3], hi[3];
+  const uint8_t* leap = nullptr;
 };
+constexpr uint8_t kTumorLeapInside = 0x80u;
+constexpr int kMaxTumorLeap = 0x7f;
 
 // One tumor surface voxel (a tumor voxel with a 6-neighbour outside the tumor).
 template <typename Real>
@@ -299,6 +308,32 @@ CREPUSCULAR_HD int tumor_offset_at_shifted(const TumorGrid<double>& g, Vec3<doub
     return -1;
   const int offset = (k * g.ny + j) * g.nx + i;
   return g.mask[offset] ? offset : -1;
+}
+
+// The same lookup with the leap of its voxel (TumorGrid::leap): how many voxels around it, d - 1
+// along every axis, are of its kind. 1 (no leap) outside the box or without leaps.
+CREPUSCULAR_HD_INLINE int tumor_offset_and_leap(const TumorGrid<double>& g, Vec3<double> shifted,
+                                                int& leap) {
+  leap = 1;
+  const int i = floor_int(shifted.x), j = floor_int(shifted.y), k = floor_int(shifted.z);
+  const unsigned bi = unsigned(i - g.lo[0]), bj = unsigned(j - g.lo[1]),
+                 bk = unsigned(k - g.lo[2]);
+  const unsigned mx = unsigned(g.hi[0] - g.lo[0]), my = unsigned(g.hi[1] - g.lo[1]),
+                 mz = unsigned(g.hi[2] - g.lo[2]);
+  if (bi > mx || bj > my || bk > mz) return -1;
+  const int offset = (k * g.ny + j) * g.nx + i;
+  if (!g.leap) return g.mask[offset] ? offset : -1;
+  const uint8_t code = g.leap[(bk * (my + 1u) + bj) * (mx + 1u) + bi];
+  leap = code & uint8_t(kMaxTumorLeap);
+  return (code & kTumorLeapInside) ? offset : -1;
+}
+
+// Samples a walk may pass over after one whose voxel has leap d (> 1): they move the nearest voxel
+// by less than d - 1 along every axis (a hundredth of a voxel covers the rounding of their
+// positions), so they stay in its cube. inv_step: 1 / the walk's largest index step per sample
+// along an axis (0: no leaping).
+CREPUSCULAR_HD_INLINE int tumor_leap_samples(int leap, double inv_step) {
+  return int((double(leap) - 1.01) * inv_step);
 }
 
 CREPUSCULAR_HD Vec3<double> shift_for_ties(Vec3<double> r) {
@@ -406,28 +441,44 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
   // Samples at shifted0 + k dr: the tie's half voxel added to the origin once, not per sample
   // (rounded differently by far less than the tie's 1e-10 voxel; the same on every backend).
   const Vec3<double> shifted0 = shift_for_ties(ray.r0);
+  // Leaps (TumorGrid::leap) over the samples whose voxels are known to be of the kind of the one
+  // just looked up: never from t's own voxel, so that leapt samples never decide front-facing.
+  // The same occupancy as looking at every sample (test: TumorLeapsGiveTheWalkOfEverySample).
+  const double step_max = fmax(fabs(ray.dr.x), fmax(fabs(ray.dr.y), fabs(ray.dr.z)));
+  const double inv_step = g.leap && step_max > 0.0 ? 1.0 / step_max : 0.0;
+  const int k_end = ray.n < k_last ? ray.n : k_last;
   double kd = double(k_first) - 1.0;  // k as a double, counted rather than converted (exact)
-  for (int k = k_first; k <= ray.n && k <= k_last; ++k) {
+  for (int k = k_first; k <= k_end; ++k) {
     kd += 1.0;
-    const int off = tumor_offset_at_shifted(g, along_rn(shifted0, ray.dr, kd));
+    int leap;
+    const int off = tumor_offset_and_leap(g, along_rn(shifted0, ray.dr, kd), leap);
     if (off >= 0) {
       ++c.samples_in_tumor;
       if (off != own_offset && k < ray.n) c.front_facing = false;
+    }
+    if (leap > 1 && off != own_offset) {
+      int skip = tumor_leap_samples(leap, inv_step);
+      if (skip > k_end - k) skip = k_end - k;
+      if (off >= 0) c.samples_in_tumor += skip;
+      k += skip;
+      kd += double(skip);
     }
   }
   if (want_back) {
     // Beyond t with the same step; only when p lies within a small fraction of a voxel of t is
     // that step so tiny (< 1/100 voxel) that samples 1/100 voxel apart stand in for it, which
-    // see the same voxels at a bounded cost.
+    // see the same voxels at a bounded cost (and are never leapt over: their positions are sums).
     double stride = 1.0;
     const double step_voxels = sqrt(dot_rn(ray.dr, ray.dr));
     if (step_voxels < 0.01) stride = 0.01 / step_voxels;
     for (double k = double(ray.n) + stride; k <= k_out; k = add_rn(k, stride)) {
-      const int off = tumor_offset_at_shifted(g, along_rn(shifted0, ray.dr, k));
+      int leap;
+      const int off = tumor_offset_and_leap(g, along_rn(shifted0, ray.dr, k), leap);
       if (off >= 0 && off != own_offset) {
         c.back_facing = false;
         break;
       }
+      if (off < 0 && leap > 1 && stride == 1.0) k += double(tumor_leap_samples(leap, inv_step));
     }
   }
   return c;

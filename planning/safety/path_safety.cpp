@@ -13,6 +13,7 @@
 #include <future>
 #include <limits>
 #include <map>
+#include <memory>
 #include <optional>
 #include <sstream>
 
@@ -429,10 +430,65 @@ std::vector<float> blocking_bricks(const Volume<float>& blocking) {
   return bricks;
 }
 
+std::vector<uint8_t> tumor_leaps(const Volume<uint8_t>& tumor, const int lo[3], const int hi[3]) {
+  const int64_t mx = hi[0] - lo[0] + 1, my = hi[1] - lo[1] + 1, mz = hi[2] - lo[2] + 1;
+  if (mx <= 0 || my <= 0 || mz <= 0) return {};
+  const auto at = [&](int64_t i, int64_t j, int64_t k) { return size_t((k * my + j) * mx + i); };
+  const auto inside = [&](int64_t i, int64_t j, int64_t k) {
+    return i >= 0 && j >= 0 && k >= 0 && i < mx && j < my && k < mz &&
+           tumor(lo[0] + i, lo[1] + j, lo[2] + k) != 0;
+  };
+  std::vector<uint8_t> distance(size_t(mx * my * mz), 0), kind(distance.size(), 0);
+  for (int64_t k = 0; k < mz; ++k)
+    for (int64_t j = 0; j < my; ++j)
+      for (int64_t i = 0; i < mx; ++i) kind[at(i, j, k)] = inside(i, j, k) ? 1 : 0;
+  // Chebyshev distance to the other kind: 1 where one of the 26 neighbours (voxels beyond the box
+  // included: not tumor) differs, then breadth first through voxels of one kind.
+  std::vector<int64_t> front, next;
+  for (int64_t k = 0; k < mz; ++k)
+    for (int64_t j = 0; j < my; ++j)
+      for (int64_t i = 0; i < mx; ++i) {
+        const bool in = kind[at(i, j, k)] != 0;
+        bool edge = false;
+        for (int dz = -1; dz <= 1 && !edge; ++dz)
+          for (int dy = -1; dy <= 1 && !edge; ++dy)
+            for (int dx = -1; dx <= 1 && !edge; ++dx)
+              edge = inside(i + dx, j + dy, k + dz) != in;
+        if (edge) {
+          distance[at(i, j, k)] = 1;
+          front.push_back(int64_t(at(i, j, k)));
+        }
+      }
+  for (int d = 2; !front.empty(); ++d) {
+    next.clear();
+    for (const int64_t v : front) {
+      const int64_t i = v % mx, j = (v / mx) % my, k = v / (mx * my);
+      for (int dz = -1; dz <= 1; ++dz)
+        for (int dy = -1; dy <= 1; ++dy)
+          for (int dx = -1; dx <= 1; ++dx) {
+            const int64_t a = i + dx, b = j + dy, c = k + dz;
+            if (a < 0 || b < 0 || c < 0 || a >= mx || b >= my || c >= mz) continue;
+            const size_t w = at(a, b, c);
+            if (distance[w] != 0 || kind[w] != kind[size_t(v)]) continue;
+            distance[w] = uint8_t(std::min(d, kernels::kMaxTumorLeap));
+            next.push_back(int64_t(w));
+          }
+    }
+    front.swap(next);
+  }
+  for (size_t v = 0; v < distance.size(); ++v) {
+    // A box of one kind throughout (no voxel of the other kind in it): only the voxels beyond it.
+    const uint8_t d = distance[v] == 0 ? uint8_t(1) : distance[v];
+    distance[v] = uint8_t(d | (kind[v] ? kernels::kTumorLeapInside : 0));
+  }
+  return distance;
+}
+
 kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
                                             const Volume<uint8_t>& tumor,
                                             const TumorSurface& surface, double gamma_mm,
-                                            double eps, const std::vector<float>& bricks) {
+                                            double eps, const std::vector<float>& bricks,
+                                            const std::vector<uint8_t>& leaps) {
   kernels::PathSafetyScene<double> s{};
   s.blocking = blocking_grid(blocking);
   if (!bricks.empty()) {
@@ -452,6 +508,7 @@ kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
     s.tumor.lo[a] = surface.lo[a];
     s.tumor.hi[a] = surface.hi[a];
   }
+  if (!leaps.empty()) s.tumor.leap = leaps.data();
   s.surface = surface.points.data();
   s.surface_count = int(surface.points.size());
   s.gamma = gamma_mm;
@@ -1024,15 +1081,23 @@ class CudaBackend {
         e.evaluate(&points.front().i, int64_t(points.size()), out.data());
       };
     };
+    // The self-check's scene uploads on another thread while the grid is sampled.
+    std::future<std::unique_ptr<kernels::CudaPointEvaluator>> exact;
+    if (options.fast_check_voxels > 0) {
+      exact = std::async(std::launch::async, [&] {
+        return std::make_unique<kernels::CudaPointEvaluator>(
+            scene, desc, options.values,
+            options.cuda_texture ? kernels::BlockingStorage::kTexture
+                                 : kernels::BlockingStorage::kGlobal,
+            options.max_gpus);
+      });
+    }
     run_adaptive(grid, known, options, evaluator_of(evaluator), result);
     clock.done("adaptive_sampling");
     double kernel_s = evaluator.kernel_seconds();
-    if (options.fast_check_voxels > 0) {
-      kernels::CudaPointEvaluator exact(scene, desc, options.values,
-                                        options.cuda_texture ? kernels::BlockingStorage::kTexture
-                                                             : kernels::BlockingStorage::kGlobal,
-                                        options.max_gpus);
-      check_fast_mode(grid, known, options, evaluator_of(exact), result);
+    if (exact.valid()) {
+      const std::unique_ptr<kernels::CudaPointEvaluator> reference = exact.get();
+      check_fast_mode(grid, known, options, evaluator_of(*reference), result);
       clock.done("self_check");
     }
     result.device = evaluator.devices() + " (texture)";
@@ -1153,8 +1218,11 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                            [&] { return options.coverage->mask(grid.geometry); });
   }
   const std::vector<float> bricks = blocking_bricks(blocking);
+  const std::vector<uint8_t> leaps = options.tumor_leaps
+                                         ? tumor_leaps(ray_tumor, surface.lo, surface.hi)
+                                         : std::vector<uint8_t>{};
   const auto scene =
-      make_scene(blocking, ray_tumor, surface, result.gamma_mm, options.eps, bricks);
+      make_scene(blocking, ray_tumor, surface, result.gamma_mm, options.eps, bricks, leaps);
   // Fast mode casts one ray per block of the surface; exact mode's scene stays the self-check's
   // reference.
   TumorSurface fast_surface;
@@ -1174,7 +1242,7 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
     fast_surface = surface_representatives(surface, ray_tumor.geometry(),
                                            options.fast_surface_block);
     fast_scene = make_scene(blocking, ray_tumor, fast_surface, result.gamma_mm, options.eps,
-                            bricks);
+                            bricks, leaps);
     fast_scene.blocking_stride = result.fast_ray_stride;
     result.fast_surface_points = int64_t(fast_surface.points.size());
     spdlog::info("fast mode: {} rays per voxel stand for the {} surface points (blocks of {}^3 "

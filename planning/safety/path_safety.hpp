@@ -58,6 +58,9 @@ struct PathSafetyOptions {
   // (9-bit weights) instead of float filtering in global memory (the exact definition). Exact and
   // tables mode; fast mode always samples through the texture, and this applies to its self-check.
   bool cuda_texture = false;
+  // Rays walk over the samples of the tumor's box whose voxels are known to be of one kind
+  // (kernels::TumorGrid::leap): the same values, fewer lookups. Off: every sample looked up.
+  bool tumor_leaps = true;
   // Fast mode: the coarsest lattice (every fast_stride-th voxel, a power of two; 0: automatic,
   // `coarsest_stride`), and how close to a class threshold a corner may lie before its cell is
   // refined (adaptive_sampling.hpp).
@@ -214,13 +217,22 @@ int automatic_ray_stride(double spacing_mm);
 // empty holds -d (capped at kernels::kMaxEmptyRun), so rays leap over the cube of empty bricks.
 std::vector<float> blocking_bricks(const Volume<float>& blocking);
 
+// The tumor's leaps (kernels::TumorGrid::leap) over its index box [lo, hi]: one byte per voxel,
+// kernels::kTumorLeapInside for tumor plus the Chebyshev distance (capped at
+// kernels::kMaxTumorLeap) to the nearest voxel of the other kind, voxels beyond the box counting
+// as not tumor. Empty when the box is.
+std::vector<uint8_t> tumor_leaps(const Volume<uint8_t>& tumor, const int lo[3], const int hi[3]);
+
 // Builds the scene the kernels read. The returned views point into `blocking`, `tumor`,
-// `surface` and `bricks` (may be empty: no uniform-space skipping), which must outlive them.
+// `surface`, `bricks` (may be empty: no uniform-space skipping) and `leaps` (tumor_leaps of the
+// surface's box; may be empty: every sample of a ray's tumor walk looked up), which must outlive
+// them.
 kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
                                             const Volume<uint8_t>& tumor,
                                             const TumorSurface& surface, double gamma_mm,
                                             double eps,
-                                            const std::vector<float>& bricks = {});
+                                            const std::vector<float>& bricks = {},
+                                            const std::vector<uint8_t>& leaps = {});
 
 // Bytes of memory available to this process now (MemAvailable), 0 when unknown.
 uint64_t available_memory_bytes();

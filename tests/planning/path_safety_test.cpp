@@ -4,6 +4,9 @@
 
 #include <gtest/gtest.h>
 
+#include <Eigen/Geometry>
+
+#include <array>
 #include <cmath>
 #include <limits>
 #include <random>
@@ -385,6 +388,125 @@ TEST(PathSafety, LeapingOverEmptyBricksChangesNoValue) {
     blocked += b[1] > 0.0f;
   }
   EXPECT_GT(blocked, 20);  // some rays cross the organ or the vessel
+}
+
+// A tumor that is not convex, on an anisotropic grid turned against the blocking volume's: two
+// overlapping balls with a hollow in one and a third ball apart (several pieces, a cavity).
+Volume<uint8_t> lumpy_tumor(ImageGeometry& g) {
+  g.dims = {40, 34, 27};
+  g.spacing = Eigen::Vector3d(0.7, 0.9, 1.3);
+  g.direction = Eigen::AngleAxisd(0.4, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  g.origin = -g.direction * (Eigen::Vector3d(20 * 0.7, 17 * 0.9, 13 * 1.3));
+  Volume<uint8_t> tumor(g, 0);
+  for (int64_t k = 0; k < 27; ++k)
+    for (int64_t j = 0; j < 34; ++j)
+      for (int64_t i = 0; i < 40; ++i) {
+        const Eigen::Vector3d p = g.index_to_physical(i, j, k);
+        const bool a = (p - Eigen::Vector3d(-2, 1, 0)).norm() <= 6.5;
+        const bool hollow = (p - Eigen::Vector3d(-3, 1, 0)).norm() <= 2.5;
+        const bool b = (p - Eigen::Vector3d(5, -2, 3)).norm() <= 4.0;
+        const bool c = (p - Eigen::Vector3d(2, 8, -8)).norm() <= 2.2;
+        tumor(i, j, k) = ((a && !hollow) || b || c) ? 1 : 0;
+      }
+  return tumor;
+}
+
+// The tumor's leaps against a brute-force search: each voxel of the box holds its kind and its
+// Chebyshev distance to the nearest voxel of the other kind, voxels beyond the box not tumor.
+TEST(PathSafety, TumorLeapsHoldTheChebyshevDistanceToTheOtherKind) {
+  ImageGeometry g;
+  const Volume<uint8_t> tumor = lumpy_tumor(g);
+  const TumorSurface surface = extract_tumor_surface(tumor, "lumpy");
+  const std::vector<uint8_t> leaps = tumor_leaps(tumor, surface.lo, surface.hi);
+  const int m[3] = {surface.hi[0] - surface.lo[0] + 1, surface.hi[1] - surface.lo[1] + 1,
+                    surface.hi[2] - surface.lo[2] + 1};
+  ASSERT_EQ(leaps.size(), size_t(m[0]) * m[1] * m[2]);
+  const auto in = [&](int i, int j, int k) {  // box indices; beyond the box: not tumor
+    return i >= 0 && j >= 0 && k >= 0 && i < m[0] && j < m[1] && k < m[2] &&
+           tumor(surface.lo[0] + i, surface.lo[1] + j, surface.lo[2] + k) != 0;
+  };
+  std::array<int, 8> histogram{};
+  for (int k = 0; k < m[2]; ++k)
+    for (int j = 0; j < m[1]; ++j)
+      for (int i = 0; i < m[0]; ++i) {
+        const bool kind = in(i, j, k);
+        int d = 1;  // grow the cube until it holds a voxel of the other kind
+        for (bool found = false; !found; ++d) {
+          for (int c = k - d; c <= k + d && !found; ++c)
+            for (int b = j - d; b <= j + d && !found; ++b)
+              for (int a = i - d; a <= i + d && !found; ++a) found = in(a, b, c) != kind;
+          if (found) break;
+        }
+        const uint8_t code = leaps[size_t((k * m[1] + j) * m[0] + i)];
+        ASSERT_EQ((code & kernels::kTumorLeapInside) != 0, kind) << i << "," << j << "," << k;
+        ASSERT_EQ(code & kernels::kMaxTumorLeap, std::min(d, kernels::kMaxTumorLeap))
+            << i << "," << j << "," << k;
+        ++histogram[size_t(std::min(d, 7))];
+      }
+  EXPECT_GT(histogram[3] + histogram[4], 500) << histogram[3] << " " << histogram[4];
+  EXPECT_GT(histogram[5], 0);  // deep enough to leap inside and outside
+}
+
+// Walking over the leaps finds the tumor's occupancy of every sample: front- and back-facing and
+// the samples inside, ray by ray, for points far, near, inside the tumor's box and within a
+// hundredth of a voxel of t (the walk's tiny steps), against the walk that looks at every sample;
+// and the four values bit for bit.
+TEST(PathSafety, TumorLeapsGiveTheWalkOfEverySample) {
+  ImageGeometry tg;
+  const Volume<uint8_t> tumor = lumpy_tumor(tg);
+  const TumorSurface surface = extract_tumor_surface(tumor, "lumpy");
+  const std::vector<uint8_t> leaps = tumor_leaps(tumor, surface.lo, surface.hi);
+  const ImageGeometry g = centred_cube_grid(61, 1.0);
+  Volume<float> blocking(g, 0.0f);
+  for (int64_t k = 0; k < 61; ++k)
+    for (int64_t j = 0; j < 61; ++j)
+      for (int64_t i = 0; i < 61; ++i) {
+        const Eigen::Vector3d p = g.index_to_physical(i, j, k);
+        if ((p - Eigen::Vector3d(14, 3, -2)).norm() <= 5.0) blocking(i, j, k) = 0.8f;
+      }
+  const auto with = make_scene(blocking, tumor, surface, 0.35, 0.01, {}, leaps);
+  const auto without = make_scene(blocking, tumor, surface, 0.35, 0.01);
+  ASSERT_NE(with.tumor.leap, nullptr);
+  ASSERT_EQ(without.tumor.leap, nullptr);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> far(-29.0, 29.0), near(-9.0, 9.0), tiny(-0.004, 0.004);
+  std::uniform_int_distribution<size_t> pick(0, surface.points.size() - 1);
+  int64_t rays = 0, front = 0, back = 0, chords = 0;
+  for (int n = 0; n < 3000; ++n) {
+    const auto& t = surface.points[pick(rng)];
+    kernels::Vec3<double> p;
+    if (n % 3 == 0) {
+      p = {far(rng), far(rng), far(rng)};
+    } else if (n % 3 == 1) {
+      p = {near(rng), near(rng), near(rng)};
+    } else {  // within a hundredth of a voxel of t, or on it
+      p = {t.position.x + tiny(rng), t.position.y + tiny(rng), t.position.z + tiny(rng)};
+      if (n % 30 == 2) p = t.position;
+    }
+    const auto ray_with = kernels::make_ray(with, p, t);
+    const auto ray_without = kernels::make_ray(without, p, t);
+    const auto a = kernels::cross_tumor(with.tumor, ray_with, t.offset, true);
+    const auto b = kernels::cross_tumor(without.tumor, ray_without, t.offset, true);
+    ASSERT_EQ(a.front_facing, b.front_facing) << "ray " << n;
+    ASSERT_EQ(a.back_facing, b.back_facing) << "ray " << n;
+    ASSERT_EQ(a.samples_in_tumor, b.samples_in_tumor) << "ray " << n;
+    ++rays;
+    front += b.front_facing;
+    back += b.back_facing;
+    chords += b.samples_in_tumor > 20;
+  }
+  // Every kind of ray was walked: seen, seen through, and crossing the tumor.
+  EXPECT_GT(front, 300);
+  EXPECT_GT(back, 300);
+  EXPECT_LT(front + back, 2 * rays);
+  EXPECT_GT(chords, 100);
+  for (int n = 0; n < 60; ++n) {
+    const kernels::Vec3<double> p{far(rng), far(rng), near(rng)};
+    float x[4] = {-1, -1, -1, -1}, y[4] = {-2, -2, -2, -2};
+    kernels::path_safety_at<double, kAllValues>(with, p, x);
+    kernels::path_safety_at<double, kAllValues>(without, p, y);
+    for (int v = 0; v < 4; ++v) ASSERT_EQ(x[v], y[v]) << "value " << v << " at point " << n;
+  }
 }
 
 // A sampler that counts its samples (the march's cost) and reads the grid.
