@@ -93,16 +93,32 @@ struct Written {
   nlohmann::json outputs, classes, statistics;
 };
 
+// On every core, in chunks of fixed size whose sums are added in order: the same mean, bit for
+// bit, whatever the number of threads (one pass over a 513^3 volume took 0.1-0.2 s on one core,
+// four of them in a row while the volumes were written).
 nlohmann::json statistics_json(const Volume<float>& vol) {
-  double lo = INFINITY, hi = -INFINITY, sum = 0.0;
+  const std::vector<float>& values = vol.values();
+  constexpr int64_t kChunk = int64_t(1) << 18;
+  const int64_t chunks = (int64_t(values.size()) + kChunk - 1) / kChunk;
+  std::vector<double> sums(size_t(chunks), 0.0);
+  double lo = INFINITY, hi = -INFINITY;
   int64_t n = 0;
-  for (float x : vol.values()) {
-    if (!std::isfinite(x)) continue;
-    lo = std::min(lo, double(x));
-    hi = std::max(hi, double(x));
-    sum += x;
-    ++n;
+#pragma omp parallel for schedule(static) reduction(min : lo) reduction(max : hi) reduction(+ : n)
+  for (int64_t c = 0; c < chunks; ++c) {
+    const size_t end = std::min(values.size(), size_t((c + 1) * kChunk));
+    double sum = 0.0;
+    for (size_t i = size_t(c * kChunk); i < end; ++i) {
+      const float x = values[i];
+      if (!std::isfinite(x)) continue;
+      lo = std::min(lo, double(x));
+      hi = std::max(hi, double(x));
+      sum += x;
+      ++n;
+    }
+    sums[size_t(c)] = sum;
   }
+  double sum = 0.0;
+  for (const double s : sums) sum += s;
   return {{"min", lo}, {"max", hi}, {"mean", n ? sum / double(n) : 0.0}, {"voxels", n}};
 }
 
