@@ -10,6 +10,7 @@
 #include <cmath>
 #include <cstdint>
 #include <set>
+#include <limits>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -345,6 +346,14 @@ void validate_blocking(const Volume<float>& blocking, const std::string& source)
   }
   const float* p = blocking.data();
   const int64_t n = blocking.voxel_count();
+  // On every core first; only a bad volume is searched again, in order, for its first bad voxel.
+  // (NaN fails both comparisons.)
+  int bad = 0;
+#pragma omp parallel for schedule(static) reduction(| : bad)
+  for (int64_t v = 0; v < n; ++v) {
+    bad |= !(p[v] >= 0.0f && p[v] <= std::numeric_limits<float>::max());
+  }
+  if (!bad) return;
   for (int64_t v = 0; v < n; ++v) {
     if (!std::isfinite(p[v]) || p[v] < 0.0f) {
       const Index3 ijk = blocking.geometry().index_of_offset(v);
