@@ -626,6 +626,8 @@ PhaseList four_d_phase_list(const PlanRequest& req, int phases,
 }  // namespace
 
 nlohmann::json run_plan(const PlanRequest& req) {
+  // The GPU starts while the inputs are read.
+  start_device_warm_up(req.path_safety.device);
   if (!req.phases.empty()) {
     const auto t_start = Clock::now();
     check_request(req);

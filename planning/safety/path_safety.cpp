@@ -14,6 +14,7 @@
 #include <limits>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <sstream>
 
@@ -992,17 +993,28 @@ PathSafetyResult start_result(const OutputGrid& grid, const TumorSurface& surfac
 // The CUDA backend, the one place that knows whether this build has one: it starts CUDA early,
 // counts the devices and runs a pass. Without CUDA it has no devices and never runs.
 #if defined(CREPUSCULAR_HAVE_CUDA)
+// Starting CUDA takes a good part of a second: once per process, on its own thread, from the
+// first call on (the devices found).
+std::shared_future<int> cuda_warm_up_once() {
+  static std::mutex mutex;
+  static std::shared_future<int> started;
+  const std::lock_guard<std::mutex> lock(mutex);
+  if (!started.valid()) {
+    started = std::async(std::launch::async, [] { return kernels::cuda_warm_up(); }).share();
+  }
+  return started;
+}
+
 class CudaBackend {
  public:
   static constexpr const char* kNoDevice =
       "path safety device cuda: no CUDA device found (choose device cpu or auto)";
 
-  // Starting CUDA takes a good part of a second; it overlaps the preparation on the host (not
-  // started when the CPU is asked for).
-  explicit CudaBackend(Device device)
-      : device_(device),
-        warm_up_(std::async(device == Device::kCpu ? std::launch::deferred : std::launch::async,
-                            [] { return kernels::cuda_warm_up(); })) {}
+  // The warm-up overlaps the preparation on the host, or started earlier (start_device_warm_up);
+  // never when the CPU is asked for.
+  explicit CudaBackend(Device device) : device_(device) {
+    if (device != Device::kCpu) warm_up_ = cuda_warm_up_once();
+  }
 
   int device_count() {
     if (device_ == Device::kCpu) return 0;
@@ -1106,10 +1118,14 @@ class CudaBackend {
   }
 
   Device device_;
-  std::future<int> warm_up_;
+  std::shared_future<int> warm_up_;
   std::optional<int> count_;
 };
+
+void start_cuda_warm_up() { cuda_warm_up_once(); }
 #else
+void start_cuda_warm_up() {}
+
 class CudaBackend {
  public:
   static constexpr const char* kNoDevice =
@@ -1153,6 +1169,10 @@ void run_on_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid&
 }
 
 }  // namespace
+
+void start_device_warm_up(Device device) {
+  if (device != Device::kCpu) start_cuda_warm_up();
+}
 
 PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                                      const PathSafetyOptions& options,

@@ -234,6 +234,11 @@ kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
                                             const std::vector<float>& bricks = {},
                                             const std::vector<uint8_t>& leaps = {});
 
+// Starts the GPU's runtime on its own thread (a good part of a second), once per process, so that
+// a command can overlap it with reading its inputs; compute_path_safety then finds it started.
+// Nothing for Device::kCpu or a build without CUDA.
+void start_device_warm_up(Device device);
+
 // Bytes of memory available to this process now (MemAvailable), 0 when unknown.
 uint64_t available_memory_bytes();
 
