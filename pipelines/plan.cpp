@@ -625,9 +625,12 @@ PhaseList four_d_phase_list(const PlanRequest& req, int phases,
 
 }  // namespace
 
-nlohmann::json run_plan(const PlanRequest& req) {
-  // The GPU starts while the inputs are read.
+nlohmann::json run_plan(const PlanRequest& request) {
+  PlanRequest req = request;
+  // The GPU starts while the inputs are read, and smooths the safety margin unless the CPU was
+  // asked for.
   start_device_warm_up(req.path_safety.device);
+  req.margin.on_gpu = req.path_safety.device != Device::kCpu;
   if (!req.phases.empty()) {
     const auto t_start = Clock::now();
     check_request(req);

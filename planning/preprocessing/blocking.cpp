@@ -66,8 +66,9 @@ struct LevelBuffers {
 };
 
 template <typename InMask>
-void add_level(std::vector<float>& b, const ImageGeometry& g, double coeff, double fwhm_mm,
-               InMask in_mask, LevelBuffers& buffers) {
+void add_level(std::vector<float>& b, const ImageGeometry& g, double coeff,
+               const MarginOptions& margin, InMask in_mask, LevelBuffers& buffers) {
+  const double fwhm_mm = margin.fwhm_mm;
   const int64_t n = g.voxel_count();
   std::vector<float>& mask = buffers.mask;
   mask.resize(static_cast<size_t>(n));
@@ -96,7 +97,7 @@ void add_level(std::vector<float>& b, const ImageGeometry& g, double coeff, doub
   gaussian.maximum_error = 1e-3;
   gaussian.maximum_kernel_width = std::max(32u, max_width);
   SmoothedBox& smoothed = buffers.smoothed;
-  discrete_gaussian_box(mask, g, gaussian, smoothed, buffers.scratch);
+  discrete_gaussian_box(mask, g, gaussian, smoothed, buffers.scratch, margin.on_gpu);
   // Outside the smoothed box the smoothing is 0 (and so is the mask).
   if (smoothed.empty()) return;
   const int64_t nx = g.dims[0], ny = g.dims[1];
@@ -291,7 +292,7 @@ Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const Vulnerab
     }
     spdlog::info("blocking: level {} '{}' ({} per mm), {} voxels, margin FWHM {} mm", level.level,
                  level.name, level.blocking_per_mm, voxels_per_level[l], margin.fwhm_mm);
-    add_level(b.values(), labels.geometry(), level.blocking_per_mm, margin.fwhm_mm,
+    add_level(b.values(), labels.geometry(), level.blocking_per_mm, margin,
               [&](int64_t v) { return lab[v] > 0 && level_of_value[size_t(lab[v])] == int(l); },
               buffers);
   }
@@ -333,7 +334,7 @@ Volume<float> blocking_from_ct(const Volume<float>& ct_hu, const CtThresholds& t
   Volume<float> b(g, 0.0f);
   if (impassable > 0) {
     LevelBuffers buffers;
-    add_level(b.values(), g, thresholds.impassable_per_mm, margin.fwhm_mm, blocked, buffers);
+    add_level(b.values(), g, thresholds.impassable_per_mm, margin, blocked, buffers);
   }
   return b;
 }

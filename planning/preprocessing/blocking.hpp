@@ -14,6 +14,9 @@ struct MarginOptions {
   // Full width at half maximum of the Gaussian safety margin, mm (the paper's 5 mm kernel).
   // 0 disables the margin.
   double fwhm_mm = 5.0;
+  // Smooth on a CUDA device where one is found (the same values; plan asks for it unless told
+  // --device cpu).
+  bool on_gpu = false;
 };
 
 // b(x) = max over levels L of coeff(L) * max(mask_L(x), (G * mask_L)(x)): each level's mask is

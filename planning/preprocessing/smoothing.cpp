@@ -8,6 +8,10 @@
 
 #include "foundation/error.hpp"
 
+#if defined(CREPUSCULAR_HAVE_CUDA)
+#include "kernels/gaussian_cuda.hpp"
+#endif
+
 // ITK headers after ours (see volume_io.cpp): keep one Eigen (the system one) in this unit.
 #ifndef ITK_USE_SYSTEM_EIGEN
 #define ITK_USE_SYSTEM_EIGEN
@@ -54,7 +58,7 @@ std::vector<float> discrete_gaussian(const std::vector<float>& values, const Ima
 
 void discrete_gaussian_box(const std::vector<float>& values, const ImageGeometry& g,
                            const DiscreteGaussian& gaussian, SmoothedBox& result,
-                           std::vector<float>& scratch) {
+                           std::vector<float>& scratch, bool on_gpu) {
   const std::array<int64_t, 3> n = {g.dims[0], g.dims[1], g.dims[2]};
   result.lo = {0, 0, 0};
   result.dims = {0, 0, 0};
@@ -99,9 +103,20 @@ void discrete_gaussian_box(const std::vector<float>& values, const ImageGeometry
   std::vector<float>& b = result.values;
   a.resize(size_t(m[0] * m[1] * m[2]));
   b.resize(a.size());
+#pragma omp parallel for collapse(2) schedule(static)
   for (int64_t k = b0[2]; k <= b1[2]; ++k)
     for (int64_t j = b0[1]; j <= b1[1]; ++j)
       std::copy_n(values.data() + (k * n[1] + j) * n[0] + b0[0], m[0], &a[box(b0[0], j, k)]);
+#if defined(CREPUSCULAR_HAVE_CUDA)
+  if (on_gpu && kernels::gaussian_box_cuda(a.data(), b0.data(), m.data(), n.data(), taps.data(),
+                                           b.data())) {
+    result.lo = b0;
+    result.dims = m;
+    return;
+  }
+#else
+  (void)on_gpu;
+#endif
 
   // One pass along `axis`: out(x) = sum_t taps[t] in(clamp(x + t - r)), in() zero outside the
   // box (and clamped to the image's edge: zero flux), accumulated in double over t in order.

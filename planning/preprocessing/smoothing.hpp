@@ -27,7 +27,9 @@ std::vector<float> discrete_gaussian(const std::vector<float>& values, const Ima
 // The same smoothing kept to the box where it is not zero (the input's non-zero voxels grown by
 // the kernel's radius; empty when the input is all zero): values x fastest, `lo` its first voxel
 // in the image, `dims` its size. `box` and `scratch` are reused from call to call, so smoothing
-// several masks of one image allocates (and has the system clear) its memory once.
+// several masks of one image allocates (and has the system clear) its memory once. on_gpu: the
+// passes run on a CUDA device where this build has one and one is found (the same values, bit for
+// bit: kernels/gaussian_cuda.hpp), else on the cores.
 struct SmoothedBox {
   std::array<int64_t, 3> lo{}, dims{};
   std::vector<float> values;
@@ -38,7 +40,7 @@ struct SmoothedBox {
 };
 void discrete_gaussian_box(const std::vector<float>& values, const ImageGeometry& g,
                            const DiscreteGaussian& gaussian, SmoothedBox& box,
-                           std::vector<float>& scratch);
+                           std::vector<float>& scratch, bool on_gpu = false);
 
 // ITK's DiscreteGaussianImageFilter itself: the reference the separable passes are tested against.
 std::vector<float> discrete_gaussian_itk(const std::vector<float>& values, const ImageGeometry& g,
