@@ -1238,7 +1238,10 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                            [&] { return options.coverage->mask(grid.geometry); });
   }
   const std::vector<float> bricks = blocking_bricks(blocking);
-  const std::vector<uint8_t> leaps = options.tumor_leaps
+  // The GPU's walks leap (H100 headline: kernels 3.28 -> 2.95 s); the cores' do not, where the
+  // extra work per sample cost more than the samples it saved (2 cores, 2 mm plan: path safety
+  // 25.3-25.8 s without, 27.4-28.0 s with; bench/RESULTS.md, thirteenth session).
+  const std::vector<uint8_t> leaps = options.tumor_leaps && device == Device::kCuda
                                          ? tumor_leaps(ray_tumor, surface.lo, surface.hi)
                                          : std::vector<uint8_t>{};
   const auto scene =

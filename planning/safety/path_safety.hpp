@@ -58,8 +58,9 @@ struct PathSafetyOptions {
   // (9-bit weights) instead of float filtering in global memory (the exact definition). Exact and
   // tables mode; fast mode always samples through the texture, and this applies to its self-check.
   bool cuda_texture = false;
-  // Rays walk over the samples of the tumor's box whose voxels are known to be of one kind
-  // (kernels::TumorGrid::leap): the same values, fewer lookups. Off: every sample looked up.
+  // CUDA: rays walk over the samples of the tumor's box whose voxels are known to be of one kind
+  // (kernels::TumorGrid::leap): the same values, fewer lookups. Off, and always on the CPU (where
+  // it was slower): every sample looked up.
   bool tumor_leaps = true;
   // Fast mode: the coarsest lattice (every fast_stride-th voxel, a power of two; 0: automatic,
   // `coarsest_stride`), and how close to a class threshold a corner may lie before its cell is
