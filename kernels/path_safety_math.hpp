@@ -331,9 +331,11 @@ CREPUSCULAR_HD_INLINE int tumor_offset_and_leap(const TumorGrid<double>& g, Vec3
 // Samples a walk may pass over after one whose voxel has leap d (> 1): they move the nearest voxel
 // by less than d - 1 along every axis (a hundredth of a voxel covers the rounding of their
 // positions), so they stay in its cube. inv_step: 1 / the walk's largest index step per sample
-// along an axis (0: no leaping).
+// along an axis (0: no leaping). Capped at 10^9 (tiny steps: a point a millionth of a step from
+// t), which passes every sample of a walk.
 CREPUSCULAR_HD_INLINE int tumor_leap_samples(int leap, double inv_step) {
-  return int((double(leap) - 1.01) * inv_step);
+  const double samples = (double(leap) - 1.01) * inv_step;
+  return samples < 1e9 ? int(samples) : 1000000000;
 }
 
 CREPUSCULAR_HD Vec3<double> shift_for_ties(Vec3<double> r) {
