@@ -2,27 +2,13 @@
 
 #include <cuda_runtime.h>
 
-#include <string>
-
-#include "foundation/error.hpp"
+#include "kernels/cuda_memory.cuh"
 
 namespace crepuscular::kernels {
 namespace {
 
-void check(cudaError_t e, const char* what) {
-  if (e != cudaSuccess) throw Error(std::string("CUDA ") + what + ": " + cudaGetErrorString(e));
-}
-
-template <typename T>
-struct Buffer {
-  T* ptr = nullptr;
-  explicit Buffer(size_t count) { check(cudaMalloc(&ptr, count * sizeof(T)), "cudaMalloc"); }
-  ~Buffer() {
-    if (ptr) cudaFree(ptr);
-  }
-  Buffer(const Buffer&) = delete;
-  Buffer& operator=(const Buffer&) = delete;
-};
+using cuda::check;
+using cuda::DeviceBuffer;
 
 struct Box {
   long long lo[3], m[3], n[3];
@@ -69,10 +55,10 @@ bool gaussian_box_cuda(const float* in, const int64_t lo[3], const int64_t dims[
   }
   const size_t voxels = size_t(dims[0]) * size_t(dims[1]) * size_t(dims[2]);
   if (voxels == 0) return true;
-  Buffer<float> a(voxels), b(voxels);
+  DeviceBuffer<float> a(voxels), b(voxels);
   size_t tap_count = 0;
   for (int axis = 0; axis < 3; ++axis) tap_count += taps[axis].size();
-  Buffer<double> t(tap_count);
+  DeviceBuffer<double> t(tap_count);
   size_t offset[3] = {0, 0, 0};
   for (int axis = 0, at = 0; axis < 3; at += int(taps[axis].size()), ++axis) {
     offset[axis] = size_t(at);

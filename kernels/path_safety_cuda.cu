@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "kernels/cuda_memory.cuh"
 #include "kernels/path_safety_cuda.hpp"
 #include "kernels/path_safety_fast.hpp"
 #include "kernels/value_set.hpp"
@@ -24,26 +25,8 @@ namespace crepuscular::kernels {
 
 namespace {
 
-void check(cudaError_t status, const char* what) {
-  if (status != cudaSuccess) {
-    throw Error(std::string("CUDA: ") + what + " failed: " + cudaGetErrorString(status));
-  }
-}
-
-template <typename T>
-struct DeviceBuffer {
-  T* ptr = nullptr;
-  DeviceBuffer() = default;
-  explicit DeviceBuffer(size_t count) { allocate(count); }
-  void allocate(size_t count) {
-    check(cudaMalloc(&ptr, std::max<size_t>(count, 1) * sizeof(T)), "cudaMalloc");
-  }
-  ~DeviceBuffer() {
-    if (ptr) cudaFree(ptr);
-  }
-  DeviceBuffer(const DeviceBuffer&) = delete;
-  DeviceBuffer& operator=(const DeviceBuffer&) = delete;
-};
+using cuda::check;
+using cuda::DeviceBuffer;
 
 Affine<float> to_float(const Affine<double>& a) {
   Affine<float> f{};
