@@ -435,14 +435,15 @@ std::vector<uint8_t> tumor_leaps(const Volume<uint8_t>& tumor, const int lo[3], 
   const int64_t mx = hi[0] - lo[0] + 1, my = hi[1] - lo[1] + 1, mz = hi[2] - lo[2] + 1;
   if (mx <= 0 || my <= 0 || mz <= 0) return {};
   const auto at = [&](int64_t i, int64_t j, int64_t k) { return size_t((k * my + j) * mx + i); };
-  const auto inside = [&](int64_t i, int64_t j, int64_t k) {
-    return i >= 0 && j >= 0 && k >= 0 && i < mx && j < my && k < mz &&
-           tumor(lo[0] + i, lo[1] + j, lo[2] + k) != 0;
-  };
   std::vector<uint8_t> distance(size_t(mx * my * mz), 0), kind(distance.size(), 0);
   for (int64_t k = 0; k < mz; ++k)
     for (int64_t j = 0; j < my; ++j)
-      for (int64_t i = 0; i < mx; ++i) kind[at(i, j, k)] = inside(i, j, k) ? 1 : 0;
+      for (int64_t i = 0; i < mx; ++i) {
+        kind[at(i, j, k)] = tumor(lo[0] + i, lo[1] + j, lo[2] + k) != 0 ? 1 : 0;
+      }
+  const auto inside = [&](int64_t i, int64_t j, int64_t k) {
+    return i >= 0 && j >= 0 && k >= 0 && i < mx && j < my && k < mz && kind[at(i, j, k)] != 0;
+  };
   // Chebyshev distance to the other kind: 1 where one of the 26 neighbours (voxels beyond the box
   // included: not tumor) differs, then breadth first through voxels of one kind.
   std::vector<int64_t> front, next;
