@@ -2,6 +2,8 @@
 
 #include <cuda_runtime.h>
 
+#include <algorithm>
+
 #include "kernels/cuda_memory.cuh"
 
 namespace crepuscular::kernels {
@@ -37,7 +39,114 @@ __global__ void gaussian_pass(const float* __restrict__ in, float* __restrict__ 
   out[v] = __double2float_rn(acc);
 }
 
+// The level's mask over its box: 1 where codes holds `code`, else 0.
+__global__ void level_mask(const uint8_t* __restrict__ codes, float* __restrict__ out, Box box,
+                           uint8_t code) {
+  const long long v = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+  const long long total = box.m[0] * box.m[1] * box.m[2];
+  if (v >= total) return;
+  const long long i = v % box.m[0] + box.lo[0], j = (v / box.m[0]) % box.m[1] + box.lo[1],
+                  k = v / (box.m[0] * box.m[1]) + box.lo[2];
+  out[v] = codes[(k * box.n[1] + j) * box.n[0] + i] == code ? 1.0f : 0.0f;
+}
+
+// b = max(b, coeff * max(mask, smoothed)) over the box; smoothed null: no margin (0).
+__global__ void level_max(const uint8_t* __restrict__ codes, const float* __restrict__ smoothed,
+                          float* __restrict__ b, Box box, uint8_t code, float coeff) {
+  const long long v = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+  const long long total = box.m[0] * box.m[1] * box.m[2];
+  if (v >= total) return;
+  const long long i = v % box.m[0] + box.lo[0], j = (v / box.m[0]) % box.m[1] + box.lo[1],
+                  k = v / (box.m[0] * box.m[1]) + box.lo[2];
+  const long long at = (k * box.n[1] + j) * box.n[0] + i;
+  const float m = codes[at] == code ? 1.0f : 0.0f;
+  const float s = smoothed ? smoothed[v] : 0.0f;
+  // The host's std::max(b, c * std::max(m, s)), no NaN: one rounded product.
+  b[at] = fmaxf(b[at], __fmul_rn(coeff, fmaxf(m, s)));
+}
+
+Box box_of(const int64_t lo[3], const int64_t dims[3], const int64_t image[3]) {
+  Box box{};
+  for (int a = 0; a < 3; ++a) {
+    box.lo[a] = lo[a];
+    box.m[a] = dims[a];
+    box.n[a] = image[a];
+  }
+  return box;
+}
+
+// cudaMalloc that reports an exhausted device as false (the caller falls back to the cores).
+template <typename T>
+bool try_allocate(DeviceBuffer<T>& buffer, size_t count) {
+  const cudaError_t status = cudaMalloc(&buffer.ptr, std::max<size_t>(count, 1) * sizeof(T));
+  if (status == cudaErrorMemoryAllocation) {
+    buffer.ptr = nullptr;
+    cudaGetLastError();
+    return false;
+  }
+  check(status, "cudaMalloc");
+  return true;
+}
+
 }  // namespace
+
+bool blocking_levels_cuda(const uint8_t* codes, const int64_t image[3],
+                          const std::vector<MarginLevel>& levels, float* b) {
+  int devices = 0;
+  if (cudaGetDeviceCount(&devices) != cudaSuccess || devices == 0) {
+    cudaGetLastError();
+    return false;
+  }
+  check(cudaSetDevice(0), "cudaSetDevice");
+  const size_t voxels = size_t(image[0]) * size_t(image[1]) * size_t(image[2]);
+  size_t box_voxels = 0, tap_count = 0;
+  for (const MarginLevel& level : levels) {
+    if (level.taps[0].empty()) continue;
+    box_voxels = std::max(box_voxels, size_t(level.dims[0]) * size_t(level.dims[1]) *
+                                          size_t(level.dims[2]));
+    for (int a = 0; a < 3; ++a) tap_count += level.taps[a].size();
+  }
+  DeviceBuffer<uint8_t> c;
+  DeviceBuffer<float> volume, s0, s1;
+  DeviceBuffer<double> t;
+  if (!try_allocate(c, voxels) || !try_allocate(volume, voxels) ||
+      !try_allocate(s0, box_voxels) || !try_allocate(s1, box_voxels) ||
+      !try_allocate(t, tap_count)) {
+    return false;
+  }
+  check(cudaMemcpy(c.ptr, codes, voxels, cudaMemcpyHostToDevice), "upload level map");
+  check(cudaMemset(volume.ptr, 0, voxels * sizeof(float)), "clear blocking volume");
+  const unsigned threads = 256;
+  size_t at = 0;
+  for (const MarginLevel& level : levels) {
+    const Box box = box_of(level.lo, level.dims, image);
+    const size_t n = size_t(level.dims[0]) * size_t(level.dims[1]) * size_t(level.dims[2]);
+    if (n == 0) continue;
+    const unsigned blocks = unsigned((n + threads - 1) / threads);
+    if (level.taps[0].empty()) {
+      level_max<<<blocks, threads>>>(c.ptr, nullptr, volume.ptr, box, level.code, level.coeff);
+      continue;
+    }
+    double* taps[3];
+    for (int a = 0; a < 3; ++a) {
+      taps[a] = t.ptr + at;
+      check(cudaMemcpy(taps[a], level.taps[a].data(), level.taps[a].size() * sizeof(double),
+                       cudaMemcpyHostToDevice),
+            "upload taps");
+      at += level.taps[a].size();
+    }
+    level_mask<<<blocks, threads>>>(c.ptr, s0.ptr, box, level.code);
+    // z, then y, then x, as the host.
+    gaussian_pass<<<blocks, threads>>>(s0.ptr, s1.ptr, box, 2, taps[2], int(level.taps[2].size()));
+    gaussian_pass<<<blocks, threads>>>(s1.ptr, s0.ptr, box, 1, taps[1], int(level.taps[1].size()));
+    gaussian_pass<<<blocks, threads>>>(s0.ptr, s1.ptr, box, 0, taps[0], int(level.taps[0].size()));
+    level_max<<<blocks, threads>>>(c.ptr, s1.ptr, volume.ptr, box, level.code, level.coeff);
+  }
+  check(cudaGetLastError(), "blocking levels");
+  check(cudaMemcpy(b, volume.ptr, voxels * sizeof(float), cudaMemcpyDeviceToHost),
+        "download blocking volume");
+  return true;
+}
 
 bool gaussian_box_cuda(const float* in, const int64_t lo[3], const int64_t dims[3],
                        const int64_t image[3], const std::vector<double> taps[3], float* out) {
@@ -47,12 +156,7 @@ bool gaussian_box_cuda(const float* in, const int64_t lo[3], const int64_t dims[
     return false;
   }
   check(cudaSetDevice(0), "cudaSetDevice");
-  Box box{};
-  for (int a = 0; a < 3; ++a) {
-    box.lo[a] = lo[a];
-    box.m[a] = dims[a];
-    box.n[a] = image[a];
-  }
+  const Box box = box_of(lo, dims, image);
   const size_t voxels = size_t(dims[0]) * size_t(dims[1]) * size_t(dims[2]);
   if (voxels == 0) return true;
   DeviceBuffer<float> a(voxels), b(voxels);

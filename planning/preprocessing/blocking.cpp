@@ -7,6 +7,7 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <set>
@@ -16,6 +17,11 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+
+#if defined(CREPUSCULAR_HAVE_CUDA)
+#include "kernels/gaussian_cuda.hpp"
+#include "kernels/path_safety_cuda.hpp"
+#endif
 
 // ITK headers after ours (see volume_io.cpp): keep one Eigen (the system one) in this unit.
 #ifndef ITK_USE_SYSTEM_EIGEN
@@ -54,6 +60,24 @@ typename Image::Pointer make_image(const ImageGeometry& g) {
   return image;
 }
 
+// The safety margin's Gaussian of full width at half maximum `fwhm_mm` on the grid `g`. ITK's
+// discrete Gaussian (Lindeberg's Bessel kernel) rather than a recursive one: it never goes
+// negative nor overshoots 1, keeps the exact variance when sigma is below a voxel (thick slices),
+// and has no minimum image size. MaximumError, not MaximumKernelWidth, sets the kernel size.
+// Applied by separable passes over the structure's box (smoothing.hpp): ITK's values.
+DiscreteGaussian margin_gaussian(const ImageGeometry& g, double fwhm_mm) {
+  const double sigma_mm = sigma_of_fwhm(fwhm_mm);
+  double max_sigma_voxels = 0.0;
+  for (int a = 0; a < 3; ++a)
+    max_sigma_voxels = std::max(max_sigma_voxels, sigma_mm / g.spacing[a]);
+  const unsigned max_width = unsigned(2.0 * std::ceil(6.0 * max_sigma_voxels) + 3.0);
+  DiscreteGaussian gaussian;
+  gaussian.variance_mm2 = sigma_mm * sigma_mm;
+  gaussian.maximum_error = 1e-3;
+  gaussian.maximum_kernel_width = std::max(32u, max_width);
+  return gaussian;
+}
+
 // b = max(b, coeff * max(mask, G_sigma * mask)) with mask(v) = in_mask(v) (0 or 1) on the grid `g`
 // (§3.1: the safety margin never lowers a structure). G is in physical units (mm), so anisotropic
 // spacing gets the same profile in mm. The volume is extended by its border values (zero flux), so
@@ -83,21 +107,9 @@ void add_level(std::vector<float>& b, const ImageGeometry& g, double coeff,
     return;
   }
 
-  // ITK's discrete Gaussian (Lindeberg's Bessel kernel) rather than a recursive one: it never goes
-  // negative nor overshoots 1, keeps the exact variance when sigma is below a voxel (thick slices),
-  // and has no minimum image size. MaximumError, not MaximumKernelWidth, sets the kernel size.
-  // Applied by separable passes over the structure's box (smoothing.hpp): ITK's values.
-  const double sigma_mm = sigma_of_fwhm(fwhm_mm);
-  double max_sigma_voxels = 0.0;
-  for (int a = 0; a < 3; ++a)
-    max_sigma_voxels = std::max(max_sigma_voxels, sigma_mm / g.spacing[a]);
-  const unsigned max_width = unsigned(2.0 * std::ceil(6.0 * max_sigma_voxels) + 3.0);
-  DiscreteGaussian gaussian;
-  gaussian.variance_mm2 = sigma_mm * sigma_mm;
-  gaussian.maximum_error = 1e-3;
-  gaussian.maximum_kernel_width = std::max(32u, max_width);
   SmoothedBox& smoothed = buffers.smoothed;
-  discrete_gaussian_box(mask, g, gaussian, smoothed, buffers.scratch, margin.on_gpu);
+  discrete_gaussian_box(mask, g, margin_gaussian(g, fwhm_mm), smoothed, buffers.scratch,
+                        margin.on_gpu);
   // Outside the smoothed box the smoothing is 0 (and so is the mask).
   if (smoothed.empty()) return;
   const int64_t nx = g.dims[0], ny = g.dims[1];
@@ -267,23 +279,57 @@ Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const Vulnerab
       if (table.levels[l].level == label->level) level_of_value[size_t(value)] = int(l);
     }
   }
+  // One pass: each level's voxel count and box, and for the GPU each voxel's level (its code,
+  // index + 1; 0 none).
+  const ImageGeometry& g = labels.geometry();
   const int64_t n = labels.voxel_count();
   const int32_t* lab = labels.data();
+  const size_t level_count = table.levels.size();
+  if (level_count > 254) {
+    throw Error(labels_source + ": the vulnerability table has " + std::to_string(level_count) +
+                " levels (expected at most 254)");
+  }
+#if defined(CREPUSCULAR_HAVE_CUDA)
+  const bool on_gpu = margin.on_gpu && kernels::cuda_device_count() > 0;
+#else
+  const bool on_gpu = false;
+#endif
+  std::vector<uint8_t> codes(on_gpu ? size_t(n) : 0);
+  std::vector<std::array<int64_t, 3>> box_lo(level_count, {g.dims[0], g.dims[1], g.dims[2]});
+  std::vector<std::array<int64_t, 3>> box_hi(level_count, {-1, -1, -1});
 #pragma omp parallel
   {
-    std::vector<int64_t> mine(voxels_per_level.size(), 0);
+    std::vector<int64_t> mine(level_count, 0);
+    std::vector<std::array<int64_t, 3>> lo = box_lo, hi = box_hi;
 #pragma omp for schedule(static) nowait
-    for (int64_t v = 0; v < n; ++v) {
-      const int l = lab[v] > 0 ? level_of_value[size_t(lab[v])] : -1;
-      if (l >= 0) ++mine[size_t(l)];
+    for (int64_t k = 0; k < g.dims[2]; ++k) {
+      for (int64_t j = 0; j < g.dims[1]; ++j) {
+        const int64_t row = (k * g.dims[1] + j) * g.dims[0];
+        for (int64_t i = 0; i < g.dims[0]; ++i) {
+          const int32_t x = lab[row + i];
+          const int l = x > 0 ? level_of_value[size_t(x)] : -1;
+          if (on_gpu) codes[size_t(row + i)] = uint8_t(l + 1);
+          if (l < 0) continue;
+          ++mine[size_t(l)];
+          std::array<int64_t, 3>& a = lo[size_t(l)];
+          std::array<int64_t, 3>& b = hi[size_t(l)];
+          a = {std::min(a[0], i), std::min(a[1], j), std::min(a[2], k)};
+          b = {std::max(b[0], i), std::max(b[1], j), std::max(b[2], k)};
+        }
+      }
     }
 #pragma omp critical
-    for (size_t l = 0; l < mine.size(); ++l) voxels_per_level[l] += mine[l];
+    for (size_t l = 0; l < level_count; ++l) {
+      voxels_per_level[l] += mine[l];
+      for (size_t a = 0; a < 3; ++a) {
+        box_lo[l][a] = std::min(box_lo[l][a], lo[l][a]);
+        box_hi[l][a] = std::max(box_hi[l][a], hi[l][a]);
+      }
+    }
   }
 
-  Volume<float> b(labels.geometry(), 0.0f);
-  LevelBuffers buffers;
-  for (size_t l = 0; l < table.levels.size(); ++l) {
+  std::vector<uint8_t> blocks(level_count, 0);
+  for (size_t l = 0; l < level_count; ++l) {
     const VulnerabilityLevel& level = table.levels[l];
     if (level.blocking_per_mm <= 0.0 || voxels_per_level[l] == 0) {
       spdlog::debug("blocking: level {} '{}' skipped ({} voxels, {} per mm)", level.level,
@@ -292,7 +338,43 @@ Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const Vulnerab
     }
     spdlog::info("blocking: level {} '{}' ({} per mm), {} voxels, margin FWHM {} mm", level.level,
                  level.name, level.blocking_per_mm, voxels_per_level[l], margin.fwhm_mm);
-    add_level(b.values(), labels.geometry(), level.blocking_per_mm, margin,
+    blocks[l] = 1;
+  }
+
+  Volume<float> b(g, 0.0f);
+#if defined(CREPUSCULAR_HAVE_CUDA)
+  if (on_gpu) {
+    // The whole volume on the GPU: each level's box grown by its kernel's radius, as
+    // discrete_gaussian_box grows the box of its mask, so the same bits as the cores.
+    std::vector<kernels::MarginLevel> gpu_levels;
+    std::array<std::vector<double>, 3> taps;
+    if (margin.fwhm_mm > 0.0) taps = discrete_gaussian_taps(g, margin_gaussian(g, margin.fwhm_mm));
+    for (size_t l = 0; l < level_count; ++l) {
+      if (!blocks[l]) continue;
+      kernels::MarginLevel level;
+      level.code = uint8_t(l + 1);
+      level.coeff = float(table.levels[l].blocking_per_mm);
+      for (size_t a = 0; a < 3; ++a) {
+        const int64_t r = int64_t(taps[a].size() / 2);
+        level.lo[a] = std::max<int64_t>(0, box_lo[l][a] - r);
+        level.dims[a] = std::min<int64_t>(g.dims[a] - 1, box_hi[l][a] + r) - level.lo[a] + 1;
+        level.taps[a] = taps[a];
+      }
+      gpu_levels.push_back(std::move(level));
+    }
+    if (kernels::blocking_levels_cuda(codes.data(), g.dims.data(), gpu_levels, b.data())) {
+      return b;
+    }
+    spdlog::info("blocking: not enough GPU memory for the volume; smoothing on the cores");
+  }
+#endif
+  MarginOptions on_cores = margin;
+  on_cores.on_gpu = false;
+  LevelBuffers buffers;
+  for (size_t l = 0; l < level_count; ++l) {
+    if (!blocks[l]) continue;
+    const VulnerabilityLevel& level = table.levels[l];
+    add_level(b.values(), labels.geometry(), level.blocking_per_mm, on_cores,
               [&](int64_t v) { return lab[v] > 0 && level_of_value[size_t(lab[v])] == int(l); },
               buffers);
   }

@@ -40,6 +40,13 @@ std::vector<double> taps_along(int a, const ImageGeometry& g, const DiscreteGaus
 
 }  // namespace
 
+std::array<std::vector<double>, 3> discrete_gaussian_taps(const ImageGeometry& g,
+                                                          const DiscreteGaussian& gaussian) {
+  std::array<std::vector<double>, 3> taps;
+  for (int a = 0; a < 3; ++a) taps[size_t(a)] = taps_along(a, g, gaussian);
+  return taps;
+}
+
 std::vector<float> discrete_gaussian(const std::vector<float>& values, const ImageGeometry& g,
                                      const DiscreteGaussian& gaussian) {
   SmoothedBox box;
@@ -86,10 +93,9 @@ void discrete_gaussian_box(const std::vector<float>& values, const ImageGeometry
   if (hi[0] < 0) return;  // all zero: so is its smoothing
 
   // Grown by each axis' kernel radius: outside this box every pass's values are exactly zero.
-  std::array<std::vector<double>, 3> taps;
+  const std::array<std::vector<double>, 3> taps = discrete_gaussian_taps(g, gaussian);
   std::array<int64_t, 3> b0{}, b1{}, m{};
   for (int a = 0; a < 3; ++a) {
-    taps[size_t(a)] = taps_along(a, g, gaussian);
     const int64_t r = int64_t(taps[size_t(a)].size() / 2);
     b0[size_t(a)] = std::max<int64_t>(0, lo[size_t(a)] - r);
     b1[size_t(a)] = std::min<int64_t>(n[size_t(a)] - 1, hi[size_t(a)] + r);

@@ -42,6 +42,11 @@ void discrete_gaussian_box(const std::vector<float>& values, const ImageGeometry
                            const DiscreteGaussian& gaussian, SmoothedBox& box,
                            std::vector<float>& scratch, bool on_gpu = false);
 
+// The taps the passes use along each index axis of `g` (offsets -r..r, r = size / 2): the
+// operators ITK's DiscreteGaussianImageFilter builds.
+std::array<std::vector<double>, 3> discrete_gaussian_taps(const ImageGeometry& g,
+                                                          const DiscreteGaussian& gaussian);
+
 // ITK's DiscreteGaussianImageFilter itself: the reference the separable passes are tested against.
 std::vector<float> discrete_gaussian_itk(const std::vector<float>& values, const ImageGeometry& g,
                                          const DiscreteGaussian& gaussian);

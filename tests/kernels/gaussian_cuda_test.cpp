@@ -11,7 +11,9 @@
 #include <vector>
 
 #include "kernels/path_safety_cuda.hpp"
+#include "planning/preprocessing/blocking.hpp"
 #include "planning/preprocessing/smoothing.hpp"
+#include "planning/preprocessing/vulnerability.hpp"
 
 namespace crepuscular::planning {
 namespace {
@@ -93,6 +95,53 @@ TEST(GaussianCuda, MarginSmoothedOnTheGpuIsTheCoresBits) {
     differ += std::memcmp(&gpu.values[v], &cores.values[v], 4) != 0;
   }
   EXPECT_EQ(differ, 0);
+}
+
+// The whole blocking volume made on the GPU (blocking_levels_cuda) against the cores' level by
+// level: every label of the phantom's table, structures cut by the image's edges, thick slices,
+// labels of a free level (coefficient 0); with and without a margin.
+TEST(GaussianCuda, BlockingVolumeOnTheGpuIsTheCoresBits) {
+  if (kernels::cuda_device_count() == 0) GTEST_SKIP() << "no CUDA device";
+  const VulnerabilityTable table = VulnerabilityTable::preset("phantom");
+  ImageGeometry g;
+  g.dims = {71, 58, 33};
+  g.spacing = Eigen::Vector3d(0.8, 0.7, 2.0);
+  g.origin = Eigen::Vector3d(-20.0, 13.0, 4.0);
+  Volume<int32_t> labels(g, 0);
+  std::mt19937 rng(11);
+  std::uniform_int_distribution<int> label(1, 12);
+  // Balls of random labels, some reaching past the image's faces.
+  std::uniform_real_distribution<double> x(-5.0, 75.0), y(-5.0, 62.0), z(-3.0, 36.0), r(2.0, 9.0);
+  for (int ball = 0; ball < 40; ++ball) {
+    const double cx = x(rng), cy = y(rng), cz = z(rng), rr = r(rng);
+    const int value = label(rng);
+    for (int64_t k = 0; k < g.dims[2]; ++k)
+      for (int64_t j = 0; j < g.dims[1]; ++j)
+        for (int64_t i = 0; i < g.dims[0]; ++i) {
+          const double dx = (i - cx) * 0.8, dy = (j - cy) * 0.7, dz = (k - cz) * 2.0;
+          if (dx * dx + dy * dy + dz * dz < rr * rr) labels(i, j, k) = value;
+        }
+  }
+  for (const double fwhm : {5.0, 0.0}) {
+    MarginOptions cores, gpu;
+    cores.fwhm_mm = gpu.fwhm_mm = fwhm;
+    gpu.on_gpu = true;
+    const Volume<float> on_cores = blocking_from_labels(labels, table, cores, "labels");
+    const Volume<float> on_gpu = blocking_from_labels(labels, table, gpu, "labels");
+    ASSERT_EQ(on_gpu.values().size(), on_cores.values().size());
+    int64_t differ = 0, blocked = 0, between = 0;
+    for (size_t v = 0; v < on_gpu.values().size(); ++v) {
+      differ += std::memcmp(&on_gpu.values()[v], &on_cores.values()[v], 4) != 0;
+      blocked += on_cores.values()[v] > 0.0f;
+      between += on_cores.values()[v] > 0.0f && on_cores.values()[v] < 0.02f;
+    }
+    EXPECT_EQ(differ, 0) << "FWHM " << fwhm << " mm";
+    // Not a trivial volume: most of it blocks, and with a margin the edges fade.
+    EXPECT_GT(blocked, int64_t(on_cores.values().size() / 4)) << "FWHM " << fwhm << " mm";
+    if (fwhm > 0.0) {
+      EXPECT_GT(between, 100);
+    }
+  }
 }
 
 }  // namespace
