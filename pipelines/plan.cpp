@@ -170,7 +170,8 @@ Written write_volumes(const StagedDirectory& out, const PathSafetyResult& result
     writes.push_back(
         std::async(std::launch::async, [&out, &vol, file] { write_volume(vol, out.file(file)); }));
     w.outputs[name] = file;
-    w.classes[name] = classes_json(bit, vol);
+    const std::optional<SafetyClasses>& taken = result.classes[size_t(v)];
+    w.classes[name] = taken ? classes_json(*taken) : classes_json(bit, vol);
     w.statistics[name] = statistics_json(vol);
   }
   for (auto& f : writes) f.get();  // rethrows the first failure; the staged folder goes with it

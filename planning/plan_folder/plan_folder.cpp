@@ -81,7 +81,10 @@ std::string file_checksum(const std::string& path) {
 }
 
 nlohmann::json classes_json(unsigned value_bit, const Volume<float>& volume) {
-  const SafetyClasses c = default_classes(value_bit, volume);
+  return classes_json(default_classes(value_bit, volume));
+}
+
+nlohmann::json classes_json(const SafetyClasses& c) {
   return {
       {"higher_is_safer", c.higher_is_safer},
       {"safe", c.safe},

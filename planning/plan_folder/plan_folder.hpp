@@ -27,6 +27,8 @@ std::string file_checksum(const std::string& path);
 
 // The class thresholds of one value as written in plan.json.
 nlohmann::json classes_json(unsigned value_bit, const Volume<float>& volume);
+// The same for classes already taken (PathSafetyResult::classes).
+nlohmann::json classes_json(const SafetyClasses& classes);
 
 // A grid as plan.json writes it: dims, origin_lps_mm, spacing_mm, direction (rows).
 nlohmann::json geometry_json(const ImageGeometry& geometry);

@@ -992,7 +992,8 @@ nlohmann::json plan_area_safety(const Volume<uint8_t>& tumor, const PathSafetyRe
   if (slot < 0) throw Error("area safety: the plan computed no path safety value");
   const unsigned bit = 1u << slot;
   const Volume<float>& volume = result.volumes[size_t(slot)];
-  const SafetyClasses classes = default_classes(bit, volume);
+  const SafetyClasses classes = result.classes[size_t(slot)] ? *result.classes[size_t(slot)]
+                                                             : default_classes(bit, volume);
   if (options.unsafe_class != "dangerous" && options.unsafe_class != "medium") {
     throw Error("area safety: unsafe class: expected 'dangerous' or 'medium', got '" +
                 options.unsafe_class + "'");

@@ -795,39 +795,51 @@ PointEvaluator cpu_point_evaluator(const kernels::PathSafetyScene<double>& scene
 
 // Recomputes `count` random ROI voxels exactly (`evaluate`) and compares them with the fast
 // result.
-void check_fast_against_exact(const OutputGrid& grid, const uint8_t* known, unsigned values,
-                              int count, const PointEvaluator& evaluate,
-                              PathSafetyResult& result) {
+// The self-check's voxels (up to `count` of the region inside the scan, drawn at random with a
+// fixed seed) and their exact values, flat (kValueCount per voxel). Independent of fast mode's
+// result, so it may be computed while fast mode samples.
+struct CheckSample {
+  std::vector<int64_t> offsets;
+  std::vector<float> exact;
+};
+
+CheckSample exact_check_sample(const OutputGrid& grid, const uint8_t* known, int count,
+                               const PointEvaluator& evaluate) {
   std::mt19937_64 rng(20111);
   const int64_t n = grid.geometry.dims[0];
   std::uniform_int_distribution<int64_t> u(0, n - 1);
-  std::vector<int64_t> offsets;
+  CheckSample sample;
   std::vector<GridPoint> points;
   // Voxels of the region inside the scan (the others have no value), a bounded number of draws.
-  for (int64_t draw = 0; int64_t(offsets.size()) < std::min<int64_t>(count, grid.roi_voxels) &&
-                         draw < 1000 * int64_t(count);
+  for (int64_t draw = 0;
+       int64_t(sample.offsets.size()) < std::min<int64_t>(count, grid.roi_voxels) &&
+       draw < 1000 * int64_t(count);
        ++draw) {
     const int64_t i = u(rng), j = u(rng), k = u(rng);
     if (!grid.in_roi(i, j, k)) continue;
     if (known && !known[grid.geometry.offset(i, j, k)]) continue;
-    offsets.push_back(grid.geometry.offset(i, j, k));
+    sample.offsets.push_back(grid.geometry.offset(i, j, k));
     points.push_back({int32_t(i), int32_t(j), int32_t(k)});
   }
-  std::vector<float> flat(points.size() * kernels::kValueCount, 0.0f);
-  if (!points.empty()) evaluate(points, flat);
-  std::vector<std::array<float, kernels::kValueCount>> exact(offsets.size());
-  for (size_t p = 0; p < points.size(); ++p) {
-    std::copy_n(&flat[p * kernels::kValueCount], kernels::kValueCount, exact[p].begin());
-  }
+  sample.exact.assign(points.size() * kernels::kValueCount, 0.0f);
+  if (!points.empty()) evaluate(points, sample.exact);
+  return sample;
+}
+
+// Fast mode's result against the sample's exact values: relative L2 and class agreement per value.
+void compare_with_check_sample(const CheckSample& sample, unsigned values,
+                               PathSafetyResult& result) {
+  const std::vector<int64_t>& offsets = sample.offsets;
   result.check_voxels = int64_t(offsets.size());
   for (int v = 0; v < kernels::kValueCount; ++v) {
     const unsigned bit = 1u << v;
     if (!(values & bit)) continue;
-    const SafetyClasses classes = default_classes(bit, result.volumes[size_t(v)]);
+    const SafetyClasses& classes = classes_of(result, bit);
     double diff2 = 0.0, ref2 = 0.0;
     int64_t same = 0;
     for (size_t s = 0; s < offsets.size(); ++s) {
-      const double a = exact[s][size_t(v)], b = result.volumes[size_t(v)][offsets[s]];
+      const double a = sample.exact[s * kernels::kValueCount + size_t(v)];
+      const double b = result.volumes[size_t(v)][offsets[s]];
       diff2 += (a - b) * (a - b);
       ref2 += a * a;
       same += classes.classify(a) == classes.classify(b);
@@ -838,12 +850,13 @@ void check_fast_against_exact(const OutputGrid& grid, const uint8_t* known, unsi
   }
 }
 
-// Fast mode's self-check (options.fast_check_voxels voxels recomputed exactly), logged.
-void check_fast_mode(const OutputGrid& grid, const uint8_t* known,
-                     const PathSafetyOptions& options, const PointEvaluator& evaluate,
-                     PathSafetyResult& result) {
-  check_fast_against_exact(grid, known, options.values, options.fast_check_voxels, evaluate,
-                           result);
+void check_fast_against_exact(const OutputGrid& grid, const uint8_t* known, unsigned values,
+                              int count, const PointEvaluator& evaluate,
+                              PathSafetyResult& result) {
+  compare_with_check_sample(exact_check_sample(grid, known, count, evaluate), values, result);
+}
+
+void log_fast_check(const PathSafetyOptions& options, const PathSafetyResult& result) {
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (options.values & (1u << v)) {
       spdlog::info("fast mode vs exact at {} voxels: {} relative L2 {:.2e}, same class {:.2f} %",
@@ -851,6 +864,15 @@ void check_fast_mode(const OutputGrid& grid, const uint8_t* known,
                    100.0 * result.check_class_agreement[size_t(v)]);
     }
   }
+}
+
+// Fast mode's self-check (options.fast_check_voxels voxels recomputed exactly), logged.
+void check_fast_mode(const OutputGrid& grid, const uint8_t* known,
+                     const PathSafetyOptions& options, const PointEvaluator& evaluate,
+                     PathSafetyResult& result) {
+  check_fast_against_exact(grid, known, options.values, options.fast_check_voxels, evaluate,
+                           result);
+  log_fast_check(options, result);
 }
 
 // Fast mode's rays: the surface points grouped by blocks of block^3 voxels of the tumor grid; each
@@ -1094,24 +1116,28 @@ class CudaBackend {
         e.evaluate(&points.front().i, int64_t(points.size()), out.data());
       };
     };
-    // The self-check's scene uploads on another thread while the grid is sampled.
-    std::future<std::unique_ptr<kernels::CudaPointEvaluator>> exact;
+    // The self-check's exact values are computed on another thread while the grid is sampled
+    // (its scene uploaded, its kernels run where the sampler's host steps leave the GPU idle);
+    // only the comparison waits for fast mode's result.
+    std::future<CheckSample> exact;
     if (options.fast_check_voxels > 0) {
       exact = std::async(std::launch::async, [&] {
-        return std::make_unique<kernels::CudaPointEvaluator>(
+        kernels::CudaPointEvaluator reference(
             scene, desc, options.values,
             options.cuda_texture ? kernels::BlockingStorage::kTexture
                                  : kernels::BlockingStorage::kGlobal,
             options.max_gpus);
+        return exact_check_sample(grid, known, options.fast_check_voxels,
+                                  evaluator_of(reference));
       });
     }
     run_adaptive(grid, known, options, evaluator_of(evaluator), result);
     clock.done("adaptive_sampling");
     double kernel_s = evaluator.kernel_seconds();
     if (exact.valid()) {
-      const std::unique_ptr<kernels::CudaPointEvaluator> reference = exact.get();
-      check_fast_mode(grid, known, options, evaluator_of(*reference), result);
-      clock.done("self_check");
+      compare_with_check_sample(exact.get(), options.values, result);
+      log_fast_check(options, result);
+      clock.done("self_check");  // the wait for the exact values, and the comparison
     }
     result.device = evaluator.devices() + " (texture)";
     result.phases.insert(result.phases.begin(), clock.phases.begin(), clock.phases.end());
@@ -1170,6 +1196,12 @@ void run_on_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid&
 }
 
 }  // namespace
+
+const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit) {
+  std::optional<SafetyClasses>& c = result.classes[size_t(kernels::value_slot(value_bit))];
+  if (!c) c = default_classes(value_bit, result.volumes[size_t(kernels::value_slot(value_bit))]);
+  return *c;
+}
 
 void start_device_warm_up(Device device) {
   if (device != Device::kCpu) start_cuda_warm_up();

@@ -14,6 +14,7 @@
 #include "kernels/path_safety_math.hpp"
 #include "planning/imaging/scan_coverage.hpp"
 #include "planning/imaging/volume.hpp"
+#include "planning/safety/safety_classes.hpp"
 
 namespace crepuscular::planning {
 
@@ -187,7 +188,14 @@ struct PathSafetyResult {
   int64_t check_voxels = 0;
   std::array<double, kernels::kValueCount> check_relative_l2{};
   std::array<double, kernels::kValueCount> check_class_agreement{};
+  // default_classes of each volume where already taken (fast mode's self-check, the plan before
+  // writing), so that the writes and area safety do not take them again; reset by whatever
+  // changes a volume's values (apply_scan_coverage). classes_of() fills a missing one.
+  std::array<std::optional<SafetyClasses>, kernels::kValueCount> classes;
 };
+
+// default_classes of the volume of `value_bit`, taken once and kept in result.classes.
+const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit);
 
 // Computes the requested values. Checks every input first (geometry, negative or NaN blocking,
 // empty tumor, tumor outside the blocking volume, memory) and throws Error before allocating.

@@ -83,8 +83,8 @@ Volume<uint8_t> apply_scan_coverage(PathSafetyResult& result, const ScanCoverage
   const Index3& d = grid.geometry.dims;
   const uint8_t outside_scan = options.crop_to_scan ? kRegionNotComputed : kRegionUnknown;
   const float nan = std::numeric_limits<float>::quiet_NaN();
-  int64_t roi = 0, uncovered = 0;
-#pragma omp parallel for reduction(+ : roi, uncovered) schedule(dynamic, 1)
+  int64_t roi = 0, uncovered = 0, changed = 0;
+#pragma omp parallel for reduction(+ : roi, uncovered, changed) schedule(dynamic, 1)
   for (int64_t k = 0; k < d[2]; ++k) {
     for (int64_t j = 0; j < d[1]; ++j) {
       for (int64_t i = 0; i < d[0]; ++i) {
@@ -102,11 +102,15 @@ Volume<uint8_t> apply_scan_coverage(PathSafetyResult& result, const ScanCoverage
         s = outside_scan;
         const int64_t offset = grid.geometry.offset(i, j, k);
         for (int v = 0; v < kernels::kValueCount; ++v) {
-          if (result.values & (1u << v)) result.volumes[size_t(v)].data()[offset] = nan;
+          if (!(result.values & (1u << v))) continue;
+          float& x = result.volumes[size_t(v)].data()[offset];
+          changed += std::isnan(x) ? 0 : 1;
+          x = nan;
         }
       }
     }
   }
+  if (changed > 0) result.classes = {};  // taken before these voxels became unknown
   if (report) {
     report->roi_voxels = roi;
     report->unknown_voxels = options.crop_to_scan ? 0 : uncovered;

@@ -136,8 +136,8 @@ TEST(GaussianCuda, BlockingVolumeOnTheGpuIsTheCoresBits) {
       between += on_cores.values()[v] > 0.0f && on_cores.values()[v] < 0.02f;
     }
     EXPECT_EQ(differ, 0) << "FWHM " << fwhm << " mm";
-    // Not a trivial volume: most of it blocks, and with a margin the edges fade.
-    EXPECT_GT(blocked, int64_t(on_cores.values().size() / 4)) << "FWHM " << fwhm << " mm";
+    // Not a trivial volume: a tenth of it blocks, and with a margin the edges fade.
+    EXPECT_GT(blocked, int64_t(on_cores.values().size() / 10)) << "FWHM " << fwhm << " mm";
     if (fwhm > 0.0) {
       EXPECT_GT(between, 100);
     }

@@ -1,6 +1,7 @@
 // Analytic cases of the path safety values (DESIGN.md §4) and the input checks of the planner.
 #include "planning/safety/path_safety.hpp"
 #include "planning/safety/safety_classes.hpp"
+#include "planning/safety/unknown.hpp"
 
 #include <gtest/gtest.h>
 
@@ -581,7 +582,9 @@ TEST(PathSafety, RaysTakenInRunsOfTwoSamplesKeepTheLineIntegralOfALinearField) {
       }
       const double scale = (crossing.back_facing ? ray.cos_alpha : 0.0) * double(ray.step) / (double(ray.n) * ray.n);
       EXPECT_NEAR(a.bvv.sum - b.bvv.sum, correction * scale, 1e-6 * a.bvv.sum);
-      if (crossing.back_facing) EXPECT_GT(std::abs(correction * scale), 2e-5 * a.bvv.sum);  // the difference is seen
+      if (crossing.back_facing) {
+        EXPECT_GT(std::abs(correction * scale), 2e-5 * a.bvv.sum);  // the difference is seen
+      }
       ++rays;
     }
   }
@@ -775,6 +778,51 @@ TEST(PathSafetyInput, ValueNamesParse) {
   EXPECT_EQ(parse_value_set(" IVBV , isbv"), kIvbv | kIsbv);
   EXPECT_THROW(parse_value_set("svv,foo"), Error);
   EXPECT_THROW(parse_value_set(""), Error);
+}
+
+// The classes the self-check and the plan take once (PathSafetyResult::classes) are the
+// volume's default_classes, and are dropped when the scan's coverage turns computed voxels
+// unknown (their percentiles change); a coverage that changes no value keeps them.
+TEST(PathSafety, ClassesTakenOnceFollowTheVolumeThroughTheScanCoverage) {
+  const ImageGeometry g = centred_cube_grid(25, 2.0);
+  Volume<float> blocking(g, 0.0f);
+  Volume<uint8_t> tumor(g, 0);
+  for (int k = 11; k <= 13; ++k)
+    for (int j = 11; j <= 13; ++j)
+      for (int i = 11; i <= 13; ++i) tumor(i, j, k) = 1;
+  for (int k = 0; k < 25; ++k)
+    for (int j = 0; j < 25; ++j)
+      for (int i = 16; i <= 17; ++i) blocking(i, j, k) = float(0.1 + 0.05 * j);
+  PathSafetyOptions o;
+  o.radius_mm = 20.0;
+  o.values = kIsbv | kBvv;
+  PathSafetyResult r = compute_path_safety(blocking, tumor, o);
+  const SafetyClasses before = classes_of(r, kIsbv);
+  const SafetyClasses reference = default_classes(kIsbv, r.volumes[1]);
+  EXPECT_EQ(before.safe, reference.safe);
+  EXPECT_EQ(before.dangerous, reference.dangerous);
+  ASSERT_TRUE(r.classes[1].has_value());
+  EXPECT_GT(before.dangerous, before.safe);
+
+  // A scan covering the whole grid changes nothing: the classes stay.
+  ScanCoverage everything;
+  everything.add(g, "scan");
+  apply_scan_coverage(r, everything, tumor, CoverageOptions{}, nullptr);
+  EXPECT_TRUE(r.classes[1].has_value());
+
+  // A scan ending at the grid's middle slab along x: half the region becomes unknown.
+  ImageGeometry half = g;
+  half.dims[0] = 13;
+  ScanCoverage partial;
+  partial.add(half, "scan");
+  apply_scan_coverage(r, partial, tumor, CoverageOptions{}, nullptr);
+  EXPECT_FALSE(r.classes[1].has_value());
+  const SafetyClasses after = classes_of(r, kIsbv);
+  const SafetyClasses now = default_classes(kIsbv, r.volumes[1]);
+  EXPECT_EQ(after.safe, now.safe);
+  EXPECT_EQ(after.dangerous, now.dangerous);
+  // The shadow behind the slab lay in the half now unknown: the thresholds moved.
+  EXPECT_NE(after.dangerous, before.dangerous);
 }
 
 }  // namespace
