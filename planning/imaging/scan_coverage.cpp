@@ -4,6 +4,7 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <cmath>
 
 #include <limits>
@@ -34,28 +35,59 @@ std::vector<IndexMap> index_maps(const std::vector<ScanCoverage::Grid>& grids,
   return maps;
 }
 
-template <typename F>
-void for_each_voxel_coverage(const std::vector<ScanCoverage::Grid>& grids,
-                             const ImageGeometry& grid, F&& f) {
-  const std::vector<IndexMap> maps = index_maps(grids, grid);
-  const Index3& d = grid.dims;
-#pragma omp parallel for schedule(dynamic, 1)
-  for (int64_t k = 0; k < d[2]; ++k) {
-    for (int64_t j = 0; j < d[1]; ++j) {
-      for (int64_t i = 0; i < d[0]; ++i) {
-        const Eigen::Vector3d ijk(static_cast<double>(i), static_cast<double>(j),
-                                  static_cast<double>(k));
-        bool covered = true;
-        for (const IndexMap& m : maps) {
-          if (!within_extent(*m.geometry, m.a * ijk + m.b)) {
-            covered = false;
-            break;
-          }
+// Whether voxel (i, j, k) of the grid is covered: its centre within the extent of every grid.
+bool covered_at(const std::vector<IndexMap>& maps, int64_t i, int64_t j, int64_t k) {
+  const Eigen::Vector3d ijk(static_cast<double>(i), static_cast<double>(j), static_cast<double>(k));
+  for (const IndexMap& m : maps) {
+    if (!within_extent(*m.geometry, m.a * ijk + m.b)) return false;
+  }
+  return true;
+}
+
+// The covered voxels of row (j, k) of a grid of `n` voxels along i: the covered region is
+// convex (an intersection of boxes), so a row meets it in one run [first, last] (first > last:
+// none). The run's ends are found from the linear constraints and settled by covered_at itself
+// within two voxels of them, so the result is the voxel-by-voxel test's; a row nearly parallel
+// to a grid's face (where rounding could flicker along the whole row) is tested voxel by voxel.
+void covered_run(const std::vector<IndexMap>& maps, int64_t n, int64_t j, int64_t k,
+                 uint8_t* row) {
+  double lo = 0.0, hi = double(n - 1);
+  bool voxelwise = false;
+  for (const IndexMap& m : maps) {
+    const Eigen::Vector3d r0 = m.a * Eigen::Vector3d(0.0, double(j), double(k)) + m.b;
+    for (int a = 0; a < 3 && !voxelwise; ++a) {
+      const double c = m.a(a, 0), top = double(m.geometry->dims[a]) - 0.5;
+      if (std::abs(c) < 1e-6) {
+        // Constant along the row: inside or outside everywhere, unless on the face itself.
+        if (std::abs(r0[a] + 0.5) < 1e-3 || std::abs(r0[a] - top) < 1e-3) {
+          voxelwise = true;
+        } else if (r0[a] < -0.5 || r0[a] > top) {
+          hi = -1e9;  // no voxel of the row
         }
-        f(grid.offset(i, j, k), covered);
+        continue;
       }
+      const double t0 = (-0.5 - r0[a]) / c, t1 = (top - r0[a]) / c;
+      lo = std::max(lo, std::min(t0, t1));
+      hi = std::min(hi, std::max(t0, t1));
     }
   }
+  if (voxelwise) {
+    for (int64_t i = 0; i < n; ++i) row[i] = covered_at(maps, i, j, k) ? 1 : 0;
+    return;
+  }
+  std::fill(row, row + n, uint8_t(0));
+  if (hi < lo - 4.0) return;  // no voxel near the run
+  const int64_t a = std::max<int64_t>(0, int64_t(std::floor(lo)) - 2);
+  const int64_t b = std::min<int64_t>(n - 1, int64_t(std::ceil(hi)) + 2);
+  if (b - a <= 8) {
+    for (int64_t i = a; i <= b; ++i) row[i] = covered_at(maps, i, j, k) ? 1 : 0;
+    return;
+  }
+  // The ends tested; voxels more than two inside both bounds are covered.
+  int64_t first = a, last = b;
+  while (first <= a + 4 && !covered_at(maps, first, j, k)) ++first;
+  while (last >= b - 4 && !covered_at(maps, last, j, k)) --last;
+  std::fill(row + first, row + last + 1, uint8_t(1));
 }
 
 }  // namespace
@@ -91,7 +123,12 @@ Volume<uint8_t> ScanCoverage::mask(const ImageGeometry& grid) const {
   Volume<uint8_t> out(grid, 1);
   if (grids_.empty()) return out;
   uint8_t* m = out.data();
-  for_each_voxel_coverage(grids_, grid, [&](int64_t v, bool covered) { m[v] = covered ? 1 : 0; });
+  const std::vector<IndexMap> maps = index_maps(grids_, grid);
+  const Index3& d = grid.dims;
+#pragma omp parallel for collapse(2) schedule(static)
+  for (int64_t k = 0; k < d[2]; ++k) {
+    for (int64_t j = 0; j < d[1]; ++j) covered_run(maps, d[0], j, k, m + grid.offset(0, j, k));
+  }
   return out;
 }
 
