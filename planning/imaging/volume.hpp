@@ -9,6 +9,8 @@
 #include <string>
 #include <vector>
 
+#include "foundation/large_buffers.hpp"
+
 #include "foundation/error.hpp"
 
 namespace crepuscular::planning {
@@ -63,8 +65,10 @@ class Volume {
   using value_type = T;
 
   Volume() = default;
-  explicit Volume(const ImageGeometry& geometry, T fill = T{})
-      : geometry_(geometry), data_(size_t(geometry.voxel_count()), fill) {}
+  // Large volumes on huge pages where the system offers them (foundation/large_buffers.hpp).
+  explicit Volume(const ImageGeometry& geometry, T fill = T{}) : geometry_(geometry) {
+    assign_large(data_, size_t(geometry.voxel_count()), fill);
+  }
 
   const ImageGeometry& geometry() const { return geometry_; }
   const Index3& dims() const { return geometry_.dims; }

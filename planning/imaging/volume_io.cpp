@@ -638,7 +638,11 @@ Volume<S> copy_pixels(const itk::Image<S, 3>& image, const ImageGeometry& geomet
     }
   }
   Volume<S> out(geometry);
-  std::copy_n(image.GetBufferPointer(), out.voxel_count(), out.data());
+  const S* in = image.GetBufferPointer();
+  S* to = out.data();
+  const int64_t n = out.voxel_count();
+#pragma omp parallel for schedule(static)
+  for (int64_t i = 0; i < n; ++i) to[i] = in[i];
   return out;
 }
 
@@ -823,18 +827,30 @@ Volume<T> convert_values(Volume<S>&& in, const std::string& path) {
     Volume<T> out(in.geometry());
     const int64_t n = in.voxel_count();
     if constexpr (std::is_floating_point_v<T> || integer_range_fits<S, T>()) {
+#pragma omp parallel for schedule(static)
       for (int64_t i = 0; i < n; ++i) out[i] = static_cast<T>(in[i]);
     } else {
       constexpr double lo = double(std::numeric_limits<T>::lowest());
       constexpr double hi = double(std::numeric_limits<T>::max());
+      const auto rounded = [&](int64_t i) {
+        return std::is_floating_point_v<S> ? std::round(double(in[i])) : double(in[i]);
+      };
+      // On every core; only a volume with a value out of range is searched again, in order,
+      // for its first.
+      int bad = 0;
+#pragma omp parallel for schedule(static) reduction(| : bad)
       for (int64_t i = 0; i < n; ++i) {
-        const double v = std::is_floating_point_v<S> ? std::round(double(in[i])) : double(in[i]);
+        const double v = rounded(i);
+        bad |= !(v >= lo && v <= hi);
+        out[i] = bad ? T{} : static_cast<T>(v);
+      }
+      for (int64_t i = 0; bad && i < n; ++i) {
+        const double v = rounded(i);
         if (!(v >= lo && v <= hi)) {
           throw Error(path + ": " + voxel_text(in.geometry(), i) + " has value " +
                       value_text(double(in[i])) + ", which does not fit in " + type_name<T>() +
                       " [" + value_text(lo) + ", " + value_text(hi) + "]");
         }
-        out[i] = static_cast<T>(v);
       }
     }
     return out;
@@ -858,11 +874,18 @@ Volume<T> read_volume(const std::string& path) {
 Volume<int32_t> read_label_map(const std::string& path) {
   return read_native(path, [&](auto&& native) {
     const int64_t n = native.voxel_count();
-    for (int64_t i = 0; i < n; ++i) {
+    const auto label = [&](int64_t i) {
       const double v = double(native[i]);
-      if (!(v >= 0.0 && v <= 65535.0 && v == std::floor(v))) {
-        throw Error(path + ": " + voxel_text(native.geometry(), i) + " has value " + value_text(v) +
-                    " (expected an integer label in [0, 65535])");
+      return v >= 0.0 && v <= 65535.0 && v == std::floor(v);
+    };
+    // On every core; only a bad map is searched again, in order, for its first bad voxel.
+    int bad = 0;
+#pragma omp parallel for schedule(static) reduction(| : bad)
+    for (int64_t i = 0; i < n; ++i) bad |= !label(i);
+    for (int64_t i = 0; bad && i < n; ++i) {
+      if (!label(i)) {
+        throw Error(path + ": " + voxel_text(native.geometry(), i) + " has value " +
+                    value_text(double(native[i])) + " (expected an integer label in [0, 65535])");
       }
     }
     return convert_values<int32_t>(std::forward<decltype(native)>(native), path);

@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "foundation/large_buffers.hpp"
 
 #if defined(CREPUSCULAR_HAVE_CUDA)
 #include "kernels/gaussian_cuda.hpp"
@@ -294,7 +295,8 @@ Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const Vulnerab
 #else
   const bool on_gpu = false;
 #endif
-  std::vector<uint8_t> codes(on_gpu ? size_t(n) : 0);
+  std::vector<uint8_t> codes;
+  if (on_gpu) assign_large(codes, size_t(n), uint8_t(0));
   std::vector<std::array<int64_t, 3>> box_lo(level_count, {g.dims[0], g.dims[1], g.dims[2]});
   std::vector<std::array<int64_t, 3>> box_hi(level_count, {-1, -1, -1});
 #pragma omp parallel

@@ -12,6 +12,7 @@
 #include <utility>
 
 #include "foundation/error.hpp"
+#include "foundation/large_buffers.hpp"
 
 namespace crepuscular::planning {
 
@@ -31,6 +32,7 @@ class SampleStore {
         known_mask_(options.known_mask) {
     for (int s = 0; s < kSlots; ++s) out_[s] = out[s];
     const int64_t count = n_ * n_ * n_;
+    advise_huge_pages(state_.get(), size_t(count));
 #pragma omp parallel for schedule(static)
     for (int64_t v = 0; v < count; ++v) state_[size_t(v)] = kPending;
   }

@@ -1109,8 +1109,9 @@ class CudaBackend {
     // memory, the exact definition, so that it measures the texture's difference too.
     kernels::CudaPointEvaluator evaluator(fast_scene, desc, options.values,
                                           kernels::BlockingStorage::kTexture, options.max_gpus);
+    clock.done("upload");
     volumes.collect(result);
-    clock.done("upload_and_allocate");
+    clock.done("allocate_wait");
     const auto evaluator_of = [](kernels::CudaPointEvaluator& e) -> PointEvaluator {
       return [&e](const std::vector<GridPoint>& points, std::vector<float>& out) {
         e.evaluate(&points.front().i, int64_t(points.size()), out.data());

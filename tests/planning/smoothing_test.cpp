@@ -121,7 +121,9 @@ TEST(DiscreteGaussian, BoxWithReusedBuffersEqualsTheFullSmoothing) {
     EXPECT_EQ(differ, 0) << blobs << " blobs";
     EXPECT_EQ(outside_nonzero, 0) << blobs << " blobs";
     EXPECT_GT(inside, 0);
-    if (blobs == 1) EXPECT_LT(inside, g.voxel_count() / 2);  // a small box, not the image
+    if (blobs == 1) {
+      EXPECT_LT(inside, g.voxel_count() / 2);  // a small box, not the image
+    }
   }
   discrete_gaussian_box(std::vector<float>(size_t(g.voxel_count()), 0.0f), g, gaussian, box,
                         scratch);
