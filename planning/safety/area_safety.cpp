@@ -224,10 +224,18 @@ SafetyTest path_safety_test(const Volume<float>& volume, bool higher_is_safer, d
   const ImageGeometry geometry = volume.geometry();
   const kernels::Affine<double> to_index = physical_to_index_affine(geometry);
   const Volume<uint8_t>* states = region_state && !region_state->empty() ? region_state : nullptr;
+  // The states' nearest voxel through their own affine map, taken once (not a matrix inverse per
+  // point, which was most of area safety's time).
+  const kernels::Affine<double> to_state =
+      physical_to_index_affine(states ? states->geometry() : geometry);
   // Trilinear over the computed (finite) voxels around p; none (weight <= 1e-9): outside.
   return [=](const Eigen::Vector3d& p) {
-    if (states && nearest_voxel_or<uint8_t>(*states, p, kRegionNotComputed) == kRegionUnknown) {
-      return PointSafety::kUnknown;
+    if (states) {
+      const kernels::Vec3<double> s = to_state.apply({p.x(), p.y(), p.z()});
+      const int64_t i = std::llround(s.x), j = std::llround(s.y), k = std::llround(s.z);
+      if (states->geometry().contains(i, j, k) && (*states)(i, j, k) == kRegionUnknown) {
+        return PointSafety::kUnknown;
+      }
     }
     const kernels::Vec3<double> q = to_index.apply({p.x(), p.y(), p.z()});
     const double value = trilinear_finite(geometry, values, Eigen::Vector3d(q.x, q.y, q.z), 1e-9);
