@@ -206,15 +206,15 @@ bool near_threshold(const SafetyClasses& c, double v, const AdaptiveOptions& o,
 // Wall time of the sampler's steps, summed over its levels.
 class StepClock {
  public:
-  enum Step { kRequests, kStore, kRefine, kFill, kFinish, kEvaluate, kSteps };
+  enum Step { kCells, kRequests, kFinestRequests, kStore, kRefine, kFill, kFinish, kEvaluate, kSteps };
   void add(Step step, std::chrono::steady_clock::time_point since) {
     seconds_[step] +=
         std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
   }
   std::vector<std::pair<std::string, double>> named() const {
-    static const char* const kNames[kSteps] = {"sampler_requests", "sampler_store",
-                                               "sampler_refine",   "sampler_fill",
-                                               "sampler_finish",   "sampler_evaluate"};
+    static const char* const kNames[kSteps] = {
+        "sampler_cells",  "sampler_requests", "sampler_finest_requests", "sampler_store",
+        "sampler_refine", "sampler_fill",     "sampler_finish",          "sampler_evaluate"};
     std::vector<std::pair<std::string, double>> out;
     for (int s = 0; s < kSteps; ++s) out.emplace_back(kNames[s], seconds_[s]);
     return out;
@@ -397,7 +397,7 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
         }
       },
       store, lists, queue);
-  clock.add(StepClock::kRequests, t);
+  clock.add(StepClock::kFinestRequests, t);
   report.interpolated += interpolated;
   evaluate_queue(queue, evaluate, store, values, clock);
   done(1.0);
@@ -523,7 +523,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   std::vector<int64_t> next_at, finest_at;
   std::vector<Cell> next, finest;
   bool classes_known = false;
-  clock.add(StepClock::kRequests, t);
+  clock.add(StepClock::kCells, t);
   while (!cells.empty()) {
     const int size = cells.front().size;
     // Evaluate every corner not known yet.

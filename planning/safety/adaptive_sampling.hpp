@@ -66,7 +66,8 @@ struct AdaptiveReport {
   // Points evaluated per lattice level, coarsest first; stride 0: the finest level point by point.
   std::vector<std::pair<int, int64_t>> levels;
   std::array<SafetyClasses, kernels::kValueCount> classes{};  // the thresholds refinement used
-  // Wall seconds of the sampler's own work, by step ("sampler_requests", "sampler_store",
+  // Wall seconds of the sampler's own work, by step ("sampler_cells" (the coarsest lattice's
+  // cells chosen), "sampler_requests", "sampler_finest_requests", "sampler_store",
   // "sampler_refine", "sampler_fill", "sampler_finish"), and of the evaluator's calls
   // ("sampler_evaluate").
   std::vector<std::pair<std::string, double>> seconds;

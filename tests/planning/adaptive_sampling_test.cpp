@@ -212,8 +212,9 @@ TEST(AdaptiveSampling, StepsReportTheirWallTime) {
   const auto t0 = std::chrono::steady_clock::now();
   const AdaptiveReport report = sample_adaptively(g, o, evaluate, out);
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  const std::vector<std::string> names = {"sampler_requests", "sampler_store", "sampler_refine",
-                                          "sampler_fill",     "sampler_finish", "sampler_evaluate"};
+  const std::vector<std::string> names = {
+      "sampler_cells",  "sampler_requests", "sampler_finest_requests", "sampler_store",
+      "sampler_refine", "sampler_fill",     "sampler_finish",          "sampler_evaluate"};
   ASSERT_EQ(report.seconds.size(), names.size());
   double sum = 0.0;
   for (size_t s = 0; s < names.size(); ++s) {
