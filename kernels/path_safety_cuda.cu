@@ -828,13 +828,15 @@ CudaPointEvaluator::~CudaPointEvaluator() {
 void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out) {
   const auto t0 = std::chrono::steady_clock::now();
   const int devices = impl_->devices;
+  // Launches of at most kChunk points: each level of fast mode's sampler in one launch at the
+  // headline (each launch ends with its longest threads alone on the card: 2.95 -> 2.85 s of
+  // kernels against launches of 2^20 points, bench/RESULTS.md, fourteenth session).
+  constexpr int64_t kChunk = int64_t(1) << 22;
   on_every_device(devices, [&](int d) {
     const int64_t p0 = count * d / devices, p1 = count * (d + 1) / devices;
     if (p1 <= p0) return;
     check(cudaSetDevice(d), "cudaSetDevice");
     const DeviceScene& ds = *impl_->scenes[size_t(d)];
-    // Launches of at most kChunk points keep each under a second or so on the largest grids.
-    constexpr int64_t kChunk = 1 << 20;
     const int64_t most = std::min<int64_t>(kChunk, p1 - p0);
     DeviceBuffer<int32_t> points(size_t(3 * most));
     DeviceBuffer<float> values(size_t(kValueCount * most));

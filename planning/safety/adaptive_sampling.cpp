@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <future>
 #include <cmath>
 #include <limits>
 #include <memory>
@@ -274,6 +275,20 @@ void gather_requests(int64_t count, const PointsOf& points_of, SampleStore& stor
   }
 }
 
+// Stores the computed values of the queued points (grid voxels in parallel, the few corners
+// beyond the grid's edge after them).
+void store_values(const std::vector<GridPoint>& queue, const std::vector<float>& values,
+                  SampleStore& store) {
+#pragma omp parallel for schedule(static)
+  for (int64_t p = 0; p < int64_t(queue.size()); ++p) {
+    const GridPoint& g = queue[size_t(p)];
+    if (store.inside(g.i, g.j, g.k)) store.store(g, &values[size_t(p) * kSlots]);
+  }
+  for (size_t p = 0; p < queue.size(); ++p) {
+    if (!store.inside(queue[p].i, queue[p].j, queue[p].k)) store.store(queue[p], &values[p * kSlots]);
+  }
+}
+
 // Computes the queued points and stores their values (grid voxels in parallel).
 void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& evaluate,
                     SampleStore& store, std::vector<float>& values, StepClock& clock) {
@@ -287,14 +302,7 @@ void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& e
   evaluate(queue, values);
   clock.add(StepClock::kEvaluate, t);
   t = std::chrono::steady_clock::now();
-#pragma omp parallel for schedule(static)
-  for (int64_t p = 0; p < int64_t(queue.size()); ++p) {
-    const GridPoint& g = queue[size_t(p)];
-    if (store.inside(g.i, g.j, g.k)) store.store(g, &values[size_t(p) * kSlots]);
-  }
-  for (size_t p = 0; p < queue.size(); ++p) {
-    if (!store.inside(queue[p].i, queue[p].j, queue[p].k)) store.store(queue[p], &values[p * kSlots]);
-  }
+  store_values(queue, values, store);
   clock.add(StepClock::kStore, t);
 }
 
@@ -364,44 +372,80 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
                       const std::function<void(double)>& done) {
   static const std::vector<FinestPoint> kPoints = finest_points();
   int64_t interpolated = 0;
-  const auto t = std::chrono::steady_clock::now();
-  gather_requests(
-      int64_t(refined.size()),
-      [&](int64_t c, const auto& offer) {
-        const Cell& cell = refined[size_t(c)];
-        uint16_t key[8];
-        float value[8][kSlots] = {};
-        for (int q = 0; q < 8; ++q) {
-          const int64_t i = cell.ci(q), j = cell.cj(q), k = cell.ck(q);
-          for (const int s : slots) value[q][s] = store.value(i, j, k, s);
-          key[q] = class_key(value[q], slots, report, options);
-        }
-        for (const FinestPoint& p : kPoints) {
-          const int64_t i = cell.i + p.di, j = cell.j + p.dj, k = cell.k + p.dk;
-          if (!store.inside(i, j, k) || !grid.in_roi(i, j, k)) continue;
-          const uint8_t st = store.state_now(i, j, k);
-          if (st == kEvaluated || st == kQueued || st == kUnknown) continue;
-          bool uniform = key[p.corner[0]] != kMixedKey;
-          for (int q = 1; q < p.ends && uniform; ++q) uniform = key[p.corner[q]] == key[p.corner[0]];
-          if (!uniform) {
-            offer(i, j, k);  // computed (an interpolation from a coarser cell is reclaimed)
-          } else if (store.claim_interpolated(i, j, k)) {
-            const int64_t off = store.offset(i, j, k);
-            for (const int s : slots) {
-              float sum = 0.0f;
-              for (int q = 0; q < p.ends; ++q) sum += value[p.corner[q]][s];
-              store.set(off, s, sum / float(p.ends));
-            }
-            __atomic_fetch_add(&interpolated, int64_t(1), __ATOMIC_RELAXED);
+  const auto gather = [&](int64_t first, int64_t count, std::vector<GridPoint>& into) {
+    gather_requests(
+        count,
+        [&](int64_t c, const auto& offer) {
+          const Cell& cell = refined[size_t(first + c)];
+          uint16_t key[8];
+          float value[8][kSlots] = {};
+          for (int q = 0; q < 8; ++q) {
+            const int64_t i = cell.ci(q), j = cell.cj(q), k = cell.ck(q);
+            for (const int s : slots) value[q][s] = store.value(i, j, k, s);
+            key[q] = class_key(value[q], slots, report, options);
           }
-        }
-      },
-      store, lists, queue);
-  clock.add(StepClock::kFinestRequests, t);
-  report.interpolated += interpolated;
-  evaluate_queue(queue, evaluate, store, values, clock);
+          for (const FinestPoint& p : kPoints) {
+            const int64_t i = cell.i + p.di, j = cell.j + p.dj, k = cell.k + p.dk;
+            if (!store.inside(i, j, k) || !grid.in_roi(i, j, k)) continue;
+            const uint8_t st = store.state_now(i, j, k);
+            if (st == kEvaluated || st == kQueued || st == kUnknown) continue;
+            bool uniform = key[p.corner[0]] != kMixedKey;
+            for (int q = 1; q < p.ends && uniform; ++q) {
+              uniform = key[p.corner[q]] == key[p.corner[0]];
+            }
+            if (!uniform) {
+              offer(i, j, k);  // computed (an interpolation from a coarser cell is reclaimed)
+            } else if (store.claim_interpolated(i, j, k)) {
+              const int64_t off = store.offset(i, j, k);
+              for (const int s : slots) {
+                float sum = 0.0f;
+                for (int q = 0; q < p.ends; ++q) sum += value[p.corner[q]][s];
+                store.set(off, s, sum / float(p.ends));
+              }
+              __atomic_fetch_add(&interpolated, int64_t(1), __ATOMIC_RELAXED);
+            }
+          }
+        },
+        store, lists, into);
+  };
+  const int64_t cells = int64_t(refined.size());
+  int64_t computed = 0;
+  if (options.overlap_finest && cells >= std::max<int64_t>(2, options.overlap_finest_from)) {
+    // Two halves: the first half's points computed (on the evaluator's device) while the second
+    // half's are gathered on the cores. The decisions depend on the corners alone, so the points
+    // are those of one pass; a point offered by both halves is claimed by the first.
+    const int64_t half = cells / 2;
+    auto t = std::chrono::steady_clock::now();
+    gather(0, half, queue);
+    clock.add(StepClock::kFinestRequests, t);
+    std::vector<float> first_values(queue.size() * kSlots);
+    std::future<void> first;
+    if (!queue.empty()) {
+      first = std::async(std::launch::async, [&] { evaluate(queue, first_values); });
+    }
+    std::vector<GridPoint> second;
+    t = std::chrono::steady_clock::now();
+    gather(half, cells - half, second);  // the lists were copied into `queue`: free again
+    clock.add(StepClock::kFinestRequests, t);
+    t = std::chrono::steady_clock::now();
+    if (first.valid()) first.get();
+    clock.add(StepClock::kEvaluate, t);
+    t = std::chrono::steady_clock::now();
+    store_values(queue, first_values, store);
+    clock.add(StepClock::kStore, t);
+    computed = int64_t(queue.size()) + int64_t(second.size());
+    report.interpolated += interpolated;
+    evaluate_queue(second, evaluate, store, values, clock);
+  } else {
+    const auto t = std::chrono::steady_clock::now();
+    gather(0, cells, queue);
+    clock.add(StepClock::kFinestRequests, t);
+    report.interpolated += interpolated;
+    evaluate_queue(queue, evaluate, store, values, clock);
+    computed = int64_t(queue.size());
+  }
   done(1.0);
-  return int64_t(queue.size());
+  return computed;
 }
 
 // Progress through the levels: each level computes about four times the points of the one

@@ -737,8 +737,10 @@ void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGri
 // Fast mode: the output grid sampled coarse to fine (adaptive_sampling.hpp), each point's values
 // computed by `evaluate` (exact rays on the CPU or the GPU).
 void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafetyOptions& options,
-                  const PointEvaluator& evaluate, PathSafetyResult& result) {
+                  const PointEvaluator& evaluate, PathSafetyResult& result,
+                  bool evaluator_on_device = false) {
   AdaptiveOptions adaptive;
+  adaptive.overlap_finest = evaluator_on_device;
   if (known) {
     const ImageGeometry& g = grid.geometry;
     adaptive.known = [known, &g, coverage = options.coverage](int64_t i, int64_t j, int64_t k) {
@@ -1132,7 +1134,8 @@ class CudaBackend {
                                   evaluator_of(reference));
       });
     }
-    run_adaptive(grid, known, options, evaluator_of(evaluator), result);
+    run_adaptive(grid, known, options, evaluator_of(evaluator), result,
+                 /*evaluator_on_device=*/true);
     clock.done("adaptive_sampling");
     double kernel_s = evaluator.kernel_seconds();
     if (exact.valid()) {

@@ -2,6 +2,8 @@
 // interpolates, where it computes, and that it never computes nor interpolates the unknown.
 #include <gtest/gtest.h>
 
+#include <cstring>
+
 #include <chrono>
 #include <cmath>
 #include <set>
@@ -129,6 +131,24 @@ TEST(AdaptiveSampling, FinestLevelComputesOnlyBetweenCornersThatDiffer) {
     }
     EXPECT_TRUE(boundary) << "computed away from the boundary: " << i << "," << j << "," << k;
   }
+}
+
+// The finest level gathered in two halves, the first half computed while the second is gathered
+// (overlap_finest, as for the GPU): the same points computed, none twice, the same values.
+TEST(AdaptiveSampling, FinestLevelInTwoHalvesComputesTheSamePoints) {
+  const OutputGrid g = ball_grid(24);
+  AdaptiveOptions o;
+  o.values = kernels::kSvv;
+  const Sampled one = sample(g, o);
+  o.overlap_finest = true;
+  o.overlap_finest_from = 2;
+  const Sampled halves = sample(g, o);
+  EXPECT_EQ(halves.evaluated, one.evaluated);
+  ASSERT_EQ(halves.svv.size(), one.svv.size());
+  EXPECT_EQ(0, std::memcmp(halves.svv.data(), one.svv.data(), one.svv.size() * sizeof(float)));
+  EXPECT_EQ(halves.report.interpolated, one.report.interpolated);
+  ASSERT_EQ(one.report.levels.size(), 3u);
+  EXPECT_GT(one.report.levels[2].second, 100);  // a finest level worth splitting
 }
 
 // Outside the scan nothing is reported: every voxel there is NaN, every voxel inside has the
