@@ -224,21 +224,46 @@ SafetyTest path_safety_test(const Volume<float>& volume, bool higher_is_safer, d
   const ImageGeometry geometry = volume.geometry();
   const kernels::Affine<double> to_index = physical_to_index_affine(geometry);
   const Volume<uint8_t>* states = region_state && !region_state->empty() ? region_state : nullptr;
-  // The states' nearest voxel through their own affine map, taken once (not a matrix inverse per
-  // point, which was most of area safety's time).
+  // The states' nearest voxel through an affine map taken once (not a matrix inverse per point,
+  // which was most of area safety's time); on the volume's own grid (as plan passes them), the
+  // volume's continuous index itself.
+  const bool same_grid = states && states->geometry().same_grid(geometry, 0.0);
   const kernels::Affine<double> to_state =
       physical_to_index_affine(states ? states->geometry() : geometry);
+  const int64_t nx = geometry.dims[0], ny = geometry.dims[1], nz = geometry.dims[2];
   // Trilinear over the computed (finite) voxels around p; none (weight <= 1e-9): outside.
   return [=](const Eigen::Vector3d& p) {
+    const kernels::Vec3<double> q = to_index.apply({p.x(), p.y(), p.z()});
     if (states) {
-      const kernels::Vec3<double> s = to_state.apply({p.x(), p.y(), p.z()});
+      const kernels::Vec3<double> s = same_grid ? q : to_state.apply({p.x(), p.y(), p.z()});
       const int64_t i = std::llround(s.x), j = std::llround(s.y), k = std::llround(s.z);
       if (states->geometry().contains(i, j, k) && (*states)(i, j, k) == kRegionUnknown) {
         return PointSafety::kUnknown;
       }
     }
-    const kernels::Vec3<double> q = to_index.apply({p.x(), p.y(), p.z()});
-    const double value = trilinear_finite(geometry, values, Eigen::Vector3d(q.x, q.y, q.z), 1e-9);
+    double value;
+    const double fx = std::floor(q.x), fy = std::floor(q.y), fz = std::floor(q.z);
+    const int64_t i = int64_t(fx), j = int64_t(fy), k = int64_t(fz);
+    if (i >= 0 && j >= 0 && k >= 0 && i + 1 < nx && j + 1 < ny && k + 1 < nz) {
+      // All eight corners in the grid: trilinear_finite's sum, corner by corner in its order.
+      const double w[3] = {q.x - fx, q.y - fy, q.z - fz};
+      const float* base = values + (k * ny + j) * nx + i;
+      const int64_t step[8] = {0, 1, nx, nx + 1, nx * ny, nx * ny + 1, nx * ny + nx,
+                               nx * ny + nx + 1};
+      double sum = 0, weight = 0;
+      for (int c = 0; c < 8; ++c) {
+        const double wc = ((c & 1) ? w[0] : 1 - w[0]) * (((c >> 1) & 1) ? w[1] : 1 - w[1]) *
+                          (((c >> 2) & 1) ? w[2] : 1 - w[2]);
+        const float x = base[step[c]];
+        if (std::isfinite(x) && wc > 0) {
+          sum += wc * double(x);
+          weight += wc;
+        }
+      }
+      value = weight > 1e-9 ? sum / weight : std::numeric_limits<double>::quiet_NaN();
+    } else {
+      value = trilinear_finite(geometry, values, Eigen::Vector3d(q.x, q.y, q.z), 1e-9);
+    }
     if (std::isnan(value)) return PointSafety::kOutside;
     const bool unsafe = higher_is_safer ? value < threshold : value > threshold;
     return unsafe ? PointSafety::kUnsafe : PointSafety::kSafe;
