@@ -82,7 +82,7 @@ PathSafetyResult compute(const PlanRequest& req, const PlanInputs& in) {
       }
     };
   }
-  const PathSafetyResult result =
+  PathSafetyResult result =
       compute_path_safety(in.blocking, in.tumor, ps, in.blocking_source, tumor_file(req.tumor));
   spdlog::info("path safety done in {:.1f} s on {}", result.seconds, result.device);
   return result;
@@ -150,7 +150,7 @@ std::vector<std::future<void>> write_inputs(const StagedDirectory& out, const Pl
 
 // Step 3b: voxel states and path safety volumes into the staged folder, concurrently, and the
 // writes of step 3a finished.
-Written write_volumes(const StagedDirectory& out, const PathSafetyResult& result,
+Written write_volumes(const StagedDirectory& out, PathSafetyResult& result,
                       const Volume<uint8_t>& region, std::vector<std::future<void>> writes,
                       const nlohmann::json& outputs) {
   const std::string ext = volume_extension(result.grid.geometry.voxel_count());
@@ -170,8 +170,7 @@ Written write_volumes(const StagedDirectory& out, const PathSafetyResult& result
     writes.push_back(
         std::async(std::launch::async, [&out, &vol, file] { write_volume(vol, out.file(file)); }));
     w.outputs[name] = file;
-    const std::optional<SafetyClasses>& taken = result.classes[size_t(v)];
-    w.classes[name] = taken ? classes_json(*taken) : classes_json(bit, vol);
+    w.classes[name] = classes_json(classes_of(result, bit));  // taken once (fast mode's check)
     w.statistics[name] = statistics_json(vol);
   }
   for (auto& f : writes) f.get();  // rethrows the first failure; the staged folder goes with it
@@ -428,6 +427,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     PlanRequest phase_request = p.request;
     phase_request.path_safety = shared.path_safety;
     PathSafetyResult result = compute(phase_request, p.inputs);
+    finish_fast_check(result);
     CoverageReport coverage;
     const Volume<uint8_t> region =
         apply_scan_coverage(result, p.inputs.coverage, p.inputs.tumor, {req.crop_to_scan},
@@ -496,7 +496,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   for (int v = 0; v < kernels::kValueCount; ++v) {
     const unsigned bit = 1u << v;
     if (!(combined.values & bit)) continue;
-    const SafetyClasses classes = default_classes(bit, combined.volumes[size_t(v)]);
+    const SafetyClasses classes = classes_of(combined, bit);  // taken by the writes
     const double share = combiner.class_change_share(v, classes);
     breathing["class_change_share"][value_name(bit)] = share;
     spdlog::info("breathing: {} class changes over the cycle in {:.1f} % of the known region",
@@ -628,6 +628,7 @@ PhaseList four_d_phase_list(const PlanRequest& req, int phases,
 
 nlohmann::json run_plan(const PlanRequest& request) {
   PlanRequest req = request;
+  req.path_safety.fast_check_later = true;  // compared while the volumes are written
   // The GPU starts while the inputs are read, and smooths the safety margin unless the CPU was
   // asked for.
   start_device_warm_up(req.path_safety.device);
@@ -677,11 +678,13 @@ nlohmann::json run_plan(const PlanRequest& request) {
   timings["scan_coverage_s"] = seconds_since(t);
 
   // Step 4, area safety (§3.3) of the first computed value, on the cores while the volumes
-  // are written (the writes wait on the disk).
+  // are written (the writes wait on the disk). Its classes are taken here, before the writes
+  // take the others' beside it.
   nlohmann::json area_safety;
   AreaSafetyGeometry geometry;
   std::future<double> area;
   if (req.area_safety.enabled) {
+    classes_of(result, result.values & (~result.values + 1));  // the lowest value computed
     area = std::async(std::launch::async, [&] {
       const auto ta = Clock::now();
       area_safety = plan_area_safety(in.tumor, result, req.area_safety,
@@ -698,6 +701,9 @@ nlohmann::json run_plan(const PlanRequest& request) {
     throw;
   }
   timings["write_s"] = seconds_since(t);
+  // Fast mode's check against the exact values computed during the sampling, now that the
+  // volumes' classes are taken.
+  finish_fast_check(result);
 
   if (area.valid()) {
     timings["area_safety_s"] = area.get();  // rethrows its failure

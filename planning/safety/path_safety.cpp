@@ -858,9 +858,9 @@ void check_fast_against_exact(const OutputGrid& grid, const uint8_t* known, unsi
   compare_with_check_sample(exact_check_sample(grid, known, count, evaluate), values, result);
 }
 
-void log_fast_check(const PathSafetyOptions& options, const PathSafetyResult& result) {
+void log_fast_check(unsigned values, const PathSafetyResult& result) {
   for (int v = 0; v < kernels::kValueCount; ++v) {
-    if (options.values & (1u << v)) {
+    if (values & (1u << v)) {
       spdlog::info("fast mode vs exact at {} voxels: {} relative L2 {:.2e}, same class {:.2f} %",
                    result.check_voxels, value_name(1u << v), result.check_relative_l2[size_t(v)],
                    100.0 * result.check_class_agreement[size_t(v)]);
@@ -874,7 +874,7 @@ void check_fast_mode(const OutputGrid& grid, const uint8_t* known,
                      PathSafetyResult& result) {
   check_fast_against_exact(grid, known, options.values, options.fast_check_voxels, evaluate,
                            result);
-  log_fast_check(options, result);
+  log_fast_check(options.values, result);
 }
 
 // Fast mode's rays: the surface points grouped by blocks of block^3 voxels of the tumor grid; each
@@ -1139,9 +1139,14 @@ class CudaBackend {
     clock.done("adaptive_sampling");
     double kernel_s = evaluator.kernel_seconds();
     if (exact.valid()) {
-      compare_with_check_sample(exact.get(), options.values, result);
-      log_fast_check(options, result);
-      clock.done("self_check");  // the wait for the exact values, and the comparison
+      auto sample = std::make_shared<const CheckSample>(exact.get());
+      const unsigned values = options.values;
+      result.pending_check = [sample, values](PathSafetyResult& r) {
+        compare_with_check_sample(*sample, values, r);
+        log_fast_check(values, r);
+      };
+      if (!options.fast_check_later) finish_fast_check(result);
+      clock.done("self_check");  // the wait for the exact values (and the comparison)
     }
     result.device = evaluator.devices() + " (texture)";
     result.phases.insert(result.phases.begin(), clock.phases.begin(), clock.phases.end());
@@ -1200,6 +1205,13 @@ void run_on_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid&
 }
 
 }  // namespace
+
+void finish_fast_check(PathSafetyResult& result) {
+  if (!result.pending_check) return;
+  const auto check = std::move(result.pending_check);
+  result.pending_check = nullptr;
+  check(result);
+}
 
 const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit) {
   std::optional<SafetyClasses>& c = result.classes[size_t(kernels::value_slot(value_bit))];

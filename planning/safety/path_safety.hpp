@@ -97,6 +97,10 @@ struct PathSafetyOptions {
   double fast_refine_relative = 0.03;
   // Fast and tables mode: ROI voxels recomputed exactly afterwards to report the difference (0: none).
   int fast_check_voxels = 1000;
+  // Fast mode on the GPU: the check's exact values are computed during the sampling, and its
+  // comparison with the fast volumes is left to finish_fast_check (the classes it needs are a
+  // pass over each volume, which the plan takes anyway while it writes them).
+  bool fast_check_later = false;
   // Tables mode on CUDA: direction tables cast per batch (0: as many as fit, at most 16).
   int cuda_fast_slots = 0;
   // Memory the output may take, bytes; 0: 80 % of the memory available now.
@@ -192,7 +196,13 @@ struct PathSafetyResult {
   // writing), so that the writes and area safety do not take them again; reset by whatever
   // changes a volume's values (apply_scan_coverage). classes_of() fills a missing one.
   std::array<std::optional<SafetyClasses>, kernels::kValueCount> classes;
+  // PathSafetyOptions::fast_check_later: the check's comparison, for finish_fast_check.
+  std::function<void(PathSafetyResult&)> pending_check;
 };
+
+// Compares fast mode with the exact values of its check where that was left for later
+// (check_voxels, check_relative_l2, check_class_agreement filled); nothing otherwise.
+void finish_fast_check(PathSafetyResult& result);
 
 // default_classes of the volume of `value_bit`, taken once and kept in result.classes.
 const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit);
