@@ -1119,19 +1119,18 @@ class CudaBackend {
         e.evaluate(&points.front().i, int64_t(points.size()), out.data());
       };
     };
-    // The self-check's exact values are computed on another thread while the grid is sampled
-    // (its scene uploaded, its kernels run where the sampler's host steps leave the GPU idle);
-    // only the comparison waits for fast mode's result.
-    std::future<CheckSample> exact;
+    // The self-check's scene uploads on another thread while the grid is sampled; its exact
+    // values are computed after the sampling (computed during it, interleaved with the sampler's
+    // launches, the wait for them grew from 0.1 to 0.6 s at the headline: bench/RESULTS.md,
+    // fourteenth session).
+    std::future<std::unique_ptr<kernels::CudaPointEvaluator>> exact;
     if (options.fast_check_voxels > 0) {
       exact = std::async(std::launch::async, [&] {
-        kernels::CudaPointEvaluator reference(
+        return std::make_unique<kernels::CudaPointEvaluator>(
             scene, desc, options.values,
             options.cuda_texture ? kernels::BlockingStorage::kTexture
                                  : kernels::BlockingStorage::kGlobal,
             options.max_gpus);
-        return exact_check_sample(grid, known, options.fast_check_voxels,
-                                  evaluator_of(reference));
       });
     }
     run_adaptive(grid, known, options, evaluator_of(evaluator), result,
@@ -1139,7 +1138,9 @@ class CudaBackend {
     clock.done("adaptive_sampling");
     double kernel_s = evaluator.kernel_seconds();
     if (exact.valid()) {
-      auto sample = std::make_shared<const CheckSample>(exact.get());
+      const std::unique_ptr<kernels::CudaPointEvaluator> reference = exact.get();
+      auto sample = std::make_shared<const CheckSample>(exact_check_sample(
+          grid, known, options.fast_check_voxels, evaluator_of(*reference)));
       const unsigned values = options.values;
       result.pending_check = [sample, values](PathSafetyResult& r) {
         compare_with_check_sample(*sample, values, r);
