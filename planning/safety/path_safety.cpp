@@ -1120,9 +1120,7 @@ class CudaBackend {
       };
     };
     // The self-check's scene uploads on another thread while the grid is sampled; its exact
-    // values are computed after the sampling (computed during it, interleaved with the sampler's
-    // launches, the wait for them grew from 0.1 to 0.6 s at the headline: bench/RESULTS.md,
-    // fourteenth session).
+    // values (a few milliseconds on the GPU) are computed after the sampling.
     std::future<std::unique_ptr<kernels::CudaPointEvaluator>> exact;
     if (options.fast_check_voxels > 0) {
       exact = std::async(std::launch::async, [&] {
@@ -1340,7 +1338,8 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   result.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   // Fast mode on the GPU checked itself there; otherwise the CPU recomputes the sample.
-  if (options.mode != Mode::kExact && options.fast_check_voxels > 0 && result.check_voxels == 0) {
+  if (options.mode != Mode::kExact && options.fast_check_voxels > 0 && result.check_voxels == 0 &&
+      !result.pending_check) {
     const auto t = std::chrono::steady_clock::now();
     check_fast_mode(grid, known, options,
                     cpu_point_evaluator(scene, grid, options.values, thread_count(options)),

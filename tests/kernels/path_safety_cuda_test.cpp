@@ -173,5 +173,34 @@ INSTANTIATE_TEST_SUITE_P(Shapes, CudaVersusCpu,
                            return name;
                          });
 
+// Fast mode's check left for later (as plan asks, fast_check_later): its exact values are taken
+// on the GPU, nothing is recomputed on the cores, and finish_fast_check gives the comparison an
+// immediate check gives.
+TEST(CudaFastCheck, LeftForLaterGivesTheImmediateChecksNumbers) {
+  if (kernels::cuda_device_count() == 0) GTEST_SKIP() << "no CUDA device";
+  uint32_t seed = 0;
+  const Scene s = scene_of("sphere", seed);
+  PathSafetyOptions o;
+  o.radius_mm = 28.0;
+  o.eps = 0.4;
+  o.device = Device::kCuda;
+  o.mode = Mode::kFast;
+  o.fast_check_voxels = 500;
+  const PathSafetyResult now = compute_path_safety(s.blocking, s.tumor, o);
+  o.fast_check_later = true;
+  PathSafetyResult later = compute_path_safety(s.blocking, s.tumor, o);
+  EXPECT_EQ(now.check_voxels, 500);
+  EXPECT_FALSE(now.pending_check);
+  ASSERT_TRUE(later.pending_check);
+  EXPECT_EQ(later.check_voxels, 0);  // not compared yet, and not recomputed on the cores
+  finish_fast_check(later);
+  EXPECT_FALSE(later.pending_check);
+  EXPECT_EQ(later.check_voxels, now.check_voxels);
+  for (int v = 0; v < 4; ++v) {
+    EXPECT_EQ(later.check_relative_l2[size_t(v)], now.check_relative_l2[size_t(v)]) << v;
+    EXPECT_EQ(later.check_class_agreement[size_t(v)], now.check_class_agreement[size_t(v)]) << v;
+  }
+}
+
 }  // namespace
 }  // namespace crepuscular::planning
