@@ -25,6 +25,17 @@ struct DeviceBuffer {
   void allocate(size_t count) {
     check(cudaMalloc(&ptr, std::max<size_t>(count, 1) * sizeof(T)), "cudaMalloc");
   }
+  // The same, reporting an exhausted device as false (for a caller that can fall back).
+  bool try_allocate(size_t count) {
+    const cudaError_t status = cudaMalloc(&ptr, std::max<size_t>(count, 1) * sizeof(T));
+    if (status == cudaErrorMemoryAllocation) {
+      ptr = nullptr;
+      cudaGetLastError();
+      return false;
+    }
+    check(status, "cudaMalloc");
+    return true;
+  }
   ~DeviceBuffer() {
     if (ptr) cudaFree(ptr);
   }

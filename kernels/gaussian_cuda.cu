@@ -75,19 +75,6 @@ Box box_of(const int64_t lo[3], const int64_t dims[3], const int64_t image[3]) {
   return box;
 }
 
-// cudaMalloc that reports an exhausted device as false (the caller falls back to the cores).
-template <typename T>
-bool try_allocate(DeviceBuffer<T>& buffer, size_t count) {
-  const cudaError_t status = cudaMalloc(&buffer.ptr, std::max<size_t>(count, 1) * sizeof(T));
-  if (status == cudaErrorMemoryAllocation) {
-    buffer.ptr = nullptr;
-    cudaGetLastError();
-    return false;
-  }
-  check(status, "cudaMalloc");
-  return true;
-}
-
 }  // namespace
 
 bool blocking_levels_cuda(const uint8_t* codes, const int64_t image[3],
@@ -109,9 +96,8 @@ bool blocking_levels_cuda(const uint8_t* codes, const int64_t image[3],
   DeviceBuffer<uint8_t> c;
   DeviceBuffer<float> volume, s0, s1;
   DeviceBuffer<double> t;
-  if (!try_allocate(c, voxels) || !try_allocate(volume, voxels) ||
-      !try_allocate(s0, box_voxels) || !try_allocate(s1, box_voxels) ||
-      !try_allocate(t, tap_count)) {
+  if (!c.try_allocate(voxels) || !volume.try_allocate(voxels) || !s0.try_allocate(box_voxels) ||
+      !s1.try_allocate(box_voxels) || !t.try_allocate(tap_count)) {
     return false;
   }
   check(cudaMemcpy(c.ptr, codes, voxels, cudaMemcpyHostToDevice), "upload level map");

@@ -701,7 +701,7 @@ nlohmann::json run_plan(const PlanRequest& request) {
     throw;
   }
   timings["write_s"] = seconds_since(t);
-  // Fast mode's check against the exact values computed during the sampling, now that the
+  // Fast mode's check against its exact values (computed after the sampling), now that the
   // volumes' classes are taken.
   finish_fast_check(result);
 

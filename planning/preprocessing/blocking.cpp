@@ -280,8 +280,8 @@ Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const Vulnerab
       if (table.levels[l].level == label->level) level_of_value[size_t(value)] = int(l);
     }
   }
-  // One pass: each level's voxel count and box, and for the GPU each voxel's level (its code,
-  // index + 1; 0 none).
+  // One pass: each level's voxel count, and for the GPU each voxel's level (its code, index + 1;
+  // 0 none) and each level's box.
   const ImageGeometry& g = labels.geometry();
   const int64_t n = labels.voxel_count();
   const int32_t* lab = labels.data();
@@ -310,9 +310,10 @@ Volume<float> blocking_from_labels(const Volume<int32_t>& labels, const Vulnerab
         for (int64_t i = 0; i < g.dims[0]; ++i) {
           const int32_t x = lab[row + i];
           const int l = x > 0 ? level_of_value[size_t(x)] : -1;
-          if (on_gpu) codes[size_t(row + i)] = uint8_t(l + 1);
+          if (l >= 0) ++mine[size_t(l)];
+          if (!on_gpu) continue;  // the cores find each level's box as they smooth it
+          codes[size_t(row + i)] = uint8_t(l + 1);
           if (l < 0) continue;
-          ++mine[size_t(l)];
           std::array<int64_t, 3>& a = lo[size_t(l)];
           std::array<int64_t, 3>& b = hi[size_t(l)];
           a = {std::min(a[0], i), std::min(a[1], j), std::min(a[2], k)};

@@ -795,8 +795,6 @@ PointEvaluator cpu_point_evaluator(const kernels::PathSafetyScene<double>& scene
   };
 }
 
-// Recomputes `count` random ROI voxels exactly (`evaluate`) and compares them with the fast
-// result.
 // The self-check's voxels (up to `count` of the region inside the scan, drawn at random with a
 // fixed seed) and their exact values, flat (kValueCount per voxel). Independent of fast mode's
 // result, so it may be computed while fast mode samples.
@@ -852,12 +850,6 @@ void compare_with_check_sample(const CheckSample& sample, unsigned values,
   }
 }
 
-void check_fast_against_exact(const OutputGrid& grid, const uint8_t* known, unsigned values,
-                              int count, const PointEvaluator& evaluate,
-                              PathSafetyResult& result) {
-  compare_with_check_sample(exact_check_sample(grid, known, count, evaluate), values, result);
-}
-
 void log_fast_check(unsigned values, const PathSafetyResult& result) {
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (values & (1u << v)) {
@@ -872,8 +864,9 @@ void log_fast_check(unsigned values, const PathSafetyResult& result) {
 void check_fast_mode(const OutputGrid& grid, const uint8_t* known,
                      const PathSafetyOptions& options, const PointEvaluator& evaluate,
                      PathSafetyResult& result) {
-  check_fast_against_exact(grid, known, options.values, options.fast_check_voxels, evaluate,
-                           result);
+  compare_with_check_sample(
+      exact_check_sample(grid, known, options.fast_check_voxels, evaluate), options.values,
+      result);
   log_fast_check(options.values, result);
 }
 

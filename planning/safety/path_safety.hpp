@@ -97,9 +97,9 @@ struct PathSafetyOptions {
   double fast_refine_relative = 0.03;
   // Fast and tables mode: ROI voxels recomputed exactly afterwards to report the difference (0: none).
   int fast_check_voxels = 1000;
-  // Fast mode on the GPU: the check's exact values are computed during the sampling, and its
-  // comparison with the fast volumes is left to finish_fast_check (the classes it needs are a
-  // pass over each volume, which the plan takes anyway while it writes them).
+  // Fast mode on the GPU: the check's exact values are computed right after the sampling, and
+  // their comparison with the fast volumes is left to finish_fast_check (the classes it needs are
+  // passes over each volume, which the plan takes anyway while it writes them).
   bool fast_check_later = false;
   // Tables mode on CUDA: direction tables cast per batch (0: as many as fit, at most 16).
   int cuda_fast_slots = 0;
