@@ -419,14 +419,12 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   PhaseCombiner combiner;
   nlohmann::json phase_list = nlohmann::json::array();
   CoverageReport first_coverage;
-  t = Clock::now();
-  for (size_t k = 0; k < phases.size(); ++k) {
+  // A phase's result is finished (the check compared, the scan's coverage applied, statistics
+  // taken, its own volumes written with --per-phase, folded into the combination) on a thread
+  // of its own while the next phase's path safety runs; one phase at a time waits for it, in
+  // order. Its `seconds` run from its path safety's start to its finish.
+  const auto finish_phase = [&](size_t k, PathSafetyResult result, Clock::time_point t_phase) {
     const PhaseInputs& p = phases[k];
-    spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, k + 1, phases.size());
-    const auto t_phase = Clock::now();
-    PlanRequest phase_request = p.request;
-    phase_request.path_safety = shared.path_safety;
-    PathSafetyResult result = compute(phase_request, p.inputs);
     finish_fast_check(result);
     CoverageReport coverage;
     const Volume<uint8_t> region =
@@ -463,10 +461,23 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
         entry["outputs"][value_name(bit)] = file;
       }
     }
-    combiner.add(result, region);
+    combiner.add(std::move(result), region);
     entry["seconds"] = seconds_since(t_phase);
     phase_list.push_back(entry);
+  };
+  t = Clock::now();
+  std::future<void> finishing;  // declared after `out`: joined before a failed plan's folder goes
+  for (size_t k = 0; k < phases.size(); ++k) {
+    const PhaseInputs& p = phases[k];
+    spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, k + 1, phases.size());
+    const auto t_phase = Clock::now();
+    PlanRequest phase_request = p.request;
+    phase_request.path_safety = shared.path_safety;
+    PathSafetyResult result = compute(phase_request, p.inputs);
+    if (finishing.valid()) finishing.get();  // the phase before (and its error) first
+    finishing = std::async(std::launch::async, finish_phase, k, std::move(result), t_phase);
   }
+  if (finishing.valid()) finishing.get();
   timings["path_safety_s"] = seconds_since(t);
   PathSafetyResult combined = combiner.combined();
   const Volume<uint8_t>& region = combiner.region();

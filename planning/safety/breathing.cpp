@@ -1,9 +1,13 @@
 // Path safety over the breathing cycle: the voxelwise combination of the phases.
 #include "planning/safety/breathing.hpp"
 
+#include <omp.h>
+
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <limits>
+#include <utility>
 
 #include "foundation/error.hpp"
 #include "kernels/path_safety_math.hpp"
@@ -16,22 +20,53 @@ namespace {
 // SVV is safer when higher: the least safe phase has the smallest value.
 bool higher_is_safer(int slot) { return (1u << slot) == kernels::kSvv; }
 
+// A copy of a volume made on every core (a 513^3 volume is 540 MB).
+template <typename T>
+Volume<T> parallel_copy(const Volume<T>& from) {
+  Volume<T> to(from.geometry());
+  const int64_t n = from.voxel_count();
+  constexpr int64_t kChunk = int64_t(1) << 20;
+#pragma omp parallel for schedule(static)
+  for (int64_t c = 0; c < n; c += kChunk) {
+    std::memcpy(&to[c], &from[c], size_t(std::min(kChunk, n - c)) * sizeof(T));
+  }
+  return to;
+}
+
 }  // namespace
 
 void PhaseCombiner::add(const PathSafetyResult& phase, const Volume<uint8_t>& region) {
+  if (phases_ == 0) {
+    PathSafetyResult first = phase;
+    add(std::move(first), region);
+  } else {
+    add_phase(phase, region);
+  }
+}
+
+void PhaseCombiner::add(PathSafetyResult&& phase, const Volume<uint8_t>& region) {
+  if (phases_ > 0) {
+    add_phase(phase, region);
+    return;
+  }
+  if (!region.geometry().same_grid(phase.grid.geometry, 1e-6)) {
+    throw Error("breathing phase 1: its voxel states are not on its path safety grid");
+  }
+  combined_ = std::move(phase);
+  region_ = parallel_copy(region);
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (combined_.values & (1u << v)) {
+      other_[size_t(v)] = parallel_copy(combined_.volumes[size_t(v)]);
+    }
+  }
+  phases_ = 1;
+}
+
+void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region) {
   const ImageGeometry& g = phase.grid.geometry;
   if (!region.geometry().same_grid(g, 1e-6)) {
     throw Error("breathing phase " + std::to_string(phases_ + 1) +
                 ": its voxel states are not on its path safety grid");
-  }
-  if (phases_ == 0) {
-    combined_ = phase;
-    region_ = region;
-    for (int v = 0; v < kernels::kValueCount; ++v) {
-      if (phase.values & (1u << v)) other_[size_t(v)] = phase.volumes[size_t(v)];
-    }
-    phases_ = 1;
-    return;
   }
   if (!g.same_grid(combined_.grid.geometry, 1e-6) || phase.values != combined_.values) {
     throw Error("breathing phase " + std::to_string(phases_ + 1) +
@@ -41,6 +76,7 @@ void PhaseCombiner::add(const PathSafetyResult& phase, const Volume<uint8_t>& re
   const int64_t n = g.voxel_count();
   const float nan = std::numeric_limits<float>::quiet_NaN();
   // Voxel states: computed only where computed in every phase; unknown wins over not computed.
+#pragma omp parallel for schedule(static)
   for (int64_t i = 0; i < n; ++i) {
     const uint8_t a = region_[i], b = region[i];
     if (a == kRegionComputed && b == kRegionComputed) continue;
@@ -52,6 +88,7 @@ void PhaseCombiner::add(const PathSafetyResult& phase, const Volume<uint8_t>& re
     Volume<float>& worst = combined_.volumes[size_t(v)];
     Volume<float>& other = other_[size_t(v)];
     const Volume<float>& x = phase.volumes[size_t(v)];
+#pragma omp parallel for schedule(static)
     for (int64_t i = 0; i < n; ++i) {
       const float w = worst[i], o = other[i], p = x[i];
       if (std::isnan(w) || std::isnan(p)) {
@@ -63,6 +100,7 @@ void PhaseCombiner::add(const PathSafetyResult& phase, const Volume<uint8_t>& re
       other[i] = svv ? std::max(o, p) : std::min(o, p);
     }
   }
+  combined_.classes = {};  // the first phase's, if taken: the combination's values have changed
   combined_.seconds += phase.seconds;
   combined_.rays += phase.rays;
   ++phases_;
@@ -72,6 +110,7 @@ double PhaseCombiner::class_change_share(int slot, const SafetyClasses& classes)
   const Volume<float>& worst = combined_.volumes[size_t(slot)];
   const Volume<float>& other = other_[size_t(slot)];
   int64_t known = 0, changing = 0;
+#pragma omp parallel for schedule(static) reduction(+ : known, changing)
   for (int64_t i = 0; i < worst.voxel_count(); ++i) {
     if (region_[i] != kRegionComputed || std::isnan(worst[i])) continue;
     ++known;

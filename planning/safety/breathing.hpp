@@ -18,7 +18,9 @@ namespace crepuscular::planning {
 class PhaseCombiner {
  public:
   // The first phase fixes the grid and the values; later ones must match (Error otherwise).
+  // Every voxel on every core; a first phase given as an rvalue lends its volumes.
   void add(const PathSafetyResult& phase, const Volume<uint8_t>& region);
+  void add(PathSafetyResult&& phase, const Volume<uint8_t>& region);
 
   int phases() const { return phases_; }
   // The combination: the first phase's grid and parameters, the combined volumes, the summed
@@ -35,6 +37,8 @@ class PhaseCombiner {
   double class_change_share(int slot, const SafetyClasses& classes) const;
 
  private:
+  void add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region);
+
   int phases_ = 0;
   PathSafetyResult combined_;
   std::array<Volume<float>, kernels::kValueCount> other_;

@@ -74,6 +74,30 @@ TEST(PhaseCombiner, LeastSafePhaseWinsAndUnknownInAnyPhaseIsUnknown) {
   EXPECT_DOUBLE_EQ(combiner.class_change_share(0, svv), 0.5);
 }
 
+TEST(PhaseCombiner, ClassesTakenOfTheFirstPhaseAreNotTheCombinations) {
+  // ISBV's default classes are relative to the volume: the first phase's thresholds, taken (as
+  // fast mode's check takes them) before the phases are combined, must not describe the
+  // combination, whose values are the maxima over the phases.
+  PathSafetyResult a = result({95, 95, 95, 95}, {1.0f, 2.0f, 3.0f, 4.0f});
+  const PathSafetyResult b = result({95, 95, 95, 95}, {40.0f, 30.0f, 20.0f, 10.0f});
+  const SafetyClasses first = classes_of(a, kernels::kIsbv);
+  ASSERT_TRUE(a.classes[1].has_value());
+  const ImageGeometry g = a.grid.geometry;
+  PhaseCombiner combiner;
+  combiner.add(std::move(a), states({1, 1, 1, 1}, g));  // lends its volumes and its classes
+  EXPECT_EQ(combiner.combined().volumes[1][0], 1.0f);
+  combiner.add(b, states({1, 1, 1, 1}, g));
+  PathSafetyResult combined = combiner.combined();
+  EXPECT_EQ(combined.volumes[1][0], 40.0f);
+  EXPECT_EQ(combined.volumes[1][3], 10.0f);
+  EXPECT_EQ(combiner.other_extreme(1)[0], 1.0f);  // the copy kept the first phase's values
+  const SafetyClasses expected = default_classes(kernels::kIsbv, combined.volumes[1]);
+  const SafetyClasses& taken = classes_of(combined, kernels::kIsbv);
+  EXPECT_DOUBLE_EQ(taken.safe, expected.safe);
+  EXPECT_DOUBLE_EQ(taken.dangerous, expected.dangerous);
+  EXPECT_NE(taken.dangerous, first.dangerous);
+}
+
 TEST(PhaseCombiner, PhasesOnDifferentGridsAreRefused) {
   PhaseCombiner combiner;
   const PathSafetyResult a = result({1, 2, 3, 4}, {1, 2, 3, 4});
