@@ -83,7 +83,8 @@ class SampleStore {
   void store(const GridPoint& p, const float* values) {
     if (inside(p.i, p.j, p.k)) {
       const int64_t off = offset(p.i, p.j, p.k);
-      state_[size_t(off)] = kEvaluated;
+      // Atomic: the finest level's next piece is gathered while this one is stored.
+      __atomic_store_n(&state_[size_t(off)], kEvaluated, __ATOMIC_RELAXED);
       for (int s = 0; s < kSlots; ++s) {
         if (out_[s]) out_[s][off] = values[s];
       }
@@ -148,7 +149,7 @@ struct Cell {
 };
 
 // Fills the voxels of a uniform cell by trilinear interpolation of its corners (never a voxel
-// evaluated or outside the scan); returns how many voxels became interpolated.
+// evaluated, queued or outside the scan); returns how many voxels became interpolated.
 int64_t fill_cell(const Cell& cell, const OutputGrid& grid,
                   const std::vector<int>& slots, SampleStore& store) {
   const int64_t n = grid.geometry.dims[0];
@@ -168,7 +169,8 @@ int64_t fill_cell(const Cell& cell, const OutputGrid& grid,
            ++i) {
         if (!grid.in_roi(i, j, k)) continue;
         uint8_t& st = store.state(i, j, k);
-        if (st == kEvaluated || st == kUnknown) continue;
+        // Queued: claimed by the next level (a fill beside its evaluation), computed there.
+        if (st == kEvaluated || st == kUnknown || st == kQueued) continue;
         // A voxel outside the scan is never interpolated. It stays pending (unknown when the
         // sampling finishes), so that a finer cell may still compute it as a support.
         if (!store.known(i, j, k)) continue;
@@ -289,18 +291,30 @@ void store_values(const std::vector<GridPoint>& queue, const std::vector<float>&
   }
 }
 
-// Computes the queued points and stores their values (grid voxels in parallel).
+// Computes the queued points and stores their values (grid voxels in parallel). `beside`, when
+// given, runs on a thread of its own while the evaluator computes (the wait for it after the
+// evaluator is done counts as the fill's).
 void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& evaluate,
-                    SampleStore& store, std::vector<float>& values, StepClock& clock) {
+                    SampleStore& store, std::vector<float>& values, StepClock& clock,
+                    const std::function<void()>& beside = {}) {
   auto t = std::chrono::steady_clock::now();
   // Grown, never cleared: the evaluator writes every requested slot of every point, and only
   // those are read back.
   if (values.size() < queue.size() * kSlots) values.resize(queue.size() * kSlots);
   clock.add(StepClock::kStore, t);
+  std::future<void> side;
+  if (beside) side = std::async(std::launch::async, beside);
+  if (!queue.empty()) {
+    t = std::chrono::steady_clock::now();
+    evaluate(queue, values);
+    clock.add(StepClock::kEvaluate, t);
+  }
+  if (side.valid()) {
+    t = std::chrono::steady_clock::now();
+    side.get();
+    clock.add(StepClock::kFill, t);
+  }
   if (queue.empty()) return;
-  t = std::chrono::steady_clock::now();
-  evaluate(queue, values);
-  clock.add(StepClock::kEvaluate, t);
   t = std::chrono::steady_clock::now();
   store_values(queue, values, store);
   clock.add(StepClock::kStore, t);
@@ -410,32 +424,37 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
   };
   const int64_t cells = int64_t(refined.size());
   int64_t computed = 0;
-  if (options.overlap_finest && cells >= std::max<int64_t>(2, options.overlap_finest_from)) {
-    // Two halves: the first half's points computed (on the evaluator's device) while the second
-    // half's are gathered on the cores. The decisions depend on the corners alone, so the points
-    // are those of one pass; a point offered by both halves is claimed by the first.
-    const int64_t half = cells / 2;
-    auto t = std::chrono::steady_clock::now();
-    gather(0, half, queue);
-    clock.add(StepClock::kFinestRequests, t);
-    std::vector<float> first_values(queue.size() * kSlots);
-    std::future<void> first;
-    if (!queue.empty()) {
-      first = std::async(std::launch::async, [&] { evaluate(queue, first_values); });
+  if (options.overlap_host_steps && cells >= std::max<int64_t>(2, options.overlap_finest_from)) {
+    // In pieces: each piece's points computed and stored (on the evaluator's device, the store
+    // on the cores) while the next piece's are gathered. The decisions depend on the corners
+    // alone, which are never finest points, so the points are those of one pass; a point
+    // offered by two pieces is claimed by the first.
+    const int64_t pieces = std::clamp<int64_t>(options.finest_pieces, 2, cells);
+    std::vector<GridPoint> piece[2];
+    std::vector<float> piece_values[2];
+    std::future<void> running;
+    for (int64_t p = 0; p < pieces; ++p) {
+      std::vector<GridPoint>& q = piece[p & 1];
+      std::vector<float>& v = piece_values[p & 1];
+      const int64_t first = cells * p / pieces, last = cells * (p + 1) / pieces;
+      auto t = std::chrono::steady_clock::now();
+      gather(first, last - first, q);  // the lists are copied into q: free for the next piece
+      clock.add(StepClock::kFinestRequests, t);
+      t = std::chrono::steady_clock::now();
+      if (running.valid()) running.get();  // the piece before, computed and stored
+      clock.add(StepClock::kEvaluate, t);
+      computed += int64_t(q.size());
+      if (q.empty()) continue;
+      if (v.size() < q.size() * kSlots) v.resize(q.size() * kSlots);
+      running = std::async(std::launch::async, [&q, &v, &evaluate, &store] {
+        evaluate(q, v);
+        store_values(q, v, store);
+      });
     }
-    std::vector<GridPoint> second;
-    t = std::chrono::steady_clock::now();
-    gather(half, cells - half, second);  // the lists were copied into `queue`: free again
-    clock.add(StepClock::kFinestRequests, t);
-    t = std::chrono::steady_clock::now();
-    if (first.valid()) first.get();
+    const auto t = std::chrono::steady_clock::now();
+    if (running.valid()) running.get();
     clock.add(StepClock::kEvaluate, t);
-    t = std::chrono::steady_clock::now();
-    store_values(queue, first_values, store);
-    clock.add(StepClock::kStore, t);
-    computed = int64_t(queue.size()) + int64_t(second.size());
     report.interpolated += interpolated;
-    evaluate_queue(second, evaluate, store, values, clock);
   } else {
     const auto t = std::chrono::steady_clock::now();
     gather(0, cells, queue);
@@ -566,6 +585,29 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   std::vector<uint8_t> refine, children;
   std::vector<int64_t> next_at, finest_at;
   std::vector<Cell> next, finest;
+  // A level's uniform cells left to fill beside the next level's evaluation (overlap_host_steps).
+  std::vector<Cell> filling;
+  std::vector<uint8_t> filling_refine;
+  int filling_size = 0;
+  // Fills the cells of edge `size` not marked in `refined` by trilinear interpolation, in
+  // parallel: eight passes by the parity of the cell's lattice position, so no two cells of a
+  // pass share a voxel (size 1: every voxel is a corner, evaluated). Returns the voxels filled.
+  const auto fill_uniform = [&](const std::vector<Cell>& level, const std::vector<uint8_t>& refined,
+                                int size) {
+    int64_t interpolated = 0;
+    for (int parity = 0; size > 1 && parity < 8; ++parity) {
+#pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
+      for (int64_t c = 0; c < int64_t(level.size()); ++c) {
+        const Cell& cell = level[size_t(c)];
+        if (refined[size_t(c)]) continue;
+        const int64_t a = (cell.i - half) / size, b = (cell.j - half) / size,
+                      d = (cell.k - half) / size;
+        if (int((a & 1) | ((b & 1) << 1) | ((d & 1) << 2)) != parity) continue;
+        interpolated += fill_cell(cell, grid, slots, store);
+      }
+    }
+    return interpolated;
+  };
   bool classes_known = false;
   clock.add(StepClock::kCells, t);
   while (!cells.empty()) {
@@ -582,7 +624,14 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
         },
         store, lists, queue, /*supports=*/size > 1);
     clock.add(StepClock::kRequests, t);
-    evaluate_queue(queue, evaluate, store, values, clock);
+    int64_t filled = 0;
+    std::function<void()> fill_beside;
+    if (!filling.empty()) {
+      fill_beside = [&] { filled = fill_uniform(filling, filling_refine, filling_size); };
+    }
+    evaluate_queue(queue, evaluate, store, values, clock, fill_beside);
+    report.interpolated += filled;
+    filling.clear();
     t = std::chrono::steady_clock::now();
     report.evaluated += int64_t(queue.size());
     report.levels.emplace_back(size, int64_t(queue.size()));
@@ -694,23 +743,19 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       }
     }
     clock.add(StepClock::kRefine, t);
-    t = std::chrono::steady_clock::now();
-    // Fill the uniform cells (size 1: every voxel is a corner, evaluated), in parallel: eight
-    // passes by the parity of the cell's lattice position, so no two cells of a pass share a voxel.
-    for (int parity = 0; size > 1 && parity < 8; ++parity) {
-      int64_t interpolated = 0;
-#pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
-      for (int64_t c = 0; c < int64_t(cells.size()); ++c) {
-        const Cell& cell = cells[size_t(c)];
-        if (refine[size_t(c)]) continue;
-        const int64_t a = (cell.i - half) / size, b = (cell.j - half) / size,
-                      d = (cell.k - half) / size;
-        if (int((a & 1) | ((b & 1) << 1) | ((d & 1) << 2)) != parity) continue;
-        interpolated += fill_cell(cell, grid, slots, store);
-      }
-      report.interpolated += interpolated;
+    // Fill the uniform cells: now, or (overlap_host_steps) while the next level is computed,
+    // whose requests have claimed their voxels by then (the fill passes over claimed voxels,
+    // which get their computed values either way). The level of edge 2 is filled now: the
+    // finest level reads its voxels' states.
+    if (options.overlap_host_steps && size > 2) {
+      filling.swap(cells);
+      filling_refine.swap(refine);
+      filling_size = size;
+    } else {
+      t = std::chrono::steady_clock::now();
+      report.interpolated += fill_uniform(cells, refine, size);
+      clock.add(StepClock::kFill, t);
     }
-    clock.add(StepClock::kFill, t);
     if (!finest.empty()) {
       const int64_t computed =
           sample_finest(finest, grid, options, slots, evaluate, report, store, lists, queue,
@@ -720,6 +765,11 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     }
     cells.swap(next);
     ++level;
+  }
+  if (!filling.empty()) {  // the last level refined nothing: no evaluation to fill beside
+    t = std::chrono::steady_clock::now();
+    report.interpolated += fill_uniform(filling, filling_refine, filling_size);
+    clock.add(StepClock::kFill, t);
   }
 
   t = std::chrono::steady_clock::now();

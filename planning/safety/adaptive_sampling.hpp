@@ -44,12 +44,15 @@ struct AdaptiveOptions {
   // The finest level point by point (sample_finest): inside a refined cell of edge 2, only the
   // points whose surrounding corners differ in class (or lie near a threshold) are computed.
   bool pointwise_finest = true;
-  // The finest level gathered in two halves, the first half computed while the second is
-  // gathered: for an evaluator on another device (the GPU), whose calls leave the cores free
-  // (headline: 0.2-0.25 s of the finest level's 0.45 s of requests hidden, bench/RESULTS.md,
-  // fourteenth session). The points and values are the same either way.
-  bool overlap_finest = false;
-  int64_t overlap_finest_from = 4096;  // refined cells of edge 2 from which it splits
+  // For an evaluator on another device (the GPU), whose calls leave the cores free: the host's
+  // steps beside its work. The finest level is gathered in `finest_pieces` pieces, each computed
+  // (and stored) while the next is gathered, from `overlap_finest_from` refined cells of edge 2
+  // on; a level's uniform cells are filled while the next level is computed (not the level of
+  // edge 2, whose fill the finest level reads). The points and values are the same either way
+  // (headline, fourteenth session: two halves hid 0.2-0.25 s of the finest level's requests).
+  bool overlap_host_steps = false;
+  int64_t overlap_finest_from = 4096;
+  int finest_pieces = 4;
   // The finest level's margins, as a fraction of svv_margin and blocking_margin: a point between
   // two computed voxels is interpolated unless their values lie this close to a threshold.
   double finest_margin = 1.0;

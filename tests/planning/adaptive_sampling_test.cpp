@@ -133,22 +133,35 @@ TEST(AdaptiveSampling, FinestLevelComputesOnlyBetweenCornersThatDiffer) {
   }
 }
 
-// The finest level gathered in two halves, the first half computed while the second is gathered
-// (overlap_finest, as for the GPU): the same points computed, none twice, the same values.
-TEST(AdaptiveSampling, FinestLevelInTwoHalvesComputesTheSamePoints) {
+// The host's steps beside the evaluator (overlap_host_steps, as for the GPU): the finest level
+// gathered in pieces, each computed while the next is gathered, and each level's fill beside the
+// next level's evaluation: the same points computed, none twice, the same values, in or out of a
+// scan that cuts the region.
+TEST(AdaptiveSampling, HostStepsBesideTheEvaluatorComputeTheSamePoints) {
   const OutputGrid g = ball_grid(24);
-  AdaptiveOptions o;
-  o.values = kernels::kSvv;
-  const Sampled one = sample(g, o);
-  o.overlap_finest = true;
-  o.overlap_finest_from = 2;
-  const Sampled halves = sample(g, o);
-  EXPECT_EQ(halves.evaluated, one.evaluated);
-  ASSERT_EQ(halves.svv.size(), one.svv.size());
-  EXPECT_EQ(0, std::memcmp(halves.svv.data(), one.svv.data(), one.svv.size() * sizeof(float)));
-  EXPECT_EQ(halves.report.interpolated, one.report.interpolated);
-  ASSERT_EQ(one.report.levels.size(), 3u);
-  EXPECT_GT(one.report.levels[2].second, 100);  // a finest level worth splitting
+  for (const int stride : {4, 8}) {
+    for (const bool cut : {false, true}) {
+      for (const int pieces : {2, 3, 7}) {
+        SCOPED_TRACE(::testing::Message() << "stride " << stride << (cut ? ", scan cut" : "")
+                                          << ", " << pieces << " pieces");
+        AdaptiveOptions o;
+        o.values = kernels::kSvv;
+        o.stride = stride;
+        if (cut) o.known = [edge = g.half - 5](int64_t i, int64_t, int64_t) { return i >= edge; };
+        const Sampled one = sample(g, o);
+        o.overlap_host_steps = true;
+        o.overlap_finest_from = 2;
+        o.finest_pieces = pieces;
+        const Sampled beside = sample(g, o);
+        EXPECT_EQ(beside.evaluated, one.evaluated);
+        ASSERT_EQ(beside.svv.size(), one.svv.size());
+        EXPECT_EQ(0, std::memcmp(beside.svv.data(), one.svv.data(), one.svv.size() * sizeof(float)));
+        EXPECT_EQ(beside.report.interpolated, one.report.interpolated);
+        ASSERT_EQ(one.report.levels.size(), stride == 4 ? 3u : 4u);
+        EXPECT_GT(one.report.levels.back().second, 100);  // a finest level worth splitting
+      }
+    }
+  }
 }
 
 // Outside the scan nothing is reported: every voxel there is NaN, every voxel inside has the
