@@ -908,6 +908,18 @@ Volume<uint8_t> read_mask(const std::string& path) {
   });
 }
 
+ImageGeometry read_volume_geometry(const std::string& path) {
+  try {
+    const itk::ImageIOBase::Pointer io = image_io_of(path);
+    if (!io) return read_volume<float>(path).geometry();  // a DICOM series: its slices place it
+    return geometry_of_file(*io, path);
+  } catch (const Error&) {
+    throw;
+  } catch (const itk::ExceptionObject& e) {
+    throw Error(path + ": cannot read (" + describe(e) + ")");
+  }
+}
+
 int volume_frames(const std::string& path) {
   try {
     const itk::ImageIOBase::Pointer io = image_io_of(path);

@@ -24,6 +24,10 @@ Volume<int32_t> read_label_map(const std::string& path);
 // Reads a binary mask: voxels > 0.5 are 1, all others 0.
 Volume<uint8_t> read_mask(const std::string& path);
 
+// The grid of a volume from its header alone (a DICOM folder: from its series), checked as
+// read_volume checks it; its voxels are not read. Throws Error naming the file.
+ImageGeometry read_volume_geometry(const std::string& path);
+
 // Frames along the 4th axis of a file: breathing phases of a 4D NIfTI (or NRRD, MetaImage); 1 for
 // a 3D volume or a folder. Throws Error naming the file when it cannot be read.
 int volume_frames(const std::string& path);

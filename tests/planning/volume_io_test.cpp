@@ -517,6 +517,25 @@ TEST_F(VolumeIoTest, TruncatedUncompressedNrrdAndMetaImageThrow) {
                           {"short.mha", "cannot read"});
 }
 
+// A CT beside label maps gives only its grid (the scan's coverage): from the header alone, the
+// same grid read_volume gives, refused as read_volume refuses it.
+TEST_F(VolumeIoTest, GeometryFromTheHeaderIsTheVolumesGrid) {
+  for (const ImageGeometry& g : {oblique_geometry(), reflected_geometry()}) {
+    for (const std::string name : {"ct.nii.gz", "ct.nrrd", "ct.mha"}) {
+      write_volume(sample_volume<int16_t>(g), file(name));
+      const ImageGeometry header = read_volume_geometry(file(name));
+      const ImageGeometry full = read_volume<float>(file(name)).geometry();
+      EXPECT_EQ(header.dims, full.dims) << name;
+      EXPECT_TRUE(header.same_grid(full, 1e-12)) << name;
+      EXPECT_TRUE(header.same_grid(g, 1e-5)) << name;
+    }
+  }
+  write_bytes("slice.nrrd", nrrd("dimension: 2\nsizes: 4 3\nspacings: 1 1\n", 12));
+  expect_error_containing([&] { read_volume_geometry(file("slice.nrrd")); }, {"slice.nrrd", "2D"});
+  expect_error_containing([&] { read_volume_geometry(file("none.nii.gz")); },
+                          {"none.nii.gz", "does not exist"});
+}
+
 TEST_F(VolumeIoTest, TwoDimensionalImageThrowsNamingIt) {
   write_bytes("slice.nrrd", nrrd("dimension: 2\nsizes: 4 3\nspacings: 1 1\n", 12));
   expect_error_containing([&] { read_volume<float>(file("slice.nrrd")); }, {"slice.nrrd", "2D"});
