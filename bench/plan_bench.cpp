@@ -92,6 +92,10 @@ int main(int argc, char** argv) {
   app.add_option("--fast-blocking-margin", blocking_margin,
                  "fast mode: relative margin of the blocking values' thresholds");
   app.add_flag("--texture", texture, "CUDA: blocking volume through a texture (hardware filtering)");
+  bool no_overlap = false;
+  app.add_flag("--fast-no-overlap", no_overlap,
+               "fast mode on the GPU: the sampler's host steps one after the other, not beside "
+               "the GPU's work");
   bool no_tumor_leaps = false;
   app.add_flag("--no-tumor-leaps", no_tumor_leaps,
                "rays look up every sample of the tumor's box (no leaps over voxels of one kind)");
@@ -157,6 +161,7 @@ int main(int argc, char** argv) {
   req.path_safety.fast_blocking_margin = blocking_margin;
   req.path_safety.cuda_texture = texture;
   req.path_safety.tumor_leaps = !no_tumor_leaps;
+  req.path_safety.fast_overlap_host = !no_overlap;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
   const nlohmann::json plan = pipelines::run_plan(req);
@@ -184,6 +189,7 @@ int main(int argc, char** argv) {
                          {"fast_margins", {svv_margin, blocking_margin}},
                          {"texture", texture},
                          {"tumor_leaps", !no_tumor_leaps},
+                         {"fast_overlap_host", !no_overlap},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},
                          {"device", plan["parameters"]["device"]},
                          {"setup_s_not_counted", setup_s},

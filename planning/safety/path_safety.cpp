@@ -740,7 +740,7 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
                   const PointEvaluator& evaluate, PathSafetyResult& result,
                   bool evaluator_on_device = false) {
   AdaptiveOptions adaptive;
-  adaptive.overlap_host_steps = evaluator_on_device;
+  adaptive.overlap_host_steps = evaluator_on_device && options.fast_overlap_host;
   if (known) {
     const ImageGeometry& g = grid.geometry;
     adaptive.known = [known, &g, coverage = options.coverage](int64_t i, int64_t j, int64_t k) {

@@ -101,6 +101,9 @@ struct PathSafetyOptions {
   // their comparison with the fast volumes is left to finish_fast_check (the classes it needs are
   // passes over each volume, which the plan takes anyway while it writes them).
   bool fast_check_later = false;
+  // Fast mode on the GPU: the sampler's host steps beside the GPU's work
+  // (AdaptiveOptions::overlap_host_steps); off only to measure what it saves.
+  bool fast_overlap_host = true;
   // Tables mode on CUDA: direction tables cast per batch (0: as many as fit, at most 16).
   int cuda_fast_slots = 0;
   // Memory the output may take, bytes; 0: 80 % of the memory available now.
