@@ -450,6 +450,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     entry["unknown_voxels"] = coverage.unknown_voxels;
     entry["device"] = result.device;
     entry["path_safety_s"] = result.seconds;
+    for (const auto& [step, seconds] : result.phases) entry["path_safety_phases"][step] = seconds;
     for (int v = 0; v < kernels::kValueCount; ++v) {
       const unsigned bit = 1u << v;
       if (!(result.values & bit)) continue;

@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <random>
 
+#include "kernels/path_safety_math.hpp"
 #include "planning/safety/path_safety.hpp"
 #include "planning/safety/safety_classes.hpp"
 
@@ -199,6 +200,83 @@ TEST(CudaFastCheck, LeftForLaterGivesTheImmediateChecksNumbers) {
   for (int v = 0; v < 4; ++v) {
     EXPECT_EQ(later.check_relative_l2[size_t(v)], now.check_relative_l2[size_t(v)]) << v;
     EXPECT_EQ(later.check_class_agreement[size_t(v)], now.check_class_agreement[size_t(v)]) << v;
+  }
+}
+
+// Fast mode's point kernel (one thread per point, every sample marched, uniform bricks read from
+// their codes) against the definition in double on the cores, at points side by side and
+// scattered, in a large empty volume with an organ, a vessel and a tumor: a sample that took a
+// wrong value would change a crossing ray's integral by tenths.
+TEST(CudaPointKernel, ValuesOfTheDefinitionAtNeighboursAndScatteredPoints) {
+  if (kernels::cuda_device_count() == 0) GTEST_SKIP() << "no CUDA device";
+  ImageGeometry g = grid(121, 1.0);
+  Volume<float> blocking(g, 0.0f);
+  Volume<uint8_t> tumor(g, 0);
+  for (int64_t k = 0; k < 121; ++k)
+    for (int64_t j = 0; j < 121; ++j)
+      for (int64_t i = 0; i < 121; ++i) {
+        const Eigen::Vector3d p = g.index_to_physical(i, j, k);
+        if (p.norm() <= 4.0) tumor(i, j, k) = 1;
+        if ((p - Eigen::Vector3d(24, 3, -2)).norm() <= 7.0) blocking(i, j, k) = 0.8f;  // an organ
+        if (std::abs(p.x() + 20) < 1.5 && std::abs(p.z() - 9) < 1.5) {                 // a vessel
+          blocking(i, j, k) = 1.0f + 0.01f * float(j);
+        }
+      }
+  const TumorSurface surface = extract_tumor_surface(tumor, "ball");
+  const std::vector<float> bricks = blocking_bricks(blocking);
+  int64_t empty_runs = 0;  // bricks whose codes say "empty around here": read as 0
+  for (const float c : bricks) empty_runs += c < kernels::kEmptyRunBelow;
+  ASSERT_GT(empty_runs, 5000);
+  const kernels::PathSafetyScene<double> scene =
+      make_scene(blocking, tumor, surface, 0.5, 0.05, bricks);
+  kernels::OutputGridDesc desc{};
+  for (int a = 0; a < 3; ++a) {
+    desc.origin[a] = g.origin[a];
+    for (int b = 0; b < 3; ++b) desc.axes[a][b] = a == b ? 1.0 : 0.0;
+  }
+  desc.n = 121;
+  desc.half = 60;
+  desc.max_sq = 3 * 60 * 60;
+  // 16384 points (the one-thread-per-point kernel): rows of neighbours, then scattered points.
+  std::mt19937 rng(11);
+  std::uniform_int_distribution<int> u(0, 120);
+  std::vector<int32_t> ijk;
+  while (ijk.size() < 3 * 8192) {
+    const int j = u(rng), k = u(rng);
+    for (int i = 0; i < 121 && ijk.size() < 3 * 8192; ++i) ijk.insert(ijk.end(), {i, j, k});
+  }
+  while (ijk.size() < 3 * 16384) ijk.insert(ijk.end(), {u(rng), u(rng), u(rng)});
+  const int64_t count = int64_t(ijk.size() / 3);
+  std::vector<float> gpu(size_t(count) * kernels::kValueCount);
+  {
+    kernels::CudaPointEvaluator evaluator(scene, desc, kernels::kAllValues,
+                                          kernels::BlockingStorage::kGlobal, 1);
+    evaluator.evaluate(ijk.data(), count, gpu.data());
+  }
+  double diff2[4] = {}, ref2[4] = {};
+  int64_t svv_same = 0, compared = 0, blocked = 0;
+  for (int64_t p = 0; p < count; p += 7) {
+    const kernels::Vec3<double> x = kernels::grid_point(desc.origin, desc.axes, ijk[3 * p],
+                                                        ijk[3 * p + 1], ijk[3 * p + 2]);
+    float ref[4] = {};
+    kernels::path_safety_at<double, kernels::kAllValues>(scene, x, ref);
+    for (int v = 0; v < 4; ++v) {
+      const double d = double(gpu[size_t(p) * 4 + size_t(v)]) - ref[v];
+      diff2[v] += d * d;
+      ref2[v] += double(ref[v]) * ref[v];
+    }
+    svv_same += std::abs(gpu[size_t(p) * 4] - ref[0]) < 1e-3f;
+    blocked += ref[1] > 0.0f;
+    ++compared;
+  }
+  EXPECT_GT(blocked, compared / 20) << "few rays cross the organ or the vessel: tests little";
+  EXPECT_GE(double(svv_same) / double(compared), 0.995);
+  for (int v = 0; v < 4; ++v) {
+    ASSERT_GT(ref2[v], 0.0) << value_name(1u << v);
+    const double rel = std::sqrt(diff2[v] / ref2[v]);
+    std::printf("[ points   ] %s: relative L2 cuda points vs cpu double %.2e\n",
+                value_name(1u << v), rel);
+    EXPECT_LE(rel, 1e-4) << value_name(1u << v);
   }
 }
 
