@@ -14,7 +14,8 @@ targets=(path_safety_cuda_test path_safety_test path_safety_fast_test bench_path
 if [ "${BUNDLE:-}" = overlay ]; then targets=(overlay_bench guide_bench); fi
 # BUNDLE=plan: the GPU tests and `crepuscular plan` end to end (bench_plan), compressed.
 if [ "${BUNDLE:-}" = plan ]; then
-  targets=(path_safety_cuda_test path_safety_test path_safety_fast_test bench_plan)
+  targets=(path_safety_cuda_test path_safety_test path_safety_fast_test plan_breathing_test
+           bench_plan)
 fi
 cmake --build "$build" -j "$(nproc)" --target "${targets[@]}"
 rm -rf .device && mkdir -p .device/bin .device/lib

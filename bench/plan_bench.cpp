@@ -104,8 +104,15 @@ int main(int argc, char** argv) {
   app.add_option("--phases", phases,
                  "breathing: plan the breathing phantom's phases (their own tumors; "
                  "--tumor-diameter and --tumor-spacing do not apply)");
+  int phases_at_once = 0;
+  app.add_option("--phases-at-once", phases_at_once,
+                 "breathing: phases computed at once (0: the plan's choice)");
   app.add_option("--work", work, "working folder (phantom and plan)");
   app.add_flag("--keep", keep, "keep the working folder");
+  bool reuse_phantom = false;
+  app.add_flag("--reuse-phantom", reuse_phantom,
+               "keep the phantom in the working folder for the next run, and plan one found there "
+               "(runs with the same phantom options)");
   app.add_option("--fast-angular", fast_angular, "tables mode: direction cells per distance/h");
   app.add_option("--fast-refine", fast_refine, "tables mode: spread marched exactly (< 0: never)");
   app.add_option("--fast-refine-relative", fast_refine_relative, "tables mode: relative spread");
@@ -122,7 +129,13 @@ int main(int argc, char** argv) {
     std::raise(sig);
   });
   namespace fs = std::filesystem;
-  fs::remove_all(work);
+  const bool reuse = reuse_phantom && fs::exists(work + (phases > 0 ? "/cycle/phases.json"
+                                                                    : "/phantom/labels.nii.gz"));
+  if (reuse) {
+    fs::remove_all(work + "/plan");
+  } else {
+    fs::remove_all(work);
+  }
   fs::create_directories(work);
 
   PhantomOptions po;
@@ -130,12 +143,15 @@ int main(int argc, char** argv) {
   const auto t_setup = std::chrono::steady_clock::now();
   pipelines::PlanRequest req;
   if (phases > 0) {
-    write_breathing_phantom(po, phases, work + "/cycle");
+    if (!reuse) write_breathing_phantom(po, phases, work + "/cycle");
     req.phases = work + "/cycle/phases.json";
   } else {
-    const Phantom phantom = make_phantom(po);
-    write_phantom(phantom, work + "/phantom");
-    write_volume(ball_tumor(phantom.tumor, tumor_diameter, tumor_spacing), work + "/tumor.nii.gz");
+    if (!reuse) {
+      const Phantom phantom = make_phantom(po);
+      write_phantom(phantom, work + "/phantom");
+      write_volume(ball_tumor(phantom.tumor, tumor_diameter, tumor_spacing),
+                   work + "/tumor.nii.gz");
+    }
     req.labels = {work + "/phantom/labels.nii.gz"};
     req.tumor = work + "/tumor.nii.gz";
   }
@@ -162,6 +178,7 @@ int main(int argc, char** argv) {
   req.path_safety.cuda_texture = texture;
   req.path_safety.tumor_leaps = !no_tumor_leaps;
   req.path_safety.fast_overlap_host = !no_overlap;
+  req.phases_at_once = phases_at_once;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
   const nlohmann::json plan = pipelines::run_plan(req);
@@ -176,6 +193,7 @@ int main(int argc, char** argv) {
                          {"radius_mm", plan["parameters"]["radius_mm"]},
                          {"grid", plan["grid"]["dims"]},
                          {"phases", phases},
+                         {"phases_at_once", phases_at_once},
                          {"breathing", phases > 0 ? plan["breathing"] : nlohmann::json()},
                          {"surface_points", plan.contains("tumor") ? plan["tumor"].value("surface_points", nlohmann::json())
                                                                : nlohmann::json()},
@@ -197,6 +215,10 @@ int main(int argc, char** argv) {
                          {"timings", plan["timings"]},
                          {"plan_bytes", bytes}};
   std::printf("%s\n", line.dump().c_str());
-  if (!keep) fs::remove_all(work);
+  if (reuse_phantom) {
+    fs::remove_all(work + "/plan");  // the phantom stays for the next run
+  } else if (!keep) {
+    fs::remove_all(work);
+  }
   return 0;
 }

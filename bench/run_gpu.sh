@@ -44,7 +44,7 @@ overlay() {
 # 2 cm tumor segmented at 0.7 mm, all four values, fast then exact (PLAN_MODES overrides).
 plan() {
   [ -n "${SKIP_TESTS:-}" ] || echo "== GPU tests"
-  [ -n "${SKIP_TESTS:-}" ] || for t in path_safety_cuda_test path_safety_test path_safety_fast_test; do
+  [ -n "${SKIP_TESTS:-}" ] || for t in path_safety_cuda_test path_safety_test path_safety_fast_test plan_breathing_test; do
     .device/bin/$t >"$out/$t.log" 2>&1
     echo "$t: exit $?"; tail -3 "$out/$t.log"
   done

@@ -261,6 +261,9 @@ kernels::PathSafetyScene<double> make_scene(const Volume<float>& blocking,
 // Nothing for Device::kCpu or a build without CUDA.
 void start_device_warm_up(Device device);
 
+// The GPUs path safety runs on for `device` (0: it runs on the cores).
+int gpus_for(Device device);
+
 // Bytes of memory available to this process now (MemAvailable), 0 when unknown.
 uint64_t available_memory_bytes();
 

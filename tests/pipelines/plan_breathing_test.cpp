@@ -139,6 +139,58 @@ TEST_F(MovingVessel, CombinationIsTheVoxelwiseMinimumOfSvvAndMaximumOfTheOthers)
   }
 }
 
+// Two phases computed at once (as on the GPU, which chooses it; on the cores where no GPU is
+// found) and finished in order: four phases, the vessel moving back and forth, in fast mode.
+// Each phase's volumes are those of the same phase planned alone, and the combination is their
+// voxelwise minimum (SVV) and maximum (the others).
+TEST(PlanBreathing, PhasesComputedTwoAtATimeAreEachPhasesOwnAndCombineInOrder) {
+  const bool gpu = gpus_for(Device::kCuda) > 0;
+  const test::TemporaryFolder dir;
+  const test::MiniPlanInputs in = test::write_mini_plan_inputs(dir.path());
+  const std::string a = write_labels_with_vessel_at(dir.path(), "labels_a.nii.gz", 16);
+  const std::string b = write_labels_with_vessel_at(dir.path(), "labels_b.nii.gz", 4);
+  const auto on_gpu = [gpu](PlanRequest r) {
+    r.path_safety.device = gpu ? Device::kCuda : Device::kCpu;
+    r.path_safety.mode = Mode::kFast;
+    if (!gpu) r.phases_at_once = 2;
+    return r;
+  };
+  const nlohmann::json cycle = run_plan(on_gpu(phases_request(
+      write_phase_list(dir.path(), {{a, in.tumor}, {b, in.tumor}, {a, in.tumor}, {b, in.tumor}}),
+      dir.file("cycle"))));
+  ASSERT_EQ(cycle["breathing"]["phases"].size(), 4u);
+  // The same phase twice, one at a time.
+  PlanRequest one_at_a_time = on_gpu(phases_request(
+      write_phase_list(dir.path(), {{b, in.tumor}, {b, in.tumor}}), dir.file("alone")));
+  one_at_a_time.phases_at_once = 1;
+  run_plan(one_at_a_time);
+  const Volume<uint8_t> roi = read_volume<uint8_t>(dir.file("cycle/roi.nii.gz"));
+  for (const char* v : kValues) {
+    const std::string value = v;
+    const auto phase = [&](const std::string& plan, int k) {
+      return read_volume<float>(dir.file(plan + "/path_safety_" + value + "_phase0" +
+                                         std::to_string(k) + ".nii.gz"));
+    };
+    const Volume<float> combined =
+        read_volume<float>(dir.file("cycle/path_safety_" + value + ".nii.gz"));
+    const Volume<float> p0 = phase("cycle", 0), p1 = phase("cycle", 1);
+    expect_identical(phase("cycle", 2), p0, value + ": phase 2 against phase 0");
+    expect_identical(phase("cycle", 3), p1, value + ": phase 3 against phase 1");
+    expect_identical(phase("alone", 0), p1, value + ": phase 1 against the same phase alone");
+    expect_identical(phase("alone", 1), p1, value + ": phase 1 against the same phase alone");
+    int64_t checked = 0, differing = 0;
+    for (int64_t n = 0; n < combined.voxel_count(); ++n) {
+      if (roi[n] != kRegionComputed) continue;
+      ASSERT_EQ(combined[n], value == "svv" ? std::min(p0[n], p1[n]) : std::max(p0[n], p1[n]))
+          << value << " voxel " << n;
+      ++checked;
+      differing += p0[n] != p1[n] ? 1 : 0;
+    }
+    EXPECT_GT(checked, 1000) << value;
+    EXPECT_GT(differing, 100) << value << ": the phases should differ";
+  }
+}
+
 TEST_F(MovingVessel, PathSafeInOnePhaseIsUnsafeInTheCombination) {
   // Voxel (18, 11, 11) of the mini grid, on the +x side of the tumor: behind the vessel at
   // i = 16 in phase 0, in the open in phase 1 (the vessel then lies at i = 4, on the far side).
