@@ -104,9 +104,6 @@ int main(int argc, char** argv) {
   app.add_option("--phases", phases,
                  "breathing: plan the breathing phantom's phases (their own tumors; "
                  "--tumor-diameter and --tumor-spacing do not apply)");
-  int phases_at_once = 0;
-  app.add_option("--phases-at-once", phases_at_once,
-                 "breathing: phases computed at once (0: the plan's choice)");
   app.add_option("--work", work, "working folder (phantom and plan)");
   app.add_flag("--keep", keep, "keep the working folder");
   bool reuse_phantom = false;
@@ -178,7 +175,6 @@ int main(int argc, char** argv) {
   req.path_safety.cuda_texture = texture;
   req.path_safety.tumor_leaps = !no_tumor_leaps;
   req.path_safety.fast_overlap_host = !no_overlap;
-  req.phases_at_once = phases_at_once;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
   const nlohmann::json plan = pipelines::run_plan(req);
@@ -193,7 +189,6 @@ int main(int argc, char** argv) {
                          {"radius_mm", plan["parameters"]["radius_mm"]},
                          {"grid", plan["grid"]["dims"]},
                          {"phases", phases},
-                         {"phases_at_once", phases_at_once},
                          {"breathing", phases > 0 ? plan["breathing"] : nlohmann::json()},
                          {"surface_points", plan.contains("tumor") ? plan["tumor"].value("surface_points", nlohmann::json())
                                                                : nlohmann::json()},

@@ -8,7 +8,6 @@
 #include <algorithm>
 #include <filesystem>
 #include <atomic>
-#include <deque>
 #include <exception>
 #include <future>
 #include <map>
@@ -467,52 +466,18 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     entry["seconds"] = seconds_since(t_phase);
     phase_list.push_back(entry);
   };
-  // On the GPU two phases are computed at once, so that one phase's steps on the cores (bricks,
-  // uploads, the sampler's requests, refinement and fills) run while the other's rays are on the
-  // card; where memory holds both. Results are finished in the list's order.
-  const double h = shared.path_safety.spacing_mm, r = shared.path_safety.radius_mm;
-  const double side = 2.0 * std::ceil(r / h) + 3.0;
-  const double phase_bytes = side * side * side * 48.0;  // volumes, sampler, scan, region
-  size_t in_flight = phases.size() > 1 && gpus_for(shared.path_safety.device) > 0 &&
-                             double(available_memory_bytes()) > 4.0 * phase_bytes
-                         ? 2
-                         : 1;
-  if (req.phases_at_once > 0) in_flight = size_t(req.phases_at_once);
-  if (in_flight > 1) spdlog::info("breathing: {} phases at a time", in_flight);
   t = Clock::now();
   std::future<void> finishing;  // declared after `out`: joined before a failed plan's folder goes
-  struct Computing {
-    size_t k;
-    Clock::time_point start;
-    std::future<PathSafetyResult> result;
-  };
-  std::deque<Computing> computing;
-  const auto finish_oldest = [&] {
-    Computing c = std::move(computing.front());
-    computing.pop_front();
-    PathSafetyResult result = c.result.get();
-    if (finishing.valid()) finishing.get();  // the phase before (and its error) first
-    finishing = std::async(std::launch::async, finish_phase, c.k, std::move(result), c.start);
-  };
   for (size_t k = 0; k < phases.size(); ++k) {
-    if (computing.size() == in_flight) finish_oldest();
     const PhaseInputs& p = phases[k];
     spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, k + 1, phases.size());
+    const auto t_phase = Clock::now();
     PlanRequest phase_request = p.request;
     phase_request.path_safety = shared.path_safety;
-    phase_request.path_safety.progress = [name = p.phase.name, last = -1](double f) mutable {
-      const int pct = int(f * 100.0);
-      if (pct / 25 != last / 25 || pct == 100) {
-        spdlog::info("breathing: path safety of {}: {:3d} %", name, pct);
-        last = pct;
-      }
-    };
-    computing.push_back({k, Clock::now(),
-                         std::async(std::launch::async, [&p, phase_request] {
-                           return compute(phase_request, p.inputs);
-                         })});
+    PathSafetyResult result = compute(phase_request, p.inputs);
+    if (finishing.valid()) finishing.get();  // the phase before (and its error) first
+    finishing = std::async(std::launch::async, finish_phase, k, std::move(result), t_phase);
   }
-  while (!computing.empty()) finish_oldest();
   if (finishing.valid()) finishing.get();
   timings["path_safety_s"] = seconds_since(t);
   PathSafetyResult combined = combiner.combined();

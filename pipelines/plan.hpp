@@ -29,8 +29,6 @@ struct PlanRequest : PlanInputOptions {
   // set per phase, and the plan combines the phases (planning/safety/breathing.hpp).
   std::string phases;
   bool per_phase = false;  // also write path_safety_<value>_<phase>.nii.gz per phase
-  // Phases computed at once: 0 chooses (two on the GPU where memory holds them, else one).
-  int phases_at_once = 0;
 };
 
 // Runs preprocessing and path safety and writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/roi.nii.gz
