@@ -49,7 +49,7 @@ struct AdaptiveOptions {
   // (and stored) while the next is gathered, from `overlap_finest_from` refined cells of edge 2
   // on; a level's uniform cells are filled while the next level is computed (not the level of
   // edge 2, whose fill the finest level reads). The points and values are the same either way
-  // (headline, fourteenth session: two halves hid 0.2-0.25 s of the finest level's requests).
+  // (H100 headline, fifteenth session: path safety 4.14-4.26 -> 3.76-3.88 s, bench/RESULTS.md).
   bool overlap_host_steps = false;
   int64_t overlap_finest_from = 4096;
   int finest_pieces = 4;

@@ -1211,10 +1211,7 @@ const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit) {
   return *c;
 }
 
-int gpus_for(Device device) {
-  CudaBackend cuda(device);
-  return device == Device::kCpu ? 0 : cuda.device_count();
-}
+int gpus_for(Device device) { return CudaBackend(device).device_count(); }
 
 void start_device_warm_up(Device device) {
   if (device != Device::kCpu) start_cuda_warm_up();
