@@ -109,8 +109,8 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
   cmd->add_option("--fast-ray-stride", req->path_safety.fast_ray_stride,
                   "Fast mode: blocking samples per quadrature point along each ray (1: every "
                   "sample, as exact mode; 2: pairs of samples taken at their midpoint, half the "
-                  "samples; 0: automatic, runs of at most 0.75 mm: 2 at 0.7 mm spacing, 1 from "
-                  "0.76 mm on)")
+                  "samples; 0: automatic, runs of at most 1.05 mm and 1.5 blocking voxels: 3 at "
+                  "0.7 mm spacing, 2 at 1 mm, 1 from 1.4 mm on)")
       ->capture_default_str()
       ->check(in_range(0, 4));
   cmd->add_option("--threads", req->path_safety.threads,

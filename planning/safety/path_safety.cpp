@@ -392,10 +392,13 @@ int coarsest_stride(double spacing_mm, double radius_mm) {
   return stride;
 }
 
-int automatic_ray_stride(double spacing_mm) {
+int automatic_ray_stride(double spacing_mm, double blocking_spacing_mm) {
   const double gamma = 0.5 * spacing_mm;
+  const double longest =
+      std::min(kMaxQuadratureStepMm, kMaxQuadratureStepVoxels * blocking_spacing_mm);
+  // A spacing stored as float in the file (0.7 as 0.699999988) still counts as its value.
   int stride = 1;
-  while (stride < 4 && (stride + 1) * gamma <= kMaxQuadratureStepMm + 1e-9) ++stride;
+  while (stride < 4 && (stride + 1) * gamma <= longest * (1.0 + 1e-6)) ++stride;
   return stride;
 }
 
@@ -1296,7 +1299,8 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   if (options.mode == Mode::kFast) {
     result.fast_ray_stride = options.fast_ray_stride > 0
                                  ? options.fast_ray_stride
-                                 : automatic_ray_stride(grid.geometry.spacing[0]);
+                                 : automatic_ray_stride(grid.geometry.spacing[0],
+                                                        blocking.geometry().spacing.minCoeff());
     fast_scene.blocking_stride = result.fast_ray_stride;
     if (result.fast_ray_stride > 1) {
       spdlog::info("fast mode: the blocking volume sampled in runs of {} samples ({:.2f} mm), "

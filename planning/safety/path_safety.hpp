@@ -224,14 +224,18 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
 // small region keeps at least four cells across its radius.
 int coarsest_stride(double spacing_mm, double radius_mm);
 
-// Fast mode's automatic ray stride at output spacing h: the most blocking samples (at most 4) whose
-// run, taken at its midpoint, spans at most kMaxQuadratureStepMm (2 at h = 0.7 mm, where a run is
-// 0.7 mm long; 1 from h = 0.76 mm on: every sample, as exact mode). Measured (bench/RESULTS.md,
-// twelfth session): classes >= 99.96 % of exact mode's at the headline with runs of 0.7 and
-// 1.05 mm; on the 2 mm test scenes, whose impassable tubes are as thin as 1.5 mm, runs of 2 mm
-// keep only 99.0 %.
-constexpr double kMaxQuadratureStepMm = 0.75;
-int automatic_ray_stride(double spacing_mm);
+// Fast mode's automatic ray stride at output spacing h over a blocking volume whose smallest
+// spacing is s_b: the most blocking samples (at most 4) whose run, taken at its midpoint, spans at
+// most kMaxQuadratureStepMm and at most kMaxQuadratureStepVoxels x s_b, so that a ray crossing
+// a single blocking voxel (a trilinear footprint 2 s_b wide) is sampled inside it. At h = 0.7 mm
+// over 0.7 mm voxels: 3 (runs of 1.05 mm); at 1 mm: 2; from 1.4 mm on: 1, every sample as exact
+// mode. Measured (bench/RESULTS.md, twelfth and sixteenth sessions): classes >= 99.96 % of exact
+// mode's at the headline with runs of 0.7 and 1.05 mm, 99.98 % on the 1 mm test scene with runs
+// of 1 mm; on the 2 mm test scenes, whose impassable tubes are as thin as 1.5 mm, runs of 2 mm
+// keep only 99.0 %, which the caps never choose.
+constexpr double kMaxQuadratureStepMm = 1.05;
+constexpr double kMaxQuadratureStepVoxels = 1.5;
+int automatic_ray_stride(double spacing_mm, double blocking_spacing_mm);
 
 // The blocking volume's bricks (kernels::kBrickShift, kernels::brick_code): the value every
 // sample whose lower corner lies in the brick takes where that is one value (0 in empty space),

@@ -164,25 +164,28 @@ TEST(PathSafetyFast, AutomaticStrideOnAFinerGridAgreesWithExactMode) {
               (long long)fast.evaluated_points, (long long)fast.interpolated_voxels,
               (long long)fast.grid.roi_voxels);
   EXPECT_GT(fast.interpolated_voxels, fast.grid.roi_voxels / 4);
-  EXPECT_EQ(fast.fast_ray_stride, 1);  // automatic at 1 mm: runs of 0.5 mm would be single samples
+  EXPECT_EQ(fast.fast_ray_stride, 2);  // automatic at 1 mm over 2 mm voxels: runs of 1 mm
 }
 
 // Runs of blocking samples taken at their midpoints (fast mode's quadrature, --fast-ray-stride):
-// automatic from the output spacing (runs of at most 0.75 mm), and on the 1 mm scene with runs of
-// two samples (1 mm, beyond the automatic choice) still exact mode's class on >= 99.5 % of the
-// voxels (measured 99.98 %). Runs of 2 mm on the 2 mm scenes keep only 99.0 % (seed 11, isbv):
-// the automatic choice never takes them.
+// automatic from the output spacing and the blocking volume's (runs of at most 1.05 mm and at
+// most 1.5 blocking voxels), and on the 1 mm scene with runs of three samples (1.5 mm, beyond the
+// automatic choice) still exact mode's class on >= 99.5 % of the voxels. Runs of 2 mm on the 2 mm
+// scenes keep only 99.0 % (seed 11, isbv): the automatic choice never takes them.
 TEST(PathSafetyFast, RunsOfSamplesAtTheirMidpointsAgreeWithExactMode) {
-  EXPECT_EQ(automatic_ray_stride(0.7), 2);
-  EXPECT_EQ(automatic_ray_stride(0.75), 2);
-  EXPECT_EQ(automatic_ray_stride(0.76), 1);
-  EXPECT_EQ(automatic_ray_stride(1.0), 1);
-  EXPECT_EQ(automatic_ray_stride(2.0), 1);
-  EXPECT_EQ(automatic_ray_stride(0.5), 3);
-  EXPECT_EQ(automatic_ray_stride(0.3), 4);  // at most 4
+  EXPECT_EQ(automatic_ray_stride(0.7, 0.7), 3);   // 1.05 mm
+  EXPECT_EQ(automatic_ray_stride(0.7, double(0.7f)), 3);  // a spacing stored as float
+  EXPECT_EQ(automatic_ray_stride(0.75, 0.7), 2);  // three would be 1.125 mm
+  EXPECT_EQ(automatic_ray_stride(0.7, 0.5), 2);   // three would span 2.1 blocking voxels
+  EXPECT_EQ(automatic_ray_stride(1.0, 1.0), 2);
+  EXPECT_EQ(automatic_ray_stride(1.4, 0.7), 1);
+  EXPECT_EQ(automatic_ray_stride(2.0, 1.0), 1);
+  EXPECT_EQ(automatic_ray_stride(0.5, 0.5), 3);   // 0.75 mm, 1.5 voxels
+  EXPECT_EQ(automatic_ray_stride(0.3, 1.0), 4);   // at most 4
+  EXPECT_EQ(automatic_ray_stride(0.3, 0.3), 3);
   const PathSafetyResult fast = fast_on_fine_scene(
-      "runs of 2 samples", [](PathSafetyOptions& o) { o.fast_ray_stride = 2; });
-  EXPECT_EQ(fast.fast_ray_stride, 2);
+      "runs of 3 samples", [](PathSafetyOptions& o) { o.fast_ray_stride = 3; });
+  EXPECT_EQ(fast.fast_ray_stride, 3);
 }
 
 // --fast-surface-block 2: one ray per block of 2^3 tumor voxels, counted once for each surface
