@@ -17,6 +17,17 @@ packages=(
   python3-vtk9  # tests: area_safety.vtk read back by VTK's own reader
 )
 
+# A machine whose /etc/alternatives is gone has dangling links for BLAS, LAPACK (which Ceres and
+# OpenCV load) and the compilers, while dpkg still lists every package as installed: let
+# update-alternatives make the links again from dpkg's own records.
+if [ -d /var/lib/dpkg/alternatives ] && [ ! -d /etc/alternatives ] && [ "$(id -u)" -eq 0 ]; then
+  echo "install-deps: /etc/alternatives is missing; recreating the links dpkg records"
+  mkdir -p /etc/alternatives
+  for name in /var/lib/dpkg/alternatives/*; do
+    update-alternatives --auto "$(basename "$name")" >/dev/null 2>&1 || true
+  done
+fi
+
 missing=()
 for p in "${packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -89,16 +89,21 @@ void read_plan_json(const std::string& path) {
   planning::load_plan(fs::path(path).parent_path().string(), only_the_json);
 }
 
-// The scratch folder of this process, emptied of what an earlier input left (frames, ...).
+// The scratch folder of this process, emptied of what an earlier input left (frames, ...), and
+// removed when the process exits. The path is never destroyed: a static path object would be
+// destroyed before the exit handler that removes the folder runs (it is registered while the
+// object is made, so it runs after the object's destructor), and that handler would then hand
+// freed memory to remove_all as a path.
 const fs::path& scratch_folder() {
-  static const fs::path folder = [] {
-    fs::path p = fs::temp_directory_path() / ("crepuscular-fuzz-" + std::to_string(getpid()));
-    fs::remove_all(p);
-    fs::create_directories(p);
-    std::atexit([] { std::error_code ignored; fs::remove_all(scratch_folder(), ignored); });
+  static const fs::path* const folder = [] {
+    auto* p = new fs::path(fs::temp_directory_path() /
+                           ("crepuscular-fuzz-" + std::to_string(getpid())));
+    fs::remove_all(*p);
+    fs::create_directories(*p);
+    std::atexit([] { std::error_code ignored; fs::remove_all(*folder, ignored); });
     return p;
   }();
-  return folder;
+  return *folder;
 }
 
 }  // namespace
