@@ -92,7 +92,8 @@ int main(int argc, char** argv) {
                                           std::vector<float>(size_t(n) * n * n, NAN));
   float* out[kernels::kValueCount];
   for (int v = 0; v < kernels::kValueCount; ++v) out[v] = volumes[size_t(v)].data();
-  AdaptiveOptions o;
+  // The plan's defaults (coarsest stride, margins, dilation, the finest level's margin).
+  AdaptiveOptions o = adaptive_options(PathSafetyOptions{}, g);
   o.pointwise_finest = !cellwise;
   // 60 % of the ball in the scan: a plane at 0.3 R.
   o.known = [half](int64_t i, int64_t, int64_t) { return double(i - half) < 0.3 * half; };
@@ -110,6 +111,7 @@ int main(int argc, char** argv) {
   std::cout << nlohmann::json{{"grid", n},
                               {"steps_s", steps},
                               {"pointwise_finest", !cellwise},
+                              {"coarsest_stride", o.stride},
                               {"evaluated", report.evaluated},
                               {"interpolated", report.interpolated},
                               {"levels", levels},

@@ -801,4 +801,18 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   return report;
 }
 
+AdaptiveOptions adaptive_options(const PathSafetyOptions& options, const OutputGrid& grid) {
+  AdaptiveOptions adaptive;
+  adaptive.values = options.values;
+  adaptive.stride = options.fast_stride > 0
+                        ? options.fast_stride
+                        : coarsest_stride(grid.geometry.spacing[0], grid.radius_mm);
+  adaptive.svv_margin = options.fast_svv_margin;
+  adaptive.blocking_margin = options.fast_blocking_margin;
+  adaptive.dilate = options.fast_dilate;
+  adaptive.finest_margin = options.fast_finest_margin;
+  adaptive.progress = options.progress;
+  return adaptive;
+}
+
 }  // namespace crepuscular::planning

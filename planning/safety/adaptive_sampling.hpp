@@ -69,6 +69,11 @@ struct AdaptiveOptions {
   std::function<void(double)> progress;
 };
 
+// Fast mode's sampler options from the plan's (`fast_stride` or `coarsest_stride`, the margins,
+// dilation, the finest level's margin, values, progress); the scan and the overlap with a device
+// are the caller's.
+AdaptiveOptions adaptive_options(const PathSafetyOptions& options, const OutputGrid& grid);
+
 struct AdaptiveReport {
   int64_t evaluated = 0;     // voxels (and lattice corners) whose values were computed
   int64_t interpolated = 0;  // ROI voxels filled by interpolation

@@ -742,7 +742,7 @@ void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGri
 void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafetyOptions& options,
                   const PointEvaluator& evaluate, PathSafetyResult& result,
                   bool evaluator_on_device = false) {
-  AdaptiveOptions adaptive;
+  AdaptiveOptions adaptive = adaptive_options(options, grid);
   adaptive.overlap_host_steps = evaluator_on_device && options.fast_overlap_host;
   if (known) {
     const ImageGeometry& g = grid.geometry;
@@ -754,16 +754,7 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
     };
   }
   adaptive.known_mask = known;
-  adaptive.values = options.values;
-  adaptive.stride = options.fast_stride > 0 ? options.fast_stride
-                                            : coarsest_stride(grid.geometry.spacing[0],
-                                                              grid.radius_mm);
   result.fast_stride = adaptive.stride;
-  adaptive.svv_margin = options.fast_svv_margin;
-  adaptive.blocking_margin = options.fast_blocking_margin;
-  adaptive.dilate = options.fast_dilate;
-  adaptive.finest_margin = options.fast_finest_margin;
-  adaptive.progress = options.progress;
   float* out[kernels::kValueCount] = {};
   value_outputs(result, options.values, out);
   const AdaptiveReport report = sample_adaptively(grid, adaptive, evaluate, out);
