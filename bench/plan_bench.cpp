@@ -4,6 +4,7 @@
 // with their own tumors, planned over the cycle. The phantom is written first (not timed); the
 // plan's own timings (plan.json "timings") and the wall time are printed as one JSON line.
 #include <execinfo.h>
+#include <sys/resource.h>
 #include <spdlog/spdlog.h>
 
 #include <csignal>
@@ -54,6 +55,12 @@ Volume<uint8_t> ball_tumor(const Volume<uint8_t>& phantom_tumor, double diameter
 }
 
 }  // namespace
+
+double peak_rss_gib() {
+  rusage usage{};
+  getrusage(RUSAGE_SELF, &usage);
+  return double(usage.ru_maxrss) / (1024.0 * 1024.0);  // KiB on Linux
+}
 
 int main(int argc, char** argv) {
   CLI::App app{"crepuscular plan end to end, phase by phase"};
@@ -208,7 +215,11 @@ int main(int argc, char** argv) {
                          {"setup_s_not_counted", setup_s},
                          {"wall_s", wall_s},
                          {"timings", plan["timings"]},
-                         {"plan_bytes", bytes}};
+                         {"plan_bytes", bytes},
+                         // The process's peak resident memory: the plan's alone where the
+                         // phantom was reused, else making the phantom's too.
+                         {"peak_rss_gib", peak_rss_gib()},
+                         {"phantom_made_in_process", !reuse}};
   std::printf("%s\n", line.dump().c_str());
   if (reuse_phantom) {
     fs::remove_all(work + "/plan");  // the phantom stays for the next run
