@@ -345,6 +345,9 @@ std::vector<PhaseInputs> read_phases(const PlanRequest& req, const PhaseList& li
       PhaseInputs& p = out[k];
       try {
         p.inputs = read_plan_inputs(p.request);
+        // Only the first phase's label map is used again (the plan's own files, area
+        // safety's skin); the others would hold a 4-byte copy of every voxel to the end.
+        if (k > 0) p.inputs.labels = {};
         p.centroid =
             extract_tumor_surface(p.inputs.tumor, tumor_file(p.phase.tumor)).centroid;
       } catch (...) {
@@ -406,7 +409,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   StagedDirectory out(req.out_dir);
   nlohmann::json timings;
   auto t = Clock::now();
-  const std::vector<PhaseInputs> phases = read_phases(req, list);
+  std::vector<PhaseInputs> phases = read_phases(req, list);
   timings["read_and_preprocess_s"] = seconds_since(t);
 
   PlanRequest shared = req;
@@ -475,6 +478,9 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     PlanRequest phase_request = p.request;
     phase_request.path_safety = shared.path_safety;
     PathSafetyResult result = compute(phase_request, p.inputs);
+    // A later phase's blocking volume is done with (its finish needs its tumor and scan); the
+    // first phase's is written as the plan's own.
+    if (k > 0) phases[k].inputs.blocking = {};
     if (finishing.valid()) finishing.get();  // the phase before (and its error) first
     finishing = std::async(std::launch::async, finish_phase, k, std::move(result), t_phase);
   }
