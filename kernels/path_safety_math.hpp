@@ -407,7 +407,10 @@ CREPUSCULAR_HD void box_range(Vec3<Real> origin, Vec3<Real> step, const int lo[3
       }
       continue;
     }
-    Real k0 = (a_lo - o[a]) / d[a], k1 = (a_hi - o[a]) / d[a];
+    // One division per axis (a ray's fixed cost counts on the GPU); the box's extra voxel
+    // absorbs the rounding of the product.
+    const Real inv = Real(1) / d[a];
+    Real k0 = (a_lo - o[a]) * inv, k1 = (a_hi - o[a]) * inv;
     if (k0 > k1) {
       const Real tmp = k0;
       k0 = k1;
@@ -471,8 +474,8 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
     // that step so tiny (< 1/100 voxel) that samples 1/100 voxel apart stand in for it, which
     // see the same voxels at a bounded cost (and are never leapt over: their positions are sums).
     double stride = 1.0;
-    const double step_voxels = sqrt(dot_rn(ray.dr, ray.dr));
-    if (step_voxels < 0.01) stride = 0.01 / step_voxels;
+    const double step_sq = dot_rn(ray.dr, ray.dr);  // the root only where it is needed
+    if (step_sq < 1e-4) stride = 0.01 / sqrt(step_sq);
     for (double k = double(ray.n) + stride; k <= k_out; k = add_rn(k, stride)) {
       int leap;
       const int off = tumor_offset_and_leap(g, along_rn(shifted0, ray.dr, k), leap);
