@@ -20,6 +20,7 @@
 
 #include "foundation/error.hpp"
 #include "planning/imaging/itk_image.hpp"
+#include "planning/imaging/volume_io.hpp"
 
 // ITK headers after itk_image.hpp, which has ITK use the system Eigen: one Eigen in this unit.
 #include <itkMetaDataObject.h>
@@ -129,6 +130,7 @@ void read_raw(itk::NrrdImageIO& io, const std::string& path, std::vector<char>& 
   io.SetIORegion(region);
   raw.assign(size_t(io.GetImageSizeInBytes()), 0);
   try {
+    const std::lock_guard<std::recursive_mutex> one_reader(image_read_mutex());
     io.Read(raw.data());
   } catch (const itk::ExceptionObject& e) {
     throw Error(path + ": cannot read the voxels (" + one_line(e) + ")");
@@ -202,6 +204,7 @@ itk::NrrdImageIO::Pointer open_nrrd(const std::string& path) {
     throw Error(path + ": " + (fs::exists(path, ec) ? "not a file" : "no such file") +
                 " (expected a 3D Slicer segmentation, .seg.nrrd)");
   }
+  const std::lock_guard<std::recursive_mutex> one_reader(image_read_mutex());
   auto io = itk::NrrdImageIO::New();
   if (!io->CanReadFile(path.c_str())) {
     throw Error(path + ": not a NRRD file (expected a 3D Slicer segmentation, .seg.nrrd)");

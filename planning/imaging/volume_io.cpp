@@ -53,6 +53,11 @@ namespace fs = std::filesystem;
 
 namespace crepuscular::planning {
 
+std::recursive_mutex& image_read_mutex() {
+  static std::recursive_mutex mutex;
+  return mutex;
+}
+
 namespace {
 
 using Component = itk::IOComponentEnum;
@@ -653,7 +658,10 @@ Volume<S> read_file_pixels(const std::string& path, itk::ImageIOBase* io,
   auto reader = itk::ImageFileReader<Image>::New();
   reader->SetImageIO(io);
   reader->SetFileName(path);
-  reader->Update();
+  {
+    const std::lock_guard<std::recursive_mutex> one_reader(image_read_mutex());
+    reader->Update();
+  }
   return copy_pixels<S>(*reader->GetOutput(), geometry, path);
 }
 
@@ -663,7 +671,10 @@ Volume<S> read_series_pixels(const std::string& path, const std::vector<std::str
   auto reader = itk::ImageSeriesReader<Image>::New();
   reader->SetImageIO(itk::GDCMImageIO::New());
   reader->SetFileNames(files);
-  reader->Update();
+  {
+    const std::lock_guard<std::recursive_mutex> one_reader(image_read_mutex());
+    reader->Update();
+  }
   const ImageGeometry geometry = geometry_of_image(*reader->GetOutput());
   check_geometry(geometry, path);
   return copy_pixels<S>(*reader->GetOutput(), geometry, path);
@@ -710,6 +721,7 @@ auto with_component_type(Component c, const std::string& path, F&& f) {
 // The ImageIO of a file with its header read (checked first for values ITK would abort on).
 itk::ImageIOBase::Pointer image_io_of(const std::string& path) {
   register_io_factories();
+  const std::lock_guard<std::recursive_mutex> one_reader(image_read_mutex());
   std::error_code ec;
   const fs::file_status status = fs::status(path, ec);
   if (ec || !fs::exists(status)) throw Error(path + ": cannot read (file does not exist)");
@@ -759,6 +771,7 @@ auto read_native(const std::string& path, Convert&& convert) {
   }
   try {
     if (fs::is_directory(status)) {
+      std::unique_lock<std::recursive_mutex> one_reader(image_read_mutex());
       auto names = itk::GDCMSeriesFileNames::New();
       names->SetUseSeriesDetails(true);
       names->SetDirectory(path);
@@ -777,6 +790,7 @@ auto read_native(const std::string& path, Convert&& convert) {
         throw Error(path + ": DICOM voxels have " + std::to_string(io->GetNumberOfComponents()) +
                     " components (expected scalar values, e.g. CT or MR)");
       }
+      one_reader.unlock();  // the series' voxels are read under it again
       spdlog::debug("{}: reading DICOM series of {} files", path, files.size());
       return with_component_type(io->GetComponentType(), path, [&](auto tag) {
         using S = typename decltype(tag)::type;
@@ -957,7 +971,10 @@ void split_volume_frames(const std::string& path, const std::vector<std::string>
     auto reader = itk::ImageFileReader<Image4>::New();
     reader->SetImageIO(io);
     reader->SetFileName(path);
-    reader->Update();
+    {
+      const std::lock_guard<std::recursive_mutex> one_reader(image_read_mutex());
+      reader->Update();
+    }
     const Image4& image = *reader->GetOutput();
     const ImageGeometry g = geometry_of_image(image);
     check_geometry(g, path);

@@ -8,6 +8,7 @@
 
 #include <Eigen/Geometry>
 #include <algorithm>
+#include <atomic>
 #include <array>
 #include <chrono>
 #include <cmath>
@@ -19,6 +20,7 @@
 #include <limits>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "foundation/error.hpp"
@@ -534,6 +536,52 @@ TEST_F(VolumeIoTest, GeometryFromTheHeaderIsTheVolumesGrid) {
   expect_error_containing([&] { read_volume_geometry(file("slice.nrrd")); }, {"slice.nrrd", "2D"});
   expect_error_containing([&] { read_volume_geometry(file("none.nii.gz")); },
                           {"none.nii.gz", "does not exist"});
+}
+
+// Plans read several files at once (a breathing plan's phases side by side, a tumor beside the
+// label map), and ITK's reads take turns (image_read_mutex: a breathing plan reading its phases
+// side by side aborted in "malloc(): unaligned tcache chunk" inside
+// NiftiImageIO::ReadImageInformation on the GPU machine). Reads of the three formats on eight
+// threads must each give the file's own grid and labels.
+TEST_F(VolumeIoTest, FilesReadOnManyThreadsAtOnceAreEachTheirOwnVolume) {
+  std::vector<std::string> names;
+  std::vector<Volume<int32_t>> expected;
+  ImageGeometry grids[] = {oblique_geometry(), reflected_geometry()};
+  for (ImageGeometry& g : grids) g.dims = {64, 48, 40};  // a few hundred KB a file
+  int n = 0;
+  for (const std::string ext : {".nii.gz", ".nii", ".nrrd", ".mha"}) {
+    for (int copy = 0; copy < 3; ++copy, ++n) {
+      Volume<int32_t> v = sample_volume<int32_t>(grids[n % 2]);
+      for (size_t i = 0; i < v.values().size(); ++i) {
+        v.values()[i] = int32_t((i * 7 + size_t(n)) % 97);  // every file its own labels
+      }
+      names.push_back(file("labels" + std::to_string(n) + ext));
+      write_volume(v, names.back());
+      expected.push_back(std::move(v));
+    }
+  }
+  std::atomic<int> wrong{0}, failed{0};
+  std::vector<std::thread> threads;
+  for (int t = 0; t < 8; ++t) {
+    threads.emplace_back([&, t] {
+      for (int round = 0; round < 40; ++round) {
+        const size_t f = size_t(t * 5 + round * 3) % names.size();
+        try {
+          const ImageGeometry header = read_volume_geometry(names[f]);
+          const Volume<int32_t> v = read_label_map(names[f]);
+          if (!header.same_grid(expected[f].geometry(), 1e-5) ||
+              v.values() != expected[f].values()) {
+            ++wrong;
+          }
+        } catch (const std::exception& e) {
+          if (failed++ == 0) ADD_FAILURE() << e.what();
+        }
+      }
+    });
+  }
+  for (std::thread& t : threads) t.join();
+  EXPECT_EQ(wrong.load(), 0);
+  EXPECT_EQ(failed.load(), 0);
 }
 
 TEST_F(VolumeIoTest, TwoDimensionalImageThrowsNamingIt) {
