@@ -124,14 +124,20 @@ int main(int argc, char** argv) {
   app.add_flag("--verbose", verbose, "log the plan's progress (info) instead of warnings only");
   CLI11_PARSE(app, argc, argv);
   spdlog::set_level(verbose ? spdlog::level::info : spdlog::level::warn);
-  // A crash on the GPU machine (no debugger there) leaves its call stack on stderr.
-  std::signal(SIGSEGV, [](int sig) {
+  // A crash on the GPU machine (no debugger there) leaves its call stack on stderr: a segmentation
+  // fault, or an abort (the C library's on a corrupted heap). backtrace() is called once here,
+  // so that the handler does not load its library (and allocate) on a broken heap.
+  void* first[1];
+  (void)backtrace(first, 1);
+  const auto crashed = [](int sig) {
     void* frames[64];
     const int n = backtrace(frames, 64);
     backtrace_symbols_fd(frames, n, 2);
     std::signal(sig, SIG_DFL);
     std::raise(sig);
-  });
+  };
+  std::signal(SIGSEGV, crashed);
+  std::signal(SIGABRT, crashed);
   namespace fs = std::filesystem;
   const bool reuse = reuse_phantom && fs::exists(work + (phases > 0 ? "/cycle/phases.json"
                                                                     : "/phantom/labels.nii.gz"));
