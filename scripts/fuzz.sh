@@ -44,8 +44,8 @@ export LSAN_OPTIONS="suppressions=$PWD/tests/fuzz/lsan.supp:print_suppressions=0
 # timing, so libFuzzer explores the same inputs from the same seed on every machine and a --ci
 # run here predicts the test command's.
 export ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS=1 OMP_NUM_THREADS=1
-# Each fuzzing process makes a scratch folder for its inputs; libFuzzer ends without the exit
-# handler that removes it, so the folders go in the build tree, emptied here, not in /tmp.
+# Each fuzzing process makes a scratch folder for its inputs and removes it at exit; one that
+# crashes or times out cannot, so the folders go in the build tree, emptied here, not in /tmp.
 export TMPDIR="$PWD/build-fuzz/tmp"
 rm -rf "$TMPDIR" && mkdir -p "$TMPDIR"
 failed=()

@@ -633,6 +633,13 @@ ImageGeometry geometry_of_image(const itk::ImageBase<N>& image) {
   return g;
 }
 
+// Runs an ITK reader under image_read_mutex.
+template <typename Reader>
+void update_in_turn(Reader& reader) {
+  const std::lock_guard<std::recursive_mutex> one_reader(image_read_mutex());
+  reader.Update();
+}
+
 template <typename S>
 Volume<S> copy_pixels(const itk::Image<S, 3>& image, const ImageGeometry& geometry,
                       const std::string& path) {
@@ -658,10 +665,7 @@ Volume<S> read_file_pixels(const std::string& path, itk::ImageIOBase* io,
   auto reader = itk::ImageFileReader<Image>::New();
   reader->SetImageIO(io);
   reader->SetFileName(path);
-  {
-    const std::lock_guard<std::recursive_mutex> one_reader(image_read_mutex());
-    reader->Update();
-  }
+  update_in_turn(*reader);
   return copy_pixels<S>(*reader->GetOutput(), geometry, path);
 }
 
@@ -671,10 +675,7 @@ Volume<S> read_series_pixels(const std::string& path, const std::vector<std::str
   auto reader = itk::ImageSeriesReader<Image>::New();
   reader->SetImageIO(itk::GDCMImageIO::New());
   reader->SetFileNames(files);
-  {
-    const std::lock_guard<std::recursive_mutex> one_reader(image_read_mutex());
-    reader->Update();
-  }
+  update_in_turn(*reader);
   const ImageGeometry geometry = geometry_of_image(*reader->GetOutput());
   check_geometry(geometry, path);
   return copy_pixels<S>(*reader->GetOutput(), geometry, path);
@@ -971,10 +972,7 @@ void split_volume_frames(const std::string& path, const std::vector<std::string>
     auto reader = itk::ImageFileReader<Image4>::New();
     reader->SetImageIO(io);
     reader->SetFileName(path);
-    {
-      const std::lock_guard<std::recursive_mutex> one_reader(image_read_mutex());
-      reader->Update();
-    }
+    update_in_turn(*reader);
     const Image4& image = *reader->GetOutput();
     const ImageGeometry g = geometry_of_image(image);
     check_geometry(g, path);

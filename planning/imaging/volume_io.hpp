@@ -14,9 +14,9 @@ namespace crepuscular::planning {
 // Held while ITK reads an image file (header or voxels, every format). ITK's readers are not known
 // to be safe on several threads at once: a breathing plan reading its phases side by side aborted
 // with a corrupted heap inside NiftiImageIO::ReadImageInformation (bench/RESULTS.md, sixteenth
-// session), as concurrent NIfTI reads are reported to do elsewhere. Reads take turns; what is done with the
-// voxels afterwards (conversion, checks, preprocessing) still runs side by side. Recursive: one
-// read may open its header under it and then read its voxels.
+// session), as concurrent NIfTI reads are reported to do elsewhere. Reads take turns; what is
+// done with the voxels afterwards (conversion, checks, preprocessing) still runs side by side.
+// Recursive: one read may open its header under it and then read its voxels.
 std::recursive_mutex& image_read_mutex();
 
 // Reads a scalar volume and converts its values to T. `path` is a file, or a folder holding one
