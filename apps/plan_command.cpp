@@ -54,6 +54,12 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
   cmd->add_flag("--per-phase", req->per_phase,
                 "With --phases or 4D inputs: also write each phase's volumes, "
                 "path_safety_<value>_<phase>.nii.gz (evaluate then names the worst phase)");
+  cmd->add_flag("--refine-every-phase", req->refine_every_phase,
+                "With phases in fast mode: refine each phase's class boundaries everywhere. By "
+                "default a phase's boundary is not refined where the phases computed before it "
+                "are already at least as unsafe there, so it cannot change the combined class "
+                "(the phases at the ends of the motion are computed first). The combined "
+                "classes are the same; the time is not. --per-phase implies it");
   return lesion_at;
 }
 

@@ -111,6 +111,10 @@ int main(int argc, char** argv) {
   app.add_option("--phases", phases,
                  "breathing: plan the breathing phantom's phases (their own tumors; "
                  "--tumor-diameter and --tumor-spacing do not apply)");
+  bool refine_every_phase = false;
+  app.add_flag("--refine-every-phase", refine_every_phase,
+               "breathing, fast mode: refine every phase's class boundaries, also where the "
+               "phases before decide the combination's class");
   app.add_option("--work", work, "working folder (phantom and plan)");
   app.add_flag("--keep", keep, "keep the working folder");
   bool reuse_phantom = false;
@@ -188,6 +192,7 @@ int main(int argc, char** argv) {
   req.path_safety.cuda_texture = texture;
   req.path_safety.tumor_leaps = !no_tumor_leaps;
   req.path_safety.fast_overlap_host = !no_overlap;
+  req.refine_every_phase = refine_every_phase;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
   const nlohmann::json plan = pipelines::run_plan(req);
@@ -216,6 +221,7 @@ int main(int argc, char** argv) {
                          {"texture", texture},
                          {"tumor_leaps", !no_tumor_leaps},
                          {"fast_overlap_host", !no_overlap},
+                         {"refine_every_phase", refine_every_phase},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},
                          {"device", plan["parameters"]["device"]},
                          {"setup_s_not_counted", setup_s},

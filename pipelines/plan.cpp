@@ -401,6 +401,33 @@ PathSafetyOptions shared_grid(const PlanRequest& req, const std::vector<PhaseInp
   return ps;
 }
 
+// The order in which the phases are computed: the first listed (the reference), then each time
+// the phase whose tumor centroid lies farthest from those of the phases chosen so far, so that
+// the ends of the motion come first and the phases between them find most of their class
+// boundaries decided by the combination already (PathSafetyOptions::combined_so_far). Ties go
+// to the phase listed first.
+std::vector<size_t> phase_order(const std::vector<PhaseInputs>& phases) {
+  std::vector<size_t> order{0};
+  std::vector<double> nearest(phases.size(), INFINITY);
+  std::vector<bool> chosen(phases.size(), false);
+  chosen[0] = phases.size() > 0;
+  while (order.size() < phases.size()) {
+    size_t best = 0;
+    double farthest = -1.0;
+    for (size_t k = 0; k < phases.size(); ++k) {
+      if (chosen[k]) continue;
+      nearest[k] = std::min(nearest[k], (phases[k].centroid - phases[order.back()].centroid).norm());
+      if (nearest[k] > farthest) {
+        farthest = nearest[k];
+        best = k;
+      }
+    }
+    chosen[best] = true;
+    order.push_back(best);
+  }
+  return order;
+}
+
 nlohmann::json point_json(const Eigen::Vector3d& p) { return {p.x(), p.y(), p.z()}; }
 
 // `req`'s phases come from `list` (phases.json, or the frames of 4D inputs).
@@ -420,21 +447,37 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
                phases.size(), centre.x(), centre.y(), centre.z(), shared.path_safety.radius_mm,
                shared.path_safety.spacing_mm);
   PhaseCombiner combiner;
-  nlohmann::json phase_list = nlohmann::json::array();
+  std::vector<nlohmann::json> phase_entries(phases.size());
   CoverageReport first_coverage;
-  // A phase's result is finished (the check compared, the scan's coverage applied, statistics
-  // taken, its own volumes written with --per-phase, folded into the combination) on a thread
-  // of its own while the next phase's path safety runs; one phase at a time waits for it, in
+  const std::vector<size_t> order = phase_order(phases);
+  // Fast mode leaves refinement out where a phase cannot change the combination's class
+  // (PathSafetyOptions::combined_so_far), unless every phase's own volumes are written.
+  const bool leave_to_combination = req.path_safety.mode == Mode::kFast && !req.per_phase &&
+                                    !req.refine_every_phase;
+  // Folded into the combination: a phase's sampler waits for the phase before it to be folded.
+  std::vector<std::promise<void>> folded(phases.size());
+  // A phase's result is finished (the scan's coverage applied, folded into the combination, the
+  // check compared, statistics taken, its own volumes written with --per-phase) on a thread of
+  // its own while the next phase's path safety runs; one phase at a time waits for it, in
   // order. Its `seconds` run from its path safety's start to its finish.
-  const auto finish_phase = [&](size_t k, PathSafetyResult result, Clock::time_point t_phase) {
+  const auto finish_one = [&](size_t at, PathSafetyResult result, Clock::time_point t_phase,
+                              bool& is_folded) {
+    const size_t k = order[at];
     const PhaseInputs& p = phases[k];
-    finish_fast_check(result);
     CoverageReport coverage;
     const Volume<uint8_t> region =
         apply_scan_coverage(result, p.inputs.coverage, p.inputs.tumor, {req.crop_to_scan},
                             &coverage);
     if (k == 0) first_coverage = coverage;
     warn_about_coverage(coverage, req.crop_to_scan);
+    // Later phases are folded in first, for the next phase's sampler; the first lends its
+    // volumes to the combination once its own check and statistics are taken.
+    if (at > 0) {
+      combiner.add(result, region);
+      is_folded = true;
+      folded[at].set_value();
+    }
+    finish_fast_check(result);
     nlohmann::json entry;
     entry["name"] = p.phase.name;
     // A frame of a 4D input is recorded as that file (the frame is the phase's).
@@ -452,6 +495,14 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     entry["tumor_voxels"] = result.tumor_voxels;
     entry["unknown_voxels"] = coverage.unknown_voxels;
     entry["device"] = result.device;
+    entry["computed_as"] = at + 1;
+    if (result.mode == Mode::kFast) {
+      entry["points_computed_exactly"] = result.evaluated_points;
+      if (leave_to_combination && at > 0) {
+        entry["left_to_earlier_phases"] = {{"cells", result.cells_left_to_combination},
+                                           {"finest_points", result.points_left_to_combination}};
+      }
+    }
     entry["path_safety_s"] = result.seconds;
     for (const auto& [step, seconds] : result.phases) entry["path_safety_phases"][step] = seconds;
     for (int v = 0; v < kernels::kValueCount; ++v) {
@@ -465,29 +516,73 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
         entry["outputs"][value_name(bit)] = file;
       }
     }
-    combiner.add(std::move(result), region);
+    if (at == 0) {
+      combiner.add(std::move(result), region);
+      is_folded = true;
+      folded[at].set_value();
+    }
     entry["seconds"] = seconds_since(t_phase);
-    phase_list.push_back(entry);
+    phase_entries[k] = std::move(entry);
+  };
+  const auto finish_phase = [&](size_t at, PathSafetyResult result, Clock::time_point t_phase) {
+    bool is_folded = false;
+    try {
+      finish_one(at, std::move(result), t_phase, is_folded);
+    } catch (...) {
+      // The next phase's sampler may wait for this fold: it gets the error instead.
+      if (!is_folded) folded[at].set_exception(std::current_exception());
+      throw;
+    }
   };
   t = Clock::now();
   std::future<void> finishing;  // declared after `out`: joined before a failed plan's folder goes
-  for (size_t k = 0; k < phases.size(); ++k) {
-    const PhaseInputs& p = phases[k];
-    spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, k + 1, phases.size());
-    const auto t_phase = Clock::now();
-    PlanRequest phase_request = p.request;
-    phase_request.path_safety = shared.path_safety;
-    PathSafetyResult result = compute(phase_request, p.inputs);
-    // A later phase's blocking volume is done with (its finish needs its tumor and scan); the
-    // first phase's is written as the plan's own.
-    if (k > 0) phases[k].inputs.blocking = {};
-    if (finishing.valid()) finishing.get();  // the phase before (and its error) first
-    finishing = std::async(std::launch::async, finish_phase, k, std::move(result), t_phase);
+  try {
+    for (size_t at = 0; at < order.size(); ++at) {
+      const size_t k = order[at];
+      const PhaseInputs& p = phases[k];
+      spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, at + 1,
+                   phases.size());
+      const auto t_phase = Clock::now();
+      PlanRequest phase_request = p.request;
+      phase_request.path_safety = shared.path_safety;
+      if (leave_to_combination && at > 0) {
+        std::shared_future<void> before = folded[at - 1].get_future().share();
+        phase_request.path_safety.combined_so_far = [before, &combiner] {
+          before.get();  // the phase before, folded in (its finish runs beside this phase)
+          std::array<const float*, kernels::kValueCount> worst{};
+          PathSafetyResult& c = combiner.combined();
+          for (int v = 0; v < kernels::kValueCount; ++v) {
+            if (c.values & (1u << v)) worst[size_t(v)] = c.volumes[size_t(v)].data();
+          }
+          return worst;
+        };
+      }
+      PathSafetyResult result = compute(phase_request, p.inputs);
+      // A later phase's blocking volume is done with (its finish needs its tumor and scan); the
+      // first phase's is written as the plan's own.
+      if (k > 0) phases[k].inputs.blocking = {};
+      if (finishing.valid()) finishing.get();  // the phase before (and its error) first
+      finishing = std::async(std::launch::async, finish_phase, at, std::move(result), t_phase);
+    }
+    if (finishing.valid()) finishing.get();
+  } catch (...) {
+    // A failed finish leaves its phase unfolded: nothing waits for it any more.
+    if (finishing.valid()) finishing.wait();
+    throw;
   }
-  if (finishing.valid()) finishing.get();
   timings["path_safety_s"] = seconds_since(t);
-  PathSafetyResult combined = combiner.combined();
+  nlohmann::json phase_list = nlohmann::json::array();
+  for (nlohmann::json& e : phase_entries) phase_list.push_back(std::move(e));
+  PathSafetyResult& combined = combiner.combined();
   const Volume<uint8_t>& region = combiner.region();
+  // Fast mode's check of the combination: every phase's exact values at the check's voxels,
+  // combined, against the combined volumes.
+  combined.pending_check = nullptr;
+  combined.check_voxels = 0;
+  if (const CheckSample* check = combiner.check_sample()) {
+    spdlog::info("breathing: the combination against the phases' exact values combined");
+    compare_with_check_sample(*check, combined.values, combined);
+  }
 
   // The plan's own files: the combination, with the first phase's blocking, tumor and labels.
   const PhaseInputs& first = phases.front();

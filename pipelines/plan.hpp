@@ -29,6 +29,10 @@ struct PlanRequest : PlanInputOptions {
   // set per phase, and the plan combines the phases (planning/safety/breathing.hpp).
   std::string phases;
   bool per_phase = false;  // also write path_safety_<value>_<phase>.nii.gz per phase
+  // Fast mode over phases: refine every phase's class boundaries, also where the phases computed
+  // before decide the combination's class (PathSafetyOptions::combined_so_far). Slower; implied
+  // by per_phase, whose volumes must each be right.
+  bool refine_every_phase = false;
 };
 
 // Runs preprocessing and path safety and writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/roi.nii.gz

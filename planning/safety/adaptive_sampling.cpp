@@ -206,10 +206,92 @@ bool near_threshold(const SafetyClasses& c, double v, const AdaptiveOptions& o,
   return false;
 }
 
+// The class of `v` (0 safe, 1 medium, 2 dangerous; -1 unknown) with `v` moved by the margins
+// (scaled as in near_threshold) toward danger or toward safety: a value that near_threshold
+// calls close to a threshold counts as the class on that side.
+int danger_rank(const SafetyClasses& c, double v, const AdaptiveOptions& o, double scale,
+                bool toward_danger) {
+  if (std::isnan(v)) return -1;
+  if (c.higher_is_safer) {
+    const double m = scale * o.svv_margin;
+    v = toward_danger ? v - m : v + m;
+  } else {
+    const double f = 1.0 + scale * o.blocking_margin;
+    v = toward_danger ? v * f : v / f;
+  }
+  return int(c.classify(v));
+}
+
+// The combination of the phases computed before (AdaptiveOptions::combined_so_far): whether this
+// phase can change its class. `most_dangerous[s]` is, per value slot whose class changes among
+// the supports (or lies near a threshold), the most dangerous class of the supports toward danger
+// (-1: the value needs nothing from the combination; -2: a support is unknown, never left).
+struct Combination {
+  std::array<const float*, kernels::kValueCount> worst{};
+  bool any() const {
+    for (const float* w : worst) {
+      if (w) return true;
+    }
+    return false;
+  }
+  // The voxel at `offset` is at least as dangerous in the combination (toward safety) as
+  // `most_dangerous` for every value that needs it; a voxel unknown in the combination is
+  // unknown whatever this phase says.
+  bool covers(int64_t offset, const std::array<int, kernels::kValueCount>& most_dangerous,
+              const std::array<SafetyClasses, kernels::kValueCount>& classes,
+              const AdaptiveOptions& o, double scale) const {
+    for (int s = 0; s < kernels::kValueCount; ++s) {
+      if (most_dangerous[size_t(s)] == -1) continue;
+      if (most_dangerous[size_t(s)] < -1 || !worst[size_t(s)]) return false;
+      const float w = worst[size_t(s)][offset];
+      if (std::isnan(w)) continue;
+      if (danger_rank(classes[size_t(s)], w, o, scale, false) < most_dangerous[size_t(s)]) {
+        return false;
+      }
+    }
+    return true;
+  }
+};
+
+// Per value slot of `slots`, what the combination must cover for supports `value[0..ends)`
+// (Combination::covers): -1 where they agree in class and none lies near a threshold.
+std::array<int, kernels::kValueCount> most_dangerous_of(
+    const float (*value)[kernels::kValueCount], const int* ends, int count,
+    const std::vector<int>& slots, const std::array<SafetyClasses, kernels::kValueCount>& classes,
+    const AdaptiveOptions& o, double scale) {
+  std::array<int, kernels::kValueCount> most;
+  most.fill(-1);
+  for (const int s : slots) {
+    const SafetyClasses& c = classes[size_t(s)];
+    int lo = 3, hi = -1;
+    bool unknown = false;
+    for (int q = 0; q < count; ++q) {
+      const double v = value[ends ? ends[q] : q][s];
+      const int up = danger_rank(c, v, o, scale, true);
+      const int down = danger_rank(c, v, o, scale, false);
+      if (up < 0) {
+        unknown = true;
+        break;
+      }
+      lo = std::min(lo, down);
+      hi = std::max(hi, up);
+    }
+    if (unknown) {
+      most[size_t(s)] = -2;
+    } else if (lo != hi) {
+      most[size_t(s)] = hi;
+    }
+  }
+  return most;
+}
+
 // Wall time of the sampler's steps, summed over its levels.
 class StepClock {
  public:
-  enum Step { kCells, kRequests, kFinestRequests, kStore, kRefine, kFill, kFinish, kEvaluate, kSteps };
+  enum Step {
+    kCells, kRequests, kFinestRequests, kStore, kRefine, kFill, kFinish, kEvaluate,
+    kCombinationWait, kSteps
+  };
   void add(Step step, std::chrono::steady_clock::time_point since) {
     seconds_[step] +=
         std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
@@ -217,7 +299,8 @@ class StepClock {
   std::vector<std::pair<std::string, double>> named() const {
     static const char* const kNames[kSteps] = {
         "sampler_cells",  "sampler_requests", "sampler_finest_requests", "sampler_store",
-        "sampler_refine", "sampler_fill",     "sampler_finish",          "sampler_evaluate"};
+        "sampler_refine", "sampler_fill",     "sampler_finish",          "sampler_evaluate",
+        "sampler_combination_wait"};
     std::vector<std::pair<std::string, double>> out;
     for (int s = 0; s < kSteps; ++s) out.emplace_back(kNames[s], seconds_[s]);
     return out;
@@ -383,9 +466,11 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
                       const PointEvaluator& evaluate, AdaptiveReport& report, SampleStore& store,
                       RequestLists& lists, std::vector<GridPoint>& queue,
                       std::vector<float>& values, StepClock& clock,
+                      const Combination& combination,
                       const std::function<void(double)>& done) {
   static const std::vector<FinestPoint> kPoints = finest_points();
-  int64_t interpolated = 0;
+  int64_t interpolated = 0, left = 0;
+  const bool combined = combination.any();
   const auto gather = [&](int64_t first, int64_t count, std::vector<GridPoint>& into) {
     gather_requests(
         count,
@@ -407,7 +492,16 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
             for (int q = 1; q < p.ends && uniform; ++q) {
               uniform = key[p.corner[q]] == key[p.corner[0]];
             }
-            if (!uniform) {
+            // Left to the phases before where this one cannot change the combination's class.
+            const bool left_to_combination =
+                !uniform && combined &&
+                combination.covers(store.offset(i, j, k),
+                                   most_dangerous_of(value, p.corner, p.ends, slots,
+                                                     report.classes, options,
+                                                     options.finest_margin),
+                                   report.classes, options, options.finest_margin);
+            if (left_to_combination) __atomic_fetch_add(&left, int64_t(1), __ATOMIC_RELAXED);
+            if (!uniform && !left_to_combination) {
               offer(i, j, k);  // computed (an interpolation from a coarser cell is reclaimed)
             } else if (store.claim_interpolated(i, j, k)) {
               const int64_t off = store.offset(i, j, k);
@@ -463,6 +557,7 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
     evaluate_queue(queue, evaluate, store, values, clock);
     computed = int64_t(queue.size());
   }
+  report.points_left_to_combination += left;
   done(1.0);
   return computed;
 }
@@ -609,6 +704,40 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     return interpolated;
   };
   bool classes_known = false;
+  // The phases before, combined (AdaptiveOptions::combined_so_far), asked for after the coarsest
+  // level.
+  Combination combination;
+  // Whether this phase cannot change the combination's class anywhere in the cell: every voxel
+  // of it in the region and the scan covers its corners' most dangerous class, for every value
+  // whose class changes at the corners or lies near a threshold.
+  // `dilated_only`: every requested value must be dangerous throughout.
+  const auto combination_covers = [&](const Cell& cell, bool dilated_only) {
+    std::array<int, kSlots> most;
+    if (dilated_only) {
+      most.fill(-1);
+      for (const int s : slots) most[size_t(s)] = int(SafetyClass::kDangerous);
+    } else {
+      float corner[8][kSlots] = {};
+      for (int q = 0; q < 8; ++q) {
+        for (const int s : slots) {
+          corner[q][s] = store.value(cell.ci(q), cell.cj(q), cell.ck(q), s);
+        }
+      }
+      most = most_dangerous_of(corner, nullptr, 8, slots, report.classes, options, 1.0);
+    }
+    for (int64_t k = std::max<int64_t>(cell.k, 0); k <= std::min<int64_t>(cell.k + cell.size, n - 1);
+         ++k)
+      for (int64_t j = std::max<int64_t>(cell.j, 0);
+           j <= std::min<int64_t>(cell.j + cell.size, n - 1); ++j)
+        for (int64_t i = std::max<int64_t>(cell.i, 0);
+             i <= std::min<int64_t>(cell.i + cell.size, n - 1); ++i) {
+          if (!grid.in_roi(i, j, k) || !store.known(i, j, k)) continue;
+          if (!combination.covers(store.offset(i, j, k), most, report.classes, options, 1.0)) {
+            return false;
+          }
+        }
+    return true;
+  };
   clock.add(StepClock::kCells, t);
   while (!cells.empty()) {
     const int size = cells.front().size;
@@ -637,15 +766,29 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     report.levels.emplace_back(size, int64_t(queue.size()));
     progress.at(level, 1.0);
 
-    // Thresholds from the coarsest lattice's samples inside the region (a uniform sample of it).
+    // Thresholds from the coarsest lattice's samples inside the region (a uniform sample of it),
+    // combined with the phases before where there are any: the combination's classes.
     if (!classes_known) {
+      if (options.combined_so_far) {
+        const auto tw = std::chrono::steady_clock::now();
+        combination.worst = options.combined_so_far();
+        clock.add(StepClock::kCombinationWait, tw);
+      }
       for (const int s : slots) {
         std::vector<float> sample;
+        const float* worst = combination.worst[size_t(s)];
+        const bool svv = (1u << s) == kernels::kSvv;
         for (size_t p = 0; p < queue.size(); ++p) {
           const GridPoint& g = queue[p];
           const double di = g.i - half, dj = g.j - half, dk = g.k - half;
           if (di * di + dj * dj + dk * dk <= radius_sq && store.known(g.i, g.j, g.k)) {
-            sample.push_back(values[p * kSlots + s]);
+            float v = values[p * kSlots + s];
+            if (worst) {
+              const float w = worst[store.offset(g.i, g.j, g.k)];
+              if (std::isnan(w)) continue;  // unknown in the combination
+              v = svv ? std::min(v, w) : std::max(v, w);
+            }
+            sample.push_back(v);
           }
         }
         report.classes[size_t(s)] = default_classes_of(1u << s, std::move(sample));
@@ -658,6 +801,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     // from being filled (its voxels are reached by splitting; no class boundary was seen there).
     // Corners outside the scan have values (supports), so this is a safeguard.
     refine.assign(cells.size(), 0);
+    int64_t left = 0;
 #pragma omp parallel for schedule(dynamic, 256) if (size > 1)
     for (int64_t c = 0; c < int64_t(cells.size()); ++c) {
       const Cell& cell = cells[size_t(c)];
@@ -682,6 +826,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       }
       refine[size_t(c)] = split ? 1 : unknown ? 2 : 0;
     }
+    std::vector<uint8_t> own;  // the cells' own decisions, where dilation adds to them
     if (level == 0 && options.dilate && size > 1) {
       std::vector<uint8_t> grown = refine;
       for (size_t c = 0; c < cells.size(); ++c) {
@@ -698,6 +843,23 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
             }
       }
       refine.swap(grown);
+      own.swap(grown);
+    }
+    // Cells left to the phases before (AdaptiveOptions::combined_so_far): filled from their
+    // corners. A cell refined only for its neighbour's sake (dilation: a shadow thinner than a
+    // cell may cross it unseen by its corners) is left only where the combination is dangerous
+    // throughout it.
+    if (combination.any() && size > 1) {
+#pragma omp parallel for schedule(dynamic, 64) reduction(+ : left)
+      for (int64_t c = 0; c < int64_t(cells.size()); ++c) {
+        if (refine[size_t(c)] != 1) continue;
+        const bool dilated_only = !own.empty() && own[size_t(c)] != 1;
+        if (combination_covers(cells[size_t(c)], dilated_only)) {
+          refine[size_t(c)] = 0;
+          ++left;
+        }
+      }
+      report.cells_left_to_combination += left;
     }
 
     // Split the cells to refine (cells of edge 2 that only agree, refined for a corner without a
@@ -759,7 +921,8 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     if (!finest.empty()) {
       const int64_t computed =
           sample_finest(finest, grid, options, slots, evaluate, report, store, lists, queue,
-                        values, clock, [&](double f) { progress.at(level + 1, f); });
+                        values, clock, combination,
+                        [&](double f) { progress.at(level + 1, f); });
       report.evaluated += computed;
       report.levels.emplace_back(0, computed);
     }
@@ -811,6 +974,7 @@ AdaptiveOptions adaptive_options(const PathSafetyOptions& options, const OutputG
   adaptive.blocking_margin = options.fast_blocking_margin;
   adaptive.dilate = options.fast_dilate;
   adaptive.finest_margin = options.fast_finest_margin;
+  adaptive.combined_so_far = options.combined_so_far;
   adaptive.progress = options.progress;
   return adaptive;
 }

@@ -66,6 +66,22 @@ struct AdaptiveOptions {
   // The same for the grid's own voxels, one byte each (x fastest, 1: in the scan), where given:
   // `known` is then asked only about lattice corners beyond the grid's edge.
   const uint8_t* known_mask = nullptr;
+  // Breathing (planning/safety/breathing.hpp): the phases computed before this one, combined on
+  // this grid (per value slot: SVV the minimum over them, the others the maximum; NaN where one
+  // of them is unknown; null: that value is not combined yet), asked for once, after the coarsest
+  // level (it may wait for the phase before to be folded in). With it:
+  // - the thresholds are the default classes of the coarsest samples combined with it, the
+  //   classes the combination will have;
+  // - refinement is left out where this phase cannot change the combination's class: a cell
+  //   whose corners differ in a value's class (or lie near a threshold) is not split, but filled
+  //   from its corners, when every voxel of it is at least as dangerous in the combination as
+  //   the most dangerous of those corners, for each such value (both taken with the margins, each
+  //   toward the other); a point of the finest level likewise, by its own voxel. Interpolation
+  //   keeps the phase's values within the classes of its corners, so the combination's class is
+  //   the one it had, which is what refining would have found where the phase's class inside a
+  //   cell lies within the classes of its corners (fast mode's premise). This phase's own
+  //   volumes are then approximate there: a plan that writes them (--per-phase) does not use it.
+  std::function<std::array<const float*, kernels::kValueCount>()> combined_so_far;
   std::function<void(double)> progress;
 };
 
@@ -80,10 +96,14 @@ struct AdaptiveReport {
   // Points evaluated per lattice level, coarsest first; stride 0: the finest level point by point.
   std::vector<std::pair<int, int64_t>> levels;
   std::array<SafetyClasses, kernels::kValueCount> classes{};  // the thresholds refinement used
+  // AdaptiveOptions::combined_so_far: cells not split and finest points interpolated because
+  // this phase could not change the combination's class there.
+  int64_t cells_left_to_combination = 0;
+  int64_t points_left_to_combination = 0;
   // Wall seconds of the sampler's own work, by step ("sampler_cells" (the coarsest lattice's
   // cells chosen), "sampler_requests", "sampler_finest_requests", "sampler_store",
-  // "sampler_refine", "sampler_fill", "sampler_finish"), and of the evaluator's calls
-  // ("sampler_evaluate").
+  // "sampler_refine", "sampler_fill", "sampler_finish"), of the evaluator's calls
+  // ("sampler_evaluate") and of the wait for the combination so far ("sampler_combination_wait").
   std::vector<std::pair<std::string, double>> seconds;
 };
 

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <unordered_map>
 #include <utility>
 
 #include "foundation/error.hpp"
@@ -53,6 +54,8 @@ void PhaseCombiner::add(PathSafetyResult&& phase, const Volume<uint8_t>& region)
     throw Error("breathing phase 1: its voxel states are not on its path safety grid");
   }
   combined_ = std::move(phase);
+  if (combined_.check_sample) check_ = std::make_shared<CheckSample>(*combined_.check_sample);
+  combined_.check_sample = nullptr;
   region_ = parallel_copy(region);
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (combined_.values & (1u << v)) {
@@ -100,10 +103,49 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
       other[i] = svv ? std::max(o, p) : std::min(o, p);
     }
   }
+  fold_check(phase);
+  // Fast mode's points, summed over the phases, level by level (by stride).
+  combined_.evaluated_points += phase.evaluated_points;
+  combined_.interpolated_voxels += phase.interpolated_voxels;
+  combined_.cells_left_to_combination += phase.cells_left_to_combination;
+  combined_.points_left_to_combination += phase.points_left_to_combination;
+  for (const auto& [stride, points] : phase.sampler_levels) {
+    auto& levels = combined_.sampler_levels;
+    const auto at = std::find_if(levels.begin(), levels.end(),
+                                 [stride = stride](const auto& l) { return l.first == stride; });
+    if (at != levels.end()) {
+      at->second += points;
+    } else {
+      levels.emplace_back(stride, points);
+    }
+  }
   combined_.classes = {};  // the first phase's, if taken: the combination's values have changed
   combined_.seconds += phase.seconds;
   combined_.rays += phase.rays;
   ++phases_;
+}
+
+void PhaseCombiner::fold_check(const PathSafetyResult& phase) {
+  if (!check_) return;
+  if (!phase.check_sample) {
+    check_.reset();
+    return;
+  }
+  const CheckSample& other = *phase.check_sample;
+  std::unordered_map<int64_t, size_t> at;
+  for (size_t s = 0; s < other.offsets.size(); ++s) at.emplace(other.offsets[s], s);
+  constexpr size_t kSlots = kernels::kValueCount;
+  CheckSample folded;
+  for (size_t s = 0; s < check_->offsets.size(); ++s) {
+    const auto it = at.find(check_->offsets[s]);
+    if (it == at.end()) continue;  // outside that phase's scan: unknown in the combination
+    folded.offsets.push_back(check_->offsets[s]);
+    for (size_t v = 0; v < kSlots; ++v) {
+      const float a = check_->exact[s * kSlots + v], b = other.exact[it->second * kSlots + v];
+      folded.exact.push_back(higher_is_safer(int(v)) ? std::min(a, b) : std::max(a, b));
+    }
+  }
+  *check_ = std::move(folded);
 }
 
 double PhaseCombiner::class_change_share(int slot, const SafetyClasses& classes) const {

@@ -4,6 +4,7 @@
 
 #include <array>
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 #include "planning/safety/path_safety.hpp"
@@ -26,6 +27,11 @@ class PhaseCombiner {
   // The combination: the first phase's grid and parameters, the combined volumes, the summed
   // time and rays.
   const PathSafetyResult& combined() const { return combined_; }
+  PathSafetyResult& combined() { return combined_; }
+  // Fast mode's check of the combination: the voxels of every phase's check sample (the same
+  // voxels where the phases share their scan) with the combination of the phases' exact values
+  // there; null when a phase had no check.
+  const CheckSample* check_sample() const { return check_.get(); }
   const Volume<uint8_t>& region() const { return region_; }
   // Per value slot, the other end of the range over the phases (SVV: the maximum; the others: the
   // minimum); NaN where the combination is.
@@ -38,11 +44,13 @@ class PhaseCombiner {
 
  private:
   void add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region);
+  void fold_check(const PathSafetyResult& phase);
 
   int phases_ = 0;
   PathSafetyResult combined_;
   std::array<Volume<float>, kernels::kValueCount> other_;
   Volume<uint8_t> region_;
+  std::shared_ptr<CheckSample> check_;
 };
 
 }  // namespace crepuscular::planning

@@ -761,6 +761,14 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
   result.evaluated_points = report.evaluated;
   result.interpolated_voxels = report.interpolated;
   result.sampler_levels = report.levels;
+  result.cells_left_to_combination = report.cells_left_to_combination;
+  result.points_left_to_combination = report.points_left_to_combination;
+  if (adaptive.combined_so_far) {
+    spdlog::info("fast mode: {} cells and {} finest points left to the phases before (they "
+                 "decide the combination's class there; this phase's own values there, and so "
+                 "its own check, are approximate)",
+                 report.cells_left_to_combination, report.points_left_to_combination);
+  }
   result.phases.insert(result.phases.end(), report.seconds.begin(), report.seconds.end());
   std::string levels;
   for (const auto& [stride, count] : report.levels) {
@@ -790,13 +798,8 @@ PointEvaluator cpu_point_evaluator(const kernels::PathSafetyScene<double>& scene
 }
 
 // The self-check's voxels (up to `count` of the region inside the scan, drawn at random with a
-// fixed seed) and their exact values, flat (kValueCount per voxel). Independent of fast mode's
-// result, so it may be computed while fast mode samples.
-struct CheckSample {
-  std::vector<int64_t> offsets;
-  std::vector<float> exact;
-};
-
+// fixed seed) and their exact values. Independent of fast mode's result, so it may be computed
+// while fast mode samples.
 CheckSample exact_check_sample(const OutputGrid& grid, const uint8_t* known, int count,
                                const PointEvaluator& evaluate) {
   std::mt19937_64 rng(20111);
@@ -820,7 +823,8 @@ CheckSample exact_check_sample(const OutputGrid& grid, const uint8_t* known, int
   return sample;
 }
 
-// Fast mode's result against the sample's exact values: relative L2 and class agreement per value.
+}  // namespace
+
 void compare_with_check_sample(const CheckSample& sample, unsigned values,
                                PathSafetyResult& result) {
   const std::vector<int64_t>& offsets = sample.offsets;
@@ -842,9 +846,6 @@ void compare_with_check_sample(const CheckSample& sample, unsigned values,
     result.check_class_agreement[size_t(v)] =
         offsets.empty() ? 1.0 : double(same) / double(offsets.size());
   }
-}
-
-void log_fast_check(unsigned values, const PathSafetyResult& result) {
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (values & (1u << v)) {
       spdlog::info("fast mode vs exact at {} voxels: {} relative L2 {:.2e}, same class {:.2f} %",
@@ -854,14 +855,15 @@ void log_fast_check(unsigned values, const PathSafetyResult& result) {
   }
 }
 
+namespace {
+
 // Fast mode's self-check (options.fast_check_voxels voxels recomputed exactly), logged.
 void check_fast_mode(const OutputGrid& grid, const uint8_t* known,
                      const PathSafetyOptions& options, const PointEvaluator& evaluate,
                      PathSafetyResult& result) {
-  compare_with_check_sample(
-      exact_check_sample(grid, known, options.fast_check_voxels, evaluate), options.values,
-      result);
-  log_fast_check(options.values, result);
+  result.check_sample = std::make_shared<const CheckSample>(
+      exact_check_sample(grid, known, options.fast_check_voxels, evaluate));
+  compare_with_check_sample(*result.check_sample, options.values, result);
 }
 
 // Fast mode's rays: the surface points grouped by blocks of block^3 voxels of the tumor grid; each
@@ -1127,9 +1129,9 @@ class CudaBackend {
       auto sample = std::make_shared<const CheckSample>(exact_check_sample(
           grid, known, options.fast_check_voxels, evaluator_of(*reference)));
       const unsigned values = options.values;
+      result.check_sample = sample;
       result.pending_check = [sample, values](PathSafetyResult& r) {
         compare_with_check_sample(*sample, values, r);
-        log_fast_check(values, r);
       };
       if (!options.fast_check_later) finish_fast_check(result);
       clock.done("self_check");  // the wait for the exact values (and the comparison)

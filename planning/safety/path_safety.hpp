@@ -6,6 +6,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <memory>
 #include <optional>
 #include <string>
 #include <utility>
@@ -111,6 +112,11 @@ struct PathSafetyOptions {
   // The scanned volume (DESIGN.md §4): output voxels outside it are unknown and not computed
   // (left NaN) in exact and fast mode. Null or empty: every voxel of the ball is computed.
   const ScanCoverage* coverage = nullptr;
+  // Fast mode, breathing: the phases computed before this one, combined on this grid (per value
+  // slot, null where not combined), asked for once the coarsest level is computed: refinement
+  // is then left out where this phase cannot change the combination's class
+  // (AdaptiveOptions::combined_so_far). Null: every class boundary of this phase is refined.
+  std::function<std::array<const float*, kernels::kValueCount>()> combined_so_far;
   // Called from the computing thread with the fraction done (0..1), about every 2 % of the work.
   std::function<void(double)> progress;
 };
@@ -156,6 +162,13 @@ double farthest_blocking_mm(const Volume<float>& blocking, const Eigen::Vector3d
 Volume<uint8_t> resample_tumor(const Volume<uint8_t>& tumor, const TumorSurface& surface,
                                const OutputGrid& grid, double spacing);
 
+// Fast mode's self-check: voxels of the region inside the scan (offsets into the output grid),
+// drawn at random with a fixed seed, and their exact values (kValueCount per voxel).
+struct CheckSample {
+  std::vector<int64_t> offsets;
+  std::vector<float> exact;
+};
+
 struct PathSafetyResult {
   OutputGrid grid;
   unsigned values = 0;
@@ -167,6 +180,10 @@ struct PathSafetyResult {
   // finest level's points inside refined cells of edge 2).
   std::vector<std::pair<int, int64_t>> sampler_levels;
   int fast_stride = 0;  // fast mode: the coarsest lattice's stride used
+  // Fast mode with PathSafetyOptions::combined_so_far: cells not split and finest points
+  // interpolated because the phases before decide the combination's class there.
+  int64_t cells_left_to_combination = 0;
+  int64_t points_left_to_combination = 0;
   int fast_ray_stride = 0;  // fast mode: blocking samples per quadrature point used
   // One volume per value slot (svv, isbv, ivbv, bvv); only requested ones are filled. Voxels
   // outside the region of interest are NaN (not computed).
@@ -201,7 +218,14 @@ struct PathSafetyResult {
   std::array<std::optional<SafetyClasses>, kernels::kValueCount> classes;
   // PathSafetyOptions::fast_check_later: the check's comparison, for finish_fast_check.
   std::function<void(PathSafetyResult&)> pending_check;
+  // The check's voxels and exact values (breathing combines the phases' into the combination's).
+  std::shared_ptr<const CheckSample> check_sample;
 };
+
+// Fast mode against a check sample's exact values: check_voxels, check_relative_l2 and
+// check_class_agreement (classes of the result's own volumes, classes_of), logged.
+void compare_with_check_sample(const CheckSample& sample, unsigned values,
+                               PathSafetyResult& result);
 
 // Compares fast mode with the exact values of its check where that was left for later
 // (check_voxels, check_relative_l2, check_class_agreement filled); nothing otherwise.

@@ -16,6 +16,7 @@
 #include "planning/imaging/volume_io.hpp"
 #include "planning/safety/unknown.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
+#include "planning/simulation/phantom.hpp"
 #include "planning/trajectories/evaluate.hpp"
 #include "tests/support/plans.hpp"
 #include "tests/support/temporary_folder.hpp"
@@ -274,6 +275,83 @@ TEST(PlanBreathing, RigidShiftOfTheSceneShiftsEachPhasesVolumeByTheSameVector) {
     EXPECT_GT(compared, 1000) << value;
     EXPECT_GT(largest, 0.0) << value;
     EXPECT_LE(worst, 1e-4 * largest) << value << " (largest value " << largest << ")";
+  }
+}
+
+// Fast mode over the breathing phantom's phases: a phase's class boundaries are left to the
+// phases computed before it where they already decide the combination's class. The ends of the
+// motion come first (end-exhale, then end-inhale); the later phases compute fewer points; the
+// combination has the classes of the plan that refines every phase, and both agree with the
+// exact plan's combination. plan.json's check is the combination's against every phase's
+// exact values combined.
+TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
+  const test::TemporaryFolder dir;
+  PhantomOptions po;
+  po.spacing_mm = 3.0;
+  write_breathing_phantom(po, 4, dir.file("cycle"));
+  const auto request = [&](const std::string& out, Mode mode, bool every_phase) {
+    PlanRequest r;
+    r.phases = dir.file("cycle/phases.json");
+    r.path_safety.device = Device::kCpu;
+    r.path_safety.mode = mode;
+    r.path_safety.spacing_mm = 3.0;
+    r.path_safety.radius_mm = 60.0;
+    r.area_safety.enabled = false;
+    r.refine_every_phase = every_phase;
+    r.out_dir = dir.file(out);
+    return r;
+  };
+  const nlohmann::json left = run_plan(request("left", Mode::kFast, false));
+  const nlohmann::json every = run_plan(request("every", Mode::kFast, true));
+  const nlohmann::json exact = run_plan(request("exact", Mode::kExact, false));
+  const auto& phases = left["breathing"]["phases"];
+  ASSERT_EQ(phases.size(), 4u);
+  EXPECT_EQ(phases[0]["computed_as"], 1);
+  EXPECT_EQ(phases[2]["computed_as"], 2);  // end-inhale: the other end of the motion
+  int64_t points_left = 0, points_every = 0, left_out = 0;
+  for (size_t k = 0; k < 4; ++k) {
+    points_left += phases[k]["points_computed_exactly"].get<int64_t>();
+    points_every += every["breathing"]["phases"][k]["points_computed_exactly"].get<int64_t>();
+    EXPECT_FALSE(every["breathing"]["phases"][k].contains("left_to_earlier_phases"));
+    if (k == 0) {
+      EXPECT_FALSE(phases[k].contains("left_to_earlier_phases"));  // nothing before it
+      continue;
+    }
+    left_out += phases[k]["left_to_earlier_phases"]["finest_points"].get<int64_t>() +
+                phases[k]["left_to_earlier_phases"]["cells"].get<int64_t>();
+  }
+  EXPECT_GT(left_out, 0);
+  EXPECT_LT(points_left, points_every * 9 / 10) << points_left << " vs " << points_every;
+  EXPECT_EQ(left["fast_mode_vs_exact"]["points_computed_exactly"].get<int64_t>(), points_left);
+  const Volume<uint8_t> roi = read_volume<uint8_t>(dir.file("exact/roi.nii.gz"));
+  for (const char* v : kValues) {
+    const std::string value = v;
+    SCOPED_TRACE(value);
+    const auto volume = [&](const std::string& plan) {
+      return read_volume<float>(dir.file(plan + "/path_safety_" + value + ".nii.gz"));
+    };
+    const Volume<float> l = volume("left"), e = volume("every"), x = volume("exact");
+    SafetyClasses classes;
+    const nlohmann::json& c = exact["classes"][value];
+    classes.higher_is_safer = value == "svv";
+    classes.safe = c["safe"].get<double>();
+    classes.dangerous = c["dangerous"].get<double>();
+    int64_t computed = 0, left_vs_every = 0, left_vs_exact = 0, every_vs_exact = 0;
+    for (int64_t n = 0; n < roi.voxel_count(); ++n) {
+      if (roi[n] != kRegionComputed) continue;
+      ++computed;
+      left_vs_every += classes.classify(l[n]) != classes.classify(e[n]);
+      left_vs_exact += classes.classify(l[n]) != classes.classify(x[n]);
+      every_vs_exact += classes.classify(e[n]) != classes.classify(x[n]);
+    }
+    ASSERT_GT(computed, 10000);
+    EXPECT_LE(left_vs_every, computed / 200) << left_vs_every << " of " << computed;
+    EXPECT_LE(left_vs_exact, every_vs_exact + computed / 500)
+        << left_vs_exact << " vs " << every_vs_exact << " of " << computed;
+    EXPECT_LE(left_vs_exact, computed / 100) << left_vs_exact << " of " << computed;
+    const nlohmann::json& check = left["fast_mode_vs_exact"];
+    EXPECT_GE(check["voxels"].get<int64_t>(), 900);
+    EXPECT_GE(check[value]["class_agreement"].get<double>(), 0.98);
   }
 }
 

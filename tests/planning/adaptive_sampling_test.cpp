@@ -2,10 +2,12 @@
 // interpolates, where it computes, and that it never computes nor interpolates the unknown.
 #include <gtest/gtest.h>
 
-#include <cstring>
-
+#include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
+#include <cstring>
+#include <functional>
 #include <set>
 #include <string>
 #include <thread>
@@ -247,7 +249,8 @@ TEST(AdaptiveSampling, StepsReportTheirWallTime) {
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const std::vector<std::string> names = {
       "sampler_cells",  "sampler_requests", "sampler_finest_requests", "sampler_store",
-      "sampler_refine", "sampler_fill",     "sampler_finish",          "sampler_evaluate"};
+      "sampler_refine", "sampler_fill",     "sampler_finish",          "sampler_evaluate",
+      "sampler_combination_wait"};
   ASSERT_EQ(report.seconds.size(), names.size());
   double sum = 0.0;
   for (size_t s = 0; s < names.size(); ++s) {
@@ -256,8 +259,172 @@ TEST(AdaptiveSampling, StepsReportTheirWallTime) {
     sum += report.seconds[s].second;
   }
   ASSERT_GE(calls, 3);  // the levels and the finest level
-  EXPECT_GE(report.seconds.back().second, 0.020 * calls);
+  EXPECT_GE(report.seconds[7].second, 0.020 * calls);  // the evaluator's calls
+  EXPECT_EQ(report.seconds[8].second, 0.0);  // no phases before to wait for
   EXPECT_LE(sum, wall + 1e-6);
+}
+
+// --- Breathing: refinement left to the phases computed before (AdaptiveOptions::combined_so_far)
+
+// SVV of a shadow whose value rises with the distance d (voxels) from its centre: 20 % up to
+// d = 5, then 15 points per voxel up to 95 %: dangerous (< 50 %) for d < 7, medium up to
+// d = 9.67, safe beyond. Three classes, boundaries at known distances.
+float ramp_shadow(double x, double y, double z, double cx, double cy, double cz) {
+  const double d = std::sqrt((x - cx) * (x - cx) + (y - cy) * (y - cy) + (z - cz) * (z - cz));
+  return float(std::clamp(20.0 + 15.0 * (d - 5.0), 20.0, 95.0));
+}
+
+using Field = std::function<float(int64_t, int64_t, int64_t)>;
+
+struct Phase {
+  std::vector<float> svv;
+  int64_t evaluated = 0;
+  AdaptiveReport report;
+};
+
+// One phase sampled, after `before` (the phases combined so far; empty: none).
+Phase sample_phase(const OutputGrid& g, const Field& field, const std::vector<float>& before,
+                   int stride = 8) {
+  Phase run;
+  const int64_t n = g.geometry.dims[0];
+  run.svv.assign(size_t(n * n * n), std::nanf(""));
+  float* out[kernels::kValueCount] = {run.svv.data(), nullptr, nullptr, nullptr};
+  AdaptiveOptions o;
+  o.values = kernels::kSvv;
+  o.stride = stride;
+  if (!before.empty()) {
+    o.combined_so_far = [&before] {
+      return std::array<const float*, kernels::kValueCount>{before.data(), nullptr, nullptr,
+                                                            nullptr};
+    };
+  }
+  const PointEvaluator evaluate = [&](const std::vector<GridPoint>& points,
+                                      std::vector<float>& values) {
+    run.evaluated += int64_t(points.size());
+    for (size_t p = 0; p < points.size(); ++p) {
+      values[p * kernels::kValueCount] = field(points[p].i, points[p].j, points[p].k);
+    }
+  };
+  run.report = sample_adaptively(g, o, evaluate, out);
+  return run;
+}
+
+std::vector<float> minimum(const std::vector<float>& a, const std::vector<float>& b) {
+  std::vector<float> m(a.size());
+  for (size_t v = 0; v < a.size(); ++v) m[v] = std::min(a[v], b[v]);
+  return m;
+}
+
+// Two phases: in the second the first's shadow has moved by 3 voxels, and a second shadow,
+// far from the first, appears. Left to the combination, the second phase computes fewer points,
+// the combination has every voxel in the same class as with every boundary refined (and as
+// the fields' own minimum), and around the new shadow, which the first phase does not cover,
+// the second phase's values are those of a phase refined everywhere, bit for bit.
+TEST(AdaptiveSampling, APhaseLeavesToTheCombinationOnlyWhatItCannotChange) {
+  const OutputGrid g = ball_grid(32);
+  const double h = double(g.half);
+  const Field first = [h](int64_t i, int64_t j, int64_t k) {
+    return ramp_shadow(double(i), double(j), double(k), h + 8.0, h, h);
+  };
+  const Field second = [h](int64_t i, int64_t j, int64_t k) {
+    return std::min(ramp_shadow(double(i), double(j), double(k), h + 11.0, h, h),
+                    ramp_shadow(double(i), double(j), double(k), h - 16.0, h, h));
+  };
+  const Phase a = sample_phase(g, first, {});
+  const Phase whole = sample_phase(g, second, {});
+  const Phase left = sample_phase(g, second, a.svv);
+  EXPECT_LT(left.evaluated, whole.evaluated * 19 / 20) << left.evaluated << " vs " << whole.evaluated;
+  EXPECT_GT(left.report.cells_left_to_combination + left.report.points_left_to_combination, 0);
+  EXPECT_EQ(whole.report.cells_left_to_combination + whole.report.points_left_to_combination, 0);
+  const std::vector<float> with_whole = minimum(a.svv, whole.svv);
+  const std::vector<float> with_left = minimum(a.svv, left.svv);
+  const SafetyClasses& classes = left.report.classes[0];
+  const int64_t n = g.geometry.dims[0];
+  int64_t differ = 0, wrong_whole = 0, wrong_left = 0, near_new = 0, near_new_differ = 0;
+  for (int64_t k = 0; k < n; ++k)
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < n; ++i) {
+        if (!g.in_roi(i, j, k)) continue;
+        const size_t v = size_t((k * n + j) * n + i);
+        const SafetyClass truth = classes.classify(std::min(first(i, j, k), second(i, j, k)));
+        differ += classes.classify(with_left[v]) != classes.classify(with_whole[v]);
+        wrong_whole += classes.classify(with_whole[v]) != truth;
+        wrong_left += classes.classify(with_left[v]) != truth;
+        const double x = double(i) - (h - 16.0), y = double(j) - h, z = double(k) - h;
+        if (x * x + y * y + z * z <= 14.0 * 14.0) {  // the new shadow and a margin around it
+          ++near_new;
+          near_new_differ += left.svv[v] != whole.svv[v];
+        }
+      }
+  EXPECT_EQ(differ, 0);
+  EXPECT_EQ(wrong_left, wrong_whole);
+  EXPECT_LE(wrong_whole, g.roi_voxels / 1000);
+  EXPECT_GT(near_new, 1000);
+  EXPECT_EQ(near_new_differ, 0);
+}
+
+// A combination that is safe everywhere decides nothing: the phase is sampled as on its own,
+// bit for bit. One unknown everywhere (NaN: unknown in an earlier phase) decides everything:
+// whatever this phase says, the combination is unknown, so only the coarsest lattice is
+// computed.
+TEST(AdaptiveSampling, ACombinationSafeEverywhereLeavesNothingAndOneUnknownLeavesAll) {
+  const OutputGrid g = ball_grid(24);
+  const double h = double(g.half);
+  const Field field = [h](int64_t i, int64_t j, int64_t k) {
+    return ramp_shadow(double(i), double(j), double(k), h + 6.0, h, h);
+  };
+  const int64_t n = g.geometry.dims[0];
+  const Phase alone = sample_phase(g, field, {}, 4);
+  const Phase after_safe = sample_phase(g, field, std::vector<float>(size_t(n * n * n), 95.0f), 4);
+  EXPECT_EQ(after_safe.evaluated, alone.evaluated);
+  EXPECT_EQ(0, std::memcmp(after_safe.svv.data(), alone.svv.data(), alone.svv.size() * 4));
+  EXPECT_EQ(after_safe.report.cells_left_to_combination, 0);
+  EXPECT_EQ(after_safe.report.points_left_to_combination, 0);
+  const Phase after_unknown =
+      sample_phase(g, field, std::vector<float>(size_t(n * n * n), std::nanf("")), 4);
+  ASSERT_FALSE(alone.report.levels.empty());
+  EXPECT_EQ(after_unknown.evaluated, alone.report.levels.front().second);
+  EXPECT_GT(alone.evaluated, 2 * alone.report.levels.front().second);
+}
+
+// The thresholds are the combination's: the coarsest samples combined with the phases before.
+// Blocking values have relative thresholds; a phase whose combination so far is twice its own
+// values refines with the classes of a phase of twice its values.
+TEST(AdaptiveSampling, ThresholdsAreTakenOfTheCoarsestSamplesCombinedWithThePhasesBefore) {
+  const OutputGrid g = ball_grid(24);
+  const int64_t n = g.geometry.dims[0];
+  const auto blocking = [&](int64_t i, int64_t j, int64_t k, float scale) {
+    return scale * float(1 + (i * 7 + j * 3 + k) % 50);
+  };
+  std::vector<float> before(size_t(n * n * n));
+  for (int64_t k = 0; k < n; ++k)
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < n; ++i) before[size_t((k * n + j) * n + i)] = blocking(i, j, k, 2.0f);
+  std::array<SafetyClasses, 2> classes;
+  for (int run = 0; run < 2; ++run) {
+    std::vector<float> isbv(size_t(n * n * n), std::nanf(""));
+    float* out[kernels::kValueCount] = {nullptr, isbv.data(), nullptr, nullptr};
+    AdaptiveOptions o;
+    o.values = kernels::kIsbv;
+    if (run == 1) {
+      o.combined_so_far = [&before] {
+        return std::array<const float*, kernels::kValueCount>{nullptr, before.data(), nullptr,
+                                                              nullptr};
+      };
+    }
+    const float scale = run == 0 ? 2.0f : 1.0f;
+    const PointEvaluator evaluate = [&](const std::vector<GridPoint>& points,
+                                        std::vector<float>& values) {
+      for (size_t p = 0; p < points.size(); ++p) {
+        values[p * kernels::kValueCount + 1] =
+            blocking(points[p].i, points[p].j, points[p].k, scale);
+      }
+    };
+    classes[size_t(run)] = sample_adaptively(g, o, evaluate, out).classes[1];
+  }
+  EXPECT_GT(classes[0].safe, 0.0);
+  EXPECT_EQ(classes[1].safe, classes[0].safe);
+  EXPECT_EQ(classes[1].dangerous, classes[0].dangerous);
 }
 
 TEST(AdaptiveSampling, RefusesAStrideThatIsNotAPowerOfTwo) {
