@@ -470,14 +470,19 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
                             &coverage);
     if (k == 0) first_coverage = coverage;
     warn_about_coverage(coverage, req.crop_to_scan);
-    // Later phases are folded in first, for the next phase's sampler; the first lends its
-    // volumes to the combination once its own check and statistics are taken.
-    if (at > 0) {
+    // Folded in first, for the next phase's sampler (which waits for it). The first phase lends
+    // its volumes to the combination; its own check and statistics are then taken of them there
+    // (nothing changes the combination before the next phase's finish).
+    PathSafetyResult* own = &result;
+    if (at == 0) {
+      combiner.add(std::move(result), region);
+      own = &combiner.combined();
+    } else {
       combiner.add(result, region);
-      is_folded = true;
-      folded[at].set_value();
     }
-    finish_fast_check(result);
+    is_folded = true;
+    folded[at].set_value();
+    finish_fast_check(*own);
     nlohmann::json entry;
     entry["name"] = p.phase.name;
     // A frame of a 4D input is recorded as that file (the frame is the phase's).
@@ -492,34 +497,30 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
                        {"ct", recorded(p.phase.ct)}};
     if (p.phase.frame >= 0) entry["inputs"]["frame"] = p.phase.frame;
     entry["tumor_centroid_lps_mm"] = point_json(p.centroid);
-    entry["tumor_voxels"] = result.tumor_voxels;
+    const PathSafetyResult& r = *own;
+    entry["tumor_voxels"] = r.tumor_voxels;
     entry["unknown_voxels"] = coverage.unknown_voxels;
-    entry["device"] = result.device;
+    entry["device"] = r.device;
     entry["computed_as"] = at + 1;
-    if (result.mode == Mode::kFast) {
-      entry["points_computed_exactly"] = result.evaluated_points;
+    if (r.mode == Mode::kFast) {
+      entry["points_computed_exactly"] = r.evaluated_points;
       if (leave_to_combination && at > 0) {
-        entry["left_to_earlier_phases"] = {{"cells", result.cells_left_to_combination},
-                                           {"finest_points", result.points_left_to_combination}};
+        entry["left_to_earlier_phases"] = {{"cells", r.cells_left_to_combination},
+                                           {"finest_points", r.points_left_to_combination}};
       }
     }
-    entry["path_safety_s"] = result.seconds;
-    for (const auto& [step, seconds] : result.phases) entry["path_safety_phases"][step] = seconds;
+    entry["path_safety_s"] = r.seconds;
+    for (const auto& [step, seconds] : r.phases) entry["path_safety_phases"][step] = seconds;
     for (int v = 0; v < kernels::kValueCount; ++v) {
       const unsigned bit = 1u << v;
-      if (!(result.values & bit)) continue;
-      entry["statistics"][value_name(bit)] = statistics_json(result.volumes[size_t(v)]);
+      if (!(r.values & bit)) continue;
+      entry["statistics"][value_name(bit)] = statistics_json(r.volumes[size_t(v)]);
       if (req.per_phase) {
         const std::string file = std::string("path_safety_") + value_name(bit) + "_" +
                                  p.phase.name + ".nii.gz";
-        write_volume(result.volumes[size_t(v)], out.file(file));
+        write_volume(r.volumes[size_t(v)], out.file(file));
         entry["outputs"][value_name(bit)] = file;
       }
-    }
-    if (at == 0) {
-      combiner.add(std::move(result), region);
-      is_folded = true;
-      folded[at].set_value();
     }
     entry["seconds"] = seconds_since(t_phase);
     phase_entries[k] = std::move(entry);

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <limits>
 #include <memory>
+#include <optional>
 #include <unordered_map>
 #include <utility>
 
@@ -148,10 +149,12 @@ struct Cell {
   int64_t ck(int q) const { return k + ((q >> 2) & 1) * size; }
 };
 
-// Fills the voxels of a uniform cell by trilinear interpolation of its corners (never a voxel
-// evaluated, queued or outside the scan); returns how many voxels became interpolated.
+// Fills the voxels of a uniform cell (or of `part` of it, a child) by trilinear interpolation of
+// its corners (never a voxel evaluated, queued or outside the scan); returns how many voxels
+// became interpolated.
 int64_t fill_cell(const Cell& cell, const OutputGrid& grid,
-                  const std::vector<int>& slots, SampleStore& store) {
+                  const std::vector<int>& slots, SampleStore& store, const Cell* part = nullptr) {
+  const Cell& box = part ? *part : cell;
   const int64_t n = grid.geometry.dims[0];
   const int size = cell.size;
   int64_t interpolated = 0;
@@ -160,13 +163,14 @@ int64_t fill_cell(const Cell& cell, const OutputGrid& grid,
     for (const int s : slots) corner[q][s] = store.value(cell.ci(q), cell.cj(q), cell.ck(q), s);
   }
   const float inv = 1.0f / float(size);
-  for (int64_t k = std::max<int64_t>(cell.k, 0); k <= std::min<int64_t>(cell.k + size, n - 1); ++k) {
+  for (int64_t k = std::max<int64_t>(box.k, 0); k <= std::min<int64_t>(box.k + box.size, n - 1);
+       ++k) {
     const float wz = float(k - cell.k) * inv;
-    for (int64_t j = std::max<int64_t>(cell.j, 0); j <= std::min<int64_t>(cell.j + size, n - 1);
-         ++j) {
+    for (int64_t j = std::max<int64_t>(box.j, 0);
+         j <= std::min<int64_t>(box.j + box.size, n - 1); ++j) {
       const float wy = float(j - cell.j) * inv;
-      for (int64_t i = std::max<int64_t>(cell.i, 0); i <= std::min<int64_t>(cell.i + size, n - 1);
-           ++i) {
+      for (int64_t i = std::max<int64_t>(box.i, 0);
+           i <= std::min<int64_t>(box.i + box.size, n - 1); ++i) {
         if (!grid.in_roi(i, j, k)) continue;
         uint8_t& st = store.state(i, j, k);
         // Queued: claimed by the next level (a fill beside its evaluation), computed there.
@@ -677,7 +681,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   std::vector<GridPoint> queue;
   std::vector<float> values;
   RequestLists lists;
-  std::vector<uint8_t> refine, children;
+  std::vector<uint8_t> refine, children, left_children;
   std::vector<int64_t> next_at, finest_at;
   std::vector<Cell> next, finest;
   // A level's uniform cells left to fill beside the next level's evaluation (overlap_host_steps).
@@ -710,8 +714,11 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   // Whether this phase cannot change the combination's class anywhere in the cell: every voxel
   // of it in the region and the scan covers its corners' most dangerous class, for every value
   // whose class changes at the corners or lies near a threshold.
-  // `dilated_only`: every requested value must be dangerous throughout.
-  const auto combination_covers = [&](const Cell& cell, bool dilated_only) {
+  // `dilated_only`: every requested value must be dangerous throughout. `part`: only the voxels
+  // of that child of the cell.
+  const auto combination_covers = [&](const Cell& cell, bool dilated_only,
+                                      std::optional<Cell> part = std::nullopt) {
+    const Cell& box = part ? *part : cell;
     std::array<int, kSlots> most;
     if (dilated_only) {
       most.fill(-1);
@@ -725,12 +732,12 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       }
       most = most_dangerous_of(corner, nullptr, 8, slots, report.classes, options, 1.0);
     }
-    for (int64_t k = std::max<int64_t>(cell.k, 0); k <= std::min<int64_t>(cell.k + cell.size, n - 1);
+    for (int64_t k = std::max<int64_t>(box.k, 0); k <= std::min<int64_t>(box.k + box.size, n - 1);
          ++k)
-      for (int64_t j = std::max<int64_t>(cell.j, 0);
-           j <= std::min<int64_t>(cell.j + cell.size, n - 1); ++j)
-        for (int64_t i = std::max<int64_t>(cell.i, 0);
-             i <= std::min<int64_t>(cell.i + cell.size, n - 1); ++i) {
+      for (int64_t j = std::max<int64_t>(box.j, 0);
+           j <= std::min<int64_t>(box.j + box.size, n - 1); ++j)
+        for (int64_t i = std::max<int64_t>(box.i, 0);
+             i <= std::min<int64_t>(box.i + box.size, n - 1); ++i) {
           if (!grid.in_roi(i, j, k) || !store.known(i, j, k)) continue;
           if (!combination.covers(store.offset(i, j, k), most, report.classes, options, 1.0)) {
             return false;
@@ -871,20 +878,35 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       return size == 2 && options.pointwise_finest && refine[size_t(c)] == 1;
     };
     const int h = size / 2;
-#pragma omp parallel for schedule(static)
+    // Children left to the phases before (AdaptiveOptions::combined_so_far): a split cell's
+    // children in which the combination covers the cell's corners are not split but filled from
+    // the cell's corners, as a cell left whole is (children of edge 2 and more: the finest level
+    // decides point by point).
+    const bool children_left = combination.any() && h >= 2;
+    left_children.assign(children_left ? cells.size() : 0, 0);
+    int64_t children_left_count = 0;
+#pragma omp parallel for schedule(static) reduction(+ : children_left_count)
     for (int64_t c = 0; c < count; ++c) {
       if (!refine[size_t(c)] || to_finest(c)) continue;
       const Cell& cell = cells[size_t(c)];
-      uint8_t bits = 0;
+      uint8_t bits = 0, left_bits = 0;
       for (int child = 0; child < 8; ++child) {
         const int64_t i = cell.i + (child & 1) * h, j = cell.j + ((child >> 1) & 1) * h,
                       k = cell.k + ((child >> 2) & 1) * h;
-        if (meets_roi(i, j, k, h) && reaches_scan(i, j, k, h)) {
+        if (!meets_roi(i, j, k, h) || !reaches_scan(i, j, k, h)) continue;
+        if (children_left && refine[size_t(c)] == 1 &&
+            combination_covers(cell, !own.empty() && own[size_t(c)] != 1,
+                               Cell{int32_t(i), int32_t(j), int32_t(k), h})) {
+          left_bits = uint8_t(left_bits | 1u << child);
+          ++children_left_count;
+        } else {
           bits = uint8_t(bits | 1u << child);
         }
       }
       children[size_t(c)] = bits;
+      if (children_left) left_children[size_t(c)] = left_bits;
     }
+    report.cells_left_to_combination += children_left_count;
     next_at.assign(cells.size() + 1, 0);
     finest_at.assign(cells.size() + 1, 0);
     for (int64_t c = 0; c < count; ++c) {
@@ -905,6 +927,32 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       }
     }
     clock.add(StepClock::kRefine, t);
+    if (children_left_count > 0) {
+      // The children left to the combination, filled now (before the next level's requests
+      // claim the corners they share with the children that are split): eight passes by the
+      // parity of the child's lattice position, so no two children of a pass share a voxel.
+      t = std::chrono::steady_clock::now();
+      int64_t interpolated = 0;
+      for (int parity = 0; parity < 8; ++parity) {
+#pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
+        for (int64_t c = 0; c < count; ++c) {
+          const uint8_t bits = left_children[size_t(c)];
+          if (!bits) continue;
+          const Cell& cell = cells[size_t(c)];
+          for (int child = 0; child < 8; ++child) {
+            if (!(bits & (1u << child))) continue;
+            const Cell part{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
+                            cell.k + ((child >> 2) & 1) * h, h};
+            const int64_t a = (part.i - half) / h, b = (part.j - half) / h,
+                          d = (part.k - half) / h;
+            if (int((a & 1) | ((b & 1) << 1) | ((d & 1) << 2)) != parity) continue;
+            interpolated += fill_cell(cell, grid, slots, store, &part);
+          }
+        }
+      }
+      report.interpolated += interpolated;
+      clock.add(StepClock::kFill, t);
+    }
     // Fill the uniform cells: now, or (overlap_host_steps) while the next level is computed,
     // whose requests have claimed their voxels by then (the fill passes over claimed voxels,
     // which get their computed values either way). The level of edge 2 is filled now: the
