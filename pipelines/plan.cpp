@@ -11,9 +11,6 @@
 #include <exception>
 #include <future>
 #include <map>
-#include <optional>
-#include <mutex>
-#include <condition_variable>
 #include <thread>
 #include <vector>
 #include <cmath>
@@ -314,8 +311,11 @@ struct PhaseInputs {
   Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
 };
 
-// Each phase's request: the plan's own with the phase's files (checked here, before any read).
-std::vector<PhaseInputs> phase_requests(const PlanRequest& req, const PhaseList& list) {
+// Phases are read side by side: a phase's files decompress on one core each, its preprocessing
+// takes the cores it is given, so a few phases at a time (one per four cores, each with its
+// share of the cores) keep a large machine busy; two cores read one phase at a time, as before.
+// An error is the first failing phase's, in the list's order.
+std::vector<PhaseInputs> read_phases(const PlanRequest& req, const PhaseList& list) {
   const size_t n = list.phases.size();
   std::vector<PhaseInputs> out(n);
   for (size_t k = 0; k < n; ++k) {
@@ -334,24 +334,6 @@ std::vector<PhaseInputs> phase_requests(const PlanRequest& req, const PhaseList&
     }
     check_request(p.request);
   }
-  return out;
-}
-
-// Reads phase k's inputs (and its tumor centroid). Only the first listed phase's label map is
-// used again (the plan's own files, area safety's skin); the others would hold a 4-byte copy of
-// every voxel to the end.
-void read_phase(PhaseInputs& p, size_t k) {
-  p.inputs = read_plan_inputs(p.request);
-  if (k > 0) p.inputs.labels = {};
-  p.centroid = extract_tumor_surface(p.inputs.tumor, tumor_file(p.phase.tumor)).centroid;
-}
-
-// Phases are read side by side: a phase's files decompress on one core each, its preprocessing
-// takes the cores it is given, so a few phases at a time (one per four cores, each with its
-// share of the cores) keep a large machine busy; two cores read one phase at a time, as before.
-// An error is the first failing phase's, in the list's order.
-void read_phases(std::vector<PhaseInputs>& out) {
-  const size_t n = out.size();
   const int cores = std::max(1, omp_get_max_threads());
   const size_t readers = std::min(n, size_t(std::max(1, cores / 4)));
   std::atomic<size_t> next{0}, done{0};
@@ -362,7 +344,12 @@ void read_phases(std::vector<PhaseInputs>& out) {
     for (size_t k = next++; k < n && !failed; k = next++) {
       PhaseInputs& p = out[k];
       try {
-        read_phase(p, k);
+        p.inputs = read_plan_inputs(p.request);
+        // Only the first phase's label map is used again (the plan's own files, area
+        // safety's skin); the others would hold a 4-byte copy of every voxel to the end.
+        if (k > 0) p.inputs.labels = {};
+        p.centroid =
+            extract_tumor_surface(p.inputs.tumor, tumor_file(p.phase.tumor)).centroid;
       } catch (...) {
         errors[k] = std::current_exception();
         failed = true;
@@ -380,96 +367,8 @@ void read_phases(std::vector<PhaseInputs>& out) {
   for (const auto& e : errors) {
     if (e) std::rethrow_exception(e);
   }
+  return out;
 }
-
-// With the region's radius given, no phase's blocking volume is needed to fix the grid: its
-// centre needs the tumors, its spacing (unless given) the tumors' and the label maps' voxel
-// sizes, read from their headers (one label map per phase: the blocking volume's grid is that
-// map's). Then the phases are read one by one, in the order they are computed, beside the
-// computation of those before (PhaseStream). Returns the spacing to use, 0 when the phases must
-// all be read first.
-double streamed_spacing(const PlanRequest& req, std::vector<PhaseInputs>& phases) {
-  if (req.path_safety.radius_mm <= 0.0) return 0.0;
-  double h = req.path_safety.spacing_mm;
-  if (h <= 0.0) {
-    h = INFINITY;
-    for (const PhaseInputs& p : phases) {
-      const std::vector<std::string> files = label_files(p.phase.labels);
-      if (files.size() != 1 || !p.request.blocking.empty()) return 0.0;
-      h = std::min(h, read_volume_geometry(files.front()).spacing.minCoeff());
-    }
-  }
-  // The tumors (small files), for the centroids and their voxel sizes.
-  for (PhaseInputs& p : phases) {
-    PlanInputs tumor_only;
-    read_tumor(p.request, tumor_only);
-    p.centroid = extract_tumor_surface(tumor_only.tumor, tumor_file(p.phase.tumor)).centroid;
-    if (req.path_safety.spacing_mm <= 0.0) {
-      h = std::min(h, tumor_only.tumor.geometry().spacing.minCoeff());
-    }
-  }
-  return h;
-}
-
-// Reads the phases in the order they are computed, on threads of their own, while the phases
-// before are computed: `wait(k)` returns when phase k is read (rethrowing its error). A few
-// phases ahead at most, so that memory stays that of the phases in flight.
-class PhaseStream {
- public:
-  PhaseStream(std::vector<PhaseInputs>& phases, std::vector<size_t> order)
-      : phases_(phases), order_(std::move(order)), read_(phases.size()) {
-    const int cores = std::max(1, omp_get_max_threads());
-    const size_t readers = std::min<size_t>(2, phases.size());
-    for (size_t r = 0; r < readers; ++r) {
-      readers_.push_back(std::async(std::launch::async, [this, cores, readers] {
-        omp_set_num_threads(std::max(1, cores / int(2 * readers)));
-        for (size_t at = next_++; at < order_.size() && !stop_; at = next_++) {
-          const size_t k = order_[at];
-          {
-            std::unique_lock<std::mutex> lock(mutex_);
-            room_.wait(lock, [&] { return stop_ || at < computing_ + kAhead; });
-          }
-          if (stop_) break;
-          try {
-            read_phase(phases_[k], k);
-            read_[k].set_value();
-          } catch (...) {
-            read_[k].set_exception(std::current_exception());
-          }
-        }
-      }));
-    }
-  }
-  ~PhaseStream() {
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      stop_ = true;
-    }
-    room_.notify_all();
-    for (auto& r : readers_) r.wait();
-  }
-  // Waits for phase `order[at]`, the next to compute, to be read; lets the readers go ahead.
-  void wait(size_t at) {
-    {
-      std::lock_guard<std::mutex> lock(mutex_);
-      computing_ = at;
-    }
-    room_.notify_all();
-    read_[order_[at]].get_future().get();
-  }
-
- private:
-  static constexpr size_t kAhead = 3;  // phases read ahead of the one computed
-  std::vector<PhaseInputs>& phases_;
-  std::vector<size_t> order_;
-  std::vector<std::promise<void>> read_;
-  std::atomic<size_t> next_{0};
-  std::mutex mutex_;
-  std::condition_variable room_;
-  size_t computing_ = 0;
-  bool stop_ = false;
-  std::vector<std::future<void>> readers_;
-};
 
 // One grid for all phases: centred on the mean tumor centroid (the first phase's plus the mean
 // difference, so identical phases give the single-phase centre exactly), spacing and radius the
@@ -537,13 +436,11 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   StagedDirectory out(req.out_dir);
   nlohmann::json timings;
   auto t = Clock::now();
-  std::vector<PhaseInputs> phases = phase_requests(req, list);
-  PlanRequest shared = req;
-  const double streamed_h = streamed_spacing(req, phases);
-  if (streamed_h <= 0.0) read_phases(phases);
+  std::vector<PhaseInputs> phases = read_phases(req, list);
   timings["read_and_preprocess_s"] = seconds_since(t);
-  shared.path_safety.spacing_mm = streamed_h > 0.0 ? streamed_h : req.path_safety.spacing_mm;
-  shared.path_safety = shared_grid(shared, phases);
+
+  PlanRequest shared = req;
+  shared.path_safety = shared_grid(req, phases);
   const Eigen::Vector3d centre = *shared.path_safety.centre_lps_mm;
   spdlog::info("breathing: {} phases on one grid centred on the mean tumor centroid ({:.1f}, "
                "{:.1f}, {:.1f}) LPS mm, radius {:.1f} mm, spacing {} mm",
@@ -553,7 +450,6 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   std::vector<nlohmann::json> phase_entries(phases.size());
   CoverageReport first_coverage;
   const std::vector<size_t> order = phase_order(phases);
-  double read_wait_s = 0.0;
   // Fast mode leaves refinement out where a phase cannot change the combination's class
   // (PathSafetyOptions::combined_so_far), unless every phase's own volumes are written.
   const bool leave_to_combination = req.path_safety.mode == Mode::kFast && !req.per_phase &&
@@ -640,22 +536,10 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     }
   };
   t = Clock::now();
-  // With the radius given, the phases are read beside the computation (streamed_spacing).
-  std::optional<PhaseStream> stream;
-  if (streamed_h > 0.0) {
-    spdlog::info("breathing: reading the phases one by one beside the computation (the region's "
-                 "radius is given)");
-    stream.emplace(phases, order);
-  }
   std::future<void> finishing;  // declared after `out`: joined before a failed plan's folder goes
   try {
     for (size_t at = 0; at < order.size(); ++at) {
       const size_t k = order[at];
-      if (stream) {
-        const auto tr = Clock::now();
-        stream->wait(at);
-        read_wait_s += seconds_since(tr);
-      }
       const PhaseInputs& p = phases[k];
       spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, at + 1,
                    phases.size());
@@ -687,9 +571,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     if (finishing.valid()) finishing.wait();
     throw;
   }
-  stream.reset();
   timings["path_safety_s"] = seconds_since(t);
-  if (streamed_h > 0.0) timings["path_safety_waiting_for_reads_s"] = read_wait_s;
   nlohmann::json phase_list = nlohmann::json::array();
   for (nlohmann::json& e : phase_entries) phase_list.push_back(std::move(e));
   PathSafetyResult& combined = combiner.combined();

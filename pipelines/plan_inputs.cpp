@@ -164,8 +164,6 @@ void make_blocking(const PlanInputOptions& o, PlanInputs& in) {
   validate_blocking(in.blocking, in.blocking_source);
 }
 
-}  // namespace
-
 void read_tumor(const PlanInputOptions& o, PlanInputs& in) {
   const planning::FileSpec spec = split(o.tumor, "tumor");
   require_input(spec.path, "the tumor");
@@ -218,6 +216,8 @@ void read_tumor(const PlanInputOptions& o, PlanInputs& in) {
   }
   in.tumor = std::move(chosen.mask);
 }
+
+}  // namespace
 
 std::vector<std::string> label_files(const std::vector<std::string>& label_specs) {
   std::vector<std::string> files;

@@ -70,9 +70,6 @@ PhaseList read_phase_list(const std::string& path);
 // Reads and combines the inputs. Throws Error naming the file and the problem.
 PlanInputs read_plan_inputs(const PlanInputOptions& options);
 
-// Reads the tumor alone (its lesion chosen) into in.tumor and in.tumor_source.
-void read_tumor(const PlanInputOptions& options, PlanInputs& in);
-
 // The files named by the label specs (without their table), for checks and checksums.
 std::vector<std::string> label_files(const std::vector<std::string>& label_specs);
 // The file named by a tumor spec.
