@@ -487,6 +487,19 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
             for (const int s : slots) value[q][s] = store.value(i, j, k, s);
             key[q] = class_key(value[q], slots, report, options);
           }
+          // The corners' classes toward danger and toward safety (the finest margins), once per
+          // cell, for the points left to the combination.
+          int up[8][kSlots] = {}, down[8][kSlots] = {};
+          if (combined) {
+            for (int q = 0; q < 8; ++q) {
+              for (const int s : slots) {
+                const SafetyClasses& cl = report.classes[size_t(s)];
+                up[q][s] = danger_rank(cl, value[q][s], options, options.finest_margin, true);
+                down[q][s] = danger_rank(cl, value[q][s], options, options.finest_margin, false);
+              }
+            }
+          }
+          int64_t cell_interpolated = 0, cell_left = 0;  // counted once per cell
           for (const FinestPoint& p : kPoints) {
             const int64_t i = cell.i + p.di, j = cell.j + p.dj, k = cell.k + p.dk;
             if (!store.inside(i, j, k) || !grid.in_roi(i, j, k)) continue;
@@ -496,15 +509,30 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
             for (int q = 1; q < p.ends && uniform; ++q) {
               uniform = key[p.corner[q]] == key[p.corner[0]];
             }
-            // Left to the phases before where this one cannot change the combination's class.
-            const bool left_to_combination =
-                !uniform && combined &&
-                combination.covers(store.offset(i, j, k),
-                                   most_dangerous_of(value, p.corner, p.ends, slots,
-                                                     report.classes, options,
-                                                     options.finest_margin),
-                                   report.classes, options, options.finest_margin);
-            if (left_to_combination) __atomic_fetch_add(&left, int64_t(1), __ATOMIC_RELAXED);
+            // Left to the phases before where this one cannot change the combination's class
+            // (most_dangerous_of, from the corners' ranks).
+            bool left_to_combination = false;
+            if (!uniform && combined) {
+              std::array<int, kSlots> most;
+              most.fill(-1);
+              for (const int s : slots) {
+                int lo = 3, hi = -1;
+                for (int q = 0; q < p.ends; ++q) {
+                  const int e = p.corner[q];
+                  if (up[e][s] < 0) {
+                    hi = -2;
+                    break;
+                  }
+                  lo = std::min(lo, down[e][s]);
+                  hi = std::max(hi, up[e][s]);
+                }
+                most[size_t(s)] = hi == -2 ? -2 : lo != hi ? hi : -1;
+              }
+              left_to_combination = combination.covers(store.offset(i, j, k), most,
+                                                       report.classes, options,
+                                                       options.finest_margin);
+            }
+            cell_left += left_to_combination ? 1 : 0;
             if (!uniform && !left_to_combination) {
               offer(i, j, k);  // computed (an interpolation from a coarser cell is reclaimed)
             } else if (store.claim_interpolated(i, j, k)) {
@@ -514,8 +542,12 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
                 for (int q = 0; q < p.ends; ++q) sum += value[p.corner[q]][s];
                 store.set(off, s, sum / float(p.ends));
               }
-              __atomic_fetch_add(&interpolated, int64_t(1), __ATOMIC_RELAXED);
+              ++cell_interpolated;
             }
+          }
+          if (cell_left) __atomic_fetch_add(&left, cell_left, __ATOMIC_RELAXED);
+          if (cell_interpolated) {
+            __atomic_fetch_add(&interpolated, cell_interpolated, __ATOMIC_RELAXED);
           }
         },
         store, lists, into);
