@@ -341,6 +341,7 @@ TEST(AdaptiveSampling, APhaseLeavesToTheCombinationOnlyWhatItCannotChange) {
   const SafetyClasses& classes = left.report.classes[0];
   const int64_t n = g.geometry.dims[0];
   int64_t differ = 0, wrong_whole = 0, wrong_left = 0, near_new = 0, near_new_differ = 0;
+  int64_t changed = 0, changed_where_first_safe = 0;
   for (int64_t k = 0; k < n; ++k)
     for (int64_t j = 0; j < n; ++j)
       for (int64_t i = 0; i < n; ++i) {
@@ -350,6 +351,12 @@ TEST(AdaptiveSampling, APhaseLeavesToTheCombinationOnlyWhatItCannotChange) {
         differ += classes.classify(with_left[v]) != classes.classify(with_whole[v]);
         wrong_whole += classes.classify(with_whole[v]) != truth;
         wrong_left += classes.classify(with_left[v]) != truth;
+        // Left to the combination only where the phases before are not safe: a voxel whose value
+        // this phase did not refine is never one the first phase calls safe.
+        if (left.svv[v] != whole.svv[v]) {
+          ++changed;
+          changed_where_first_safe += classes.classify(a.svv[v]) == SafetyClass::kSafe;
+        }
         const double x = double(i) - (h - 16.0), y = double(j) - h, z = double(k) - h;
         if (x * x + y * y + z * z <= 14.0 * 14.0) {  // the new shadow and a margin around it
           ++near_new;
@@ -357,6 +364,8 @@ TEST(AdaptiveSampling, APhaseLeavesToTheCombinationOnlyWhatItCannotChange) {
         }
       }
   EXPECT_EQ(differ, 0);
+  EXPECT_GT(changed, 100);
+  EXPECT_EQ(changed_where_first_safe, 0);
   EXPECT_EQ(wrong_left, wrong_whole);
   EXPECT_LE(wrong_whole, g.roi_voxels / 1000);
   EXPECT_GT(near_new, 1000);
