@@ -58,8 +58,9 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
                 "With phases in fast mode: refine each phase's class boundaries everywhere. By "
                 "default a phase's boundary is not refined where the phases computed before it "
                 "are already at least as unsafe there, so it cannot change the combined class "
-                "(the phases at the ends of the motion are computed first). The combined "
-                "classes are the same; the time is not. --per-phase implies it");
+                "(the phases at the ends of the motion are computed first; never where they are "
+                "safe). Refining every phase costs more time for the same combined classes "
+                "(99.9 % or more in the measurements). --per-phase implies it");
   return lesion_at;
 }
 
