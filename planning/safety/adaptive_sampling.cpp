@@ -257,36 +257,56 @@ struct Combination {
   }
 };
 
-// Per value slot of `slots`, what the combination must cover for supports `value[0..ends)`
-// (Combination::covers): -1 where they agree in class and none lies near a threshold.
-std::array<int, kernels::kValueCount> most_dangerous_of(
-    const float (*value)[kernels::kValueCount], const int* ends, int count,
-    const std::vector<int>& slots, const std::array<SafetyClasses, kernels::kValueCount>& classes,
-    const AdaptiveOptions& o, double scale) {
+// Eight corners' classes per value slot, moved by the margins toward danger (`up`) and toward
+// safety (`down`): danger_rank, taken once per cell.
+struct CornerRanks {
+  int up[8][kernels::kValueCount] = {};
+  int down[8][kernels::kValueCount] = {};
+};
+
+CornerRanks rank_corners(const float (*value)[kernels::kValueCount],
+                         const std::vector<int>& slots,
+                         const std::array<SafetyClasses, kernels::kValueCount>& classes,
+                         const AdaptiveOptions& o, double scale) {
+  CornerRanks r;
+  for (int q = 0; q < 8; ++q) {
+    for (const int s : slots) {
+      r.up[q][s] = danger_rank(classes[size_t(s)], value[q][s], o, scale, true);
+      r.down[q][s] = danger_rank(classes[size_t(s)], value[q][s], o, scale, false);
+    }
+  }
+  return r;
+}
+
+// Per value slot of `slots`, what the combination must cover for the supports `ends[0..count)`
+// among the ranked corners (Combination::covers): -1 where they agree in class and none lies
+// near a threshold.
+std::array<int, kernels::kValueCount> most_dangerous_of(const CornerRanks& r, const int* ends,
+                                                        int count, const std::vector<int>& slots) {
   std::array<int, kernels::kValueCount> most;
   most.fill(-1);
   for (const int s : slots) {
-    const SafetyClasses& c = classes[size_t(s)];
     int lo = 3, hi = -1;
-    bool unknown = false;
     for (int q = 0; q < count; ++q) {
-      const double v = value[ends ? ends[q] : q][s];
-      const int up = danger_rank(c, v, o, scale, true);
-      const int down = danger_rank(c, v, o, scale, false);
-      if (up < 0) {
-        unknown = true;
+      const int e = ends[q];
+      if (r.up[e][s] < 0) {  // unknown
+        hi = -2;
         break;
       }
-      lo = std::min(lo, down);
-      hi = std::max(hi, up);
+      lo = std::min(lo, r.down[e][s]);
+      hi = std::max(hi, r.up[e][s]);
     }
-    if (unknown) {
-      most[size_t(s)] = -2;
-    } else if (lo != hi) {
-      most[size_t(s)] = hi;
-    }
+    most[size_t(s)] = hi == -2 ? -2 : lo != hi ? hi : -1;
   }
   return most;
+}
+
+// The parity of a cell's position on the lattice of its edge (0..7): no two cells of one parity
+// share a voxel, so each parity is filled in parallel.
+int lattice_parity(const Cell& cell, int64_t half) {
+  const int64_t a = (cell.i - half) / cell.size, b = (cell.j - half) / cell.size,
+                d = (cell.k - half) / cell.size;
+  return int((a & 1) | ((b & 1) << 1) | ((d & 1) << 2));
 }
 
 // Wall time of the sampler's steps, summed over its levels.
@@ -489,16 +509,9 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
           }
           // The corners' classes toward danger and toward safety (the finest margins), once per
           // cell, for the points left to the combination.
-          int up[8][kSlots] = {}, down[8][kSlots] = {};
-          if (combined) {
-            for (int q = 0; q < 8; ++q) {
-              for (const int s : slots) {
-                const SafetyClasses& cl = report.classes[size_t(s)];
-                up[q][s] = danger_rank(cl, value[q][s], options, options.finest_margin, true);
-                down[q][s] = danger_rank(cl, value[q][s], options, options.finest_margin, false);
-              }
-            }
-          }
+          const CornerRanks ranks =
+              combined ? rank_corners(value, slots, report.classes, options, options.finest_margin)
+                       : CornerRanks{};
           int64_t cell_interpolated = 0, cell_left = 0;  // counted once per cell
           for (const FinestPoint& p : kPoints) {
             const int64_t i = cell.i + p.di, j = cell.j + p.dj, k = cell.k + p.dk;
@@ -509,29 +522,12 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
             for (int q = 1; q < p.ends && uniform; ++q) {
               uniform = key[p.corner[q]] == key[p.corner[0]];
             }
-            // Left to the phases before where this one cannot change the combination's class
-            // (most_dangerous_of, from the corners' ranks).
-            bool left_to_combination = false;
-            if (!uniform && combined) {
-              std::array<int, kSlots> most;
-              most.fill(-1);
-              for (const int s : slots) {
-                int lo = 3, hi = -1;
-                for (int q = 0; q < p.ends; ++q) {
-                  const int e = p.corner[q];
-                  if (up[e][s] < 0) {
-                    hi = -2;
-                    break;
-                  }
-                  lo = std::min(lo, down[e][s]);
-                  hi = std::max(hi, up[e][s]);
-                }
-                most[size_t(s)] = hi == -2 ? -2 : lo != hi ? hi : -1;
-              }
-              left_to_combination = combination.covers(store.offset(i, j, k), most,
-                                                       report.classes, options,
-                                                       options.finest_margin);
-            }
+            // Left to the phases before where this one cannot change the combination's class.
+            const bool left_to_combination =
+                !uniform && combined &&
+                combination.covers(store.offset(i, j, k),
+                                   most_dangerous_of(ranks, p.corner, p.ends, slots),
+                                   report.classes, options, options.finest_margin);
             cell_left += left_to_combination ? 1 : 0;
             if (!uniform && !left_to_combination) {
               offer(i, j, k);  // computed (an interpolation from a coarser cell is reclaimed)
@@ -731,9 +727,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       for (int64_t c = 0; c < int64_t(level.size()); ++c) {
         const Cell& cell = level[size_t(c)];
         if (refined[size_t(c)]) continue;
-        const int64_t a = (cell.i - half) / size, b = (cell.j - half) / size,
-                      d = (cell.k - half) / size;
-        if (int((a & 1) | ((b & 1) << 1) | ((d & 1) << 2)) != parity) continue;
+        if (lattice_parity(cell, half) != parity) continue;
         interpolated += fill_cell(cell, grid, slots, store);
       }
     }
@@ -743,27 +737,27 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   // The phases before, combined (AdaptiveOptions::combined_so_far), asked for after the coarsest
   // level.
   Combination combination;
-  // Whether this phase cannot change the combination's class anywhere in the cell: every voxel
-  // of it in the region and the scan covers its corners' most dangerous class, for every value
-  // whose class changes at the corners or lies near a threshold.
-  // `dilated_only`: every requested value must be dangerous throughout. `part`: only the voxels
-  // of that child of the cell.
-  const auto combination_covers = [&](const Cell& cell, bool dilated_only,
-                                      std::optional<Cell> part = std::nullopt) {
-    const Cell& box = part ? *part : cell;
+  // What the combination must cover for a cell (Combination::covers): its corners' most
+  // dangerous class for every value whose class changes at them or lies near a threshold; for a
+  // cell refined only as a dilated neighbour (`dilated_only`), dangerous for every value.
+  const auto cell_most = [&](const Cell& cell, bool dilated_only) {
+    static constexpr int kAllCorners[8] = {0, 1, 2, 3, 4, 5, 6, 7};
     std::array<int, kSlots> most;
     if (dilated_only) {
       most.fill(-1);
       for (const int s : slots) most[size_t(s)] = int(SafetyClass::kDangerous);
-    } else {
-      float corner[8][kSlots] = {};
-      for (int q = 0; q < 8; ++q) {
-        for (const int s : slots) {
-          corner[q][s] = store.value(cell.ci(q), cell.cj(q), cell.ck(q), s);
-        }
-      }
-      most = most_dangerous_of(corner, nullptr, 8, slots, report.classes, options, 1.0);
+      return most;
     }
+    float corner[8][kSlots] = {};
+    for (int q = 0; q < 8; ++q) {
+      for (const int s : slots) corner[q][s] = store.value(cell.ci(q), cell.cj(q), cell.ck(q), s);
+    }
+    return most_dangerous_of(rank_corners(corner, slots, report.classes, options, 1.0),
+                             kAllCorners, 8, slots);
+  };
+  // Whether this phase cannot change the combination's class anywhere in `box` (a cell or a
+  // child of one): every voxel of it in the region and the scan covers `most`.
+  const auto combination_covers = [&](const Cell& box, const std::array<int, kSlots>& most) {
     for (int64_t k = std::max<int64_t>(box.k, 0); k <= std::min<int64_t>(box.k + box.size, n - 1);
          ++k)
       for (int64_t j = std::max<int64_t>(box.j, 0);
@@ -840,7 +834,6 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     // from being filled (its voxels are reached by splitting; no class boundary was seen there).
     // Corners outside the scan have values (supports), so this is a safeguard.
     refine.assign(cells.size(), 0);
-    int64_t left = 0;
 #pragma omp parallel for schedule(dynamic, 256) if (size > 1)
     for (int64_t c = 0; c < int64_t(cells.size()); ++c) {
       const Cell& cell = cells[size_t(c)];
@@ -888,12 +881,14 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     // corners. A cell refined only for its neighbour's sake (dilation: a shadow thinner than a
     // cell may cross it unseen by its corners) is left only where the combination is dangerous
     // throughout it.
+    const auto dilated_only = [&](int64_t c) { return !own.empty() && own[size_t(c)] != 1; };
     if (combination.any() && size > 1) {
+      int64_t left = 0;
 #pragma omp parallel for schedule(dynamic, 64) reduction(+ : left)
       for (int64_t c = 0; c < int64_t(cells.size()); ++c) {
         if (refine[size_t(c)] != 1) continue;
-        const bool dilated_only = !own.empty() && own[size_t(c)] != 1;
-        if (combination_covers(cells[size_t(c)], dilated_only)) {
+        const Cell& cell = cells[size_t(c)];
+        if (combination_covers(cell, cell_most(cell, dilated_only(c)))) {
           refine[size_t(c)] = 0;
           ++left;
         }
@@ -922,13 +917,15 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       if (!refine[size_t(c)] || to_finest(c)) continue;
       const Cell& cell = cells[size_t(c)];
       uint8_t bits = 0, left_bits = 0;
+      std::optional<std::array<int, kSlots>> most;  // the cell's, once a child asks for it
       for (int child = 0; child < 8; ++child) {
         const int64_t i = cell.i + (child & 1) * h, j = cell.j + ((child >> 1) & 1) * h,
                       k = cell.k + ((child >> 2) & 1) * h;
         if (!meets_roi(i, j, k, h) || !reaches_scan(i, j, k, h)) continue;
-        if (children_left && refine[size_t(c)] == 1 &&
-            combination_covers(cell, !own.empty() && own[size_t(c)] != 1,
-                               Cell{int32_t(i), int32_t(j), int32_t(k), h})) {
+        if (children_left && refine[size_t(c)] == 1) {
+          if (!most) most = cell_most(cell, dilated_only(c));
+        }
+        if (most && combination_covers(Cell{int32_t(i), int32_t(j), int32_t(k), h}, *most)) {
           left_bits = uint8_t(left_bits | 1u << child);
           ++children_left_count;
         } else {
@@ -975,9 +972,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
             if (!(bits & (1u << child))) continue;
             const Cell part{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
                             cell.k + ((child >> 2) & 1) * h, h};
-            const int64_t a = (part.i - half) / h, b = (part.j - half) / h,
-                          d = (part.k - half) / h;
-            if (int((a & 1) | ((b & 1) << 1) | ((d & 1) << 2)) != parity) continue;
+            if (lattice_parity(part, half) != parity) continue;
             interpolated += fill_cell(cell, grid, slots, store, &part);
           }
         }
