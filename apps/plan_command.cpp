@@ -61,6 +61,11 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
                 "(the phases at the ends of the motion are computed first; never where they are "
                 "safe). Refining every phase costs more time for the same combined classes "
                 "(99.9 % or more in the measurements). --per-phase implies it");
+  cmd->add_option("--phases-at-once", req->phases_at_once,
+                  "With phases: how many phases are computed at once. Default: 2 on a GPU (one "
+                  "phase's host steps run beside the other's rays; the later of the two leaves "
+                  "refinement only to the phases before the one beside it), 1 on the cores")
+      ->check(CLI::Range(0, 2));
   return lesion_at;
 }
 

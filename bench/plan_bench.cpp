@@ -115,6 +115,9 @@ int main(int argc, char** argv) {
   app.add_flag("--refine-every-phase", refine_every_phase,
                "breathing, fast mode: refine every phase's class boundaries, also where the "
                "phases before decide the combination's class");
+  int phases_at_once = 0;
+  app.add_option("--phases-at-once", phases_at_once,
+                 "breathing: phases computed at once (0: the plan's default)");
   app.add_option("--work", work, "working folder (phantom and plan)");
   app.add_flag("--keep", keep, "keep the working folder");
   bool reuse_phantom = false;
@@ -193,6 +196,7 @@ int main(int argc, char** argv) {
   req.path_safety.tumor_leaps = !no_tumor_leaps;
   req.path_safety.fast_overlap_host = !no_overlap;
   req.refine_every_phase = refine_every_phase;
+  req.phases_at_once = phases_at_once;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
   const nlohmann::json plan = pipelines::run_plan(req);
@@ -222,6 +226,7 @@ int main(int argc, char** argv) {
                          {"tumor_leaps", !no_tumor_leaps},
                          {"fast_overlap_host", !no_overlap},
                          {"refine_every_phase", refine_every_phase},
+                         {"phases_at_once", phases_at_once},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},
                          {"device", plan["parameters"]["device"]},
                          {"setup_s_not_counted", setup_s},

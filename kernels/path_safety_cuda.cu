@@ -785,6 +785,14 @@ struct CudaPointEvaluator::Impl {
   int devices = 0;
   std::string names;
   std::vector<std::unique_ptr<DeviceScene>> scenes;
+  // Per device, the points and values of a launch, kept from call to call: freeing device memory
+  // waits for the whole device, so a phase computed beside another would wait for its rays.
+  struct Launch {
+    DeviceBuffer<int32_t> points;
+    DeviceBuffer<float> values;
+    int64_t capacity = 0;
+  };
+  std::vector<std::unique_ptr<Launch>> launches;
   double setup_s = 0.0, kernel_s = 0.0;
 };
 
@@ -806,6 +814,7 @@ CudaPointEvaluator::CudaPointEvaluator(const PathSafetyScene<double>& scene,
       for (int b = 0; b < 3; ++b) impl_->frame.axes[a][b] = grid.axes[a][b];
     }
     impl_->scenes.resize(size_t(devices));
+    impl_->launches.resize(size_t(devices));
     on_every_device(devices, [&](int d) {
       check(cudaSetDevice(d), "cudaSetDevice");
       impl_->scenes[size_t(d)] = std::make_unique<DeviceScene>(scene, storage);
@@ -820,7 +829,10 @@ CudaPointEvaluator::CudaPointEvaluator(const PathSafetyScene<double>& scene,
 
 CudaPointEvaluator::~CudaPointEvaluator() {
   for (int d = 0; d < impl_->devices; ++d) {
-    if (cudaSetDevice(d) == cudaSuccess) impl_->scenes[size_t(d)].reset();
+    if (cudaSetDevice(d) == cudaSuccess) {
+      impl_->scenes[size_t(d)].reset();
+      if (!impl_->launches.empty()) impl_->launches[size_t(d)].reset();
+    }
   }
   delete impl_;
 }
@@ -838,8 +850,18 @@ void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out)
     check(cudaSetDevice(d), "cudaSetDevice");
     const DeviceScene& ds = *impl_->scenes[size_t(d)];
     const int64_t most = std::min<int64_t>(kChunk, p1 - p0);
-    DeviceBuffer<int32_t> points(size_t(3 * most));
-    DeviceBuffer<float> values(size_t(kValueCount * most));
+    std::unique_ptr<Impl::Launch>& buffers = impl_->launches[size_t(d)];
+    if (!buffers || buffers->capacity < most) {
+      // A sampler's levels grow: room for the largest launch at once (112 MB), unless small.
+      const int64_t room = most < kSplitBelow ? most : kChunk;
+      buffers.reset();
+      buffers = std::make_unique<Impl::Launch>();
+      buffers->points.allocate(size_t(3 * room));
+      buffers->values.allocate(size_t(kValueCount * room));
+      buffers->capacity = room;
+    }
+    DeviceBuffer<int32_t>& points = buffers->points;
+    DeviceBuffer<float>& values = buffers->values;
     for (int64_t c0 = p0; c0 < p1; c0 += kChunk) {
       const int m = int(std::min(kChunk, p1 - c0));
       check(cudaMemcpy(points.ptr, ijk + 3 * c0, size_t(3 * m) * sizeof(int32_t),

@@ -11,6 +11,7 @@
 #include <exception>
 #include <future>
 #include <map>
+#include <mutex>
 #include <thread>
 #include <vector>
 #include <cmath>
@@ -454,14 +455,35 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   // (PathSafetyOptions::combined_so_far), unless every phase's own volumes are written.
   const bool leave_to_combination = req.path_safety.mode == Mode::kFast && !req.per_phase &&
                                     !req.refine_every_phase;
-  // Folded into the combination: a phase's sampler waits for the phase before it to be folded.
-  std::vector<std::promise<void>> folded(phases.size());
+  // Phases computed at once: on a GPU two, so that one phase's host steps (preparation, the
+  // sampler's steps between launches) run beside the other's rays; one on the cores, where both
+  // would share them. The second phase's sampler then leaves to the combination of the phases
+  // before the one beside it (it cannot wait for that one's fold).
+  const size_t at_once = std::min<size_t>(
+      phases.size(), req.phases_at_once > 0
+                         ? size_t(req.phases_at_once)
+                         : (gpus_for(shared.path_safety.device) > 0 ? 2 : 1));
+  combiner.keep_previous(leave_to_combination && at_once > 1);
+  // Folded into the combination: a phase's sampler waits for an earlier phase's fold; on an error
+  // every fold not yet made fails, so that nothing waits for it.
+  struct Signal {
+    std::promise<void> promise;
+    std::shared_future<void> done = promise.get_future().share();
+    std::once_flag once;
+    void set() {
+      std::call_once(once, [this] { promise.set_value(); });
+    }
+    void fail(std::exception_ptr e) {
+      std::call_once(once, [this, e] { promise.set_exception(e); });
+    }
+  };
+  std::vector<Signal> folded(phases.size());
+  std::vector<Clock::time_point> t_phase(phases.size());
   // A phase's result is finished (the scan's coverage applied, folded into the combination, the
   // check compared, statistics taken, its own volumes written with --per-phase) on a thread of
-  // its own while the next phase's path safety runs; one phase at a time waits for it, in
-  // order. Its `seconds` run from its path safety's start to its finish.
-  const auto finish_one = [&](size_t at, PathSafetyResult result, Clock::time_point t_phase,
-                              bool& is_folded) {
+  // its own beside the next phases' path safety, after the phase before it has finished. Its
+  // `seconds` run from its path safety's start to its finish.
+  const auto finish_one = [&](size_t at, PathSafetyResult result) {
     const size_t k = order[at];
     const PhaseInputs& p = phases[k];
     CoverageReport coverage;
@@ -470,7 +492,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
                             &coverage);
     if (k == 0) first_coverage = coverage;
     warn_about_coverage(coverage, req.crop_to_scan);
-    // Folded in first, for the next phase's sampler (which waits for it). The first phase lends
+    // Folded in first, for the later phases' samplers (which wait for it). The first phase lends
     // its volumes to the combination; its own check and statistics are then taken of them there
     // (nothing changes the combination before the next phase's finish).
     PathSafetyResult* own = &result;
@@ -480,8 +502,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     } else {
       combiner.add(result, region);
     }
-    is_folded = true;
-    folded[at].set_value();
+    folded[at].set();
     finish_fast_check(*own);
     nlohmann::json entry;
     entry["name"] = p.phase.name;
@@ -522,53 +543,67 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
         entry["outputs"][value_name(bit)] = file;
       }
     }
-    entry["seconds"] = seconds_since(t_phase);
+    entry["seconds"] = seconds_since(t_phase[at]);
     phase_entries[k] = std::move(entry);
   };
-  const auto finish_phase = [&](size_t at, PathSafetyResult result, Clock::time_point t_phase) {
-    bool is_folded = false;
+  // The finish of the phase at `at`, after the one before it (`before`, whose error it takes).
+  const auto finish_phase = [&](size_t at, PathSafetyResult result,
+                                std::shared_future<void> before) {
     try {
-      finish_one(at, std::move(result), t_phase, is_folded);
+      if (before.valid()) before.get();
+      finish_one(at, std::move(result));
     } catch (...) {
-      // The next phase's sampler may wait for this fold: it gets the error instead.
-      if (!is_folded) folded[at].set_exception(std::current_exception());
+      folded[at].fail(std::current_exception());
       throw;
     }
   };
   t = Clock::now();
-  std::future<void> finishing;  // declared after `out`: joined before a failed plan's folder goes
+  // Declared after `out`: joined before a failed plan's folder goes.
+  std::vector<std::future<PathSafetyResult>> computing(phases.size());
+  std::shared_future<void> finished;  // the last phase handed to its finish
+  const auto start = [&](size_t at) {
+    const size_t k = order[at];
+    const PhaseInputs& p = phases[k];
+    spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, at + 1,
+                 phases.size());
+    t_phase[at] = Clock::now();
+    PlanRequest phase_request = p.request;
+    phase_request.path_safety = shared.path_safety;
+    if (leave_to_combination && at > 0) {
+      // The combination of the phases up to the one `at_once` before this one (the first
+      // phase's for those beside it).
+      const size_t source = at > at_once ? at - at_once : 0;
+      phase_request.path_safety.combined_so_far = [&folded, &combiner, source] {
+        folded[source].done.get();
+        return combiner.volumes_after(int(source) + 1);
+      };
+    }
+    computing[at] = std::async(std::launch::async, [&p, phase_request = std::move(phase_request)] {
+      return compute(phase_request, p.inputs);
+    });
+  };
+  const auto hand_over = [&](size_t at) {
+    PathSafetyResult result = computing[at].get();
+    // A later phase's blocking volume is done with (its finish needs its tumor and scan); the
+    // first phase's is written as the plan's own.
+    if (order[at] > 0) phases[order[at]].inputs.blocking = {};
+    finished = std::async(std::launch::async, finish_phase, at, std::move(result), finished)
+                   .share();
+  };
   try {
     for (size_t at = 0; at < order.size(); ++at) {
-      const size_t k = order[at];
-      const PhaseInputs& p = phases[k];
-      spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, at + 1,
-                   phases.size());
-      const auto t_phase = Clock::now();
-      PlanRequest phase_request = p.request;
-      phase_request.path_safety = shared.path_safety;
-      if (leave_to_combination && at > 0) {
-        std::shared_future<void> before = folded[at - 1].get_future().share();
-        phase_request.path_safety.combined_so_far = [before, &combiner] {
-          before.get();  // the phase before, folded in (its finish runs beside this phase)
-          std::array<const float*, kernels::kValueCount> worst{};
-          PathSafetyResult& c = combiner.combined();
-          for (int v = 0; v < kernels::kValueCount; ++v) {
-            if (c.values & (1u << v)) worst[size_t(v)] = c.volumes[size_t(v)].data();
-          }
-          return worst;
-        };
-      }
-      PathSafetyResult result = compute(phase_request, p.inputs);
-      // A later phase's blocking volume is done with (its finish needs its tumor and scan); the
-      // first phase's is written as the plan's own.
-      if (k > 0) phases[k].inputs.blocking = {};
-      if (finishing.valid()) finishing.get();  // the phase before (and its error) first
-      finishing = std::async(std::launch::async, finish_phase, at, std::move(result), t_phase);
+      if (at >= at_once) hand_over(at - at_once);
+      start(at);
     }
-    if (finishing.valid()) finishing.get();
+    for (size_t at = order.size() - at_once; at < order.size(); ++at) hand_over(at);
+    finished.get();
   } catch (...) {
-    // A failed finish leaves its phase unfolded: nothing waits for it any more.
-    if (finishing.valid()) finishing.wait();
+    const std::exception_ptr error = std::current_exception();
+    for (Signal& s : folded) s.fail(error);
+    for (auto& c : computing) {
+      if (c.valid()) c.wait();
+    }
+    if (finished.valid()) finished.wait();
     throw;
   }
   timings["path_safety_s"] = seconds_since(t);

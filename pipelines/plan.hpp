@@ -33,6 +33,8 @@ struct PlanRequest : PlanInputOptions {
   // before decide the combination's class (PathSafetyOptions::combined_so_far). Slower; implied
   // by per_phase, whose volumes must each be right.
   bool refine_every_phase = false;
+  // Phases computed at once: 0 chooses (2 on a GPU, 1 on the cores).
+  int phases_at_once = 0;
 };
 
 // Runs preprocessing and path safety and writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/roi.nii.gz

@@ -62,7 +62,28 @@ void PhaseCombiner::add(PathSafetyResult&& phase, const Volume<uint8_t>& region)
       other_[size_t(v)] = parallel_copy(combined_.volumes[size_t(v)]);
     }
   }
+  const std::lock_guard<std::mutex> lock(swap_);
   phases_ = 1;
+}
+
+int PhaseCombiner::phases() const {
+  const std::lock_guard<std::mutex> lock(swap_);
+  return phases_;
+}
+
+std::array<const float*, kernels::kValueCount> PhaseCombiner::volumes_after(int folded) const {
+  const std::lock_guard<std::mutex> lock(swap_);
+  const bool latest = folded == phases_;
+  if (folded < 1 || !(latest || (keep_previous_ && folded == phases_ - 1))) {
+    throw Error("breathing: the combination after " + std::to_string(folded) +
+                " phases is no longer kept (" + std::to_string(phases_) + " folded)");
+  }
+  std::array<const float*, kernels::kValueCount> out{};
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (!(combined_.values & (1u << v))) continue;
+    out[size_t(v)] = latest ? combined_.volumes[size_t(v)].data() : previous_[size_t(v)].data();
+  }
+  return out;
 }
 
 void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region) {
@@ -85,15 +106,21 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
     if (a == kRegionComputed && b == kRegionComputed) continue;
     region_[i] = (a == kRegionUnknown || b == kRegionUnknown) ? kRegionUnknown : kRegionNotComputed;
   }
+  // With keep_previous the combination is written beside the one before (into the buffer of the
+  // one before that, which no phase reads any more), then the two trade places.
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (!(phase.values & (1u << v))) continue;
     const bool svv = higher_is_safer(v);
-    Volume<float>& worst = combined_.volumes[size_t(v)];
+    const Volume<float>& was = combined_.volumes[size_t(v)];
+    if (keep_previous_ && !previous_[size_t(v)].geometry().same_grid(g, 0.0)) {
+      previous_[size_t(v)] = Volume<float>(g);
+    }
+    Volume<float>& worst = keep_previous_ ? previous_[size_t(v)] : combined_.volumes[size_t(v)];
     Volume<float>& other = other_[size_t(v)];
     const Volume<float>& x = phase.volumes[size_t(v)];
 #pragma omp parallel for schedule(static)
     for (int64_t i = 0; i < n; ++i) {
-      const float w = worst[i], o = other[i], p = x[i];
+      const float w = was[i], o = other[i], p = x[i];
       if (std::isnan(w) || std::isnan(p)) {
         worst[i] = nan;
         other[i] = nan;
@@ -102,6 +129,15 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
       worst[i] = svv ? std::min(w, p) : std::max(w, p);
       other[i] = svv ? std::max(o, p) : std::min(o, p);
     }
+  }
+  {
+    const std::lock_guard<std::mutex> lock(swap_);
+    if (keep_previous_) {
+      for (int v = 0; v < kernels::kValueCount; ++v) {
+        if (phase.values & (1u << v)) std::swap(combined_.volumes[size_t(v)], previous_[size_t(v)]);
+      }
+    }
+    ++phases_;
   }
   fold_check(phase);
   // Fast mode's points, summed over the phases, level by level (by stride).
@@ -122,7 +158,6 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
   combined_.classes = {};  // the first phase's, if taken: the combination's values have changed
   combined_.seconds += phase.seconds;
   combined_.rays += phase.rays;
-  ++phases_;
 }
 
 void PhaseCombiner::fold_check(const PathSafetyResult& phase) {

@@ -5,6 +5,7 @@
 #include <array>
 #include <cstdint>
 #include <memory>
+#include <mutex>
 #include <vector>
 
 #include "planning/safety/path_safety.hpp"
@@ -23,7 +24,15 @@ class PhaseCombiner {
   void add(const PathSafetyResult& phase, const Volume<uint8_t>& region);
   void add(PathSafetyResult&& phase, const Volume<uint8_t>& region);
 
-  int phases() const { return phases_; }
+  int phases() const;
+  // Keeps the combination before the last fold readable while the next is folded (memory: a third
+  // set of volumes): a phase computed beside the one before it asks for the combination of the
+  // phases before that one (`volumes_after`). Set before the second phase is added.
+  void keep_previous(bool keep) { keep_previous_ = keep; }
+  // The combined volumes' data after the first `folded` phases (NaN-free slots are null for values
+  // not computed): the latest combination, or with keep_previous the one before it. Safe to call
+  // beside `add`; the data stays put until the fold after next.
+  std::array<const float*, kernels::kValueCount> volumes_after(int folded) const;
   // The combination: the first phase's grid and parameters, the combined volumes, the summed
   // time and rays.
   const PathSafetyResult& combined() const { return combined_; }
@@ -47,7 +56,10 @@ class PhaseCombiner {
   void fold_check(const PathSafetyResult& phase);
 
   int phases_ = 0;
+  bool keep_previous_ = false;
+  mutable std::mutex swap_;  // phases_ and which buffer holds which combination
   PathSafetyResult combined_;
+  std::array<Volume<float>, kernels::kValueCount> previous_;  // with keep_previous
   std::array<Volume<float>, kernels::kValueCount> other_;
   Volume<uint8_t> region_;
   std::shared_ptr<CheckSample> check_;

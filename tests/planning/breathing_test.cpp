@@ -76,6 +76,45 @@ TEST(PhaseCombiner, LeastSafePhaseWinsAndUnknownInAnyPhaseIsUnknown) {
   EXPECT_DOUBLE_EQ(combiner.class_change_share(0, svv), 0.5);
 }
 
+// With keep_previous (two phases computed at once) the combination before the last fold stays
+// readable where it was, the same values as without it, and an older one is refused.
+TEST(PhaseCombiner, TheCombinationBeforeTheLastFoldStaysWhereItWas) {
+  const PathSafetyResult a = result({95, 80, kNaN, 40}, {0.0f, 2.0f, kNaN, 7.0f});
+  const PathSafetyResult b = result({60, 85, kNaN, 45}, {3.0f, 1.0f, kNaN, 1.0f});
+  const PathSafetyResult c = result({99, 70, kNaN, 30}, {1.0f, 0.5f, kNaN, 9.0f});
+  const ImageGeometry& g = a.grid.geometry;
+  PhaseCombiner kept, plain;
+  kept.keep_previous(true);
+  for (PhaseCombiner* m : {&kept, &plain}) m->add(a, states({1, 1, 0, 1}, g));
+  const auto after_one = kept.volumes_after(1);
+  EXPECT_EQ(after_one[2], nullptr);  // IVBV was not computed
+  EXPECT_EQ(after_one[0][0], 95.0f);
+  for (PhaseCombiner* m : {&kept, &plain}) m->add(b, states({1, 1, 0, 1}, g));
+  const auto still_one = kept.volumes_after(1), after_two = kept.volumes_after(2);
+  EXPECT_EQ(still_one[0], after_one[0]);  // where it was, unchanged
+  EXPECT_EQ(still_one[0][0], 95.0f);
+  EXPECT_EQ(still_one[1][0], 0.0f);
+  EXPECT_EQ(after_two[0][0], 60.0f);
+  EXPECT_EQ(after_two[1][0], 3.0f);
+  for (PhaseCombiner* m : {&kept, &plain}) m->add(c, states({1, 1, 0, 1}, g));
+  EXPECT_EQ(kept.volumes_after(2)[0], after_two[0]);
+  EXPECT_EQ(kept.volumes_after(2)[1][1], 2.0f);
+  EXPECT_THROW(kept.volumes_after(1), Error);   // overwritten by the third fold
+  EXPECT_THROW(plain.volumes_after(2), Error);  // not kept
+  EXPECT_EQ(plain.volumes_after(3)[0], plain.combined().volumes[0].data());
+  for (int v = 0; v < 2; ++v) {
+    for (int64_t i = 0; i < 4; ++i) {
+      const float x = kept.combined().volumes[size_t(v)][i];
+      const float y = plain.combined().volumes[size_t(v)][i];
+      EXPECT_TRUE(std::isnan(x) ? std::isnan(y) : x == y) << v << " " << i;
+      EXPECT_EQ(kept.volumes_after(3)[size_t(v)][i] == x || std::isnan(x), true);
+    }
+  }
+  EXPECT_EQ(kept.combined().volumes[0][3], 30.0f);
+  EXPECT_EQ(kept.combined().volumes[1][3], 9.0f);
+  EXPECT_EQ(kept.other_extreme(1)[3], 1.0f);
+}
+
 TEST(PhaseCombiner, ClassesTakenOfTheFirstPhaseAreNotTheCombinations) {
   // ISBV's default classes are relative to the volume: the first phase's thresholds, taken (as
   // fast mode's check takes them) before the phases are combined, must not describe the
