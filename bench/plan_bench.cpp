@@ -116,6 +116,10 @@ int main(int argc, char** argv) {
                "breathing, fast mode: refine every phase's class boundaries, also where the "
                "phases before decide the combination's class");
   int phases_at_once = 0;
+  bool read_all_first = false;
+  app.add_flag("--read-all-first", read_all_first,
+               "breathing: read every phase's inputs before computing (default: the blocking "
+               "volumes beside the computation)");
   app.add_option("--phases-at-once", phases_at_once,
                  "breathing: phases computed at once (0: the plan's default)");
   app.add_option("--work", work, "working folder (phantom and plan)");
@@ -197,6 +201,7 @@ int main(int argc, char** argv) {
   req.path_safety.fast_overlap_host = !no_overlap;
   req.refine_every_phase = refine_every_phase;
   req.phases_at_once = phases_at_once;
+  req.stream_phase_reads = !read_all_first;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
   const nlohmann::json plan = pipelines::run_plan(req);
@@ -227,6 +232,7 @@ int main(int argc, char** argv) {
                          {"fast_overlap_host", !no_overlap},
                          {"refine_every_phase", refine_every_phase},
                          {"phases_at_once", phases_at_once},
+                         {"read_all_first", read_all_first},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},
                          {"device", plan["parameters"]["device"]},
                          {"setup_s_not_counted", setup_s},

@@ -43,4 +43,49 @@ struct DeviceBuffer {
   DeviceBuffer& operator=(const DeviceBuffer&) = delete;
 };
 
+// A stream that neither waits for the legacy default stream nor makes it wait: work on it runs
+// beside the path safety kernels another thread launches (two phases of a breathing plan, a
+// phase's blocking volume made while another is computed) instead of queueing behind them.
+struct OwnStream {
+  cudaStream_t stream = nullptr;
+  OwnStream() { check(cudaStreamCreateWithFlags(&stream, cudaStreamNonBlocking), "cudaStreamCreate"); }
+  ~OwnStream() {
+    if (stream) {
+      cudaStreamSynchronize(stream);
+      cudaStreamDestroy(stream);
+    }
+  }
+  OwnStream(const OwnStream&) = delete;
+  OwnStream& operator=(const OwnStream&) = delete;
+};
+
+// A device array allocated and freed in the order of a stream (cudaMallocAsync): freeing it does
+// not wait for the whole device, as cudaFree does.
+template <typename T>
+struct StreamBuffer {
+  T* ptr = nullptr;
+  cudaStream_t stream;
+  explicit StreamBuffer(cudaStream_t s) : stream(s) {}
+  // False for an exhausted device (for a caller that can fall back).
+  bool try_allocate(size_t count) {
+    const cudaError_t status =
+        cudaMallocAsync(reinterpret_cast<void**>(&ptr), std::max<size_t>(count, 1) * sizeof(T), stream);
+    if (status == cudaErrorMemoryAllocation) {
+      ptr = nullptr;
+      cudaGetLastError();
+      return false;
+    }
+    check(status, "cudaMallocAsync");
+    return true;
+  }
+  void allocate(size_t count) {
+    if (!try_allocate(count)) check(cudaErrorMemoryAllocation, "cudaMallocAsync");
+  }
+  ~StreamBuffer() {
+    if (ptr) cudaFreeAsync(ptr, stream);
+  }
+  StreamBuffer(const StreamBuffer&) = delete;
+  StreamBuffer& operator=(const StreamBuffer&) = delete;
+};
+
 }  // namespace crepuscular::kernels::cuda

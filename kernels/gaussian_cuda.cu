@@ -10,7 +10,8 @@ namespace crepuscular::kernels {
 namespace {
 
 using cuda::check;
-using cuda::DeviceBuffer;
+using cuda::OwnStream;
+using cuda::StreamBuffer;
 
 struct Box {
   long long lo[3], m[3], n[3];
@@ -93,15 +94,18 @@ bool blocking_levels_cuda(const uint8_t* codes, const int64_t image[3],
                                           size_t(level.dims[2]));
     for (int a = 0; a < 3; ++a) tap_count += level.taps[a].size();
   }
-  DeviceBuffer<uint8_t> c;
-  DeviceBuffer<float> volume, s0, s1;
-  DeviceBuffer<double> t;
+  // On a stream of its own: a phase's blocking volume is made beside another phase's rays.
+  const OwnStream own;
+  const cudaStream_t st = own.stream;
+  StreamBuffer<uint8_t> c(st);
+  StreamBuffer<float> volume(st), s0(st), s1(st);
+  StreamBuffer<double> t(st);
   if (!c.try_allocate(voxels) || !volume.try_allocate(voxels) || !s0.try_allocate(box_voxels) ||
       !s1.try_allocate(box_voxels) || !t.try_allocate(tap_count)) {
     return false;
   }
-  check(cudaMemcpy(c.ptr, codes, voxels, cudaMemcpyHostToDevice), "upload level map");
-  check(cudaMemset(volume.ptr, 0, voxels * sizeof(float)), "clear blocking volume");
+  check(cudaMemcpyAsync(c.ptr, codes, voxels, cudaMemcpyHostToDevice, st), "upload level map");
+  check(cudaMemsetAsync(volume.ptr, 0, voxels * sizeof(float), st), "clear blocking volume");
   const unsigned threads = 256;
   size_t at = 0;
   for (const MarginLevel& level : levels) {
@@ -110,27 +114,32 @@ bool blocking_levels_cuda(const uint8_t* codes, const int64_t image[3],
     if (n == 0) continue;
     const unsigned blocks = unsigned((n + threads - 1) / threads);
     if (level.taps[0].empty()) {
-      level_max<<<blocks, threads>>>(c.ptr, nullptr, volume.ptr, box, level.code, level.coeff);
+      level_max<<<blocks, threads, 0, st>>>(c.ptr, nullptr, volume.ptr, box, level.code,
+                                            level.coeff);
       continue;
     }
     double* taps[3];
     for (int a = 0; a < 3; ++a) {
       taps[a] = t.ptr + at;
-      check(cudaMemcpy(taps[a], level.taps[a].data(), level.taps[a].size() * sizeof(double),
-                       cudaMemcpyHostToDevice),
+      check(cudaMemcpyAsync(taps[a], level.taps[a].data(), level.taps[a].size() * sizeof(double),
+                            cudaMemcpyHostToDevice, st),
             "upload taps");
       at += level.taps[a].size();
     }
-    level_mask<<<blocks, threads>>>(c.ptr, s0.ptr, box, level.code);
+    level_mask<<<blocks, threads, 0, st>>>(c.ptr, s0.ptr, box, level.code);
     // z, then y, then x, as the host.
-    gaussian_pass<<<blocks, threads>>>(s0.ptr, s1.ptr, box, 2, taps[2], int(level.taps[2].size()));
-    gaussian_pass<<<blocks, threads>>>(s1.ptr, s0.ptr, box, 1, taps[1], int(level.taps[1].size()));
-    gaussian_pass<<<blocks, threads>>>(s0.ptr, s1.ptr, box, 0, taps[0], int(level.taps[0].size()));
-    level_max<<<blocks, threads>>>(c.ptr, s1.ptr, volume.ptr, box, level.code, level.coeff);
+    gaussian_pass<<<blocks, threads, 0, st>>>(s0.ptr, s1.ptr, box, 2, taps[2],
+                                              int(level.taps[2].size()));
+    gaussian_pass<<<blocks, threads, 0, st>>>(s1.ptr, s0.ptr, box, 1, taps[1],
+                                              int(level.taps[1].size()));
+    gaussian_pass<<<blocks, threads, 0, st>>>(s0.ptr, s1.ptr, box, 0, taps[0],
+                                              int(level.taps[0].size()));
+    level_max<<<blocks, threads, 0, st>>>(c.ptr, s1.ptr, volume.ptr, box, level.code, level.coeff);
   }
   check(cudaGetLastError(), "blocking levels");
-  check(cudaMemcpy(b, volume.ptr, voxels * sizeof(float), cudaMemcpyDeviceToHost),
+  check(cudaMemcpyAsync(b, volume.ptr, voxels * sizeof(float), cudaMemcpyDeviceToHost, st),
         "download blocking volume");
+  check(cudaStreamSynchronize(st), "blocking levels");
   return true;
 }
 
@@ -145,26 +154,37 @@ bool gaussian_box_cuda(const float* in, const int64_t lo[3], const int64_t dims[
   const Box box = box_of(lo, dims, image);
   const size_t voxels = size_t(dims[0]) * size_t(dims[1]) * size_t(dims[2]);
   if (voxels == 0) return true;
-  DeviceBuffer<float> a(voxels), b(voxels);
+  const OwnStream own;
+  const cudaStream_t st = own.stream;
+  StreamBuffer<float> a(st), b(st);
+  a.allocate(voxels);
+  b.allocate(voxels);
   size_t tap_count = 0;
   for (int axis = 0; axis < 3; ++axis) tap_count += taps[axis].size();
-  DeviceBuffer<double> t(tap_count);
+  StreamBuffer<double> t(st);
+  t.allocate(tap_count);
   size_t offset[3] = {0, 0, 0};
   for (int axis = 0, at = 0; axis < 3; at += int(taps[axis].size()), ++axis) {
     offset[axis] = size_t(at);
-    check(cudaMemcpy(t.ptr + at, taps[axis].data(), taps[axis].size() * sizeof(double),
-                     cudaMemcpyHostToDevice),
+    check(cudaMemcpyAsync(t.ptr + at, taps[axis].data(), taps[axis].size() * sizeof(double),
+                          cudaMemcpyHostToDevice, st),
           "upload taps");
   }
-  check(cudaMemcpy(a.ptr, in, voxels * sizeof(float), cudaMemcpyHostToDevice), "upload box");
+  check(cudaMemcpyAsync(a.ptr, in, voxels * sizeof(float), cudaMemcpyHostToDevice, st),
+        "upload box");
   const unsigned threads = 256;
   const unsigned blocks = unsigned((voxels + threads - 1) / threads);
   // z, then y, then x, as the host.
-  gaussian_pass<<<blocks, threads>>>(a.ptr, b.ptr, box, 2, t.ptr + offset[2], int(taps[2].size()));
-  gaussian_pass<<<blocks, threads>>>(b.ptr, a.ptr, box, 1, t.ptr + offset[1], int(taps[1].size()));
-  gaussian_pass<<<blocks, threads>>>(a.ptr, b.ptr, box, 0, t.ptr + offset[0], int(taps[0].size()));
+  gaussian_pass<<<blocks, threads, 0, st>>>(a.ptr, b.ptr, box, 2, t.ptr + offset[2],
+                                            int(taps[2].size()));
+  gaussian_pass<<<blocks, threads, 0, st>>>(b.ptr, a.ptr, box, 1, t.ptr + offset[1],
+                                            int(taps[1].size()));
+  gaussian_pass<<<blocks, threads, 0, st>>>(a.ptr, b.ptr, box, 0, t.ptr + offset[0],
+                                            int(taps[0].size()));
   check(cudaGetLastError(), "Gaussian passes");
-  check(cudaMemcpy(out, b.ptr, voxels * sizeof(float), cudaMemcpyDeviceToHost), "download box");
+  check(cudaMemcpyAsync(out, b.ptr, voxels * sizeof(float), cudaMemcpyDeviceToHost, st),
+        "download box");
+  check(cudaStreamSynchronize(st), "Gaussian passes");
   return true;
 }
 

@@ -9,8 +9,10 @@
 #include <filesystem>
 #include <atomic>
 #include <exception>
+#include <functional>
 #include <future>
 #include <map>
+#include <memory>
 #include <mutex>
 #include <thread>
 #include <vector>
@@ -312,14 +314,10 @@ struct PhaseInputs {
   Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
 };
 
-// Phases are read side by side: a phase's files decompress on one core each, its preprocessing
-// takes the cores it is given, so a few phases at a time (one per four cores, each with its
-// share of the cores) keep a large machine busy; two cores read one phase at a time, as before.
-// An error is the first failing phase's, in the list's order.
-std::vector<PhaseInputs> read_phases(const PlanRequest& req, const PhaseList& list) {
-  const size_t n = list.phases.size();
-  std::vector<PhaseInputs> out(n);
-  for (size_t k = 0; k < n; ++k) {
+// Each phase's request: the plan's own with the phase's files.
+std::vector<PhaseInputs> phase_requests(const PlanRequest& req, const PhaseList& list) {
+  std::vector<PhaseInputs> out(list.phases.size());
+  for (size_t k = 0; k < out.size(); ++k) {
     const PlanPhase& phase = list.phases[k];
     PhaseInputs& p = out[k];
     p.phase = phase;
@@ -335,39 +333,127 @@ std::vector<PhaseInputs> read_phases(const PlanRequest& req, const PhaseList& li
     }
     check_request(p.request);
   }
-  const int cores = std::max(1, omp_get_max_threads());
-  const size_t readers = std::min(n, size_t(std::max(1, cores / 4)));
-  std::atomic<size_t> next{0}, done{0};
-  std::atomic<bool> failed{false};
-  std::vector<std::exception_ptr> errors(n);
-  const auto read = [&] {
-    omp_set_num_threads(std::max(1, cores / int(readers)));
-    for (size_t k = next++; k < n && !failed; k = next++) {
-      PhaseInputs& p = out[k];
-      try {
-        p.inputs = read_plan_inputs(p.request);
-        // Only the first phase's label map is used again (the plan's own files, area
-        // safety's skin); the others would hold a 4-byte copy of every voxel to the end.
-        if (k > 0) p.inputs.labels = {};
-        p.centroid =
-            extract_tumor_surface(p.inputs.tumor, tumor_file(p.phase.tumor)).centroid;
-      } catch (...) {
-        errors[k] = std::current_exception();
-        failed = true;
+  return out;
+}
+
+// Reader threads for the phases' files: a phase's files decompress on one core each, its
+// preprocessing takes the cores it is given, so a few phases at a time (one per four cores, each
+// with its share of the cores) keep a large machine busy; two cores read one phase at a time.
+// `read(k)` reads phase k; phases are taken in `order`. Every phase is answered in `ready`, an
+// error as itself; after an error the phases not yet taken are answered as skipped, unread.
+class PhaseReaders {
+ public:
+  PhaseReaders(std::vector<size_t> order, std::function<void(size_t)> read)
+      : order_(std::move(order)), read_(std::move(read)), errors_(order_.size()),
+        promises_(order_.size()) {
+    for (auto& p : promises_) ready_.push_back(p.get_future().share());
+    cores_ = std::max(1, omp_get_max_threads());
+    const size_t readers = std::min(order_.size(), size_t(std::max(1, cores_ / 4)));
+    for (size_t r = 0; r < readers; ++r) {
+      threads_.emplace_back([this, readers] {
+        omp_set_num_threads(std::max(1, cores_ / int(readers)));
+        run();
+      });
+    }
+  }
+  PhaseReaders(const PhaseReaders&) = delete;
+  PhaseReaders& operator=(const PhaseReaders&) = delete;
+  ~PhaseReaders() { join(); }
+
+  size_t readers() const { return threads_.size(); }
+  // Returns when phase k is read; throws the first failing phase's error (in the list's order,
+  // once every reader has stopped) if any phase failed.
+  void wait(size_t k) {
+    ready_[k].wait();
+    if (failed_) rethrow_first();
+  }
+  // The phases not yet taken are not read (after an error elsewhere).
+  void stop() { stopped_ = true; }
+  // Every phase read (or an error, as in `wait`).
+  void wait_all() {
+    join();
+    if (failed_) rethrow_first();
+  }
+
+ private:
+  void run() {
+    for (size_t at = next_++; at < order_.size(); at = next_++) {
+      const size_t k = order_[at];
+      if (failed_ || stopped_) {
+        promises_[k].set_exception(std::make_exception_ptr(Error("not read: the plan failed")));
         continue;
       }
-      spdlog::info("breathing: read {} ({} of {} phases)", p.phase.name, ++done, n);
+      try {
+        read_(k);
+        promises_[k].set_value();
+      } catch (...) {
+        errors_[k] = std::current_exception();
+        failed_ = true;
+        promises_[k].set_exception(errors_[k]);
+      }
     }
-  };
-  spdlog::info("breathing: reading {} phases, {} at a time", n, readers);
-  std::vector<std::thread> threads;
-  for (size_t r = 1; r < readers; ++r) threads.emplace_back(read);
-  read();
-  for (auto& t : threads) t.join();
-  omp_set_num_threads(cores);  // this thread plans on every core again
-  for (const auto& e : errors) {
-    if (e) std::rethrow_exception(e);
   }
+  void join() {
+    for (auto& t : threads_) {
+      if (t.joinable()) t.join();
+    }
+  }
+  void rethrow_first() {
+    join();
+    for (const auto& e : errors_) {
+      if (e) std::rethrow_exception(e);
+    }
+  }
+
+  std::vector<size_t> order_;
+  std::function<void(size_t)> read_;
+  std::vector<std::exception_ptr> errors_;
+  std::vector<std::promise<void>> promises_;
+  std::vector<std::shared_future<void>> ready_;
+  std::atomic<size_t> next_{0};
+  std::atomic<bool> failed_{false}, stopped_{false};
+  int cores_ = 1;
+  std::vector<std::thread> threads_;
+};
+
+std::vector<size_t> listed_order(size_t n) {
+  std::vector<size_t> order(n);
+  for (size_t k = 0; k < n; ++k) order[k] = k;
+  return order;
+}
+
+// A phase's tumor, its lesion chosen, and its centroid.
+void read_phase_tumor(PhaseInputs& p) {
+  read_plan_tumor(p.request, p.inputs);
+  p.centroid = extract_tumor_surface(p.inputs.tumor, tumor_file(p.phase.tumor)).centroid;
+}
+
+// A phase's blocking volume. Only the first phase's label map is used again (the plan's own
+// files, area safety's skin); the others would hold 4 bytes of every voxel to the end.
+void read_phase_blocking(PhaseInputs& p, size_t k) {
+  read_plan_blocking(p.request, p.inputs);
+  if (k > 0) p.inputs.labels = {};
+}
+
+// Every phase's inputs, side by side. An error is the first failing phase's, in the list's order.
+std::vector<PhaseInputs> read_phases(const PlanRequest& req, const PhaseList& list) {
+  std::vector<PhaseInputs> out = phase_requests(req, list);
+  const int cores = std::max(1, omp_get_max_threads());
+  std::atomic<size_t> done{0};
+  {
+    PhaseReaders readers(listed_order(out.size()), [&](size_t k) {
+      PhaseInputs& p = out[k];
+      const auto t_read = Clock::now();
+      p.inputs = read_plan_inputs(p.request);
+      p.inputs.seconds["inputs"] = seconds_since(t_read);
+      if (k > 0) p.inputs.labels = {};
+      p.centroid = extract_tumor_surface(p.inputs.tumor, tumor_file(p.phase.tumor)).centroid;
+      spdlog::info("breathing: read {} ({} of {} phases)", p.phase.name, ++done, out.size());
+    });
+    spdlog::info("breathing: reading {} phases, {} at a time", out.size(), readers.readers());
+    readers.wait_all();
+  }
+  omp_set_num_threads(cores);
   return out;
 }
 
@@ -437,7 +523,21 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   StagedDirectory out(req.out_dir);
   nlohmann::json timings;
   auto t = Clock::now();
-  std::vector<PhaseInputs> phases = read_phases(req, list);
+  // With the region's spacing and radius given, the grid needs only the tumors' centroids: every
+  // tumor is read first, then the blocking volumes beside the computation, in the order the
+  // phases are computed (a phase starts once its own are read). Otherwise every input first.
+  const bool stream = req.stream_phase_reads && req.path_safety.spacing_mm > 0.0 &&
+                      req.path_safety.radius_mm > 0.0;
+  std::vector<PhaseInputs> phases;
+  if (stream) {
+    phases = phase_requests(req, list);
+    spdlog::info("breathing: reading {} tumors", phases.size());
+    PhaseReaders tumors(listed_order(phases.size()),
+                        [&](size_t k) { read_phase_tumor(phases[k]); });
+    tumors.wait_all();
+  } else {
+    phases = read_phases(req, list);
+  }
   timings["read_and_preprocess_s"] = seconds_since(t);
 
   PlanRequest shared = req;
@@ -451,6 +551,15 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   std::vector<nlohmann::json> phase_entries(phases.size());
   CoverageReport first_coverage;
   const std::vector<size_t> order = phase_order(phases);
+  std::unique_ptr<PhaseReaders> blocking_reads;  // declared after `phases`: joined before they go
+  if (stream) {
+    std::shared_ptr<std::atomic<size_t>> done = std::make_shared<std::atomic<size_t>>(0);
+    blocking_reads = std::make_unique<PhaseReaders>(order, [&phases, done](size_t k) {
+      read_phase_blocking(phases[k], k);
+      spdlog::info("breathing: read {} ({} of {} phases)", phases[k].phase.name, ++*done,
+                   phases.size());
+    });
+  }
   // Fast mode leaves refinement out where a phase cannot change the combination's class
   // (PathSafetyOptions::combined_so_far), unless every phase's own volumes are written.
   const bool leave_to_combination = req.path_safety.mode == Mode::kFast && !req.per_phase &&
@@ -530,6 +639,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
                                            {"finest_points", r.points_left_to_combination}};
       }
     }
+    entry["read_s"] = p.inputs.seconds;
     entry["path_safety_s"] = r.seconds;
     for (const auto& [step, seconds] : r.phases) entry["path_safety_phases"][step] = seconds;
     for (int v = 0; v < kernels::kValueCount; ++v) {
@@ -567,6 +677,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, at + 1,
                  phases.size());
     t_phase[at] = Clock::now();
+    if (blocking_reads) blocking_reads->wait(k);  // its blocking volume, read beside the others
     PlanRequest phase_request = p.request;
     phase_request.path_safety = shared.path_safety;
     if (leave_to_combination && at > 0) {
@@ -599,6 +710,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     finished.get();
   } catch (...) {
     const std::exception_ptr error = std::current_exception();
+    if (blocking_reads) blocking_reads->stop();
     for (Signal& s : folded) s.fail(error);
     for (auto& c : computing) {
       if (c.valid()) c.wait();

@@ -35,6 +35,9 @@ struct PlanRequest : PlanInputOptions {
   bool refine_every_phase = false;
   // Phases computed at once: 0 chooses (2 on a GPU, 1 on the cores).
   int phases_at_once = 0;
+  // With spacing and radius given: the tumors read first, the blocking volumes beside the
+  // computation (false: every input read before the first phase is computed).
+  bool stream_phase_reads = true;
 };
 
 // Runs preprocessing and path safety and writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/roi.nii.gz

@@ -69,6 +69,10 @@ PhaseList read_phase_list(const std::string& path);
 
 // Reads and combines the inputs. Throws Error naming the file and the problem.
 PlanInputs read_plan_inputs(const PlanInputOptions& options);
+// The same in two parts (together read_plan_inputs): the tumor (its mask, lesion chosen) and the
+// blocking volume with the scan's coverage, each into `in`.
+void read_plan_tumor(const PlanInputOptions& options, PlanInputs& in);
+void read_plan_blocking(const PlanInputOptions& options, PlanInputs& in);
 
 // The files named by the label specs (without their table), for checks and checksums.
 std::vector<std::string> label_files(const std::vector<std::string>& label_specs);

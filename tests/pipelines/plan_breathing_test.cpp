@@ -443,6 +443,53 @@ TEST(PlanBreathing, PhasesReadSideBySidePlanAsReadOneByOne) {
   EXPECT_FALSE(fs::exists(dir.file("plan")));
 }
 
+// With the spacing and radius given, the tumors are read first and each blocking volume beside
+// the computation, in the order the phases are computed: the same plan, volume for volume, as
+// with every input read first, also with two phases at once. A corrupted label map met while
+// phases are computed fails the plan naming it, leaves nothing, and nothing waits for it.
+TEST(PlanBreathing, BlockingVolumesReadBesideTheComputationPlanAsReadFirst) {
+  const test::TemporaryFolder dir;
+  const test::MiniPlanInputs in = test::write_mini_plan_inputs(dir.path());
+  const std::string a = write_labels_with_vessel_at(dir.path(), "labels_a.nii.gz", 16);
+  const std::string b = write_labels_with_vessel_at(dir.path(), "labels_b.nii.gz", 4);
+  const std::string list =
+      write_phase_list(dir.path(), {{a, in.tumor}, {b, in.tumor}, {in.labels, in.tumor}});
+  const auto request = [&](const std::string& phases, const std::string& out, bool stream,
+                           int at_once) {
+    PlanRequest r = phases_request(phases, dir.file(out));
+    r.path_safety.spacing_mm = 2.0;
+    r.stream_phase_reads = stream;
+    r.phases_at_once = at_once;
+    return r;
+  };
+  const nlohmann::json first = run_plan(request(list, "first", false, 1));
+  const nlohmann::json beside = run_plan(request(list, "beside", true, 2));
+  EXPECT_EQ(first["grid"], beside["grid"]);
+  for (const char* v : kValues) {
+    expect_identical(read_volume<float>(dir.file("first/path_safety_") + v + ".nii.gz"),
+                     read_volume<float>(dir.file("beside/path_safety_") + v + ".nii.gz"), v);
+    for (int k = 0; k < 3; ++k) {
+      const std::string phase = "_phase0" + std::to_string(k) + ".nii.gz";
+      expect_identical(read_volume<float>(dir.file("first/path_safety_") + v + phase),
+                       read_volume<float>(dir.file("beside/path_safety_") + v + phase),
+                       v + phase);
+    }
+  }
+  EXPECT_TRUE(beside["breathing"]["phases"][1]["read_s"].contains("blocking"));
+  std::ofstream(dir.file("corrupt.nii.gz")) << "not a label map";
+  const std::string bad = write_phase_list(
+      dir.path(), {{a, in.tumor}, {b, in.tumor}, {dir.file("corrupt.nii.gz"), in.tumor}});
+  for (int at_once : {1, 2}) {
+    try {
+      run_plan(request(bad, "plan", true, at_once));
+      ADD_FAILURE() << "corrupt label map accepted";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find("corrupt.nii.gz"), std::string::npos) << e.what();
+    }
+    EXPECT_FALSE(fs::exists(dir.file("plan")));
+  }
+}
+
 // A 4D label map (phases along the 4th axis, as a 4D CT's segmentation comes) plans exactly like
 // the phase list of its frames; the 3D tumor serves every phase; nothing of the split frames stays.
 TEST(PlanBreathing, FourDInputsPlanExactlyLikeThePhaseListOfTheirFrames) {
