@@ -100,4 +100,14 @@ class Volume {
   std::vector<T> data_;
 };
 
+// The smallest box of voxels [lo, hi] (inclusive) holding every voxel of a mask that is not 0;
+// empty (hi < lo) when there is none. Found on every core, a row 8 bytes at a time: a full-size
+// mask of a small tumor is searched in its box instead of voxel by voxel.
+struct VoxelBox {
+  Index3 lo{0, 0, 0}, hi{-1, -1, -1};
+  bool empty() const { return hi[0] < lo[0]; }
+  Index3 dims() const { return {hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1}; }
+};
+VoxelBox nonzero_box(const Volume<uint8_t>& mask);
+
 }  // namespace crepuscular::planning

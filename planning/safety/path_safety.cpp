@@ -179,7 +179,6 @@ uint64_t available_memory_bytes() {
 TumorSurface extract_tumor_surface(const Volume<uint8_t>& tumor, const std::string& source) {
   tumor.geometry().validate(source);
   const auto& g = tumor.geometry();
-  const auto& d = g.dims;
   if (g.voxel_count() >= int64_t(std::numeric_limits<int>::max())) {
     throw Error(source + ": tumor mask has " + std::to_string(g.voxel_count()) +
                 " voxels; at most 2^31 are supported (crop it around the tumor)");
@@ -188,9 +187,11 @@ TumorSurface extract_tumor_surface(const Volume<uint8_t>& tumor, const std::stri
   s.lo[0] = s.lo[1] = s.lo[2] = std::numeric_limits<int>::max();
   s.hi[0] = s.hi[1] = s.hi[2] = -1;
   Eigen::Vector3d sum = Eigen::Vector3d::Zero();
-  for (int64_t k = 0; k < d[2]; ++k) {
-    for (int64_t j = 0; j < d[1]; ++j) {
-      for (int64_t i = 0; i < d[0]; ++i) {
+  // Only the box of the tumor's voxels is visited (the same voxels in the same order).
+  const VoxelBox voxels = nonzero_box(tumor);
+  for (int64_t k = voxels.lo[2]; k <= voxels.hi[2]; ++k) {
+    for (int64_t j = voxels.lo[1]; j <= voxels.hi[1]; ++j) {
+      for (int64_t i = voxels.lo[0]; i <= voxels.hi[0]; ++i) {
         if (!tumor(i, j, k)) continue;
         ++s.tumor_voxels;
         sum += Eigen::Vector3d(double(i), double(j), double(k));

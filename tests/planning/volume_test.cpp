@@ -4,6 +4,9 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <random>
+
 #include <Eigen/Geometry>
 #include <cmath>
 #include <limits>
@@ -147,6 +150,54 @@ TEST(ImageGeometry, SameGridComparesDimsAndGeometryWithinTolerance) {
   ImageGeometry other_direction = a;
   other_direction.direction.col(2) *= -1.0;
   EXPECT_FALSE(a.same_grid(other_direction));
+}
+
+}  // namespace
+}  // namespace crepuscular::planning
+
+namespace crepuscular::planning {
+namespace {
+
+// nonzero_box against a voxel-by-voxel search: rows of lengths around the 8-byte words, voxels at
+// the rows' ends and at the grid's faces, a single voxel, and an empty mask.
+TEST(NonzeroBox, IsTheSmallestBoxHoldingEveryVoxelThatIsNotZero) {
+  std::mt19937 rng(7);
+  for (const Index3 dims : {Index3{1, 1, 1}, Index3{7, 3, 2}, Index3{8, 5, 4}, Index3{9, 2, 3},
+                            Index3{17, 6, 5}, Index3{33, 4, 7}}) {
+    for (int trial = 0; trial < 40; ++trial) {
+      ImageGeometry g;
+      g.dims = dims;
+      Volume<uint8_t> mask(g, 0);
+      const int voxels = trial % 5;  // 0: empty
+      for (int n = 0; n < voxels; ++n) {
+        const int64_t i = trial % 3 == 0 ? (n % 2 ? dims[0] - 1 : 0)
+                                         : int64_t(rng() % uint64_t(dims[0]));
+        mask(i, int64_t(rng() % uint64_t(dims[1])), int64_t(rng() % uint64_t(dims[2]))) =
+            uint8_t(1 + rng() % 255);
+      }
+      VoxelBox expected;
+      expected.lo = dims;
+      for (int64_t k = 0; k < dims[2]; ++k) {
+        for (int64_t j = 0; j < dims[1]; ++j) {
+          for (int64_t i = 0; i < dims[0]; ++i) {
+            if (!mask(i, j, k)) continue;
+            expected.lo = {std::min(expected.lo[0], i), std::min(expected.lo[1], j),
+                           std::min(expected.lo[2], k)};
+            expected.hi = {std::max(expected.hi[0], i), std::max(expected.hi[1], j),
+                           std::max(expected.hi[2], k)};
+          }
+        }
+      }
+      const VoxelBox box = nonzero_box(mask);
+      if (voxels == 0) {
+        EXPECT_TRUE(box.empty());
+        continue;
+      }
+      EXPECT_FALSE(box.empty());
+      EXPECT_EQ(box.lo, expected.lo) << dims[0] << " trial " << trial;
+      EXPECT_EQ(box.hi, expected.hi) << dims[0] << " trial " << trial;
+    }
+  }
 }
 
 }  // namespace
