@@ -64,7 +64,7 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
   cmd->add_option("--phases-at-once", req->phases_at_once,
                   "With phases: how many phases are computed at once. Default: 2 on a GPU (one "
                   "phase's host steps run beside the other's rays; the later of the two leaves "
-                  "refinement only to the phases before the one beside it), 1 on the cores")
+                  "refinement only to the phases before the one beside it), 1 on the cores; 0 chooses")
       ->check(CLI::Range(0, 2));
   return lesion_at;
 }
