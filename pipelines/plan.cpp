@@ -344,8 +344,9 @@ std::vector<PhaseInputs> phase_requests(const PlanRequest& req, const PhaseList&
 class PhaseReaders {
  public:
   PhaseReaders(std::vector<size_t> order, std::function<void(size_t)> read)
-      : order_(std::move(order)), read_(std::move(read)), errors_(order_.size()),
-        promises_(order_.size()) {
+      : order_(std::move(order)), read_(std::move(read)),
+        errors_(order_.empty() ? 0 : *std::max_element(order_.begin(), order_.end()) + 1),
+        promises_(errors_.size()) {
     for (auto& p : promises_) ready_.push_back(p.get_future().share());
     cores_ = std::max(1, omp_get_max_threads());
     const size_t readers = std::min(order_.size(), size_t(std::max(1, cores_ / 4)));
@@ -529,12 +530,20 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   const bool stream = req.stream_phase_reads && req.path_safety.spacing_mm > 0.0 &&
                       req.path_safety.radius_mm > 0.0;
   std::vector<PhaseInputs> phases;
+  std::future<void> first_blocking;  // the first phase's (always computed first), beside the tumors
   if (stream) {
     phases = phase_requests(req, list);
+    first_blocking =
+        std::async(std::launch::async, [&phases] { read_phase_blocking(phases[0], 0); });
     spdlog::info("breathing: reading {} tumors", phases.size());
-    PhaseReaders tumors(listed_order(phases.size()),
-                        [&](size_t k) { read_phase_tumor(phases[k]); });
-    tumors.wait_all();
+    try {
+      PhaseReaders tumors(listed_order(phases.size()),
+                          [&](size_t k) { read_phase_tumor(phases[k]); });
+      tumors.wait_all();
+    } catch (...) {
+      first_blocking.get();  // its error first: the first phase's, and a blocking's before a tumor's
+      throw;
+    }
   } else {
     phases = read_phases(req, list);
   }
@@ -554,11 +563,13 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   std::unique_ptr<PhaseReaders> blocking_reads;  // declared after `phases`: joined before they go
   if (stream) {
     std::shared_ptr<std::atomic<size_t>> done = std::make_shared<std::atomic<size_t>>(0);
-    blocking_reads = std::make_unique<PhaseReaders>(order, [&phases, done](size_t k) {
-      read_phase_blocking(phases[k], k);
-      spdlog::info("breathing: read {} ({} of {} phases)", phases[k].phase.name, ++*done,
-                   phases.size());
-    });
+    // The first phase's is read already (beside the tumors).
+    blocking_reads = std::make_unique<PhaseReaders>(
+        std::vector<size_t>(order.begin() + 1, order.end()), [&phases, done](size_t k) {
+          read_phase_blocking(phases[k], k);
+          spdlog::info("breathing: read {} ({} of {} later phases)", phases[k].phase.name,
+                       ++*done, phases.size() - 1);
+        });
   }
   // Fast mode leaves refinement out where a phase cannot change the combination's class
   // (PathSafetyOptions::combined_so_far), unless every phase's own volumes are written.
@@ -677,7 +688,12 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, at + 1,
                  phases.size());
     t_phase[at] = Clock::now();
-    if (blocking_reads) blocking_reads->wait(k);  // its blocking volume, read beside the others
+    // Its blocking volume, read beside the tumors (the first) or the computation.
+    if (k == 0 && first_blocking.valid()) {
+      first_blocking.get();
+    } else if (blocking_reads) {
+      blocking_reads->wait(k);
+    }
     PlanRequest phase_request = p.request;
     phase_request.path_safety = shared.path_safety;
     if (leave_to_combination && at > 0) {

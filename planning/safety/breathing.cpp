@@ -57,11 +57,8 @@ void PhaseCombiner::add(PathSafetyResult&& phase, const Volume<uint8_t>& region)
   if (combined_.check_sample) check_ = std::make_shared<CheckSample>(*combined_.check_sample);
   combined_.check_sample = nullptr;
   region_ = parallel_copy(region);
-  for (int v = 0; v < kernels::kValueCount; ++v) {
-    if (combined_.values & (1u << v)) {
-      other_[size_t(v)] = parallel_copy(combined_.volumes[size_t(v)]);
-    }
-  }
+  // The other extreme of one phase is the phase itself: made by the second fold, which reads the
+  // first phase's values anyway (a copy here would hold up the next phase's sampler).
   const std::lock_guard<std::mutex> lock(swap_);
   phases_ = 1;
 }
@@ -116,11 +113,13 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
       previous_[size_t(v)] = Volume<float>(g);
     }
     Volume<float>& worst = keep_previous_ ? previous_[size_t(v)] : combined_.volumes[size_t(v)];
+    const bool first_other = other_[size_t(v)].empty();  // the first phase's values: `was`
+    if (first_other) other_[size_t(v)] = Volume<float>(g);
     Volume<float>& other = other_[size_t(v)];
     const Volume<float>& x = phase.volumes[size_t(v)];
 #pragma omp parallel for schedule(static)
     for (int64_t i = 0; i < n; ++i) {
-      const float w = was[i], o = other[i], p = x[i];
+      const float w = was[i], o = first_other ? w : other[i], p = x[i];
       if (std::isnan(w) || std::isnan(p)) {
         worst[i] = nan;
         other[i] = nan;
@@ -185,7 +184,7 @@ void PhaseCombiner::fold_check(const PathSafetyResult& phase) {
 
 double PhaseCombiner::class_change_share(int slot, const SafetyClasses& classes) const {
   const Volume<float>& worst = combined_.volumes[size_t(slot)];
-  const Volume<float>& other = other_[size_t(slot)];
+  const Volume<float>& other = other_extreme(slot);
   int64_t known = 0, changing = 0;
 #pragma omp parallel for schedule(static) reduction(+ : known, changing)
   for (int64_t i = 0; i < worst.voxel_count(); ++i) {

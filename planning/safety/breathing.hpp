@@ -44,7 +44,9 @@ class PhaseCombiner {
   const Volume<uint8_t>& region() const { return region_; }
   // Per value slot, the other end of the range over the phases (SVV: the maximum; the others: the
   // minimum); NaN where the combination is.
-  const Volume<float>& other_extreme(int slot) const { return other_[size_t(slot)]; }
+  const Volume<float>& other_extreme(int slot) const {
+    return other_[size_t(slot)].empty() ? combined_.volumes[size_t(slot)] : other_[size_t(slot)];
+  }
 
   // Share (0..1) of the computed voxels of the combination whose class under `classes` is not the
   // same in every phase: classes are monotone in the value, so the class changes over the cycle

@@ -476,17 +476,23 @@ TEST(PlanBreathing, BlockingVolumesReadBesideTheComputationPlanAsReadFirst) {
     }
   }
   EXPECT_TRUE(beside["breathing"]["phases"][1]["read_s"].contains("blocking"));
+  // The first phase's label map is read beside the tumors, the others beside the computation.
   std::ofstream(dir.file("corrupt.nii.gz")) << "not a label map";
-  const std::string bad = write_phase_list(
-      dir.path(), {{a, in.tumor}, {b, in.tumor}, {dir.file("corrupt.nii.gz"), in.tumor}});
-  for (int at_once : {1, 2}) {
-    try {
-      run_plan(request(bad, "plan", true, at_once));
-      ADD_FAILURE() << "corrupt label map accepted";
-    } catch (const Error& e) {
-      EXPECT_NE(std::string(e.what()).find("corrupt.nii.gz"), std::string::npos) << e.what();
+  const std::string corrupt = dir.file("corrupt.nii.gz");
+  for (int at : {0, 2}) {
+    std::vector<std::pair<std::string, std::string>> phases = {
+        {a, in.tumor}, {b, in.tumor}, {in.labels, in.tumor}};
+    phases[size_t(at)].first = corrupt;
+    const std::string bad = write_phase_list(dir.path(), phases);
+    for (int at_once : {1, 2}) {
+      try {
+        run_plan(request(bad, "plan", true, at_once));
+        ADD_FAILURE() << "corrupt label map of phase " << at << " accepted";
+      } catch (const Error& e) {
+        EXPECT_NE(std::string(e.what()).find("corrupt.nii.gz"), std::string::npos) << e.what();
+      }
+      EXPECT_FALSE(fs::exists(dir.file("plan")));
     }
-    EXPECT_FALSE(fs::exists(dir.file("plan")));
   }
 }
 
