@@ -78,6 +78,21 @@ std::string write_labels_with_vessel_at(const fs::path& dir, const std::string& 
   return path;
 }
 
+// The mini plan's inputs, its labels with the vessel column at i = 16 (a) and at i = 4 (b), and
+// phases.json listing a, b and the mini plan's own labels, each with the mini tumor.
+struct ThreePhases {
+  test::MiniPlanInputs in;
+  std::string a, b, list;
+};
+ThreePhases write_three_phases(const fs::path& dir) {
+  ThreePhases t;
+  t.in = test::write_mini_plan_inputs(dir);
+  t.a = write_labels_with_vessel_at(dir, "labels_a.nii.gz", 16);
+  t.b = write_labels_with_vessel_at(dir, "labels_b.nii.gz", 4);
+  t.list = write_phase_list(dir, {{t.a, t.in.tumor}, {t.b, t.in.tumor}, {t.in.labels, t.in.tumor}});
+  return t;
+}
+
 TEST(PlanBreathing, IdenticalPhasesGiveExactlyTheSinglePhasePlan) {
   const test::TemporaryFolder dir;
   const test::MiniPlanInputs in = test::write_mini_plan_inputs(dir.path());
@@ -403,11 +418,9 @@ TEST(PlanBreathing, BadPhaseListsAreRefusedNamingTheFile) {
 // is the first failing phase's in the list's order, whichever reader met it first.
 TEST(PlanBreathing, PhasesReadSideBySidePlanAsReadOneByOne) {
   const test::TemporaryFolder dir;
-  const test::MiniPlanInputs in = test::write_mini_plan_inputs(dir.path());
-  const std::string a = write_labels_with_vessel_at(dir.path(), "labels_a.nii.gz", 16);
-  const std::string b = write_labels_with_vessel_at(dir.path(), "labels_b.nii.gz", 4);
-  const std::string list =
-      write_phase_list(dir.path(), {{a, in.tumor}, {b, in.tumor}, {in.labels, in.tumor}});
+  const ThreePhases three = write_three_phases(dir.path());
+  const test::MiniPlanInputs& in = three.in;
+  const std::string &a = three.a, &b = three.b, &list = three.list;
   const int threads = omp_get_max_threads();
   omp_set_num_threads(1);
   run_plan(phases_request(list, dir.file("one_by_one")));
@@ -449,11 +462,9 @@ TEST(PlanBreathing, PhasesReadSideBySidePlanAsReadOneByOne) {
 // phases are computed fails the plan naming it, leaves nothing, and nothing waits for it.
 TEST(PlanBreathing, BlockingVolumesReadBesideTheComputationPlanAsReadFirst) {
   const test::TemporaryFolder dir;
-  const test::MiniPlanInputs in = test::write_mini_plan_inputs(dir.path());
-  const std::string a = write_labels_with_vessel_at(dir.path(), "labels_a.nii.gz", 16);
-  const std::string b = write_labels_with_vessel_at(dir.path(), "labels_b.nii.gz", 4);
-  const std::string list =
-      write_phase_list(dir.path(), {{a, in.tumor}, {b, in.tumor}, {in.labels, in.tumor}});
+  const ThreePhases three = write_three_phases(dir.path());
+  const test::MiniPlanInputs& in = three.in;
+  const std::string &a = three.a, &b = three.b, &list = three.list;
   const auto request = [&](const std::string& phases, const std::string& out, bool stream,
                            int at_once) {
     PlanRequest r = phases_request(phases, dir.file(out));
