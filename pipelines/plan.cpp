@@ -10,6 +10,7 @@
 #include <atomic>
 #include <exception>
 #include <functional>
+#include <string>
 #include <future>
 #include <map>
 #include <memory>
@@ -72,19 +73,22 @@ void check_request(const PlanRequest& req) {
 }
 
 
+// Progress logged in steps of 10 %, after `what`.
+std::function<void(double)> progress_in_steps(std::string what) {
+  return [what = std::move(what), last = -1](double f) mutable {
+    const int pct = int(f * 100.0);
+    if (pct / 10 != last / 10 || pct == 100) {
+      spdlog::info("{}: {:3d} %", what, pct);
+      last = pct;
+    }
+  };
+}
+
 // Step 2: path safety, with progress in steps of 10 % unless the caller reports it.
 PathSafetyResult compute(const PlanRequest& req, const PlanInputs& in) {
   PathSafetyOptions ps = req.path_safety;
   ps.coverage = &in.coverage;  // voxels outside the scan are unknown: not computed
-  if (!ps.progress) {
-    ps.progress = [last = -1](double f) mutable {
-      const int pct = int(f * 100.0);
-      if (pct / 10 != last / 10 || pct == 100) {
-        spdlog::info("path safety: {:3d} %", pct);
-        last = pct;
-      }
-    };
-  }
+  if (!ps.progress) ps.progress = progress_in_steps("path safety");
   PathSafetyResult result =
       compute_path_safety(in.blocking, in.tumor, ps, in.blocking_source, tumor_file(req.tumor));
   spdlog::info("path safety done in {:.1f} s on {}", result.seconds, result.device);
@@ -696,6 +700,10 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     }
     PlanRequest phase_request = p.request;
     phase_request.path_safety = shared.path_safety;
+    if (!phase_request.path_safety.progress) {  // named: two phases may run at once
+      phase_request.path_safety.progress =
+          progress_in_steps("breathing: path safety of " + p.phase.name);
+    }
     if (leave_to_combination && at > 0) {
       // The combination of the phases up to the one `at_once` before this one (the first
       // phase's for those beside it).
