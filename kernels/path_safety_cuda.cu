@@ -831,7 +831,7 @@ CudaPointEvaluator::~CudaPointEvaluator() {
   for (int d = 0; d < impl_->devices; ++d) {
     if (cudaSetDevice(d) == cudaSuccess) {
       impl_->scenes[size_t(d)].reset();
-      if (!impl_->launches.empty()) impl_->launches[size_t(d)].reset();
+      impl_->launches[size_t(d)].reset();
     }
   }
   delete impl_;

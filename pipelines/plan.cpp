@@ -443,7 +443,6 @@ void read_phase_blocking(PhaseInputs& p, size_t k) {
 // Every phase's inputs, side by side. An error is the first failing phase's, in the list's order.
 std::vector<PhaseInputs> read_phases(const PlanRequest& req, const PhaseList& list) {
   std::vector<PhaseInputs> out = phase_requests(req, list);
-  const int cores = std::max(1, omp_get_max_threads());
   std::atomic<size_t> done{0};
   {
     PhaseReaders readers(listed_order(out.size()), [&](size_t k) {
@@ -456,9 +455,8 @@ std::vector<PhaseInputs> read_phases(const PlanRequest& req, const PhaseList& li
       spdlog::info("breathing: read {} ({} of {} phases)", p.phase.name, ++done, out.size());
     });
     spdlog::info("breathing: reading {} phases, {} at a time", out.size(), readers.readers());
-    readers.wait_all();
+    readers.wait_all();  // the readers set their own threads' cores, not this thread's
   }
-  omp_set_num_threads(cores);
   return out;
 }
 
