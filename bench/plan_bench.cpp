@@ -14,6 +14,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <nlohmann/json.hpp>
 
 #include "pipelines/plan.hpp"
@@ -24,6 +25,25 @@ using namespace crepuscular;
 using namespace crepuscular::planning;
 
 namespace {
+
+// A ball of `diameter_mm` centred on `c` (LPS mm), on an isotropic grid of `spacing_mm` with the
+// axes `direction`.
+Volume<uint8_t> ball_at(const Eigen::Vector3d& c, const Eigen::Matrix3d& direction,
+                        double diameter_mm, double spacing_mm) {
+  const double r = 0.5 * diameter_mm;
+  const int64_t half = int64_t(std::ceil(r / spacing_mm)) + 2;
+  ImageGeometry g;
+  g.dims = {2 * half + 1, 2 * half + 1, 2 * half + 1};
+  g.spacing = Eigen::Vector3d::Constant(spacing_mm);
+  g.direction = direction;
+  g.origin = c - g.index_to_physical_matrix() * Eigen::Vector3d::Constant(double(half));
+  Volume<uint8_t> t(g, 0);
+  for (int64_t k = 0; k < g.dims[2]; ++k)
+    for (int64_t j = 0; j < g.dims[1]; ++j)
+      for (int64_t i = 0; i < g.dims[0]; ++i)
+        t(i, j, k) = (g.index_to_physical(i, j, k) - c).norm() <= r;
+  return t;
+}
 
 // A ball of `diameter_mm` at the phantom tumor's centroid, on an isotropic grid of `spacing_mm`.
 Volume<uint8_t> ball_tumor(const Volume<uint8_t>& phantom_tumor, double diameter_mm,
@@ -39,19 +59,31 @@ Volume<uint8_t> ball_tumor(const Volume<uint8_t>& phantom_tumor, double diameter
           ++n;
         }
   c /= double(n);
-  const double r = 0.5 * diameter_mm;
-  const int64_t half = int64_t(std::ceil(r / spacing_mm)) + 2;
-  ImageGeometry g;
-  g.dims = {2 * half + 1, 2 * half + 1, 2 * half + 1};
-  g.spacing = Eigen::Vector3d::Constant(spacing_mm);
-  g.direction = g0.direction;
-  g.origin = c - g.index_to_physical_matrix() * Eigen::Vector3d::Constant(double(half));
-  Volume<uint8_t> t(g, 0);
-  for (int64_t k = 0; k < g.dims[2]; ++k)
-    for (int64_t j = 0; j < g.dims[1]; ++j)
-      for (int64_t i = 0; i < g.dims[0]; ++i)
-        t(i, j, k) = (g.index_to_physical(i, j, k) - c).norm() <= r;
-  return t;
+  return ball_at(c, g0.direction, diameter_mm, spacing_mm);
+}
+
+// The breathing phantom's list with each phase's tumor replaced by a ball of `diameter_mm` at that
+// phase's tumor centroid (the headline's tumor, moving as the phantom's does), written beside the
+// list as ballD/phaseKK.nii.gz and phases_ballD.json; returns the new list's path.
+std::string phases_with_ball_tumors(const std::string& list, double diameter_mm,
+                                    double spacing_mm) {
+  namespace fs = std::filesystem;
+  nlohmann::json doc = nlohmann::json::parse(std::ifstream(list));
+  const fs::path dir = fs::path(list).parent_path();
+  const std::string tag = "ball" + std::to_string(int(std::lround(diameter_mm)));
+  fs::create_directories(dir / tag);
+  for (auto& phase : doc.at("phases")) {
+    const auto c = phase.at("tumor_centroid_lps_mm").get<std::vector<double>>();
+    const ImageGeometry g0 =
+        read_volume_geometry((dir / phase.at("tumor").get<std::string>()).string());
+    const std::string name = tag + "/" + phase.at("name").get<std::string>() + ".nii.gz";
+    write_volume(ball_at({c[0], c[1], c[2]}, g0.direction, diameter_mm, spacing_mm),
+                 (dir / name).string());
+    phase["tumor"] = name;
+  }
+  const std::string out = (dir / ("phases_" + tag + ".json")).string();
+  std::ofstream(out) << doc.dump(2);
+  return out;
 }
 
 }  // namespace
@@ -108,6 +140,10 @@ int main(int argc, char** argv) {
                "rays look up every sample of the tumor's box (no leaps over voxels of one kind)");
   app.add_option("--device", device, "auto, cpu or cuda");
   app.add_option("--value", values, "values (svv,isbv,ivbv,bvv or all)");
+  double phase_tumor_diameter = 0.0;
+  app.add_option("--phase-tumor-diameter", phase_tumor_diameter,
+                 "breathing: each phase's tumor a ball of this diameter (mm, at --tumor-spacing) "
+                 "at that phase's tumor centroid, as the headline's (0: the phantom's own tumor)");
   app.add_option("--phases", phases,
                  "breathing: plan the breathing phantom's phases (their own tumors; "
                  "--tumor-diameter and --tumor-spacing do not apply)");
@@ -166,6 +202,9 @@ int main(int argc, char** argv) {
   if (phases > 0) {
     if (!reuse) write_breathing_phantom(po, phases, work + "/cycle");
     req.phases = work + "/cycle/phases.json";
+    if (phase_tumor_diameter > 0.0) {
+      req.phases = phases_with_ball_tumors(req.phases, phase_tumor_diameter, tumor_spacing);
+    }
   } else {
     if (!reuse) {
       const Phantom phantom = make_phantom(po);
@@ -211,6 +250,7 @@ int main(int argc, char** argv) {
   for (const auto& e : fs::directory_iterator(req.out_dir)) bytes += e.file_size();
   nlohmann::json line = {{"phantom_spacing_mm", phantom_spacing},
                          {"tumor_diameter_mm", tumor_diameter},
+                         {"phase_tumor_diameter_mm", phase_tumor_diameter},
                          {"tumor_spacing_mm", tumor_spacing},
                          {"spacing_mm", plan["parameters"]["spacing_mm"]},
                          {"radius_mm", plan["parameters"]["radius_mm"]},

@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "foundation/trace.hpp"
 #include "kernels/cuda_memory.cuh"
 #include "kernels/path_safety_cuda.hpp"
 #include "kernels/path_safety_fast.hpp"
@@ -839,6 +840,7 @@ CudaPointEvaluator::~CudaPointEvaluator() {
 
 void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out) {
   const auto t0 = std::chrono::steady_clock::now();
+  trace::event("eval_begin", count);
   const int devices = impl_->devices;
   // Launches of at most kChunk points: each level of fast mode's sampler in one launch at the
   // headline (each launch ends with its longest threads alone on the card: 2.95 -> 2.85 s of
@@ -892,6 +894,7 @@ void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out)
     }
   });
   impl_->kernel_s += seconds_since(t0);
+  trace::event("eval_end", count);
 }
 
 std::string CudaPointEvaluator::devices() const {

@@ -422,7 +422,10 @@ CREPUSCULAR_HD void box_range(Vec3<Real> origin, Vec3<Real> step, const int lo[3
 }
 
 // Tumor occupancy along one ray (DESIGN.md §4): is t front-facing from p, is it back-facing, and
-// how many samples k <= N lie in the tumor (the chord is that count times l).
+// how many samples k <= N lie in the tumor (the chord is that count times l). The chord is needed
+// only where t is back-facing (IVBV): a ray that is neither front- nor back-facing (nor asked
+// about back-facing) contributes nothing, and its walk stops where it sees another tumor voxel,
+// leaving samples_in_tumor a partial count.
 struct TumorCrossing {
   bool front_facing;
   bool back_facing;
@@ -440,9 +443,6 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
   }
   double k_in, k_out;
   box_range(ray.r0, ray.dr, g.lo, g.hi, k_in, k_out);
-  int k_first = k_in < 1.0 ? 1 : int(floor(k_in));
-  if (k_first < 1) k_first = 1;
-  const int k_last = k_out > 2e9 ? 2000000000 : int(ceil(k_out));
   // Samples at shifted0 + k dr: the tie's half voxel added to the origin once, not per sample
   // (rounded differently by far less than the tie's 1e-10 voxel; the same on every backend).
   const Vec3<double> shifted0 = shift_for_ties(ray.r0);
@@ -451,28 +451,12 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
   // The same occupancy as looking at every sample (test: TumorLeapsGiveTheWalkOfEverySample).
   const double step_max = fmax(fabs(ray.dr.x), fmax(fabs(ray.dr.y), fabs(ray.dr.z)));
   const double inv_step = g.leap && step_max > 0.0 ? 1.0 / step_max : 0.0;
-  const int k_end = ray.n < k_last ? ray.n : k_last;
-  double kd = double(k_first) - 1.0;  // k as a double, counted rather than converted (exact)
-  for (int k = k_first; k <= k_end; ++k) {
-    kd += 1.0;
-    int leap;
-    const int off = tumor_offset_and_leap(g, along_rn(shifted0, ray.dr, kd), leap);
-    if (off >= 0) {
-      ++c.samples_in_tumor;
-      if (off != own_offset && k < ray.n) c.front_facing = false;
-    }
-    if (leap > 1 && off != own_offset) {
-      int skip = tumor_leap_samples(leap, inv_step);
-      if (skip > k_end - k) skip = k_end - k;
-      if (off >= 0) c.samples_in_tumor += skip;
-      k += skip;
-      kd += double(skip);
-    }
-  }
   if (want_back) {
-    // Beyond t with the same step; only when p lies within a small fraction of a voxel of t is
-    // that step so tiny (< 1/100 voxel) that samples 1/100 voxel apart stand in for it, which
-    // see the same voxels at a bounded cost (and are never leapt over: their positions are sums).
+    // Beyond t with the same step, walked first: where t is not back-facing, the walk toward p
+    // below may stop at the first other tumor voxel it meets. Only when p lies within a small
+    // fraction of a voxel of t is that step so tiny (< 1/100 voxel) that samples 1/100 voxel
+    // apart stand in for it, which see the same voxels at a bounded cost (and are never leapt
+    // over: their positions are sums).
     double stride = 1.0;
     const double step_sq = dot_rn(ray.dr, ray.dr);  // the root only where it is needed
     if (step_sq < 1e-4) stride = 0.01 / sqrt(step_sq);
@@ -484,6 +468,31 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
         break;
       }
       if (off < 0 && leap > 1 && stride == 1.0) k += double(tumor_leap_samples(leap, inv_step));
+    }
+  }
+  const bool chord_needed = want_back && c.back_facing;
+  int k_first = k_in < 1.0 ? 1 : int(floor(k_in));
+  if (k_first < 1) k_first = 1;
+  const int k_last = k_out > 2e9 ? 2000000000 : int(ceil(k_out));
+  const int k_end = ray.n < k_last ? ray.n : k_last;
+  double kd = double(k_first) - 1.0;  // k as a double, counted rather than converted (exact)
+  for (int k = k_first; k <= k_end; ++k) {
+    kd += 1.0;
+    int leap;
+    const int off = tumor_offset_and_leap(g, along_rn(shifted0, ray.dr, kd), leap);
+    if (off >= 0) {
+      ++c.samples_in_tumor;
+      if (off != own_offset && k < ray.n) {
+        c.front_facing = false;
+        if (!chord_needed) return c;  // nothing more of this walk is used
+      }
+    }
+    if (leap > 1 && off != own_offset) {
+      int skip = tumor_leap_samples(leap, inv_step);
+      if (skip > k_end - k) skip = k_end - k;
+      if (off >= 0) c.samples_in_tumor += skip;
+      k += skip;
+      kd += double(skip);
     }
   }
   return c;

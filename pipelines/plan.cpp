@@ -1,6 +1,7 @@
 // The plan job: inputs -> blocking volume -> path safety -> area safety -> PLAN_DIR, written
 // atomically. The folder's format (plan.json's pieces) is planning/plan_folder's.
 #include "pipelines/plan.hpp"
+#include "foundation/trace.hpp"
 
 #include <omp.h>
 #include <spdlog/spdlog.h>
@@ -523,6 +524,7 @@ nlohmann::json point_json(const Eigen::Vector3d& p) { return {p.x(), p.y(), p.z(
 // `req`'s phases come from `list` (phases.json, or the frames of 4D inputs).
 nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
                                Clock::time_point t_start) {
+  trace::event("plan_begin", 0, -1);
   StagedDirectory out(req.out_dir);
   nlohmann::json timings;
   auto t = Clock::now();
@@ -542,6 +544,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       PhaseReaders tumors(listed_order(phases.size()),
                           [&](size_t k) { read_phase_tumor(phases[k]); });
       tumors.wait_all();
+      trace::event("tumors_read", 0, -1);
     } catch (...) {
       first_blocking.get();  // its error first: the first phase's, and a blocking's before a tumor's
       throw;
@@ -600,12 +603,17 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     }
   };
   std::vector<Signal> folded(phases.size());
+  // The folds in order: a phase folds once the one before it has (and the first phase has taken
+  // its own statistics of the volumes it lends).
+  std::vector<Signal> fold_turn(phases.size());
   std::vector<Clock::time_point> t_phase(phases.size());
-  // A phase's result is finished (the scan's coverage applied, folded into the combination, the
-  // check compared, statistics taken, its own volumes written with --per-phase) on a thread of
-  // its own beside the next phases' path safety, after the phase before it has finished. Its
-  // `seconds` run from its path safety's start to its finish.
+  // A phase's result is finished on a thread of its own beside the next phases' path safety: the
+  // scan's coverage applied and folded into the combination after the phase before it was folded;
+  // then, beside the next phases and folds, its check compared, statistics taken and its own
+  // volumes written with --per-phase. Its `seconds` run from its path safety's start to its
+  // finish.
   const auto finish_one = [&](size_t at, PathSafetyResult result) {
+    trace::event("finish_begin", 0, int(at));
     const size_t k = order[at];
     const PhaseInputs& p = phases[k];
     CoverageReport coverage;
@@ -615,8 +623,8 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     if (k == 0) first_coverage = coverage;
     warn_about_coverage(coverage, req.crop_to_scan);
     // Folded in first, for the later phases' samplers (which wait for it). The first phase lends
-    // its volumes to the combination; its own check and statistics are then taken of them there
-    // (nothing changes the combination before the next phase's finish).
+    // its volumes to the combination; its own check and statistics are then taken of them there,
+    // before the next fold may change them.
     PathSafetyResult* own = &result;
     if (at == 0) {
       combiner.add(std::move(result), region);
@@ -625,6 +633,12 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       combiner.add(result, region);
     }
     folded[at].set();
+    trace::event("folded", 0, int(at));
+    if (at > 0) {
+      fold_turn[at].set();
+      // Off the folds' path: fewer cores, so that the samplers beside it keep theirs.
+      omp_set_num_threads(std::max(1, omp_get_num_procs() / 4));
+    }
     finish_fast_check(*own);
     nlohmann::json entry;
     entry["name"] = p.phase.name;
@@ -668,22 +682,24 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     }
     entry["seconds"] = seconds_since(t_phase[at]);
     phase_entries[k] = std::move(entry);
+    if (at == 0) fold_turn[at].set();
+    trace::event("finish_end", 0, int(at));
   };
-  // The finish of the phase at `at`, after the one before it (`before`, whose error it takes).
-  const auto finish_phase = [&](size_t at, PathSafetyResult result,
-                                std::shared_future<void> before) {
+  // The finish of the phase at `at`, its fold after the one before (whose error it takes).
+  const auto finish_phase = [&](size_t at, PathSafetyResult result) {
     try {
-      if (before.valid()) before.get();
+      if (at > 0) fold_turn[at - 1].done.get();
       finish_one(at, std::move(result));
     } catch (...) {
       folded[at].fail(std::current_exception());
+      fold_turn[at].fail(std::current_exception());
       throw;
     }
   };
   t = Clock::now();
   // Declared after `out`: joined before a failed plan's folder goes.
   std::vector<std::future<PathSafetyResult>> computing(phases.size());
-  std::shared_future<void> finished;  // the last phase handed to its finish
+  std::vector<std::future<void>> finishing(phases.size());
   const auto start = [&](size_t at) {
     const size_t k = order[at];
     const PhaseInputs& p = phases[k];
@@ -707,12 +723,19 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       // phase's for those beside it).
       const size_t source = at > at_once ? at - at_once : 0;
       phase_request.path_safety.combined_so_far = [&folded, &combiner, source] {
+        trace::event("comb_wait_begin");
         folded[source].done.get();
+        trace::event("comb_wait_end");
         return combiner.volumes_after(int(source) + 1);
       };
     }
-    computing[at] = std::async(std::launch::async, [&p, phase_request = std::move(phase_request)] {
-      return compute(phase_request, p.inputs);
+    trace::event("start", 0, int(at));
+    computing[at] = std::async(std::launch::async, [&p, at, phase_request = std::move(phase_request)] {
+      trace::current_phase() = int(at);
+      trace::event("compute_begin");
+      auto r = compute(phase_request, p.inputs);
+      trace::event("compute_end");
+      return r;
     });
   };
   const auto hand_over = [&](size_t at) {
@@ -720,8 +743,13 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     // A later phase's blocking volume is done with (its finish needs its tumor and scan); the
     // first phase's is written as the plan's own.
     if (order[at] > 0) phases[order[at]].inputs.blocking = {};
-    finished = std::async(std::launch::async, finish_phase, at, std::move(result), finished)
-                   .share();
+    finishing[at] = std::async(std::launch::async, finish_phase, at, std::move(result));
+  };
+  // Every finish, in order (the first error in the order of computation).
+  const auto wait_for_finishes = [&finishing] {
+    for (auto& f : finishing) {
+      if (f.valid()) f.get();
+    }
   };
   try {
     for (size_t at = 0; at < order.size(); ++at) {
@@ -729,20 +757,22 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       start(at);
     }
     for (size_t at = order.size() - at_once; at < order.size(); ++at) hand_over(at);
-    finished.get();
+    fold_turn.back().done.get();  // the combination is whole; the last statistics go on beside
   } catch (...) {
     const std::exception_ptr error = std::current_exception();
     if (blocking_reads) blocking_reads->stop();
     for (Signal& s : folded) s.fail(error);
+    for (Signal& s : fold_turn) s.fail(error);
     for (auto& c : computing) {
       if (c.valid()) c.wait();
     }
-    if (finished.valid()) finished.wait();
+    for (auto& f : finishing) {
+      if (f.valid()) f.wait();
+    }
     throw;
   }
   timings["path_safety_s"] = seconds_since(t);
-  nlohmann::json phase_list = nlohmann::json::array();
-  for (nlohmann::json& e : phase_entries) phase_list.push_back(std::move(e));
+  trace::event("path_safety_end", 0, -1);
   PathSafetyResult& combined = combiner.combined();
   const Volume<uint8_t>& region = combiner.region();
   // Fast mode's check of the combination: every phase's exact values at the check's voxels,
@@ -759,8 +789,29 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   t = Clock::now();
   nlohmann::json outputs;
   std::vector<std::future<void>> input_writes = write_inputs(out, first.inputs, outputs);
-  Written written = write_volumes(out, combined, region, std::move(input_writes), outputs);
+  // Area safety of the first computed value on the cores while the volumes are written, as a
+  // single phase's (its classes taken before the writes take the others' beside it).
+  nlohmann::json area_safety;
+  AreaSafetyGeometry geometry;
+  std::future<double> area;
+  if (req.area_safety.enabled) {
+    classes_of(combined, combined.values & (~combined.values + 1));  // the lowest value computed
+    area = std::async(std::launch::async, [&] {
+      const auto ta = Clock::now();
+      area_safety = plan_area_safety(first.inputs.tumor, combined, req.area_safety,
+                                     out.file("area_safety.vtk"), &region, &geometry);
+      return seconds_since(ta);
+    });
+  }
+  Written written;
+  try {
+    written = write_volumes(out, combined, region, std::move(input_writes), outputs);
+  } catch (...) {
+    if (area.valid()) area.wait();  // before the staged folder goes
+    throw;
+  }
   timings["write_s"] = seconds_since(t);
+  trace::event("written", 0, -1);
   nlohmann::json breathing;
   if (!list.file.empty()) {
     breathing["phase_list"] = input_json(list.file, req.out_dir);
@@ -775,6 +826,9 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   breathing["reference_phase"] = first.phase.name;
   breathing["reference"] =
       "blocking, tumor and label map of the plan are the reference phase's (the first listed)";
+  wait_for_finishes();  // the phases' own statistics, taken beside the writes
+  nlohmann::json phase_list = nlohmann::json::array();
+  for (nlohmann::json& e : phase_entries) phase_list.push_back(std::move(e));
   breathing["phases"] = phase_list;
   for (int v = 0; v < kernels::kValueCount; ++v) {
     const unsigned bit = 1u << v;
@@ -789,14 +843,10 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       "share of the computed voxels whose class (the combined plan's thresholds) is not the same "
       "in every phase";
 
-  nlohmann::json area_safety;
-  if (req.area_safety.enabled) {
-    t = Clock::now();
-    AreaSafetyGeometry geometry;
-    area_safety = plan_area_safety(first.inputs.tumor, combined, req.area_safety,
-                                   out.file("area_safety.vtk"), &region, &geometry);
+  trace::event("class_change", 0, -1);
+  if (area.valid()) {
+    timings["area_safety_s"] = area.get();  // rethrows its failure
     written.outputs["area_safety"] = "area_safety.vtk";
-    timings["area_safety_s"] = seconds_since(t);
     const std::string value = area_safety["value"].get<std::string>();
     const std::vector<RegionTrajectory> planned = region_trajectories(
         geometry, combined.grid.centre, first.inputs.labels,
@@ -813,10 +863,10 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
 
   // Unknown in the combination: in any phase.
   CoverageReport coverage = first_coverage;
-  coverage.unknown_voxels = 0;
-  for (int64_t i = 0; i < region.voxel_count(); ++i) {
-    coverage.unknown_voxels += region[i] == kRegionUnknown ? 1 : 0;
-  }
+  int64_t unknown = 0;
+#pragma omp parallel for schedule(static) reduction(+ : unknown)
+  for (int64_t i = 0; i < region.voxel_count(); ++i) unknown += region[i] == kRegionUnknown ? 1 : 0;
+  coverage.unknown_voxels = unknown;
   coverage.unknown_share =
       coverage.roi_voxels ? double(coverage.unknown_voxels) / double(coverage.roi_voxels) : 0.0;
   nlohmann::json plan = plan_json(first.request, first.inputs, combined, written);
@@ -829,6 +879,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   out.commit();
   spdlog::info("plan over {} breathing phases written to {} ({:.1f} s)", phases.size(),
                req.out_dir, seconds_since(t_start));
+  trace::event("plan_end", 0, -1);
   return plan;
 }
 

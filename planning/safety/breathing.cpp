@@ -58,9 +58,20 @@ void PhaseCombiner::add(PathSafetyResult&& phase, const Volume<uint8_t>& region)
   combined_.check_sample = nullptr;
   region_ = parallel_copy(region);
   // The other extreme of one phase is the phase itself: made by the second fold, which reads the
-  // first phase's values anyway (a copy here would hold up the next phase's sampler).
+  // first phase's values anyway (a copy here would hold up the next phase's sampler); its volumes
+  // are made meanwhile.
+  spares_ = std::async(std::launch::async, [this] { make_spares(); });
   const std::lock_guard<std::mutex> lock(swap_);
   phases_ = 1;
+}
+
+void PhaseCombiner::make_spares() {
+  const ImageGeometry& g = combined_.grid.geometry;
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (!(combined_.values & (1u << v))) continue;
+    other_[size_t(v)] = Volume<float>(g);
+    if (keep_previous_) previous_[size_t(v)] = Volume<float>(g);
+  }
 }
 
 int PhaseCombiner::phases() const {
@@ -94,6 +105,7 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
                 ": its path safety grid or values differ from the first phase's (the phases "
                 "must share one output grid)");
   }
+  if (spares_.valid()) spares_.get();
   const int64_t n = g.voxel_count();
   const float nan = std::numeric_limits<float>::quiet_NaN();
   // Voxel states: computed only where computed in every phase; unknown wins over not computed.
@@ -113,8 +125,8 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
       previous_[size_t(v)] = Volume<float>(g);
     }
     Volume<float>& worst = keep_previous_ ? previous_[size_t(v)] : combined_.volumes[size_t(v)];
-    const bool first_other = other_[size_t(v)].empty();  // the first phase's values: `was`
-    if (first_other) other_[size_t(v)] = Volume<float>(g);
+    const bool first_other = phases_ == 1;  // the other extreme is the first phase's: `was`
+    if (other_[size_t(v)].empty()) other_[size_t(v)] = Volume<float>(g);
     Volume<float>& other = other_[size_t(v)];
     const Volume<float>& x = phase.volumes[size_t(v)];
 #pragma omp parallel for schedule(static)

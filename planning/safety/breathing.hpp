@@ -3,6 +3,7 @@
 #pragma once
 
 #include <array>
+#include <future>
 #include <cstdint>
 #include <memory>
 #include <mutex>
@@ -45,7 +46,7 @@ class PhaseCombiner {
   // Per value slot, the other end of the range over the phases (SVV: the maximum; the others: the
   // minimum); NaN where the combination is.
   const Volume<float>& other_extreme(int slot) const {
-    return other_[size_t(slot)].empty() ? combined_.volumes[size_t(slot)] : other_[size_t(slot)];
+    return phases() < 2 ? combined_.volumes[size_t(slot)] : other_[size_t(slot)];
   }
 
   // Share (0..1) of the computed voxels of the combination whose class under `classes` is not the
@@ -56,6 +57,10 @@ class PhaseCombiner {
  private:
   void add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region);
   void fold_check(const PathSafetyResult& phase);
+  // The volumes the second fold writes (the other extreme, and with keep_previous the buffer
+  // beside the combination) made on a thread of their own after the first fold: cleared pages of
+  // a few GB, which would otherwise hold up the second fold and every sampler waiting for it.
+  void make_spares();
 
   int phases_ = 0;
   bool keep_previous_ = false;
@@ -63,6 +68,7 @@ class PhaseCombiner {
   PathSafetyResult combined_;
   std::array<Volume<float>, kernels::kValueCount> previous_;  // with keep_previous
   std::array<Volume<float>, kernels::kValueCount> other_;
+  std::future<void> spares_;  // make_spares, after the first fold
   Volume<uint8_t> region_;
   std::shared_ptr<CheckSample> check_;
 };

@@ -24,6 +24,7 @@
 #include "planning/imaging/sampling.hpp"
 #include "planning/preprocessing/blocking.hpp"
 #include "planning/safety/adaptive_sampling.hpp"
+#include "foundation/trace.hpp"
 #include "planning/safety/safety_classes.hpp"
 #include <random>
 
@@ -758,7 +759,9 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
   result.fast_stride = adaptive.stride;
   float* out[kernels::kValueCount] = {};
   value_outputs(result, options.values, out);
+  trace::event("sampling_begin");
   const AdaptiveReport report = sample_adaptively(grid, adaptive, evaluate, out);
+  trace::event("sampling_end");
   result.evaluated_points = report.evaluated;
   result.interpolated_voxels = report.interpolated;
   result.sampler_levels = report.levels;
