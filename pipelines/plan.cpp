@@ -636,8 +636,9 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     trace::event("folded", 0, int(at));
     if (at > 0) {
       fold_turn[at].set();
-      // Off the folds' path: fewer cores, so that the samplers beside it keep theirs.
-      omp_set_num_threads(std::max(1, omp_get_num_procs() / 4));
+      // Off the folds' path: fewer cores while samplers run beside it (the last phase's take
+      // them all, beside the plan's writes).
+      if (at + 1 < order.size()) omp_set_num_threads(std::max(1, omp_get_num_procs() / 4));
     }
     finish_fast_check(*own);
     nlohmann::json entry;

@@ -1112,16 +1112,20 @@ class CudaBackend {
         e.evaluate(&points.front().i, int64_t(points.size()), out.data());
       };
     };
-    // The self-check's scene uploads on another thread while the grid is sampled; its exact
-    // values (a few milliseconds on the GPU) are computed after the sampling.
-    std::future<std::unique_ptr<kernels::CudaPointEvaluator>> exact;
+    // The self-check's scene uploads, and its exact values are computed, on another thread while
+    // the grid is sampled: computed after the sampling, they queued behind the rays of a phase
+    // computed beside this one and held up this phase's hand-over by up to 0.4 s (bench/RESULTS.md,
+    // nineteenth session).
+    std::future<CheckSample> exact;
     if (options.fast_check_voxels > 0) {
       exact = std::async(std::launch::async, [&] {
-        return std::make_unique<kernels::CudaPointEvaluator>(
-            scene, desc, options.values,
-            options.cuda_texture ? kernels::BlockingStorage::kTexture
-                                 : kernels::BlockingStorage::kGlobal,
-            options.max_gpus);
+        kernels::CudaPointEvaluator reference(scene, desc, options.values,
+                                              options.cuda_texture
+                                                  ? kernels::BlockingStorage::kTexture
+                                                  : kernels::BlockingStorage::kGlobal,
+                                              options.max_gpus);
+        return exact_check_sample(grid, known, options.fast_check_voxels,
+                                  evaluator_of(reference));
       });
     }
     run_adaptive(grid, known, options, evaluator_of(evaluator), result,
@@ -1129,9 +1133,7 @@ class CudaBackend {
     clock.done("adaptive_sampling");
     double kernel_s = evaluator.kernel_seconds();
     if (exact.valid()) {
-      const std::unique_ptr<kernels::CudaPointEvaluator> reference = exact.get();
-      auto sample = std::make_shared<const CheckSample>(exact_check_sample(
-          grid, known, options.fast_check_voxels, evaluator_of(*reference)));
+      auto sample = std::make_shared<const CheckSample>(exact.get());
       const unsigned values = options.values;
       result.check_sample = sample;
       result.pending_check = [sample, values](PathSafetyResult& r) {
