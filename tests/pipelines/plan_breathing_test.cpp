@@ -419,8 +419,7 @@ TEST(PlanBreathing, BadPhaseListsAreRefusedNamingTheFile) {
 TEST(PlanBreathing, PhasesReadSideBySidePlanAsReadOneByOne) {
   const test::TemporaryFolder dir;
   const ThreePhases three = write_three_phases(dir.path());
-  const test::MiniPlanInputs& in = three.in;
-  const std::string &a = three.a, &b = three.b, &list = three.list;
+  const std::string& list = three.list;
   const int threads = omp_get_max_threads();
   omp_set_num_threads(1);
   run_plan(phases_request(list, dir.file("one_by_one")));

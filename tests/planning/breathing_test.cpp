@@ -76,6 +76,36 @@ TEST(PhaseCombiner, LeastSafePhaseWinsAndUnknownInAnyPhaseIsUnknown) {
   EXPECT_DOUBLE_EQ(combiner.class_change_share(0, svv), 0.5);
 }
 
+// One phase is its own other extreme (the volumes a second fold would write are made beside the
+// first): no class changes over a cycle of one phase.
+TEST(PhaseCombiner, OnePhaseIsItsOwnOtherExtreme) {
+  for (const bool keep : {false, true}) {
+    const PathSafetyResult a = result({95, 80, kNaN, 40}, {0.0f, 2.0f, kNaN, 7.0f});
+    PhaseCombiner combiner;
+    combiner.keep_previous(keep);
+    combiner.add(a, states({1, 1, 0, 1}, a.grid.geometry));
+    for (int v = 0; v < 2; ++v) {
+      for (int64_t i = 0; i < 4; ++i) {
+        const float x = a.volumes[size_t(v)][i], y = combiner.other_extreme(v)[i];
+        EXPECT_TRUE(std::isnan(x) ? std::isnan(y) : x == y) << keep << " " << v << " " << i;
+      }
+    }
+    SafetyClasses svv;
+    svv.higher_is_safer = true;
+    svv.safe = 90;
+    svv.dangerous = 50;
+    EXPECT_DOUBLE_EQ(combiner.class_change_share(0, svv), 0.0);
+    // A second phase folds into the volumes made beside the first: the other extreme of two.
+    combiner.add(result({60, 85, kNaN, 45}, {3.0f, 1.0f, kNaN, 1.0f}),
+                 states({1, 1, 0, 1}, a.grid.geometry));
+    EXPECT_EQ(combiner.other_extreme(0)[0], 95.0f);
+    EXPECT_EQ(combiner.other_extreme(0)[1], 85.0f);
+    EXPECT_EQ(combiner.other_extreme(1)[0], 0.0f);
+    EXPECT_EQ(combiner.other_extreme(1)[3], 1.0f);
+    EXPECT_DOUBLE_EQ(combiner.class_change_share(0, svv), 1.0 / 3.0);  // voxel 0: 60..95
+  }
+}
+
 // With keep_previous (two phases computed at once) the combination before the last fold stays
 // readable where it was, the same values as without it, and an older one is refused.
 TEST(PhaseCombiner, TheCombinationBeforeTheLastFoldStaysWhereItWas) {

@@ -510,6 +510,60 @@ TEST(PathSafety, TumorLeapsGiveTheWalkOfEverySample) {
   }
 }
 
+// The tumor walk stops early only where nothing more of it is used: against a walk that looks at
+// every sample toward p (k = 1..N) and beyond t to the tumor's box, front- and back-facing agree on
+// every ray, and the samples inside the tumor wherever t is back-facing (the chord IVBV uses).
+TEST(PathSafety, TumorWalkStopsOnlyWhereNothingMoreIsUsed) {
+  ImageGeometry tg;
+  const Volume<uint8_t> tumor = lumpy_tumor(tg);
+  const TumorSurface surface = extract_tumor_surface(tumor, "lumpy");
+  const std::vector<uint8_t> leaps = tumor_leaps(tumor, surface.lo, surface.hi);
+  const Volume<float> blocking(centred_cube_grid(41, 1.0), 0.0f);
+  for (const bool leaping : {true, false}) {
+    const auto scene = leaping ? make_scene(blocking, tumor, surface, 0.35, 0.01, {}, leaps)
+                               : make_scene(blocking, tumor, surface, 0.35, 0.01);
+    std::mt19937 rng(9);
+    std::uniform_real_distribution<double> far(-29.0, 29.0), near(-9.0, 9.0);
+    std::uniform_int_distribution<size_t> pick(0, surface.points.size() - 1);
+    int neither = 0, back_chords = 0;
+    for (int n = 0; n < 3000; ++n) {
+      const auto& t = surface.points[pick(rng)];
+      const kernels::Vec3<double> p = n % 2 ? kernels::Vec3<double>{far(rng), far(rng), far(rng)}
+                                            : kernels::Vec3<double>{near(rng), near(rng), near(rng)};
+      const auto d = p - t.position;
+      if (kernels::dot(d, d) < 0.05 * 0.05) continue;  // tiny steps: the leap test's case
+      const auto ray = kernels::make_ray(scene, p, t);
+      const auto walked = kernels::cross_tumor(scene.tumor, ray, t.offset, true);
+      // Every sample, from the definition: x_k = p + k (t - p) / N, nearest voxel.
+      const kernels::Vec3<double> r0 = kernels::shift_for_ties(ray.r0);
+      bool front = true, back = true;
+      int inside = 0;
+      for (int k = 1; k <= ray.n; ++k) {
+        const int off =
+            kernels::tumor_offset_at_shifted(scene.tumor, kernels::along_rn(r0, ray.dr, double(k)));
+        if (off < 0) continue;
+        ++inside;
+        if (off != t.offset && k < ray.n) front = false;
+      }
+      double k_in, k_out;
+      kernels::box_range(ray.r0, ray.dr, scene.tumor.lo, scene.tumor.hi, k_in, k_out);
+      for (double k = double(ray.n) + 1.0; k <= k_out; k = kernels::add_rn(k, 1.0)) {
+        const int off = kernels::tumor_offset_at_shifted(scene.tumor, kernels::along_rn(r0, ray.dr, k));
+        if (off >= 0 && off != t.offset) back = false;
+      }
+      ASSERT_EQ(walked.front_facing, front) << "ray " << n;
+      ASSERT_EQ(walked.back_facing, back) << "ray " << n;
+      if (back) {
+        ASSERT_EQ(walked.samples_in_tumor, inside) << "ray " << n;
+        back_chords += inside > 20;
+      }
+      neither += !front && !back;
+    }
+    EXPECT_GT(neither, 200) << leaping;      // walks that stop early
+    EXPECT_GT(back_chords, 100) << leaping;  // whole chords through the tumor
+  }
+}
+
 // A sampler that counts its samples (the march's cost) and reads the grid.
 struct CountingSampler {
   kernels::GridSampler<double> grid;
