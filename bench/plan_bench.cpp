@@ -5,6 +5,7 @@
 // plan's own timings (plan.json "timings") and the wall time are printed as one JSON line.
 #include <execinfo.h>
 #include <sys/resource.h>
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include <csignal>
@@ -170,6 +171,8 @@ int main(int argc, char** argv) {
   bool verbose = false;
   app.add_flag("--verbose", verbose, "log the plan's progress (info) instead of warnings only");
   CLI11_PARSE(app, argc, argv);
+  // The log on stderr: stdout holds the one JSON line a script reads.
+  spdlog::set_default_logger(spdlog::stderr_color_mt("bench_plan"));
   spdlog::set_level(verbose ? spdlog::level::info : spdlog::level::warn);
   // A crash on the GPU machine (no debugger there) leaves its call stack on stderr: a segmentation
   // fault, or an abort (the C library's on a corrupted heap). backtrace() is called once here,
