@@ -158,6 +158,25 @@ std::vector<std::future<void>> write_inputs(const StagedDirectory& out, const Pl
 
 // Step 3b: voxel states and path safety volumes into the staged folder, concurrently, and the
 // writes of step 3a finished.
+// Area safety (§3.3) of the first computed value on a thread of its own while the volumes are
+// written (the writes wait on the disk); its classes are taken here, before the writes take the
+// others' beside it. Fills `json` and `geometry`; an invalid future when it is off.
+std::future<double> area_safety_beside_writes(const PlanRequest& req,
+                                              const Volume<uint8_t>& tumor,
+                                              PathSafetyResult& result,
+                                              const StagedDirectory& out,
+                                              const Volume<uint8_t>& region, nlohmann::json& json,
+                                              AreaSafetyGeometry& geometry) {
+  if (!req.area_safety.enabled) return {};
+  classes_of(result, result.values & (~result.values + 1));  // the lowest value computed
+  return std::async(std::launch::async, [&req, &tumor, &result, &out, &region, &json, &geometry] {
+    const auto ta = Clock::now();
+    json = plan_area_safety(tumor, result, req.area_safety, out.file("area_safety.vtk"), &region,
+                            &geometry);
+    return seconds_since(ta);
+  });
+}
+
 Written write_volumes(const StagedDirectory& out, PathSafetyResult& result,
                       const Volume<uint8_t>& region, std::vector<std::future<void>> writes,
                       const nlohmann::json& outputs) {
@@ -790,20 +809,11 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   t = Clock::now();
   nlohmann::json outputs;
   std::vector<std::future<void>> input_writes = write_inputs(out, first.inputs, outputs);
-  // Area safety of the first computed value on the cores while the volumes are written, as a
-  // single phase's (its classes taken before the writes take the others' beside it).
+  // Area safety beside the writes, as a single phase's.
   nlohmann::json area_safety;
   AreaSafetyGeometry geometry;
-  std::future<double> area;
-  if (req.area_safety.enabled) {
-    classes_of(combined, combined.values & (~combined.values + 1));  // the lowest value computed
-    area = std::async(std::launch::async, [&] {
-      const auto ta = Clock::now();
-      area_safety = plan_area_safety(first.inputs.tumor, combined, req.area_safety,
-                                     out.file("area_safety.vtk"), &region, &geometry);
-      return seconds_since(ta);
-    });
-  }
+  std::future<double> area = area_safety_beside_writes(req, first.inputs.tumor, combined, out,
+                                                       region, area_safety, geometry);
   Written written;
   try {
     written = write_volumes(out, combined, region, std::move(input_writes), outputs);
@@ -1013,20 +1023,11 @@ nlohmann::json run_plan(const PlanRequest& request) {
   timings["scan_coverage_s"] = seconds_since(t);
 
   // Step 4, area safety (§3.3) of the first computed value, on the cores while the volumes
-  // are written (the writes wait on the disk). Its classes are taken here, before the writes
-  // take the others' beside it.
+  // are written.
   nlohmann::json area_safety;
   AreaSafetyGeometry geometry;
-  std::future<double> area;
-  if (req.area_safety.enabled) {
-    classes_of(result, result.values & (~result.values + 1));  // the lowest value computed
-    area = std::async(std::launch::async, [&] {
-      const auto ta = Clock::now();
-      area_safety = plan_area_safety(in.tumor, result, req.area_safety,
-                                     out.file("area_safety.vtk"), &region, &geometry);
-      return seconds_since(ta);
-    });
-  }
+  std::future<double> area =
+      area_safety_beside_writes(req, in.tumor, result, out, region, area_safety, geometry);
   t = Clock::now();
   Written written;
   try {
