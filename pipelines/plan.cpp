@@ -1,7 +1,6 @@
 // The plan job: inputs -> blocking volume -> path safety -> area safety -> PLAN_DIR, written
 // atomically. The folder's format (plan.json's pieces) is planning/plan_folder's.
 #include "pipelines/plan.hpp"
-#include "foundation/trace.hpp"
 
 #include <omp.h>
 #include <spdlog/spdlog.h>
@@ -11,11 +10,11 @@
 #include <atomic>
 #include <exception>
 #include <functional>
-#include <string>
 #include <future>
 #include <map>
 #include <memory>
 #include <mutex>
+#include <string>
 #include <thread>
 #include <vector>
 #include <cmath>
@@ -24,6 +23,7 @@
 #include "foundation/error.hpp"
 #include "foundation/output_files.hpp"
 #include "foundation/text.hpp"
+#include "foundation/trace.hpp"
 #include "pipelines/job_inputs.hpp"
 #include "pipelines/plan_inputs.hpp"
 #include "planning/imaging/volume_io.hpp"
@@ -156,8 +156,6 @@ std::vector<std::future<void>> write_inputs(const StagedDirectory& out, const Pl
   return writes;
 }
 
-// Step 3b: voxel states and path safety volumes into the staged folder, concurrently, and the
-// writes of step 3a finished.
 // Area safety (§3.3) of the first computed value on a thread of its own while the volumes are
 // written (the writes wait on the disk); its classes are taken here, before the writes take the
 // others' beside it. Fills `json` and `geometry`; an invalid future when it is off.
@@ -177,6 +175,8 @@ std::future<double> area_safety_beside_writes(const PlanRequest& req,
   });
 }
 
+// Step 3b: voxel states and path safety volumes into the staged folder, concurrently, and the
+// writes of step 3a finished.
 Written write_volumes(const StagedDirectory& out, PathSafetyResult& result,
                       const Volume<uint8_t>& region, std::vector<std::future<void>> writes,
                       const nlohmann::json& outputs) {

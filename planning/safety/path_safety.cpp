@@ -19,12 +19,12 @@
 #include <sstream>
 
 #include "foundation/csv.hpp"
+#include "foundation/trace.hpp"
 #include "kernels/path_safety_fast.hpp"
 #include "kernels/value_set.hpp"
 #include "planning/imaging/sampling.hpp"
 #include "planning/preprocessing/blocking.hpp"
 #include "planning/safety/adaptive_sampling.hpp"
-#include "foundation/trace.hpp"
 #include "planning/safety/safety_classes.hpp"
 #include <random>
 
