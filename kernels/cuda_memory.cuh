@@ -43,9 +43,9 @@ struct DeviceBuffer {
   DeviceBuffer& operator=(const DeviceBuffer&) = delete;
 };
 
-// A stream that neither waits for the legacy default stream nor makes it wait: work on it runs
-// beside the path safety kernels another thread launches (two phases of a breathing plan, a
-// phase's blocking volume made while another is computed) instead of queueing behind them.
+// A stream that neither waits for a default stream nor makes it wait: work on it runs beside the
+// path safety kernels launched on the same thread's default stream (the kernels are compiled with
+// per-thread default streams, so other threads' kernels run beside it anyway).
 struct OwnStream {
   cudaStream_t stream = nullptr;
   OwnStream() { check(cudaStreamCreateWithFlags(&stream, cudaStreamNonBlocking), "cudaStreamCreate"); }

@@ -1102,8 +1102,16 @@ class CudaBackend {
     // Fast mode samples through the texture (hardware filtering: 1.3x faster kernels on the
     // H100, relative L2 below 2e-3 against float filtering); its self-check recomputes in global
     // memory, the exact definition, so that it measures the texture's difference too.
-    kernels::CudaPointEvaluator evaluator(fast_scene, desc, options.values,
-                                          kernels::BlockingStorage::kTexture, options.max_gpus);
+    // Both scenes go with the result (PathSafetyResult::device_memory): freed here, they would
+    // wait for the kernels of a phase computed beside this one.
+    struct Scenes {
+      std::unique_ptr<kernels::CudaPointEvaluator> fast, reference;
+    };
+    const auto scenes = std::make_shared<Scenes>();
+    scenes->fast = std::make_unique<kernels::CudaPointEvaluator>(
+        fast_scene, desc, options.values, kernels::BlockingStorage::kTexture, options.max_gpus);
+    kernels::CudaPointEvaluator& evaluator = *scenes->fast;
+    result.device_memory = scenes;
     clock.done("upload");
     volumes.collect(result);
     clock.done("allocate_wait");
@@ -1119,13 +1127,13 @@ class CudaBackend {
     std::future<CheckSample> exact;
     if (options.fast_check_voxels > 0) {
       exact = std::async(std::launch::async, [&] {
-        kernels::CudaPointEvaluator reference(scene, desc, options.values,
-                                              options.cuda_texture
-                                                  ? kernels::BlockingStorage::kTexture
-                                                  : kernels::BlockingStorage::kGlobal,
-                                              options.max_gpus);
+        scenes->reference = std::make_unique<kernels::CudaPointEvaluator>(
+            scene, desc, options.values,
+            options.cuda_texture ? kernels::BlockingStorage::kTexture
+                                 : kernels::BlockingStorage::kGlobal,
+            options.max_gpus);
         return exact_check_sample(grid, known, options.fast_check_voxels,
-                                  evaluator_of(reference));
+                                  evaluator_of(*scenes->reference));
       });
     }
     run_adaptive(grid, known, options, evaluator_of(evaluator), result,

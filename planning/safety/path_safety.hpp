@@ -220,6 +220,10 @@ struct PathSafetyResult {
   std::function<void(PathSafetyResult&)> pending_check;
   // The check's voxels and exact values (breathing combines the phases' into the combination's).
   std::shared_ptr<const CheckSample> check_sample;
+  // What the computation holds on a device (the CUDA scenes), released with the result or by
+  // whoever takes it: freeing device memory waits for every kernel on the device, so that the
+  // sampler of a phase computed beside this one is not held up by this phase's end.
+  std::shared_ptr<void> device_memory;
 };
 
 // Fast mode against a check sample's exact values: check_voxels, check_relative_l2 and
