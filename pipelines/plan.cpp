@@ -635,6 +635,9 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     trace::event("finish_begin", 0, int(at));
     const size_t k = order[at];
     const PhaseInputs& p = phases[k];
+    // Its device memory freed at the end of this finish: freeing waits for the device, here
+    // beside the samplers rather than in their way.
+    const std::shared_ptr<void> device_memory = std::move(result.device_memory);
     CoverageReport coverage;
     const Volume<uint8_t> region =
         apply_scan_coverage(result, p.inputs.coverage, p.inputs.tumor, {req.crop_to_scan},
@@ -681,6 +684,9 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     entry["computed_as"] = at + 1;
     if (r.mode == Mode::kFast) {
       entry["points_computed_exactly"] = r.evaluated_points;
+      for (const auto& [stride, count] : r.sampler_levels) {
+        entry["points_per_level"].push_back({{"stride", stride}, {"points", count}});
+      }
       if (leave_to_combination && at > 0) {
         entry["left_to_earlier_phases"] = {{"cells", r.cells_left_to_combination},
                                            {"finest_points", r.points_left_to_combination}};
@@ -739,9 +745,12 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
           progress_in_steps("breathing: path safety of " + p.phase.name);
     }
     if (leave_to_combination && at > 0) {
-      // The combination of the phases up to the one `at_once` before this one (the first
-      // phase's for those beside it).
-      const size_t source = at > at_once ? at - at_once : 0;
+      // The combination of the phases up to the one two before this one (the first phase's for
+      // the second): the phase just before is computed beside this one. With more at once, a
+      // phase started early waits for that fold after its coarsest level (the combiner keeps two
+      // combinations: the one it reads is not written before it is done).
+      const size_t lag = std::min<size_t>(at_once, 2);
+      const size_t source = at > lag ? at - lag : 0;
       phase_request.path_safety.combined_so_far = [&folded, &combiner, source] {
         trace::event("comb_wait_begin");
         folded[source].done.get();
