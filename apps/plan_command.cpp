@@ -62,10 +62,11 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
                 "safe). Refining every phase costs more time for the same combined classes "
                 "(99.9 % or more in the measurements). --per-phase implies it");
   cmd->add_option("--phases-at-once", req->phases_at_once,
-                  "With phases: how many phases are computed at once. Default: 2 on a GPU (one "
-                  "phase's host steps run beside the other's rays; the later of the two leaves "
-                  "refinement only to the phases before the one beside it), 1 on the cores; 0 chooses")
-      ->check(CLI::Range(0, 2));
+                  "With phases: how many phases are computed at once. Default: 3 on a GPU (the "
+                  "phases' host steps run beside the others' rays; a phase leaves refinement only "
+                  "to the phases before the one computed beside it), 1 on the cores; 0 chooses. "
+                  "Each phase at once holds its volumes in memory (about 2.2 GB at 513^3)")
+      ->check(CLI::Range(0, 4));
   return lesion_at;
 }
 

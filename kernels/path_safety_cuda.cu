@@ -5,7 +5,6 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
-#include <cstdlib>
 #include <cmath>
 #include <exception>
 #include <functional>
@@ -743,52 +742,6 @@ __global__ void __launch_bounds__(128, 8)
   for (int v = 0; v < kValueCount; ++v) out[size_t(p) * kValueCount + v] = res[v];
 }
 
-// A call of fewer points than make several waves of resident threads (fast mode's coarsest
-// levels, the finest level's pieces): `lanes` threads of one warp per point, each casting every
-// lanes-th ray, their states summed across the lanes. With one thread per point such a call
-// ended with its longest points alone on the device (the coarsest level of a breathing phase,
-// 92 462 points: 0.19 s on an idle H100 for 0.04 s of work).
-template <unsigned Values, typename Sampler>
-__global__ void __launch_bounds__(128, 8)
-    path_safety_points_lanes_kernel(PathSafetyScene<float> scene, PointFrame frame,
-                                    const int32_t* __restrict__ ijk, int count, int lanes,
-                                    Sampler sampler, float* __restrict__ out) {
-  const int thread = blockIdx.x * blockDim.x + threadIdx.x;
-  const int p = thread / lanes, lane = thread % lanes;  // `lanes` divides 32: one warp per point
-  VoxelState<float> state;
-  if (p < count) {
-    const Vec3<double> x =
-        grid_point(frame.origin, frame.axes, ijk[3 * p], ijk[3 * p + 1], ijk[3 * p + 2]);
-    for (int t = lane; t < scene.surface_count; t += lanes) {
-      combine_ray<float, Values, Sampler, kMarchEverySample>(state, scene, x, scene.surface[t],
-                                                             sampler);
-    }
-  }
-  // Every thread of the warp takes part (none returned early), the lanes of a point in a tree.
-  for (int offset = lanes / 2; offset > 0; offset /= 2) {
-    VoxelState<float> other;
-    other.svv.visible = __shfl_down_sync(0xffffffffu, state.svv.visible, offset, lanes);
-    other.svv.clear = __shfl_down_sync(0xffffffffu, state.svv.clear, offset, lanes);
-    other.isbv.sum = __shfl_down_sync(0xffffffffu, state.isbv.sum, offset, lanes);
-    other.ivbv.sum = __shfl_down_sync(0xffffffffu, state.ivbv.sum, offset, lanes);
-    other.bvv.sum = __shfl_down_sync(0xffffffffu, state.bvv.sum, offset, lanes);
-    add_state(state, other);
-  }
-  if (p < count && lane == 0) {
-    float res[kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
-    finalize_values(state, Values, scene.s2, res);
-    for (int v = 0; v < kValueCount; ++v) out[size_t(p) * kValueCount + v] = res[v];
-  }
-}
-
-// Threads per point for a call of `count` points: the smallest power of two up to `most` (at
-// most a warp) that gives about eight waves of the device's resident threads.
-int lanes_per_point(int64_t count, int64_t resident_threads, int most) {
-  int lanes = 1;
-  while (2 * lanes <= std::min(most, 32) && count * lanes < 8 * resident_threads) lanes *= 2;
-  return lanes;
-}
-
 // Few points (fast mode's self-check: 1000): one block per point, its threads splitting the
 // surface points, so that every multiprocessor has work. Thread states are summed in a tree.
 constexpr int kSplitThreads = 128;
@@ -841,15 +794,12 @@ struct CudaPointEvaluator::Impl {
     int64_t capacity = 0;
   };
   std::vector<std::unique_ptr<Launch>> launches;
-  std::vector<int64_t> resident_threads;  // per device: 8 blocks of 128 on each multiprocessor
-  int max_lanes = 32;
   double setup_s = 0.0, kernel_s = 0.0;
 };
 
 CudaPointEvaluator::CudaPointEvaluator(const PathSafetyScene<double>& scene,
                                        const OutputGridDesc& grid, unsigned values,
-                                       BlockingStorage storage, int max_devices,
-                                       int max_lanes)
+                                       BlockingStorage storage, int max_devices)
     : impl_(new Impl) {
   const auto t0 = std::chrono::steady_clock::now();
   try {
@@ -866,17 +816,8 @@ CudaPointEvaluator::CudaPointEvaluator(const PathSafetyScene<double>& scene,
     }
     impl_->scenes.resize(size_t(devices));
     impl_->launches.resize(size_t(devices));
-    impl_->resident_threads.resize(size_t(devices));
-    impl_->max_lanes = std::clamp(max_lanes, 1, 32);
-    if (const char* lanes = std::getenv("CREPUSCULAR_POINT_LANES")) {
-      impl_->max_lanes = std::min(impl_->max_lanes, std::clamp(std::atoi(lanes), 1, 32));
-    }
     on_every_device(devices, [&](int d) {
       check(cudaSetDevice(d), "cudaSetDevice");
-      int sms = 0;
-      check(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, d),
-            "cudaDeviceGetAttribute");
-      impl_->resident_threads[size_t(d)] = int64_t(sms) * 8 * 128;
       impl_->scenes[size_t(d)] = std::make_unique<DeviceScene>(scene, storage);
       check(cudaDeviceSynchronize(), "upload scene");
     });
@@ -929,18 +870,12 @@ void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out)
                        cudaMemcpyHostToDevice),
             "upload points");
       const unsigned blocks = unsigned((m + 127) / 128);
-      const int lanes =
-          lanes_per_point(m, impl_->resident_threads[size_t(d)], impl_->max_lanes);
       const auto launch = [&](auto sampler) {
         with_value_set(impl_->values, [&](auto tag) {
           constexpr unsigned kValues = decltype(tag)::value;
           if (m < kSplitBelow) {
             path_safety_points_split_kernel<kValues><<<unsigned(m), kSplitThreads>>>(
                 ds.scene, impl_->frame, points.ptr, sampler, values.ptr);
-          } else if (lanes > 1) {
-            path_safety_points_lanes_kernel<kValues>
-                <<<unsigned((int64_t(m) * lanes + 127) / 128), 128>>>(
-                    ds.scene, impl_->frame, points.ptr, m, lanes, sampler, values.ptr);
           } else {
             path_safety_points_kernel<kValues><<<blocks, 128>>>(ds.scene, impl_->frame,
                                                                 points.ptr, m, sampler, values.ptr);

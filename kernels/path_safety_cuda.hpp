@@ -69,15 +69,11 @@ int cuda_warm_up();
 
 // Exact values at listed points of an output grid (fast mode's coarse-to-fine sampling): the
 // scene is uploaded once to every device (up to max_devices; 0: all visible) and kept for every
-// call; each call splits its points between the devices. A call of fewer points than fill the
-// device several times over gives each point up to `max_lanes` threads of a warp (a power of two
-// up to 32), each casting a share of its rays; the environment variable CREPUSCULAR_POINT_LANES
-// lowers that bound (1: one thread per point; benchmarks compare with it).
+// call; each call splits its points between the devices.
 class CudaPointEvaluator {
  public:
   CudaPointEvaluator(const PathSafetyScene<double>& scene, const OutputGridDesc& grid,
-                     unsigned values, BlockingStorage storage, int max_devices,
-                     int max_lanes = 32);
+                     unsigned values, BlockingStorage storage, int max_devices);
   ~CudaPointEvaluator();
   CudaPointEvaluator(const CudaPointEvaluator&) = delete;
   CudaPointEvaluator& operator=(const CudaPointEvaluator&) = delete;

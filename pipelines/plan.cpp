@@ -599,14 +599,16 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   // (PathSafetyOptions::combined_so_far), unless every phase's own volumes are written.
   const bool leave_to_combination = req.path_safety.mode == Mode::kFast && !req.per_phase &&
                                     !req.refine_every_phase;
-  // Phases computed at once: on a GPU two, so that one phase's host steps (preparation, the
-  // sampler's steps between launches) run beside the other's rays; one on the cores, where both
-  // would share them. The second phase's sampler then leaves to the combination of the phases
-  // before the one beside it (it cannot wait for that one's fold).
+  // Phases computed at once: on a GPU three, so that the phases' host steps (preparation, the
+  // sampler's steps between launches) run beside the others' rays; one on the cores, where they
+  // would share them. A phase's sampler leaves to the combination of the phases before the one
+  // computed beside it (it cannot wait for that one's fold); the third prepares and samples its
+  // coarsest level meanwhile, then waits for its fold (H100, 10 phases: 0.4-1.5 s less than two
+  // at once, the same points; bench/RESULTS.md, twentieth session).
   const size_t at_once = std::min<size_t>(
       phases.size(), req.phases_at_once > 0
                          ? size_t(req.phases_at_once)
-                         : (gpus_for(shared.path_safety.device) > 0 ? 2 : 1));
+                         : (gpus_for(shared.path_safety.device) > 0 ? 3 : 1));
   combiner.keep_previous(leave_to_combination && at_once > 1);
   // Folded into the combination: a phase's sampler waits for an earlier phase's fold; on an error
   // every fold not yet made fails, so that nothing waits for it.

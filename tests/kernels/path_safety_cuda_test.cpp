@@ -203,14 +203,11 @@ TEST(CudaFastCheck, LeftForLaterGivesTheImmediateChecksNumbers) {
   }
 }
 
-// Fast mode's point kernels (one thread per point, and a point's rays shared by the lanes of a
-// warp, as a call of this few points is; every sample marched, uniform bricks read from their
-// codes) against the definition in double on the cores, at points side by side and scattered, in
-// a large empty volume with an organ, a vessel and a tumor: a sample that took a wrong value, or a
-// lane's rays summed twice or left out, would change a value by tenths.
-class CudaPointKernel : public ::testing::TestWithParam<int> {};
-
-TEST_P(CudaPointKernel, ValuesOfTheDefinitionAtNeighboursAndScatteredPoints) {
+// Fast mode's point kernel (one thread per point, every sample marched, uniform bricks read from
+// their codes) against the definition in double on the cores, at points side by side and
+// scattered, in a large empty volume with an organ, a vessel and a tumor: a sample that took a
+// wrong value would change a crossing ray's integral by tenths.
+TEST(CudaPointKernel, ValuesOfTheDefinitionAtNeighboursAndScatteredPoints) {
   if (kernels::cuda_device_count() == 0) GTEST_SKIP() << "no CUDA device";
   ImageGeometry g = grid(121, 1.0);
   Volume<float> blocking(g, 0.0f);
@@ -240,7 +237,7 @@ TEST_P(CudaPointKernel, ValuesOfTheDefinitionAtNeighboursAndScatteredPoints) {
   desc.n = 121;
   desc.half = 60;
   desc.max_sq = 3 * 60 * 60;
-  // 16384 points (above the block-per-point calls): rows of neighbours, then scattered points.
+  // 16384 points (the one-thread-per-point kernel): rows of neighbours, then scattered points.
   std::mt19937 rng(11);
   std::uniform_int_distribution<int> u(0, 120);
   std::vector<int32_t> ijk;
@@ -253,7 +250,7 @@ TEST_P(CudaPointKernel, ValuesOfTheDefinitionAtNeighboursAndScatteredPoints) {
   std::vector<float> gpu(size_t(count) * kernels::kValueCount);
   {
     kernels::CudaPointEvaluator evaluator(scene, desc, kernels::kAllValues,
-                                          kernels::BlockingStorage::kGlobal, 1, GetParam());
+                                          kernels::BlockingStorage::kGlobal, 1);
     evaluator.evaluate(ijk.data(), count, gpu.data());
   }
   double diff2[4] = {}, ref2[4] = {};
@@ -277,15 +274,11 @@ TEST_P(CudaPointKernel, ValuesOfTheDefinitionAtNeighboursAndScatteredPoints) {
   for (int v = 0; v < 4; ++v) {
     ASSERT_GT(ref2[v], 0.0) << value_name(1u << v);
     const double rel = std::sqrt(diff2[v] / ref2[v]);
-    std::printf("[ points   ] %s: relative L2 cuda points (%d lanes at most) vs cpu double %.2e\n",
-                value_name(1u << v), GetParam(), rel);
+    std::printf("[ points   ] %s: relative L2 cuda points vs cpu double %.2e\n",
+                value_name(1u << v), rel);
     EXPECT_LE(rel, 1e-4) << value_name(1u << v);
   }
 }
-
-// 1: one thread per point; 2 and 32: a point's rays over the lanes of a warp (16384 points take
-// 32 on any device, whose resident threads are far more).
-INSTANTIATE_TEST_SUITE_P(Lanes, CudaPointKernel, ::testing::Values(1, 2, 32));
 
 }  // namespace
 }  // namespace crepuscular::planning

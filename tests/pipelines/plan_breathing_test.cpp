@@ -168,7 +168,7 @@ TEST(PlanBreathing, PhasesFinishedBesideTheNextAreEachPhasesOwnAndCombineInOrder
   const auto on_gpu = [gpu](PlanRequest r) {
     r.path_safety.device = gpu ? Device::kCuda : Device::kCpu;
     r.path_safety.mode = Mode::kFast;
-    r.phases_at_once = 2;  // each phase beside another (the default on a GPU)
+    r.phases_at_once = 2;  // each phase beside another
     return r;
   };
   const nlohmann::json cycle = run_plan(on_gpu(phases_request(
@@ -324,6 +324,9 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
   const nlohmann::json exact = run_plan(request("exact", Mode::kExact, false));
   // Two phases at once: the later of two leaves refinement to the phases before the other.
   const nlohmann::json two = run_plan(request("two", Mode::kFast, false, 2));
+  // Three at once (the default on a GPU): the third waits, after its coarsest level, for the fold
+  // two before it, so every phase leaves to the phases it leaves to two at once.
+  const nlohmann::json three = run_plan(request("three", Mode::kFast, false, 3));
   const auto& phases = left["breathing"]["phases"];
   ASSERT_EQ(phases.size(), 4u);
   EXPECT_EQ(phases[0]["computed_as"], 1);
@@ -352,6 +355,10 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
     EXPECT_EQ(two_phases[k]["computed_as"], phases[k]["computed_as"]);
   }
   EXPECT_EQ(two_phases[2]["points_computed_exactly"], phases[2]["points_computed_exactly"]);
+  for (size_t k = 0; k < 4; ++k) {
+    EXPECT_EQ(three["breathing"]["phases"][k]["points_computed_exactly"],
+              two_phases[k]["points_computed_exactly"]) << k;
+  }
   EXPECT_LT(points_two, points_every * 9 / 10) << points_two << " vs " << points_every;
   EXPECT_EQ(left["fast_mode_vs_exact"]["points_computed_exactly"].get<int64_t>(), points_left);
   const Volume<uint8_t> roi = read_volume<uint8_t>(dir.file("exact/roi.nii.gz"));
@@ -363,6 +370,7 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
     };
     const Volume<float> l = volume("left"), e = volume("every"), x = volume("exact"),
                         t = volume("two");
+    expect_identical(t, volume("three"), value + " three at once");
     SafetyClasses classes;
     const nlohmann::json& c = exact["classes"][value];
     classes.higher_is_safer = value == "svv";
