@@ -603,8 +603,9 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   // sampler's steps between launches) run beside the others' rays; one on the cores, where they
   // would share them. A phase's sampler leaves to the combination of the phases before the one
   // computed beside it (it cannot wait for that one's fold); the third prepares and samples its
-  // coarsest level meanwhile, then waits for its fold (H100, 10 phases: 0.4-1.5 s less than two
-  // at once, the same points; bench/RESULTS.md, twentieth session).
+  // coarsest level meanwhile, then waits for its fold (H100, 10 phases, the same points as two
+  // at once: 25 mm tumor 1.0-1.5 s less, 2 cm tumor within the instances' spread; memory: one
+  // more phase's volumes; bench/RESULTS.md, twentieth session).
   const size_t at_once = std::min<size_t>(
       phases.size(), req.phases_at_once > 0
                          ? size_t(req.phases_at_once)

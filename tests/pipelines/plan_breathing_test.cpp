@@ -334,6 +334,10 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
   int64_t points_left = 0, points_every = 0, left_out = 0;
   for (size_t k = 0; k < 4; ++k) {
     points_left += phases[k]["points_computed_exactly"].get<int64_t>();
+    int64_t by_level = 0;  // each phase's points, level by level
+    for (const auto& level : phases[k]["points_per_level"]) by_level += level["points"].get<int64_t>();
+    EXPECT_EQ(by_level, phases[k]["points_computed_exactly"].get<int64_t>()) << k;
+    EXPECT_GE(phases[k]["points_per_level"].size(), 2u) << k;
     points_every += every["breathing"]["phases"][k]["points_computed_exactly"].get<int64_t>();
     EXPECT_FALSE(every["breathing"]["phases"][k].contains("left_to_earlier_phases"));
     if (k == 0) {
