@@ -586,6 +586,10 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   const std::vector<size_t> order = phase_order(phases);
   std::unique_ptr<PhaseReaders> blocking_reads;  // declared after `phases`: joined before they go
   if (stream) {
+    // The first phase's blocking volume on the cores alone: read beside it, the later phases'
+    // shared the cores with it and held up the first rays, while none of them is needed before
+    // the first phase has sampled its coarsest level.
+    first_blocking.get();
     std::shared_ptr<std::atomic<size_t>> done = std::make_shared<std::atomic<size_t>>(0);
     // The first phase's is read already (beside the tumors).
     blocking_reads = std::make_unique<PhaseReaders>(
@@ -735,9 +739,10 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, at + 1,
                  phases.size());
     t_phase[at] = Clock::now();
-    // Its blocking volume, read beside the tumors (the first) or the computation.
-    if (k == 0 && first_blocking.valid()) {
-      first_blocking.get();
+    // Its blocking volume, read beside the tumors (the first, waited for before the later ones'
+    // reads start) or the computation.
+    if (k == 0) {
+      if (first_blocking.valid()) first_blocking.get();
     } else if (blocking_reads) {
       blocking_reads->wait(k);
     }
