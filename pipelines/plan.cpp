@@ -608,7 +608,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   // would share them. A phase's sampler leaves to the combination of the phases before the one
   // computed beside it (it cannot wait for that one's fold); the third prepares and samples its
   // coarsest level meanwhile, then waits for its fold (H100, 10 phases, the same points as two
-  // at once: 25 mm tumor 1.0-1.5 s less, 2 cm tumor within the instances' spread; memory: one
+  // at once: 25 mm tumor 1.0-2.5 s less, 2 cm tumor from as long to 1.8 s less; memory: one
   // more phase's volumes; bench/RESULTS.md, twentieth session).
   const size_t at_once = std::min<size_t>(
       phases.size(), req.phases_at_once > 0
