@@ -224,6 +224,15 @@ nlohmann::json parameters_json(const PlanRequest& req, const PathSafetyResult& r
           {"threads", result.threads}};
 }
 
+// Fast mode's points, level by level (the coarsest first).
+nlohmann::json points_per_level_json(const PathSafetyResult& result) {
+  nlohmann::json levels = nlohmann::json::array();
+  for (const auto& [stride, count] : result.sampler_levels) {
+    levels.push_back({{"stride", stride}, {"points", count}});
+  }
+  return levels;
+}
+
 // Fast mode's check against the exact method on random voxels.
 nlohmann::json fast_check_json(const PlanRequest& req, const PathSafetyResult& result) {
   nlohmann::json check = {{"voxels", result.check_voxels}, {"mode", mode_name(result.mode)}};
@@ -238,11 +247,7 @@ nlohmann::json fast_check_json(const PlanRequest& req, const PathSafetyResult& r
         result.fast_surface_points > 0 ? result.fast_surface_points : result.surface_points;
     check["points_computed_exactly"] = result.evaluated_points;
     check["voxels_interpolated"] = result.interpolated_voxels;
-    nlohmann::json levels = nlohmann::json::array();
-    for (const auto& [stride, count] : result.sampler_levels) {
-      levels.push_back({{"stride", stride}, {"points", count}});
-    }
-    check["points_per_level"] = levels;
+    check["points_per_level"] = points_per_level_json(result);
   }
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (!(result.values & (1u << v))) continue;
@@ -586,12 +591,11 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   const std::vector<size_t> order = phase_order(phases);
   std::unique_ptr<PhaseReaders> blocking_reads;  // declared after `phases`: joined before they go
   if (stream) {
-    // The first phase's blocking volume on the cores alone: read beside it, the later phases'
-    // shared the cores with it and held up the first rays, while none of them is needed before
-    // the first phase has sampled its coarsest level.
+    // The first phase's blocking volume (read beside the tumors) on the cores alone, then the
+    // others': read beside it, they shared the cores with it and held up the first rays, while
+    // none of them is needed before the first phase has sampled its coarsest level.
     first_blocking.get();
     std::shared_ptr<std::atomic<size_t>> done = std::make_shared<std::atomic<size_t>>(0);
-    // The first phase's is read already (beside the tumors).
     blocking_reads = std::make_unique<PhaseReaders>(
         std::vector<size_t>(order.begin() + 1, order.end()), [&phases, done](size_t k) {
           read_phase_blocking(phases[k], k);
@@ -691,9 +695,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     entry["computed_as"] = at + 1;
     if (r.mode == Mode::kFast) {
       entry["points_computed_exactly"] = r.evaluated_points;
-      for (const auto& [stride, count] : r.sampler_levels) {
-        entry["points_per_level"].push_back({{"stride", stride}, {"points", count}});
-      }
+      entry["points_per_level"] = points_per_level_json(r);
       if (leave_to_combination && at > 0) {
         entry["left_to_earlier_phases"] = {{"cells", r.cells_left_to_combination},
                                            {"finest_points", r.points_left_to_combination}};
@@ -739,13 +741,9 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, at + 1,
                  phases.size());
     t_phase[at] = Clock::now();
-    // Its blocking volume, read beside the tumors (the first, waited for before the later ones'
-    // reads start) or the computation.
-    if (k == 0) {
-      if (first_blocking.valid()) first_blocking.get();
-    } else if (blocking_reads) {
-      blocking_reads->wait(k);
-    }
+    // Its blocking volume: the first phase's is read before the later ones' reads start, those
+    // beside the computation.
+    if (k > 0 && blocking_reads) blocking_reads->wait(k);
     PlanRequest phase_request = p.request;
     phase_request.path_safety = shared.path_safety;
     if (!phase_request.path_safety.progress) {  // named: two phases may run at once
