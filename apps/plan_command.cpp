@@ -64,7 +64,8 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
   cmd->add_option("--phases-at-once", req->phases_at_once,
                   "With phases: how many phases are computed at once. Default: 3 on a GPU (the "
                   "phases' host steps run beside the others' rays; a phase leaves refinement only "
-                  "to the phases before the one computed beside it), 1 on the cores; 0 chooses. "
+                  "to the phases before the ones computed beside it: its coarsest decisions to "
+                  "those three back, its finer ones to those two back), 1 on the cores; 0 chooses. "
                   "Each phase at once holds its volumes in memory (about 2.2 GB at 513^3)")
       ->check(CLI::Range(0, 4));
   return lesion_at;

@@ -159,6 +159,11 @@ int main(int argc, char** argv) {
                "volumes beside the computation)");
   app.add_option("--phases-at-once", phases_at_once,
                  "breathing: phases computed at once (0: the plan's default)");
+  int newer_from_level = 1;
+  app.add_option("--newer-from-level", newer_from_level,
+                 "breathing, three or more at once: the lattice level from which a phase leaves "
+                 "to the combination two phases back (the coarser to three back; 0: every "
+                 "level two back)");
   app.add_option("--work", work, "working folder (phantom and plan)");
   app.add_flag("--keep", keep, "keep the working folder");
   bool reuse_phantom = false;
@@ -243,6 +248,7 @@ int main(int argc, char** argv) {
   req.path_safety.fast_overlap_host = !no_overlap;
   req.refine_every_phase = refine_every_phase;
   req.phases_at_once = phases_at_once;
+  req.newer_combination_from_level = newer_from_level;
   req.stream_phase_reads = !read_all_first;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
@@ -275,6 +281,7 @@ int main(int argc, char** argv) {
                          {"fast_overlap_host", !no_overlap},
                          {"refine_every_phase", refine_every_phase},
                          {"phases_at_once", phases_at_once},
+                         {"newer_from_level", newer_from_level},
                          {"read_all_first", read_all_first},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},
                          {"device", plan["parameters"]["device"]},
@@ -288,7 +295,7 @@ int main(int argc, char** argv) {
                          {"phantom_made_in_process", !reuse}};
   std::printf("%s\n", line.dump().c_str());
   if (reuse_phantom) {
-    fs::remove_all(work + "/plan");  // the phantom stays for the next run
+    if (!keep) fs::remove_all(work + "/plan");  // the phantom stays for the next run
   } else if (!keep) {
     fs::remove_all(work);
   }

@@ -2,7 +2,7 @@
 """Reads a timeline written with CREPUSCULAR_TRACE=FILE (foundation/trace.hpp) and prints when the
 GPU had points to compute: the union of the evaluator's calls, the gaps between them, how long 0, 1
 or 2 calls were in flight, and the breathing driver's events (phase starts, waits, folds).
-Usage: bench/timeline.py FILE [--events]   (the last run in FILE)."""
+Usage: bench/timeline.py FILE [--steps] [--events]   (the last run in FILE)."""
 import collections
 import sys
 
@@ -47,6 +47,28 @@ def main():
         level, last = level + d, t
     inflight[0] += end - last
     print("seconds with k calls in flight:", {k: round(v, 2) for k, v in sorted(inflight.items())})
+    if "--steps" in sys.argv:
+        # Per phase: when it started, computed and was folded; its sampler's steps (seconds).
+        marks = collections.defaultdict(dict)
+        steps = collections.defaultdict(collections.Counter)
+        points = collections.defaultdict(lambda: [0.0, 0])
+        for t, p, w, n in events:
+            if w.startswith("sampler_"):
+                steps[p][w[len("sampler_"):]] += n / 1e6
+            elif w not in ("eval_begin", "eval_end"):
+                marks[p].setdefault(w, t)
+        for a, b, p, n in calls:
+            points[p][0] += b - a
+            points[p][1] += n
+        names = sorted({w for c in steps.values() for w in c})
+        print("phase start compute_begin comb_wait_end compute_end folded | calls_s M_points | "
+              + " ".join(names))
+        for p in sorted(k for k in marks if k >= 0):
+            m = marks[p]
+            cols = " ".join(f"{m.get(w, float('nan')):6.2f}" for w in
+                            ("start", "compute_begin", "comb_wait_end", "compute_end", "folded"))
+            print(f"{p:3d} {cols} | {points[p][0]:5.2f} {points[p][1] / 1e6:5.2f} | "
+                  + " ".join(f"{steps[p][w]:5.2f}" for w in names))
     if "--events" in sys.argv:
         for t, p, w, _ in events:
             if w not in ("eval_begin", "eval_end"):

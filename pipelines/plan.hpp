@@ -33,8 +33,13 @@ struct PlanRequest : PlanInputOptions {
   // before decide the combination's class (PathSafetyOptions::combined_so_far). Slower; implied
   // by per_phase, whose volumes must each be right.
   bool refine_every_phase = false;
-  // Phases computed at once: 0 chooses (2 on a GPU, 1 on the cores).
+  // Phases computed at once: 0 chooses (3 on a GPU, 1 on the cores).
   int phases_at_once = 0;
+  // Three or more at once, fast mode: a phase's decisions from this level of its lattice on
+  // (1: the second) leave to the combination of the phases up to two before it, the coarser
+  // ones to that of the phases up to three before it, folded earlier
+  // (PathSafetyOptions::combined_newer). 0: every level to the phases up to two before it.
+  int newer_combination_from_level = 1;
   // With spacing and radius given: the tumors read first, the blocking volumes beside the
   // computation (false: every input read before the first phase is computed).
   bool stream_phase_reads = true;

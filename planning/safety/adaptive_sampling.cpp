@@ -15,6 +15,7 @@
 
 #include "foundation/error.hpp"
 #include "foundation/large_buffers.hpp"
+#include "foundation/trace.hpp"
 
 namespace crepuscular::planning {
 
@@ -316,21 +317,24 @@ class StepClock {
     kCells, kRequests, kFinestRequests, kStore, kRefine, kFill, kFinish, kEvaluate,
     kCombinationWait, kSteps
   };
+  // Also a trace event (foundation/trace.hpp) at the step's end, its count the microseconds.
   void add(Step step, std::chrono::steady_clock::time_point since) {
-    seconds_[step] +=
+    const double s =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - since).count();
+    seconds_[step] += s;
+    trace::event(kNames[step], static_cast<long long>(s * 1e6));
   }
   std::vector<std::pair<std::string, double>> named() const {
-    static const char* const kNames[kSteps] = {
-        "sampler_cells",  "sampler_requests", "sampler_finest_requests", "sampler_store",
-        "sampler_refine", "sampler_fill",     "sampler_finish",          "sampler_evaluate",
-        "sampler_combination_wait"};
     std::vector<std::pair<std::string, double>> out;
     for (int s = 0; s < kSteps; ++s) out.emplace_back(kNames[s], seconds_[s]);
     return out;
   }
 
  private:
+  static constexpr const char* kNames[kSteps] = {
+      "sampler_cells",  "sampler_requests", "sampler_finest_requests", "sampler_store",
+      "sampler_refine", "sampler_fill",     "sampler_finish",          "sampler_evaluate",
+      "sampler_combination_wait"};
   double seconds_[kSteps] = {};
 };
 
@@ -806,6 +810,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
         const auto tw = std::chrono::steady_clock::now();
         combination.worst = options.combined_so_far();
         clock.add(StepClock::kCombinationWait, tw);
+        t += std::chrono::steady_clock::now() - tw;  // the refinement's own time excludes it
       }
       for (const int s : slots) {
         std::vector<float> sample;
@@ -827,6 +832,15 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
         report.classes[size_t(s)] = default_classes_of(1u << s, std::move(sample));
       }
       classes_known = true;
+    }
+
+    // A later combination for this level's decisions and the finer ones'.
+    if (options.combined_newer && combination.any() && level == options.newer_from_level &&
+        level > 0) {
+      const auto tw = std::chrono::steady_clock::now();
+      combination.worst = options.combined_newer();
+      clock.add(StepClock::kCombinationWait, tw);
+      t += std::chrono::steady_clock::now() - tw;
     }
 
     // One class at all corners, none near a threshold: uniform. refine: 1 where the classes
@@ -1050,6 +1064,8 @@ AdaptiveOptions adaptive_options(const PathSafetyOptions& options, const OutputG
   adaptive.dilate = options.fast_dilate;
   adaptive.finest_margin = options.fast_finest_margin;
   adaptive.combined_so_far = options.combined_so_far;
+  adaptive.combined_newer = options.combined_newer;
+  adaptive.newer_from_level = options.newer_from_level;
   adaptive.progress = options.progress;
   return adaptive;
 }

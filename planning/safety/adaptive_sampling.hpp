@@ -82,6 +82,13 @@ struct AdaptiveOptions {
   //   cell lies within the classes of its corners (fast mode's premise). This phase's own
   //   volumes are then approximate there: a plan that writes them (--per-phase) does not use it.
   std::function<std::array<const float*, kernels::kValueCount>()> combined_so_far;
+  // With combined_so_far: a later combination (more phases folded in), asked for once before the
+  // decisions of level `newer_from_level` (1: the cells of the second lattice; 0 never): those
+  // and every finer level's leave to it instead. The thresholds stay those of combined_so_far.
+  // A phase computed beside the phase before its newest source thus samples its coarser levels
+  // while that source is still computed, and waits for it only at the finer ones.
+  std::function<std::array<const float*, kernels::kValueCount>()> combined_newer;
+  int newer_from_level = 1;
   std::function<void(double)> progress;
 };
 

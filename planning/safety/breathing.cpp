@@ -34,20 +34,43 @@ Volume<T> parallel_copy(const Volume<T>& from) {
   return to;
 }
 
-}  // namespace
-
-void PhaseCombiner::add(const PathSafetyResult& phase, const Volume<uint8_t>& region) {
-  if (phases_ == 0) {
-    PathSafetyResult first = phase;
-    add(std::move(first), region);
-  } else {
-    add_phase(phase, region);
+// Calls f(first, last) for every row of the grid's voxels inside the region of interest (a
+// ball: one run of voxels per row, offsets first..last inclusive), in parallel. Voxels outside
+// it are not computed in any phase (NaN in every volume).
+template <typename F>
+void for_roi_runs(const OutputGrid& grid, const F& f) {
+  const Index3& d = grid.geometry.dims;
+  const int64_t rows = d[1] * d[2];
+#pragma omp parallel for schedule(static)
+  for (int64_t row = 0; row < rows; ++row) {
+    const int64_t dj = row % d[1] - grid.half, dk = row / d[1] - grid.half;
+    const int64_t rest = grid.max_sq - dj * dj - dk * dk;
+    if (rest < 0) continue;
+    int64_t r = int64_t(std::sqrt(double(rest)));
+    while (r * r > rest) --r;
+    while ((r + 1) * (r + 1) <= rest) ++r;
+    const int64_t i0 = std::max<int64_t>(0, grid.half - r);
+    const int64_t i1 = std::min<int64_t>(d[0] - 1, grid.half + r);
+    if (i0 <= i1) f(row * d[0] + i0, row * d[0] + i1);
   }
 }
 
-void PhaseCombiner::add(PathSafetyResult&& phase, const Volume<uint8_t>& region) {
+}  // namespace
+
+void PhaseCombiner::add(const PathSafetyResult& phase, const Volume<uint8_t>& region,
+                        const std::function<void()>& combined) {
+  if (phases_ == 0) {
+    PathSafetyResult first = phase;
+    add(std::move(first), region, combined);
+  } else {
+    add_phase(phase, region, combined);
+  }
+}
+
+void PhaseCombiner::add(PathSafetyResult&& phase, const Volume<uint8_t>& region,
+                        const std::function<void()>& combined) {
   if (phases_ > 0) {
-    add_phase(phase, region);
+    add_phase(phase, region, combined);
     return;
   }
   if (!region.geometry().same_grid(phase.grid.geometry, 1e-6)) {
@@ -61,8 +84,11 @@ void PhaseCombiner::add(PathSafetyResult&& phase, const Volume<uint8_t>& region)
   // first phase's values anyway (a copy here would hold up the next phase's sampler); its volumes
   // are made meanwhile.
   spares_ = std::async(std::launch::async, [this] { make_spares(); });
-  const std::lock_guard<std::mutex> lock(swap_);
-  phases_ = 1;
+  {
+    const std::lock_guard<std::mutex> lock(swap_);
+    phases_ = 1;
+  }
+  if (combined) combined();
 }
 
 void PhaseCombiner::make_spares() {
@@ -70,7 +96,12 @@ void PhaseCombiner::make_spares() {
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (!(combined_.values & (1u << v))) continue;
     other_[size_t(v)] = Volume<float>(g);
-    if (keep_previous_) previous_[size_t(v)] = Volume<float>(g);
+  }
+  earlier_.resize(size_t(keep_));
+  for (auto& set : earlier_) {
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      if (combined_.values & (1u << v)) set[size_t(v)] = Volume<float>(g);
+    }
   }
 }
 
@@ -81,20 +112,22 @@ int PhaseCombiner::phases() const {
 
 std::array<const float*, kernels::kValueCount> PhaseCombiner::volumes_after(int folded) const {
   const std::lock_guard<std::mutex> lock(swap_);
-  const bool latest = folded == phases_;
-  if (folded < 1 || !(latest || (keep_previous_ && folded == phases_ - 1))) {
+  const int back = phases_ - folded;  // folds made since
+  if (folded < 1 || back < 0 || back > keep_) {
     throw Error("breathing: the combination after " + std::to_string(folded) +
                 " phases is no longer kept (" + std::to_string(phases_) + " folded)");
   }
   std::array<const float*, kernels::kValueCount> out{};
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (!(combined_.values & (1u << v))) continue;
-    out[size_t(v)] = latest ? combined_.volumes[size_t(v)].data() : previous_[size_t(v)].data();
+    out[size_t(v)] = back == 0 ? combined_.volumes[size_t(v)].data()
+                               : earlier_[size_t(back - 1)][size_t(v)].data();
   }
   return out;
 }
 
-void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region) {
+void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region,
+                              const std::function<void()>& combined) {
   const ImageGeometry& g = phase.grid.geometry;
   if (!region.geometry().same_grid(g, 1e-6)) {
     throw Error("breathing phase " + std::to_string(phases_ + 1) +
@@ -115,37 +148,62 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
     if (a == kRegionComputed && b == kRegionComputed) continue;
     region_[i] = (a == kRegionUnknown || b == kRegionUnknown) ? kRegionUnknown : kRegionNotComputed;
   }
-  // With keep_previous the combination is written beside the one before (into the buffer of the
-  // one before that, which no phase reads any more), then the two trade places.
+  // With keep_earlier the combination is written beside the ones kept (into the buffer of the
+  // oldest, which no phase reads any more), then the buffers move down one place.
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (!(phase.values & (1u << v))) continue;
     const bool svv = higher_is_safer(v);
     const Volume<float>& was = combined_.volumes[size_t(v)];
-    if (keep_previous_ && !previous_[size_t(v)].geometry().same_grid(g, 0.0)) {
-      previous_[size_t(v)] = Volume<float>(g);
+    if (keep_ > 0 && !earlier_.back()[size_t(v)].geometry().same_grid(g, 0.0)) {
+      earlier_.back()[size_t(v)] = Volume<float>(g);
     }
-    Volume<float>& worst = keep_previous_ ? previous_[size_t(v)] : combined_.volumes[size_t(v)];
+    Volume<float>& worst = keep_ > 0 ? earlier_.back()[size_t(v)] : combined_.volumes[size_t(v)];
     const bool first_other = phases_ == 1;  // the other extreme is the first phase's: `was`
     if (other_[size_t(v)].empty()) other_[size_t(v)] = Volume<float>(g);
     Volume<float>& other = other_[size_t(v)];
     const Volume<float>& x = phase.volumes[size_t(v)];
+    if (keep_ == 0) {
+      // In place: the other extreme in the same pass, while `was` (the combination, and for the
+      // second fold the first phase) is still there to read.
 #pragma omp parallel for schedule(static)
-    for (int64_t i = 0; i < n; ++i) {
-      const float w = was[i], o = first_other ? w : other[i], p = x[i];
-      if (std::isnan(w) || std::isnan(p)) {
-        worst[i] = nan;
-        other[i] = nan;
-        continue;
+      for (int64_t i = 0; i < n; ++i) {
+        const float w = was[i], o = first_other ? w : other[i], p = x[i];
+        if (std::isnan(w) || std::isnan(p)) {
+          worst[i] = nan;
+          other[i] = nan;
+          continue;
+        }
+        worst[i] = svv ? std::min(w, p) : std::max(w, p);
+        other[i] = svv ? std::max(o, p) : std::min(o, p);
       }
-      worst[i] = svv ? std::min(w, p) : std::max(w, p);
-      other[i] = svv ? std::max(o, p) : std::min(o, p);
+      continue;
+    }
+    // Outside the region every volume is NaN: only the region's runs, once the buffer written
+    // holds NaN outside it (the first `keep_` folds write fresh buffers whole).
+    const auto fold = [&](int64_t first, int64_t last) {
+      for (int64_t i = first; i <= last; ++i) {
+        const float w = was[i], p = x[i];
+        worst[i] = std::isnan(w) || std::isnan(p) ? nan : svv ? std::min(w, p) : std::max(w, p);
+      }
+    };
+    if (phases_ <= keep_) {
+#pragma omp parallel for schedule(static)
+      for (int64_t c = 0; c < n; c += int64_t(1) << 16) fold(c, std::min(n, c + (1 << 16)) - 1);
+    } else {
+      for_roi_runs(phase.grid, fold);
     }
   }
   {
     const std::lock_guard<std::mutex> lock(swap_);
-    if (keep_previous_) {
+    if (keep_ > 0) {
       for (int v = 0; v < kernels::kValueCount; ++v) {
-        if (phase.values & (1u << v)) std::swap(combined_.volumes[size_t(v)], previous_[size_t(v)]);
+        if (!(phase.values & (1u << v))) continue;
+        Volume<float> written = std::move(earlier_.back()[size_t(v)]);
+        for (size_t e = earlier_.size() - 1; e > 0; --e) {
+          earlier_[e][size_t(v)] = std::move(earlier_[e - 1][size_t(v)]);
+        }
+        earlier_[0][size_t(v)] = std::move(combined_.volumes[size_t(v)]);
+        combined_.volumes[size_t(v)] = std::move(written);
       }
     }
     ++phases_;
@@ -169,6 +227,36 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
   combined_.classes = {};  // the first phase's, if taken: the combination's values have changed
   combined_.seconds += phase.seconds;
   combined_.rays += phase.rays;
+  // The combination is complete: the samplers waiting for it go on while the other extreme is
+  // taken (with keep_earlier: `was` is kept, the first phase's values for the second fold).
+  if (combined) combined();
+  if (keep_ > 0) {
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      if (!(phase.values & (1u << v))) continue;
+      const bool svv = higher_is_safer(v);
+      const Volume<float>& now = combined_.volumes[size_t(v)];
+      const Volume<float>& first = earlier_[0][size_t(v)];  // read for the second fold only
+      const bool first_other = phases_ == 2;
+      Volume<float>& other = other_[size_t(v)];
+      const Volume<float>& x = phase.volumes[size_t(v)];
+      const auto fold = [&](int64_t start, int64_t last) {
+        for (int64_t i = start; i <= last; ++i) {
+          if (std::isnan(now[i])) {
+            other[i] = nan;
+            continue;
+          }
+          const float o = first_other ? first[i] : other[i], p = x[i];
+          other[i] = svv ? std::max(o, p) : std::min(o, p);
+        }
+      };
+      if (first_other) {  // a fresh buffer: written whole
+#pragma omp parallel for schedule(static)
+        for (int64_t c = 0; c < n; c += int64_t(1) << 16) fold(c, std::min(n, c + (1 << 16)) - 1);
+      } else {
+        for_roi_runs(phase.grid, fold);
+      }
+    }
+  }
 }
 
 void PhaseCombiner::fold_check(const PathSafetyResult& phase) {

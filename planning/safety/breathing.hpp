@@ -2,9 +2,11 @@
 // combined so that a voxel is safe only if it is safe in every phase.
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <future>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <vector>
@@ -22,17 +24,22 @@ class PhaseCombiner {
  public:
   // The first phase fixes the grid and the values; later ones must match (Error otherwise).
   // Every voxel on every core; a first phase given as an rvalue lends its volumes.
-  void add(const PathSafetyResult& phase, const Volume<uint8_t>& region);
-  void add(PathSafetyResult&& phase, const Volume<uint8_t>& region);
+  // `combined`, where given, is called as soon as the combination is complete and readable
+  // (volumes_after), before the other extreme and the check are folded in.
+  void add(const PathSafetyResult& phase, const Volume<uint8_t>& region,
+           const std::function<void()>& combined = {});
+  void add(PathSafetyResult&& phase, const Volume<uint8_t>& region,
+           const std::function<void()>& combined = {});
 
   int phases() const;
-  // Keeps the combination before the last fold readable while the next is folded (memory: a third
-  // set of volumes): a phase computed beside the one before it asks for the combination of the
-  // phases before that one (`volumes_after`). Set before the second phase is added.
-  void keep_previous(bool keep) { keep_previous_ = keep; }
+  // Keeps the `count` combinations before the last fold readable while later ones are folded
+  // (memory: `count` more sets of volumes): a phase computed beside the phases before it asks for
+  // the combination of the phases before those (`volumes_after`). Set before the second phase is
+  // added.
+  void keep_earlier(int count) { keep_ = std::max(0, count); }
   // The combined volumes' data after the first `folded` phases (NaN-free slots are null for values
-  // not computed): the latest combination, or with keep_previous the one before it. Safe to call
-  // beside `add`; the data stays put until the fold after next.
+  // not computed): the latest combination, or one of the `keep_earlier` before it. Safe to call
+  // beside `add`; the data stays put until `keep_earlier` + 1 more folds are made.
   std::array<const float*, kernels::kValueCount> volumes_after(int folded) const;
   // The combination: the first phase's grid and parameters, the combined volumes, the summed
   // time and rays.
@@ -55,18 +62,21 @@ class PhaseCombiner {
   double class_change_share(int slot, const SafetyClasses& classes) const;
 
  private:
-  void add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region);
+  void add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region,
+                 const std::function<void()>& combined);
   void fold_check(const PathSafetyResult& phase);
-  // The volumes the second fold writes (the other extreme, and with keep_previous the buffer
+  // The volumes the second fold writes (the other extreme, and with keep_earlier the buffers
   // beside the combination) made on a thread of their own after the first fold: cleared pages of
   // a few GB, which would otherwise hold up the second fold and every sampler waiting for it.
   void make_spares();
 
   int phases_ = 0;
-  bool keep_previous_ = false;
+  int keep_ = 0;
   mutable std::mutex swap_;  // phases_ and which buffer holds which combination
   PathSafetyResult combined_;
-  std::array<Volume<float>, kernels::kValueCount> previous_;  // with keep_previous
+  // With keep_earlier: the combinations before the latest, the newest first (the last one is
+  // the buffer the next fold writes).
+  std::vector<std::array<Volume<float>, kernels::kValueCount>> earlier_;
   std::array<Volume<float>, kernels::kValueCount> other_;
   std::future<void> spares_;  // make_spares, after the first fold
   Volume<uint8_t> region_;

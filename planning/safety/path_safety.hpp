@@ -117,6 +117,10 @@ struct PathSafetyOptions {
   // is then left out where this phase cannot change the combination's class
   // (AdaptiveOptions::combined_so_far). Null: every class boundary of this phase is refined.
   std::function<std::array<const float*, kernels::kValueCount>()> combined_so_far;
+  // A later combination, asked for before the decisions of level `newer_from_level`
+  // (AdaptiveOptions::combined_newer). Null: combined_so_far throughout.
+  std::function<std::array<const float*, kernels::kValueCount>()> combined_newer;
+  int newer_from_level = 1;
   // Called from the computing thread with the fraction done (0..1), about every 2 % of the work.
   std::function<void(double)> progress;
 };

@@ -306,9 +306,10 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
   po.spacing_mm = 3.0;
   write_breathing_phantom(po, 4, dir.file("cycle"));
   const auto request = [&](const std::string& out, Mode mode, bool every_phase,
-                           int at_once = 1) {
+                           int at_once = 1, int newer_from_level = 1) {
     PlanRequest r;
     r.phases_at_once = at_once;
+    r.newer_combination_from_level = newer_from_level;
     r.phases = dir.file("cycle/phases.json");
     r.path_safety.device = Device::kCpu;
     r.path_safety.mode = mode;
@@ -324,8 +325,12 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
   const nlohmann::json exact = run_plan(request("exact", Mode::kExact, false));
   // Two phases at once: the later of two leaves refinement to the phases before the other.
   const nlohmann::json two = run_plan(request("two", Mode::kFast, false, 2));
-  // Three at once (the default on a GPU): the third waits, after its coarsest level, for the fold
-  // two before it, so every phase leaves to the phases it leaves to two at once.
+  // Three at once (the default on a GPU) with every level leaving to the fold two before: the
+  // third waits, after its coarsest level, for that fold, so every phase leaves to the phases it
+  // leaves to two at once.
+  const nlohmann::json three_late = run_plan(request("three_late", Mode::kFast, false, 3, 0));
+  // The default: the fourth phase's coarsest decisions leave to the first phase alone (three
+  // back), its finer ones to the first two (two back), as two at once.
   const nlohmann::json three = run_plan(request("three", Mode::kFast, false, 3));
   const auto& phases = left["breathing"]["phases"];
   ASSERT_EQ(phases.size(), 4u);
@@ -359,10 +364,20 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
     EXPECT_EQ(two_phases[k]["computed_as"], phases[k]["computed_as"]);
   }
   EXPECT_EQ(two_phases[2]["points_computed_exactly"], phases[2]["points_computed_exactly"]);
+  bool fourth_differs = false;
   for (size_t k = 0; k < 4; ++k) {
-    EXPECT_EQ(three["breathing"]["phases"][k]["points_computed_exactly"],
+    EXPECT_EQ(three_late["breathing"]["phases"][k]["points_computed_exactly"],
               two_phases[k]["points_computed_exactly"]) << k;
+    const auto& p = three["breathing"]["phases"][k];
+    if (p["computed_as"].get<int>() < 4) {  // no phase three back: as two at once
+      EXPECT_EQ(p["points_computed_exactly"], two_phases[k]["points_computed_exactly"]) << k;
+    } else {
+      fourth_differs = p["points_computed_exactly"] != two_phases[k]["points_computed_exactly"];
+      EXPECT_GT(p["left_to_earlier_phases"]["cells"].get<int64_t>(), 0);
+    }
   }
+  // Its coarsest decisions had less to leave to (the first phase only).
+  EXPECT_TRUE(fourth_differs);
   EXPECT_LT(points_two, points_every * 9 / 10) << points_two << " vs " << points_every;
   EXPECT_EQ(left["fast_mode_vs_exact"]["points_computed_exactly"].get<int64_t>(), points_left);
   const Volume<uint8_t> roi = read_volume<uint8_t>(dir.file("exact/roi.nii.gz"));
@@ -373,19 +388,20 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
       return read_volume<float>(dir.file(plan + "/path_safety_" + value + ".nii.gz"));
     };
     const Volume<float> l = volume("left"), e = volume("every"), x = volume("exact"),
-                        t = volume("two");
-    expect_identical(t, volume("three"), value + " three at once");
+                        t = volume("two"), three_default = volume("three");
+    expect_identical(t, volume("three_late"), value + " three at once, two back throughout");
     SafetyClasses classes;
     const nlohmann::json& c = exact["classes"][value];
     classes.higher_is_safer = value == "svv";
     classes.safe = c["safe"].get<double>();
     classes.dangerous = c["dangerous"].get<double>();
     int64_t computed = 0, left_vs_every = 0, left_vs_exact = 0, every_vs_exact = 0;
-    int64_t two_vs_exact = 0;
+    int64_t two_vs_exact = 0, three_vs_exact = 0;
     for (int64_t n = 0; n < roi.voxel_count(); ++n) {
       if (roi[n] != kRegionComputed) continue;
       ++computed;
       two_vs_exact += classes.classify(t[n]) != classes.classify(x[n]);
+      three_vs_exact += classes.classify(three_default[n]) != classes.classify(x[n]);
       left_vs_every += classes.classify(l[n]) != classes.classify(e[n]);
       left_vs_exact += classes.classify(l[n]) != classes.classify(x[n]);
       every_vs_exact += classes.classify(e[n]) != classes.classify(x[n]);
@@ -397,6 +413,8 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
     EXPECT_LE(left_vs_exact, computed / 100) << left_vs_exact << " of " << computed;
     EXPECT_LE(two_vs_exact, every_vs_exact + computed / 500)
         << two_vs_exact << " vs " << every_vs_exact << " of " << computed;
+    EXPECT_LE(three_vs_exact, every_vs_exact + computed / 500)
+        << three_vs_exact << " vs " << every_vs_exact << " of " << computed;
     const nlohmann::json& check = left["fast_mode_vs_exact"];
     EXPECT_GE(check["voxels"].get<int64_t>(), 900);
     EXPECT_GE(check[value]["class_agreement"].get<double>(), 0.98);

@@ -284,7 +284,8 @@ struct Phase {
 
 // One phase sampled, after `before` (the phases combined so far; empty: none).
 Phase sample_phase(const OutputGrid& g, const Field& field, const std::vector<float>& before,
-                   int stride = 8) {
+                   int stride = 8, const std::vector<float>* newer = nullptr,
+                   int newer_from_level = 1) {
   Phase run;
   const int64_t n = g.geometry.dims[0];
   run.svv.assign(size_t(n * n * n), std::nanf(""));
@@ -297,6 +298,13 @@ Phase sample_phase(const OutputGrid& g, const Field& field, const std::vector<fl
       return std::array<const float*, kernels::kValueCount>{before.data(), nullptr, nullptr,
                                                             nullptr};
     };
+  }
+  if (newer) {
+    o.combined_newer = [newer] {
+      return std::array<const float*, kernels::kValueCount>{newer->data(), nullptr, nullptr,
+                                                            nullptr};
+    };
+    o.newer_from_level = newer_from_level;
   }
   const PointEvaluator evaluate = [&](const std::vector<GridPoint>& points,
                                       std::vector<float>& values) {
@@ -370,6 +378,52 @@ TEST(AdaptiveSampling, APhaseLeavesToTheCombinationOnlyWhatItCannotChange) {
   EXPECT_LE(wrong_whole, g.roi_voxels / 1000);
   EXPECT_GT(near_new, 1000);
   EXPECT_EQ(near_new_differ, 0);
+}
+
+// A later combination (AdaptiveOptions::combined_newer) decides from its level on. After a
+// combination safe everywhere, which leaves nothing, the first phase's from the second level on
+// leaves cells to it, and the combination has the classes it has with every boundary refined,
+// never leaving where the first phase is safe. The same combination given as both is that
+// combination alone, bit for bit; from level 0 the later one is never asked for.
+TEST(AdaptiveSampling, ALaterCombinationDecidesFromItsLevelOn) {
+  const OutputGrid g = ball_grid(32);
+  const double h = double(g.half);
+  const Field first = [h](int64_t i, int64_t j, int64_t k) {
+    return ramp_shadow(double(i), double(j), double(k), h + 8.0, h, h);
+  };
+  const Field second = [h](int64_t i, int64_t j, int64_t k) {
+    return std::min(ramp_shadow(double(i), double(j), double(k), h + 11.0, h, h),
+                    ramp_shadow(double(i), double(j), double(k), h - 16.0, h, h));
+  };
+  const int64_t n = g.geometry.dims[0];
+  const Phase a = sample_phase(g, first, {});
+  const Phase whole = sample_phase(g, second, {});
+  const Phase left = sample_phase(g, second, a.svv);
+  const std::vector<float> safe(size_t(n * n * n), 95.0f);
+  const Phase same = sample_phase(g, second, a.svv, 8, &a.svv);
+  EXPECT_EQ(same.evaluated, left.evaluated);
+  EXPECT_EQ(0, std::memcmp(same.svv.data(), left.svv.data(), left.svv.size() * 4));
+  const Phase later = sample_phase(g, second, safe, 8, &a.svv);
+  EXPECT_GT(later.report.cells_left_to_combination + later.report.points_left_to_combination, 0);
+  EXPECT_LT(later.evaluated, whole.evaluated);
+  // Level 0: never asked for; the safe combination alone leaves nothing.
+  const Phase never = sample_phase(g, second, safe, 8, &a.svv, 0);
+  EXPECT_EQ(never.evaluated, whole.evaluated);
+  EXPECT_EQ(0, std::memcmp(never.svv.data(), whole.svv.data(), whole.svv.size() * 4));
+  const std::vector<float> with_whole = minimum(a.svv, whole.svv);
+  const std::vector<float> with_later = minimum(a.svv, later.svv);
+  const SafetyClasses& classes = later.report.classes[0];
+  int64_t differ = 0, changed_where_first_safe = 0;
+  for (int64_t v = 0; v < n * n * n; ++v) {
+    const int64_t i = v % n, j = (v / n) % n, k = v / (n * n);
+    if (!g.in_roi(i, j, k)) continue;
+    differ += classes.classify(with_later[size_t(v)]) != classes.classify(with_whole[size_t(v)]);
+    if (later.svv[size_t(v)] != whole.svv[size_t(v)]) {
+      changed_where_first_safe += classes.classify(a.svv[size_t(v)]) == SafetyClass::kSafe;
+    }
+  }
+  EXPECT_EQ(differ, 0);
+  EXPECT_EQ(changed_where_first_safe, 0);
 }
 
 // A combination that is safe everywhere decides nothing: the phase is sampled as on its own,

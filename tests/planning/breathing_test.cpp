@@ -23,6 +23,7 @@ PathSafetyResult result(std::array<float, 4> svv, std::array<float, 4> isbv) {
   PathSafetyResult r;
   r.grid.geometry = test::cube_grid(1, 1.0);
   r.grid.geometry.dims = {4, 1, 1};
+  r.grid.max_sq = 9;  // the region of interest: every voxel (within 3 of voxel 0)
   r.values = kernels::kSvv | kernels::kIsbv;
   r.volumes[0] = Volume<float>(r.grid.geometry, 0.0f);
   r.volumes[1] = Volume<float>(r.grid.geometry, 0.0f);
@@ -82,7 +83,7 @@ TEST(PhaseCombiner, OnePhaseIsItsOwnOtherExtreme) {
   for (const bool keep : {false, true}) {
     const PathSafetyResult a = result({95, 80, kNaN, 40}, {0.0f, 2.0f, kNaN, 7.0f});
     PhaseCombiner combiner;
-    combiner.keep_previous(keep);
+    combiner.keep_earlier(keep ? 1 : 0);
     combiner.add(a, states({1, 1, 0, 1}, a.grid.geometry));
     for (int v = 0; v < 2; ++v) {
       for (int64_t i = 0; i < 4; ++i) {
@@ -114,7 +115,7 @@ TEST(PhaseCombiner, TheCombinationBeforeTheLastFoldStaysWhereItWas) {
   const PathSafetyResult c = result({99, 70, kNaN, 30}, {1.0f, 0.5f, kNaN, 9.0f});
   const ImageGeometry& g = a.grid.geometry;
   PhaseCombiner kept, plain;
-  kept.keep_previous(true);
+  kept.keep_earlier(1);
   for (PhaseCombiner* m : {&kept, &plain}) m->add(a, states({1, 1, 0, 1}, g));
   const auto after_one = kept.volumes_after(1);
   EXPECT_EQ(after_one[2], nullptr);  // IVBV was not computed
@@ -143,6 +144,52 @@ TEST(PhaseCombiner, TheCombinationBeforeTheLastFoldStaysWhereItWas) {
   EXPECT_EQ(kept.combined().volumes[0][3], 30.0f);
   EXPECT_EQ(kept.combined().volumes[1][3], 9.0f);
   EXPECT_EQ(kept.other_extreme(1)[3], 1.0f);
+}
+
+// With two kept (three phases computed at once) the two combinations before the last fold stay
+// where they were while two more are folded; the values and the other extreme are those of a
+// combiner that keeps none, and a fold tells when its combination is readable, once.
+TEST(PhaseCombiner, TwoEarlierCombinationsStayWhereTheyWere) {
+  const std::vector<PathSafetyResult> phases = {
+      result({95, 80, kNaN, 40}, {0.0f, 2.0f, kNaN, 7.0f}),
+      result({60, 85, kNaN, 45}, {3.0f, 1.0f, kNaN, 1.0f}),
+      result({99, 70, kNaN, 30}, {1.0f, 0.5f, kNaN, 9.0f}),
+      result({97, 90, kNaN, 35}, {0.5f, 4.0f, kNaN, 2.0f})};
+  const ImageGeometry& g = phases[0].grid.geometry;
+  PhaseCombiner kept, plain;
+  kept.keep_earlier(2);
+  std::vector<std::array<const float*, kernels::kValueCount>> after;
+  for (size_t p = 0; p < phases.size(); ++p) {
+    int told = 0;
+    kept.add(phases[p], states({1, 1, 0, 1}, g), [&] {
+      ++told;
+      EXPECT_EQ(kept.phases(), int(p) + 1);
+      EXPECT_EQ(kept.volumes_after(int(p) + 1)[0], kept.combined().volumes[0].data());
+    });
+    EXPECT_EQ(told, 1) << p;
+    plain.add(phases[p], states({1, 1, 0, 1}, g));
+    after.push_back(kept.volumes_after(int(p) + 1));
+    if (p >= 2) {  // the two before stay where they were, unchanged
+      EXPECT_EQ(kept.volumes_after(int(p) - 1)[0], after[p - 2][0]) << p;
+      EXPECT_EQ(kept.volumes_after(int(p))[1], after[p - 1][1]) << p;
+    }
+  }
+  EXPECT_EQ(kept.volumes_after(2)[0][0], 60.0f);  // min(95, 60)
+  EXPECT_EQ(kept.volumes_after(2)[1][1], 2.0f);   // max(2, 1)
+  EXPECT_EQ(kept.volumes_after(3)[0][1], 70.0f);
+  EXPECT_THROW(kept.volumes_after(1), Error);  // overwritten by the fourth fold
+  for (int v = 0; v < 2; ++v) {
+    for (int64_t i = 0; i < 4; ++i) {
+      for (const auto& [x, y] : {std::pair{kept.combined().volumes[size_t(v)][i],
+                                           plain.combined().volumes[size_t(v)][i]},
+                                 std::pair{kept.other_extreme(v)[i], plain.other_extreme(v)[i]}}) {
+        EXPECT_TRUE(std::isnan(x) ? std::isnan(y) : x == y) << v << " " << i;
+      }
+    }
+  }
+  EXPECT_EQ(kept.other_extreme(0)[0], 99.0f);
+  EXPECT_EQ(kept.other_extreme(1)[3], 1.0f);
+  EXPECT_EQ(kept.combined().volumes[1][3], 9.0f);
 }
 
 TEST(PhaseCombiner, ClassesTakenOfTheFirstPhaseAreNotTheCombinations) {
