@@ -323,6 +323,22 @@ std::vector<float> minimum(const std::vector<float>& a, const std::vector<float>
   return m;
 }
 
+// The two phases below: one shadow 8 voxels from the centre; in the second it has moved by 3
+// voxels, and a second shadow, far from the first, appears.
+Field first_phase_field(const OutputGrid& g) {
+  const double h = double(g.half);
+  return [h](int64_t i, int64_t j, int64_t k) {
+    return ramp_shadow(double(i), double(j), double(k), h + 8.0, h, h);
+  };
+}
+Field second_phase_field(const OutputGrid& g) {
+  const double h = double(g.half);
+  return [h](int64_t i, int64_t j, int64_t k) {
+    return std::min(ramp_shadow(double(i), double(j), double(k), h + 11.0, h, h),
+                    ramp_shadow(double(i), double(j), double(k), h - 16.0, h, h));
+  };
+}
+
 // Two phases: in the second the first's shadow has moved by 3 voxels, and a second shadow,
 // far from the first, appears. Left to the combination, the second phase computes fewer points,
 // the combination has every voxel in the same class as with every boundary refined (and as
@@ -331,13 +347,7 @@ std::vector<float> minimum(const std::vector<float>& a, const std::vector<float>
 TEST(AdaptiveSampling, APhaseLeavesToTheCombinationOnlyWhatItCannotChange) {
   const OutputGrid g = ball_grid(32);
   const double h = double(g.half);
-  const Field first = [h](int64_t i, int64_t j, int64_t k) {
-    return ramp_shadow(double(i), double(j), double(k), h + 8.0, h, h);
-  };
-  const Field second = [h](int64_t i, int64_t j, int64_t k) {
-    return std::min(ramp_shadow(double(i), double(j), double(k), h + 11.0, h, h),
-                    ramp_shadow(double(i), double(j), double(k), h - 16.0, h, h));
-  };
+  const Field first = first_phase_field(g), second = second_phase_field(g);
   const Phase a = sample_phase(g, first, {});
   const Phase whole = sample_phase(g, second, {});
   const Phase left = sample_phase(g, second, a.svv);
@@ -387,14 +397,7 @@ TEST(AdaptiveSampling, APhaseLeavesToTheCombinationOnlyWhatItCannotChange) {
 // combination alone, bit for bit; from level 0 the later one is never asked for.
 TEST(AdaptiveSampling, ALaterCombinationDecidesFromItsLevelOn) {
   const OutputGrid g = ball_grid(32);
-  const double h = double(g.half);
-  const Field first = [h](int64_t i, int64_t j, int64_t k) {
-    return ramp_shadow(double(i), double(j), double(k), h + 8.0, h, h);
-  };
-  const Field second = [h](int64_t i, int64_t j, int64_t k) {
-    return std::min(ramp_shadow(double(i), double(j), double(k), h + 11.0, h, h),
-                    ramp_shadow(double(i), double(j), double(k), h - 16.0, h, h));
-  };
+  const Field first = first_phase_field(g), second = second_phase_field(g);
   const int64_t n = g.geometry.dims[0];
   const Phase a = sample_phase(g, first, {});
   const Phase whole = sample_phase(g, second, {});
