@@ -763,9 +763,10 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     }
     if (leave_to_combination && at > 0) {
       // The combination of the phases up to the one two before this one (the first phase's for
-      // the second): the phase just before is computed beside this one. With more at once, a
-      // phase started early waits for that fold after its coarsest level (the combiner keeps two
-      // combinations: the one it reads is not written before it is done).
+      // the second and third): the phase just before is computed beside this one. With three at
+      // once, the coarsest decisions take the combination up to three before (`early`), so that
+      // the phase waits for the newer one only before its finer levels (the combiner keeps the
+      // combinations read: none is written over before the phases reading it are done).
       const auto combination_of = [&folded, &combiner](size_t source) {
         return [&folded, &combiner, source] {
           trace::event("comb_wait_begin");

@@ -34,23 +34,26 @@ Volume<T> parallel_copy(const Volume<T>& from) {
   return to;
 }
 
-// Calls f(first, last) for every row of the grid's voxels inside the region of interest (a
-// ball: one run of voxels per row, offsets first..last inclusive), in parallel. Voxels outside
-// it are not computed in any phase (NaN in every volume).
+// Calls f(first, last) for runs of voxel offsets (first..last inclusive), in parallel: the whole
+// grid in chunks, or (`whole` false) only the rows' runs inside the region of interest, a ball.
+// Voxels outside it are not computed in any phase (NaN in every volume).
 template <typename F>
-void for_roi_runs(const OutputGrid& grid, const F& f) {
+void for_runs(const OutputGrid& grid, bool whole, const F& f) {
   const Index3& d = grid.geometry.dims;
+  if (whole) {
+    const int64_t n = grid.geometry.voxel_count();
+    constexpr int64_t kChunk = int64_t(1) << 16;
+#pragma omp parallel for schedule(static)
+    for (int64_t c = 0; c < n; c += kChunk) f(c, std::min(n, c + kChunk) - 1);
+    return;
+  }
   const int64_t rows = d[1] * d[2];
 #pragma omp parallel for schedule(static)
   for (int64_t row = 0; row < rows; ++row) {
-    const int64_t dj = row % d[1] - grid.half, dk = row / d[1] - grid.half;
-    const int64_t rest = grid.max_sq - dj * dj - dk * dk;
-    if (rest < 0) continue;
-    int64_t r = int64_t(std::sqrt(double(rest)));
-    while (r * r > rest) --r;
-    while ((r + 1) * (r + 1) <= rest) ++r;
-    const int64_t i0 = std::max<int64_t>(0, grid.half - r);
-    const int64_t i1 = std::min<int64_t>(d[0] - 1, grid.half + r);
+    const int64_t w = grid.roi_half_width(row % d[1], row / d[1]);
+    if (w < 0) continue;
+    const int64_t i0 = std::max<int64_t>(0, grid.half - w);
+    const int64_t i1 = std::min<int64_t>(d[0] - 1, grid.half + w);
     if (i0 <= i1) f(row * d[0] + i0, row * d[0] + i1);
   }
 }
@@ -139,6 +142,10 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
                 "must share one output grid)");
   }
   if (spares_.valid()) spares_.get();
+  if (earlier_.size() != size_t(keep_)) {  // keep_earlier set after the first fold
+    const std::lock_guard<std::mutex> lock(swap_);
+    earlier_.resize(size_t(keep_));
+  }
   const int64_t n = g.voxel_count();
   const float nan = std::numeric_limits<float>::quiet_NaN();
   // Voxel states: computed only where computed in every phase; unknown wins over not computed.
@@ -186,12 +193,7 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
         worst[i] = std::isnan(w) || std::isnan(p) ? nan : svv ? std::min(w, p) : std::max(w, p);
       }
     };
-    if (phases_ <= keep_) {
-#pragma omp parallel for schedule(static)
-      for (int64_t c = 0; c < n; c += int64_t(1) << 16) fold(c, std::min(n, c + (1 << 16)) - 1);
-    } else {
-      for_roi_runs(phase.grid, fold);
-    }
+    for_runs(phase.grid, /*whole=*/phases_ <= keep_, fold);
   }
   {
     const std::lock_guard<std::mutex> lock(swap_);
@@ -249,12 +251,7 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
           other[i] = svv ? std::max(o, p) : std::min(o, p);
         }
       };
-      if (first_other) {  // a fresh buffer: written whole
-#pragma omp parallel for schedule(static)
-        for (int64_t c = 0; c < n; c += int64_t(1) << 16) fold(c, std::min(n, c + (1 << 16)) - 1);
-      } else {
-        for_roi_runs(phase.grid, fold);
-      }
+      for_runs(phase.grid, /*whole=*/first_other, fold);  // a fresh buffer: written whole
     }
   }
 }

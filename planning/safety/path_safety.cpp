@@ -308,10 +308,8 @@ OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>
   int64_t count = 0;
   for (int64_t k = 0; k < n; ++k) {
     for (int64_t j = 0; j < n; ++j) {
-      const int64_t rest = out.max_sq - (j - half) * (j - half) - (k - half) * (k - half);
-      if (rest < 0) continue;
-      const int64_t w = std::min<int64_t>(int64_t(std::floor(std::sqrt(double(rest)))), half);
-      count += 2 * w + 1;
+      const int64_t w = std::min<int64_t>(out.roi_half_width(j, k), half);
+      if (w >= 0) count += 2 * w + 1;
     }
   }
   out.roi_voxels = count;

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <array>
+#include <cmath>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -148,6 +149,15 @@ struct OutputGrid {
   int64_t max_sq = 0;      // ROI: (i-half)^2 + (j-half)^2 + (k-half)^2 <= max_sq
   int64_t roi_voxels = 0;  // voxels inside the ball
 
+  // The ROI's voxels in row (j, k) lie at |i - half| <= the returned width; -1: none.
+  int64_t roi_half_width(int64_t j, int64_t k) const {
+    const int64_t rest = max_sq - (j - half) * (j - half) - (k - half) * (k - half);
+    if (rest < 0) return -1;
+    int64_t w = int64_t(std::sqrt(double(rest)));
+    while (w * w > rest) --w;
+    while ((w + 1) * (w + 1) <= rest) ++w;
+    return w;
+  }
   bool in_roi(int64_t i, int64_t j, int64_t k) const {
     const int64_t di = i - half, dj = j - half, dk = k - half;
     return di * di + dj * dj + dk * dk <= max_sq;
