@@ -128,6 +128,9 @@ int main(int argc, char** argv) {
   double finest_margin = PathSafetyOptions{}.fast_finest_margin;
   app.add_option("--fast-finest-margin", finest_margin, "fast mode: the finest level's margins");
   app.add_flag("--fast-no-dilate", no_dilate, "fast mode: refine only cells that disagree");
+  bool cellwise_halves = false;
+  app.add_flag("--fast-cellwise-halves", cellwise_halves,
+               "fast mode: refined cells of edge 4 split whole (every point of stride 2 computed)");
   app.add_option("--fast-svv-margin", svv_margin, "fast mode: SVV points near a threshold refine");
   app.add_option("--fast-blocking-margin", blocking_margin,
                  "fast mode: relative margin of the blocking values' thresholds");
@@ -160,6 +163,9 @@ int main(int argc, char** argv) {
   app.add_option("--phases-at-once", phases_at_once,
                  "breathing: phases computed at once (0: the plan's default)");
   int newer_from_level = 1;
+  bool not_ahead = false;
+  app.add_flag("--no-prepare-ahead", not_ahead,
+               "breathing: prepare each phase at its turn, not beside the phases before it");
   app.add_option("--newer-from-level", newer_from_level,
                  "breathing, three or more at once: the lattice level from which a phase leaves "
                  "to the combination two phases back (the coarser to three back; 0: every "
@@ -241,6 +247,7 @@ int main(int argc, char** argv) {
   req.path_safety.fast_ray_stride = fast_ray_stride;
   req.path_safety.fast_check_voxels = check_voxels;
   req.path_safety.fast_finest_margin = finest_margin;
+  req.path_safety.fast_pointwise_halves = !cellwise_halves;
   req.path_safety.fast_svv_margin = svv_margin;
   req.path_safety.fast_blocking_margin = blocking_margin;
   req.path_safety.cuda_texture = texture;
@@ -249,6 +256,7 @@ int main(int argc, char** argv) {
   req.refine_every_phase = refine_every_phase;
   req.phases_at_once = phases_at_once;
   req.newer_combination_from_level = newer_from_level;
+  req.prepare_phase_ahead = !not_ahead;
   req.stream_phase_reads = !read_all_first;
   req.out_dir = work + "/plan";
   const auto t0 = std::chrono::steady_clock::now();
@@ -275,6 +283,7 @@ int main(int argc, char** argv) {
                          {"fast_surface_block", fast_surface_block},
                          {"fast_ray_stride", fast_ray_stride},
                          {"fast_finest_margin", finest_margin},
+                         {"fast_pointwise_halves", !cellwise_halves},
                          {"fast_margins", {svv_margin, blocking_margin}},
                          {"texture", texture},
                          {"tumor_leaps", !no_tumor_leaps},
@@ -282,6 +291,7 @@ int main(int argc, char** argv) {
                          {"refine_every_phase", refine_every_phase},
                          {"phases_at_once", phases_at_once},
                          {"newer_from_level", newer_from_level},
+                         {"prepare_phase_ahead", !not_ahead},
                          {"read_all_first", read_all_first},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},
                          {"device", plan["parameters"]["device"]},

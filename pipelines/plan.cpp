@@ -646,6 +646,12 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   // its own statistics of the volumes it lends).
   std::vector<Signal> fold_turn(phases.size());
   std::vector<Clock::time_point> t_phase(phases.size());
+  // With phases side by side (on a GPU), one more phase is prepared (its scene uploaded, its
+  // volumes allocated) beside them and samples once the phase `at_once` before it has computed:
+  // its turn. So the card does not wait for a new phase's preparation when one ends.
+  const size_t ahead = at_once > 1 && req.prepare_phase_ahead ? 1 : 0;
+  std::vector<Signal> turn(phases.size());
+  for (size_t at = 0; at < std::min(at_once, phases.size()); ++at) turn[at].set();
   // A phase's result is finished on a thread of its own beside the next phases' path safety: the
   // scan's coverage applied and folded into the combination after the phase before it was folded;
   // then, beside the next phases and folds, its check compared, statistics taken and its own
@@ -783,10 +789,22 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
         phase_request.path_safety.newer_from_level = newer_from_level;
       }
     }
+    if (ahead > 0) {
+      phase_request.path_safety.before_sampling = [&turn, at] { turn[at].done.get(); };
+    }
     trace::event("start", 0, int(at));
-    computing[at] = std::async(std::launch::async, [&p, at, phase_request = std::move(phase_request)] {
+    computing[at] = std::async(std::launch::async, [&p, &turn, at, at_once,
+                                                    phase_request = std::move(phase_request)] {
       trace::current_phase() = int(at);
       trace::event("compute_begin");
+      // The next phase's turn comes when this one has computed, or failed.
+      struct TurnOnExit {
+        std::vector<Signal>& turn;
+        size_t next;
+        ~TurnOnExit() {
+          if (next < turn.size()) turn[next].set();
+        }
+      } turn_on_exit{turn, at + at_once};
       auto r = compute(phase_request, p.inputs);
       trace::event("compute_end");
       return r;
@@ -806,11 +824,12 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     }
   };
   try {
+    const size_t started = std::min(order.size(), at_once + ahead);
     for (size_t at = 0; at < order.size(); ++at) {
-      if (at >= at_once) hand_over(at - at_once);
+      if (at >= started) hand_over(at - started);
       start(at);
     }
-    for (size_t at = order.size() - at_once; at < order.size(); ++at) hand_over(at);
+    for (size_t at = order.size() - started; at < order.size(); ++at) hand_over(at);
     // The combination is whole; the last other extreme and statistics go on beside the writes.
     folded.back().done.get();
   } catch (...) {
@@ -818,6 +837,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     if (blocking_reads) blocking_reads->stop();
     for (Signal& s : folded) s.fail(error);
     for (Signal& s : fold_turn) s.fail(error);
+    for (Signal& s : turn) s.fail(error);
     for (auto& c : computing) {
       if (c.valid()) c.wait();
     }

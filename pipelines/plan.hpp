@@ -40,6 +40,9 @@ struct PlanRequest : PlanInputOptions {
   // ones to that of the phases up to three before it, folded earlier
   // (PathSafetyOptions::combined_newer). 0: every level to the phases up to two before it.
   int newer_combination_from_level = 1;
+  // Phases side by side: one more phase prepared beside them, sampling at its turn (false: a
+  // phase is prepared when its turn comes).
+  bool prepare_phase_ahead = true;
   // With spacing and radius given: the tumors read first, the blocking volumes beside the
   // computation (false: every input read before the first phase is computed).
   bool stream_phase_reads = true;

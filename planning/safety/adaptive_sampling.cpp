@@ -100,6 +100,18 @@ class SampleStore {
     return outside_.at(key(i, j, k))[size_t(slot)];
   }
 
+  // The value of a point that may have none (never computed nor interpolated: outside the
+  // region, or a point beyond the grid's edge never requested): NaN there.
+  float value_if_any(int64_t i, int64_t j, int64_t k, int slot) const {
+    if (inside(i, j, k)) {
+      const uint8_t st = state_now(i, j, k);
+      return st == kEvaluated || st == kInterpolated ? out_[slot][offset(i, j, k)]
+                                                     : std::numeric_limits<float>::quiet_NaN();
+    }
+    const auto it = outside_.find(key(i, j, k));
+    return it == outside_.end() ? std::numeric_limits<float>::quiet_NaN() : it->second[size_t(slot)];
+  }
+
   void set(int64_t off, int slot, float v) { out_[slot][off] = v; }
   float* out(int slot) const { return out_[slot]; }
   int64_t reclaimed() const { return reclaimed_; }
@@ -437,13 +449,13 @@ void evaluate_queue(const std::vector<GridPoint>& queue, const PointEvaluator& e
 constexpr uint16_t kMixedKey = 0x100;
 
 uint16_t class_key(const float* values, const std::vector<int>& slots,
-                   const AdaptiveReport& report, const AdaptiveOptions& options) {
+                   const AdaptiveReport& report, const AdaptiveOptions& options, double scale) {
   uint16_t key = 0;
   for (const int s : slots) {
     const SafetyClasses& classes = report.classes[size_t(s)];
     const double v = values[s];
     const SafetyClass c = classes.classify(v);
-    if (c == SafetyClass::kUnknown || near_threshold(classes, v, options, options.finest_margin)) {
+    if (c == SafetyClass::kUnknown || near_threshold(classes, v, options, scale)) {
       return kMixedKey;
     }
     key = uint16_t(key | (uint16_t(c) & 3u) << (2 * s));
@@ -481,21 +493,24 @@ std::vector<FinestPoint> finest_points() {
   return points;
 }
 
-// The finest level, point by point: inside the refined cells of edge 2, an edge's midpoint, a
-// face's centre and the cell's centre are computed where the corners around them (the edge's
-// ends, the face's corners, the cell's corners) differ in a class or lie near a threshold, and
-// interpolated from them where they agree. A class boundary crossing a cell is computed on the
-// edges and faces it crosses; the cell's uniform edges and faces are interpolated, as a uniform
-// cell is. Each point's decision depends only on its own corners, so a point shared by
-// neighbouring cells is decided alike from each; the first to claim it acts, and all are
-// gathered in one pass. Returns the points computed.
-int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
-                      const AdaptiveOptions& options, const std::vector<int>& slots,
-                      const PointEvaluator& evaluate, AdaptiveReport& report, SampleStore& store,
-                      RequestLists& lists, std::vector<GridPoint>& queue,
-                      std::vector<float>& values, StepClock& clock,
-                      const Combination& combination,
-                      const std::function<void(double)>& done) {
+// A level point by point: inside the refined cells of edge 2 (the finest level) or 4 (the level
+// above it, AdaptiveOptions::pointwise_halves), an edge's midpoint, a face's centre and the
+// cell's centre are computed where the corners around them (the edge's ends, the face's
+// corners, the cell's corners) differ in a class or lie near a threshold (the margins times
+// `scale`), and interpolated from them where they agree. A class boundary crossing a cell is
+// computed on the edges and faces it crosses; the cell's uniform edges and faces are
+// interpolated, as a uniform cell is. Each point's decision depends only on its own corners, so
+// a point shared by neighbouring cells is decided alike from each; the first to claim it acts,
+// and all are gathered in one pass. `beside`, when given, runs while the (last) points are
+// computed. Returns the points computed.
+int64_t sample_between(const std::vector<Cell>& refined, double scale, const OutputGrid& grid,
+                       const AdaptiveOptions& options, const std::vector<int>& slots,
+                       const PointEvaluator& evaluate, AdaptiveReport& report, SampleStore& store,
+                       RequestLists& lists, std::vector<GridPoint>& queue,
+                       std::vector<float>& values, StepClock& clock,
+                       const Combination& combination, int leave_box,
+                       const std::function<void()>& beside,
+                       const std::function<void(double)>& done) {
   static const std::vector<FinestPoint> kPoints = finest_points();
   int64_t interpolated = 0, left = 0;
   const bool combined = combination.any();
@@ -508,17 +523,17 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
           float value[8][kSlots] = {};
           for (int q = 0; q < 8; ++q) {
             const int64_t i = cell.ci(q), j = cell.cj(q), k = cell.ck(q);
-            for (const int s : slots) value[q][s] = store.value(i, j, k, s);
-            key[q] = class_key(value[q], slots, report, options);
+            for (const int s : slots) value[q][s] = store.value_if_any(i, j, k, s);
+            key[q] = class_key(value[q], slots, report, options, scale);
           }
           // The corners' classes toward danger and toward safety (the finest margins), once per
           // cell, for the points left to the combination.
           const CornerRanks ranks =
-              combined ? rank_corners(value, slots, report.classes, options, options.finest_margin)
-                       : CornerRanks{};
+              combined ? rank_corners(value, slots, report.classes, options, scale) : CornerRanks{};
+          const int h = cell.size / 2;
           int64_t cell_interpolated = 0, cell_left = 0;  // counted once per cell
           for (const FinestPoint& p : kPoints) {
-            const int64_t i = cell.i + p.di, j = cell.j + p.dj, k = cell.k + p.dk;
+            const int64_t i = cell.i + p.di * h, j = cell.j + p.dj * h, k = cell.k + p.dk * h;
             if (!store.inside(i, j, k) || !grid.in_roi(i, j, k)) continue;
             const uint8_t st = store.state_now(i, j, k);
             if (st == kEvaluated || st == kQueued || st == kUnknown) continue;
@@ -526,12 +541,26 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
             for (int q = 1; q < p.ends && uniform; ++q) {
               uniform = key[p.corner[q]] == key[p.corner[0]];
             }
-            // Left to the phases before where this one cannot change the combination's class.
-            const bool left_to_combination =
-                !uniform && combined &&
-                combination.covers(store.offset(i, j, k),
-                                   most_dangerous_of(ranks, p.corner, p.ends, slots),
-                                   report.classes, options, options.finest_margin);
+            // Left to the phases before where this one cannot change the combination's class:
+            // at the point, and at every voxel within `leave_box` of it (the voxels of the
+            // finer cells whose corner it becomes).
+            bool left_to_combination = !uniform && combined;
+            if (left_to_combination) {
+              const auto most = most_dangerous_of(ranks, p.corner, p.ends, slots);
+              const int64_t b = leave_box, n = grid.geometry.dims[0];
+              for (int64_t z = std::max<int64_t>(k - b, 0);
+                   left_to_combination && z <= std::min(k + b, n - 1); ++z)
+                for (int64_t y = std::max<int64_t>(j - b, 0);
+                     left_to_combination && y <= std::min(j + b, n - 1); ++y)
+                  for (int64_t x = std::max<int64_t>(i - b, 0); x <= std::min(i + b, n - 1); ++x) {
+                    if (!grid.in_roi(x, y, z) || !store.known(x, y, z)) continue;
+                    if (!combination.covers(store.offset(x, y, z), most, report.classes, options,
+                                            scale)) {
+                      left_to_combination = false;
+                      break;
+                    }
+                  }
+            }
             cell_left += left_to_combination ? 1 : 0;
             if (!uniform && !left_to_combination) {
               offer(i, j, k);  // computed (an interpolation from a coarser cell is reclaimed)
@@ -581,7 +610,14 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
         store_values(q, v, store);
       });
     }
-    const auto t = std::chrono::steady_clock::now();
+    // `beside` once every point is claimed (it may interpolate voxels a gather would claim),
+    // while the last piece is computed.
+    auto t = std::chrono::steady_clock::now();
+    if (beside) {
+      beside();
+      clock.add(StepClock::kFill, t);
+      t = std::chrono::steady_clock::now();
+    }
     if (running.valid()) running.get();
     clock.add(StepClock::kEvaluate, t);
     report.interpolated += interpolated;
@@ -590,7 +626,7 @@ int64_t sample_finest(const std::vector<Cell>& refined, const OutputGrid& grid,
     gather(0, cells, queue);
     clock.add(StepClock::kFinestRequests, t);
     report.interpolated += interpolated;
-    evaluate_queue(queue, evaluate, store, values, clock);
+    evaluate_queue(queue, evaluate, store, values, clock, beside);
     computed = int64_t(queue.size());
   }
   report.points_left_to_combination += left;
@@ -709,6 +745,16 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   for (int s = s0; s > 1; s /= 2) ++levels;
   LevelProgress progress(levels, options.progress);
   int level = 0;
+  // Points computed at a stride (0: the finest level point by point), one entry per stride.
+  const auto add_level = [&](int stride, int64_t points) {
+    for (auto& [s, count] : report.levels) {
+      if (s == stride) {
+        count += points;
+        return;
+      }
+    }
+    report.levels.emplace_back(stride, points);
+  };
   // Kept from level to level (their capacity: fresh pages cost the kernel's clearing).
   std::vector<GridPoint> queue;
   std::vector<float> values;
@@ -800,7 +846,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     filling.clear();
     t = std::chrono::steady_clock::now();
     report.evaluated += int64_t(queue.size());
-    report.levels.emplace_back(size, int64_t(queue.size()));
+    add_level(size, int64_t(queue.size()));
     progress.at(level, 1.0);
 
     // Thresholds from the coarsest lattice's samples inside the region (a uniform sample of it),
@@ -918,6 +964,12 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     const auto to_finest = [&](int64_t c) {
       return size == 2 && options.pointwise_finest && refine[size_t(c)] == 1;
     };
+    // Cells of edge 4 sampled point by point (AdaptiveOptions::pointwise_halves); a cell refined
+    // only as a dilated neighbour is split whole, so that a shadow its corners miss is seen.
+    const auto to_halves = [&](int64_t c) {
+      return size == 4 && options.pointwise_halves && options.pointwise_finest &&
+             refine[size_t(c)] == 1 && !dilated_only(c);
+    };
     const int h = size / 2;
     // Children left to the phases before (AdaptiveOptions::combined_so_far): a split cell's
     // children in which the combination covers the cell's corners are not split but filled from
@@ -928,7 +980,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     int64_t children_left_count = 0;
 #pragma omp parallel for schedule(static) reduction(+ : children_left_count)
     for (int64_t c = 0; c < count; ++c) {
-      if (!refine[size_t(c)] || to_finest(c)) continue;
+      if (!refine[size_t(c)] || to_finest(c) || to_halves(c)) continue;
       const Cell& cell = cells[size_t(c)];
       uint8_t bits = 0, left_bits = 0;
       std::optional<std::array<int, kSlots>> most;  // the cell's, once a child asks for it
@@ -954,14 +1006,15 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     finest_at.assign(cells.size() + 1, 0);
     for (int64_t c = 0; c < count; ++c) {
       next_at[size_t(c) + 1] = next_at[size_t(c)] + __builtin_popcount(children[size_t(c)]);
-      finest_at[size_t(c) + 1] = finest_at[size_t(c)] + (to_finest(c) ? 1 : 0);
+      finest_at[size_t(c) + 1] =
+          finest_at[size_t(c)] + (to_finest(c) || to_halves(c) ? 1 : 0);
     }
     next.resize(size_t(next_at.back()));
     finest.resize(size_t(finest_at.back()));
 #pragma omp parallel for schedule(static)
     for (int64_t c = 0; c < count; ++c) {
       const Cell& cell = cells[size_t(c)];
-      if (to_finest(c)) finest[size_t(finest_at[size_t(c)])] = cell;
+      if (to_finest(c) || to_halves(c)) finest[size_t(finest_at[size_t(c)])] = cell;
       int64_t at = next_at[size_t(c)];
       for (int child = 0; child < 8; ++child) {
         if (!(children[size_t(c)] & (1u << child))) continue;
@@ -1007,13 +1060,113 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       report.interpolated += fill_uniform(cells, refine, size);
       clock.add(StepClock::kFill, t);
     }
+    int finest_level = level + 1;
+    if (!finest.empty() && size == 4) {
+      // The lattice of stride 2 point by point inside the cells of edge 4 (pointwise_halves),
+      // the uniform cells of edge 4 filled beside its computation.
+      int64_t filled = 0;
+      std::function<void()> fill_beside;
+      if (!filling.empty()) {
+        fill_beside = [&] { filled = fill_uniform(filling, filling_refine, filling_size); };
+      }
+      // A point is left to the combination only where it covers every voxel of the children
+      // of edge 2 the point is a corner of: within 2 of it.
+      const int64_t computed =
+          sample_between(finest, 1.0, grid, options, slots, evaluate, report, store, lists, queue,
+                         values, clock, combination, 2, fill_beside,
+                         [&](double f) { progress.at(level + 1, f); });
+      filling.clear();
+      report.interpolated += filled;
+      report.evaluated += computed;
+      add_level(2, computed);
+      // Their children of edge 2: to the finest level where their corners (computed or
+      // interpolated) differ in a class or lie near a threshold, filled from them where they
+      // agree, as a uniform cell of edge 2 is, or where this phase cannot change the
+      // combination's class anywhere in the child (as a cell of edge 2 is left).
+      t = std::chrono::steady_clock::now();
+      children.assign(finest.size(), 0);
+      left_children.assign(finest.size(), 0);
+      int64_t left = 0;
+#pragma omp parallel for schedule(dynamic, 256) reduction(+ : left)
+      for (int64_t c = 0; c < int64_t(finest.size()); ++c) {
+        static constexpr int kAllCorners[8] = {0, 1, 2, 3, 4, 5, 6, 7};
+        const Cell& cell = finest[size_t(c)];
+        float v[27][kSlots] = {};  // the 3 x 3 x 3 points of the cell, i fastest
+        uint16_t key[27];
+        for (int m = 0; m < 27; ++m) {
+          for (const int s : slots) {
+            v[m][s] = store.value_if_any(cell.i + (m % 3) * 2, cell.j + (m / 3 % 3) * 2,
+                                         cell.k + (m / 9) * 2, s);
+          }
+          key[m] = class_key(v[m], slots, report, options, 1.0);
+        }
+        uint8_t split = 0, filled_bits = 0;
+        for (int child = 0; child < 8; ++child) {
+          const int a = child & 1, b = (child >> 1) & 1, d = (child >> 2) & 1;
+          const Cell part{cell.i + 2 * a, cell.j + 2 * b, cell.k + 2 * d, 2};
+          if (!meets_roi(part.i, part.j, part.k, 2) || !reaches_scan(part.i, part.j, part.k, 2)) {
+            continue;
+          }
+          int at[8];
+          for (int q = 0; q < 8; ++q) {
+            at[q] = (a + (q & 1)) + 3 * (b + ((q >> 1) & 1)) + 9 * (d + (q >> 2));
+          }
+          bool uniform = key[at[0]] != kMixedKey;
+          for (int q = 1; q < 8 && uniform; ++q) uniform = key[at[q]] == key[at[0]];
+          if (!uniform && combination.any()) {
+            float corner[8][kSlots] = {};
+            for (int q = 0; q < 8; ++q) std::copy(v[at[q]], v[at[q]] + kSlots, corner[q]);
+            if (combination_covers(
+                    part, most_dangerous_of(rank_corners(corner, slots, report.classes, options, 1.0),
+                                            kAllCorners, 8, slots))) {
+              uniform = true;
+              ++left;
+            }
+          }
+          (uniform ? filled_bits : split) |= uint8_t(1u << child);
+        }
+        children[size_t(c)] = split;
+        left_children[size_t(c)] = filled_bits;
+      }
+      report.cells_left_to_combination += left;
+      std::vector<Cell> halves;
+      halves.swap(finest);
+      for (size_t c = 0; c < halves.size(); ++c) {
+        for (int child = 0; child < 8; ++child) {
+          if (!(children[c] & (1u << child))) continue;
+          const Cell& cell = halves[c];
+          finest.push_back({cell.i + (child & 1) * 2, cell.j + ((child >> 1) & 1) * 2,
+                            cell.k + ((child >> 2) & 1) * 2, 2});
+        }
+      }
+      clock.add(StepClock::kRefine, t);
+      t = std::chrono::steady_clock::now();
+      int64_t interpolated = 0;
+      for (int parity = 0; parity < 8; ++parity) {
+#pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
+        for (int64_t c = 0; c < int64_t(halves.size()); ++c) {
+          const uint8_t bits = left_children[size_t(c)];
+          const Cell& cell = halves[size_t(c)];
+          for (int child = 0; bits && child < 8; ++child) {
+            if (!(bits & (1u << child))) continue;
+            const Cell part{cell.i + (child & 1) * 2, cell.j + ((child >> 1) & 1) * 2,
+                            cell.k + ((child >> 2) & 1) * 2, 2};
+            if (lattice_parity(part, half) != parity) continue;
+            interpolated += fill_cell(part, grid, slots, store);
+          }
+        }
+      }
+      report.interpolated += interpolated;
+      clock.add(StepClock::kFill, t);
+      finest_level = level + 2;
+    }
     if (!finest.empty()) {
       const int64_t computed =
-          sample_finest(finest, grid, options, slots, evaluate, report, store, lists, queue,
-                        values, clock, combination,
-                        [&](double f) { progress.at(level + 1, f); });
+          sample_between(finest, options.finest_margin, grid, options, slots, evaluate, report,
+                         store, lists, queue, values, clock, combination, 0, {},
+                         [&](double f) { progress.at(finest_level, f); });
       report.evaluated += computed;
-      report.levels.emplace_back(0, computed);
+      add_level(0, computed);
     }
     cells.swap(next);
     ++level;
@@ -1063,6 +1216,7 @@ AdaptiveOptions adaptive_options(const PathSafetyOptions& options, const OutputG
   adaptive.blocking_margin = options.fast_blocking_margin;
   adaptive.dilate = options.fast_dilate;
   adaptive.finest_margin = options.fast_finest_margin;
+  adaptive.pointwise_halves = options.fast_pointwise_halves;
   adaptive.combined_so_far = options.combined_so_far;
   adaptive.combined_newer = options.combined_newer;
   adaptive.newer_from_level = options.newer_from_level;

@@ -44,6 +44,12 @@ struct AdaptiveOptions {
   // The finest level point by point (sample_finest): inside a refined cell of edge 2, only the
   // points whose surrounding corners differ in class (or lie near a threshold) are computed.
   bool pointwise_finest = true;
+  // The level above it point by point as well: inside a refined cell of edge 4, of the points of
+  // the lattice of stride 2 only those are computed whose corners around them differ in class
+  // (or lie near a threshold), the others interpolated; the cell's children of edge 2 then go to
+  // the finest level where their corners differ and are filled where they agree. A cell refined
+  // only as a dilated neighbour is split whole. Only with pointwise_finest.
+  bool pointwise_halves = true;
   // For an evaluator on another device (the GPU), whose calls leave the cores free: the host's
   // steps beside its work. The finest level is gathered in `finest_pieces` pieces, each computed
   // (and stored) while the next is gathered, from `overlap_finest_from` refined cells of edge 2

@@ -757,6 +757,10 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
   result.fast_stride = adaptive.stride;
   float* out[kernels::kValueCount] = {};
   value_outputs(result, options.values, out);
+  if (options.before_sampling) {
+    trace::event("turn_wait_begin");
+    options.before_sampling();
+  }
   trace::event("sampling_begin");
   const AdaptiveReport report = sample_adaptively(grid, adaptive, evaluate, out);
   trace::event("sampling_end");

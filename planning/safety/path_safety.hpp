@@ -76,6 +76,8 @@ struct PathSafetyOptions {
   // computed voxels is computed only where their classes differ (bench/RESULTS.md, eleventh
   // session: 31 % fewer points, every test scene still >= 99.5 % in exact mode's class).
   double fast_finest_margin = 0.0;
+  // The level above the finest point by point too (AdaptiveOptions::pointwise_halves).
+  bool fast_pointwise_halves = true;
   // Fast mode: one ray per block of fast_surface_block^3 tumor voxels, cast to the block's surface
   // point nearest the mean of its surface points and counted once for each of them (1: every
   // surface point, as exact mode). Rays to the points of a block of 2 stay within about one
@@ -122,6 +124,10 @@ struct PathSafetyOptions {
   // (AdaptiveOptions::combined_newer). Null: combined_so_far throughout.
   std::function<std::array<const float*, kernels::kValueCount>()> combined_newer;
   int newer_from_level = 1;
+  // Fast mode: called once everything is prepared (the scene on the device, the volumes
+  // allocated), before the first point is sampled; a plan computing phases side by side holds a
+  // phase prepared ahead there until its turn. An exception it throws ends the run.
+  std::function<void()> before_sampling;
   // Called from the computing thread with the fraction done (0..1), about every 2 % of the work.
   std::function<void(double)> progress;
 };

@@ -135,6 +135,58 @@ TEST(AdaptiveSampling, FinestLevelComputesOnlyBetweenCornersThatDiffer) {
   }
 }
 
+// The level above the finest point by point too (pointwise_halves): inside a refined cell of
+// edge 4 only the points of stride 2 whose own corners differ are computed; the field is still
+// right at every voxel, with fewer points of stride 2, each of them beside the boundary.
+TEST(AdaptiveSampling, HalvesComputeOnlyBetweenCornersThatDiffer) {
+  const OutputGrid g = ball_grid(32);
+  AdaptiveOptions o;
+  o.values = kernels::kSvv;
+  o.stride = 8;
+  o.pointwise_halves = false;
+  const Sampled whole = sample(g, o);
+  o.pointwise_halves = true;
+  const Sampled halves = sample(g, o);
+  const int64_t n = g.geometry.dims[0];
+  int64_t wrong = 0;
+  for (int64_t k = 0; k < n; ++k)
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < n; ++i) {
+        if (!g.in_roi(i, j, k)) continue;
+        wrong += halves.svv[size_t((k * n + j) * n + i)] != shadow_svv(i, j, k, int(g.half));
+      }
+  EXPECT_EQ(wrong, 0);
+  const auto at_stride = [](const AdaptiveReport& r, int stride) {
+    for (const auto& [s, count] : r.levels) {
+      if (s == stride) return count;
+    }
+    return int64_t(-1);
+  };
+  // The same coarser levels; fewer points of stride 2.
+  EXPECT_EQ(at_stride(halves.report, 8), at_stride(whole.report, 8));
+  EXPECT_EQ(at_stride(halves.report, 4), at_stride(whole.report, 4));
+  const int64_t whole_2 = at_stride(whole.report, 2), halves_2 = at_stride(halves.report, 2);
+  EXPECT_GT(halves_2, 0);
+  EXPECT_LT(halves_2, whole_2 * 3 / 4) << halves_2 << " vs " << whole_2;
+  EXPECT_LT(halves.report.evaluated, whole.report.evaluated);
+  // Every point of stride 2 (not of stride 4) computed lies beside the boundary: some voxel
+  // within two steps along each axis belongs to the other class.
+  int64_t on_halves = 0;
+  for (const auto& [i, j, k] : halves.evaluated) {
+    const int64_t a = i - g.half, b = j - g.half, c = k - g.half;
+    if (a % 2 != 0 || b % 2 != 0 || c % 2 != 0) continue;        // a finest point
+    if (a % 4 == 0 && b % 4 == 0 && c % 4 == 0) continue;        // a corner of stride 4
+    ++on_halves;
+    const float here = shadow_svv(i, j, k, int(g.half));
+    bool boundary = false;
+    for (int d = 0; d < 125; ++d) {
+      boundary |= shadow_svv(i + d % 5 - 2, j + (d / 5) % 5 - 2, k + d / 25 - 2, int(g.half)) != here;
+    }
+    EXPECT_TRUE(boundary) << "computed away from the boundary: " << i << "," << j << "," << k;
+  }
+  EXPECT_GT(on_halves, 0);
+}
+
 // The host's steps beside the evaluator (overlap_host_steps, as for the GPU): the finest level
 // gathered in pieces, each computed while the next is gathered, and each level's fill beside the
 // next level's evaluation: the same points computed, none twice, the same values, in or out of a

@@ -82,8 +82,10 @@ void expect_fast_agrees_with_exact(uint32_t seed) {
                   fast.check_class_agreement[size_t(v)]);
       // Fast mode interpolates inside regions of one class, where the blocking values of the
       // dangerous class vary steeply (beside impassable tubes): its values are near, its
-      // classes agree.
-      const double l2_bound = v == 0 ? 0.05 : mode == Mode::kFast ? 0.06 : 0.01;
+      // classes agree. (The level of stride 2 point by point interpolates across 4 voxels
+      // where 2 were computed before: scene 3's ISBV 0.059 -> 0.068, IVBV 0.053 -> 0.062, the
+      // classes unchanged.)
+      const double l2_bound = v == 0 ? 0.05 : mode == Mode::kFast ? 0.075 : 0.01;
       EXPECT_LE(d.relative_l2[size_t(v)], l2_bound) << name;
       EXPECT_GE(agreement, kRequiredAgreement) << name;
       EXPECT_GE(fast.check_class_agreement[size_t(v)], 0.99) << name;
