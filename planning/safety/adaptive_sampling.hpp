@@ -48,7 +48,9 @@ struct AdaptiveOptions {
   // the lattice of stride 2 only those are computed whose corners around them differ in class
   // (or lie near a threshold), the others interpolated; the cell's children of edge 2 then go to
   // the finest level where their corners differ and are filled where they agree. A cell refined
-  // only as a dilated neighbour is split whole. Only with pointwise_finest.
+  // only as a dilated neighbour is split whole. Only with pointwise_finest. (H100, 513^3 grid:
+  // one phase 5.07 -> 4.65 M points, ten phases 26.9 -> 23.8 M, the classes unchanged;
+  // bench/RESULTS.md, twenty-second session.)
   bool pointwise_halves = true;
   // For an evaluator on another device (the GPU), whose calls leave the cores free: the host's
   // steps beside its work. The finest level is gathered in `finest_pieces` pieces, each computed
