@@ -1061,6 +1061,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       clock.add(StepClock::kFill, t);
     }
     int finest_level = level + 1;
+    std::function<void()> fill_finest_beside;
     if (!finest.empty() && size == 4) {
       // The lattice of stride 2 point by point inside the cells of edge 4 (pointwise_halves),
       // the uniform cells of edge 4 filled beside its computation.
@@ -1140,33 +1141,39 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
         }
       }
       clock.add(StepClock::kRefine, t);
-      t = std::chrono::steady_clock::now();
-      int64_t interpolated = 0;
-      for (int parity = 0; parity < 8; ++parity) {
+      // The children filled from their corners: beside the finest level's computation, once its
+      // points are claimed (a point it interpolates on a face they share gets the same value).
+      fill_finest_beside = [&, halves = std::move(halves)] {
+        int64_t interpolated = 0;
+        for (int parity = 0; parity < 8; ++parity) {
 #pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
-        for (int64_t c = 0; c < int64_t(halves.size()); ++c) {
-          const uint8_t bits = left_children[size_t(c)];
-          const Cell& cell = halves[size_t(c)];
-          for (int child = 0; bits && child < 8; ++child) {
-            if (!(bits & (1u << child))) continue;
-            const Cell part{cell.i + (child & 1) * 2, cell.j + ((child >> 1) & 1) * 2,
-                            cell.k + ((child >> 2) & 1) * 2, 2};
-            if (lattice_parity(part, half) != parity) continue;
-            interpolated += fill_cell(part, grid, slots, store);
+          for (int64_t c = 0; c < int64_t(halves.size()); ++c) {
+            const uint8_t bits = left_children[size_t(c)];
+            const Cell& cell = halves[size_t(c)];
+            for (int child = 0; bits && child < 8; ++child) {
+              if (!(bits & (1u << child))) continue;
+              const Cell part{cell.i + (child & 1) * 2, cell.j + ((child >> 1) & 1) * 2,
+                              cell.k + ((child >> 2) & 1) * 2, 2};
+              if (lattice_parity(part, half) != parity) continue;
+              interpolated += fill_cell(part, grid, slots, store);
+            }
           }
         }
-      }
-      report.interpolated += interpolated;
-      clock.add(StepClock::kFill, t);
+        report.interpolated += interpolated;
+      };
       finest_level = level + 2;
     }
     if (!finest.empty()) {
       const int64_t computed =
           sample_between(finest, options.finest_margin, grid, options, slots, evaluate, report,
-                         store, lists, queue, values, clock, combination, 0, {},
+                         store, lists, queue, values, clock, combination, 0, fill_finest_beside,
                          [&](double f) { progress.at(finest_level, f); });
       report.evaluated += computed;
       add_level(0, computed);
+    } else if (fill_finest_beside) {
+      t = std::chrono::steady_clock::now();
+      fill_finest_beside();
+      clock.add(StepClock::kFill, t);
     }
     cells.swap(next);
     ++level;
