@@ -65,6 +65,19 @@ Sampled sample(const OutputGrid& g, const AdaptiveOptions& o) {
   return run;
 }
 
+// Voxels of the region whose sampled SVV is not the field's.
+int64_t voxels_unlike_the_field(const OutputGrid& g, const Sampled& run) {
+  const int64_t n = g.geometry.dims[0];
+  int64_t wrong = 0;
+  for (int64_t k = 0; k < n; ++k)
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < n; ++i) {
+        if (!g.in_roi(i, j, k)) continue;
+        wrong += run.svv[size_t((k * n + j) * n + i)] != shadow_svv(i, j, k, int(g.half));
+      }
+  return wrong;
+}
+
 TEST(AdaptiveSampling, EveryVoxelHasTheClassOfTheFieldAndMostAreInterpolated) {
   const OutputGrid g = ball_grid(24);
   AdaptiveOptions o;
@@ -105,15 +118,7 @@ TEST(AdaptiveSampling, FinestLevelComputesOnlyBetweenCornersThatDiffer) {
   const Sampled cellwise = sample(g, o);
   o.pointwise_finest = true;
   const Sampled pointwise = sample(g, o);
-  const int64_t n = g.geometry.dims[0];
-  int64_t wrong = 0;
-  for (int64_t k = 0; k < n; ++k)
-    for (int64_t j = 0; j < n; ++j)
-      for (int64_t i = 0; i < n; ++i) {
-        if (!g.in_roi(i, j, k)) continue;
-        wrong += pointwise.svv[size_t((k * n + j) * n + i)] != shadow_svv(i, j, k, int(g.half));
-      }
-  EXPECT_EQ(wrong, 0);
+  EXPECT_EQ(voxels_unlike_the_field(g, pointwise), 0);
   ASSERT_EQ(cellwise.report.levels.size(), 3u);
   ASSERT_EQ(pointwise.report.levels.size(), 3u);
   EXPECT_EQ(cellwise.report.levels[2].first, 1);
@@ -147,15 +152,7 @@ TEST(AdaptiveSampling, HalvesComputeOnlyBetweenCornersThatDiffer) {
   const Sampled whole = sample(g, o);
   o.pointwise_halves = true;
   const Sampled halves = sample(g, o);
-  const int64_t n = g.geometry.dims[0];
-  int64_t wrong = 0;
-  for (int64_t k = 0; k < n; ++k)
-    for (int64_t j = 0; j < n; ++j)
-      for (int64_t i = 0; i < n; ++i) {
-        if (!g.in_roi(i, j, k)) continue;
-        wrong += halves.svv[size_t((k * n + j) * n + i)] != shadow_svv(i, j, k, int(g.half));
-      }
-  EXPECT_EQ(wrong, 0);
+  EXPECT_EQ(voxels_unlike_the_field(g, halves), 0);
   const auto at_stride = [](const AdaptiveReport& r, int stride) {
     for (const auto& [s, count] : r.levels) {
       if (s == stride) return count;
