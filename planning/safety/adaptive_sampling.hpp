@@ -41,7 +41,7 @@ struct AdaptiveOptions {
   // Cells beside a refined cell of the coarsest lattice are refined as well, so that a shadow
   // thinner than a cell, seen by the corners of only one of the cells it crosses, is found.
   bool dilate = true;
-  // The finest level point by point (sample_finest): inside a refined cell of edge 2, only the
+  // The finest level point by point (sample_between): inside a refined cell of edge 2, only the
   // points whose surrounding corners differ in class (or lie near a threshold) are computed.
   bool pointwise_finest = true;
   // The level above it point by point as well: inside a refined cell of edge 4, of the points of
