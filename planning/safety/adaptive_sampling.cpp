@@ -270,6 +270,28 @@ struct Combination {
   }
 };
 
+// Whether this phase cannot change the combination's class anywhere in `box`: every voxel of it
+// in the region and the scan covers `most` (Combination::covers, margins times `scale`).
+bool combination_covers_box(const Combination& combination, const SampleStore& store,
+                            const OutputGrid& grid, const Cell& box,
+                            const std::array<int, kernels::kValueCount>& most,
+                            const std::array<SafetyClasses, kernels::kValueCount>& classes,
+                            const AdaptiveOptions& options, double scale) {
+  const int64_t n = grid.geometry.dims[0];
+  for (int64_t k = std::max<int64_t>(box.k, 0); k <= std::min<int64_t>(box.k + box.size, n - 1);
+       ++k)
+    for (int64_t j = std::max<int64_t>(box.j, 0);
+         j <= std::min<int64_t>(box.j + box.size, n - 1); ++j)
+      for (int64_t i = std::max<int64_t>(box.i, 0);
+           i <= std::min<int64_t>(box.i + box.size, n - 1); ++i) {
+        if (!grid.in_roi(i, j, k) || !store.known(i, j, k)) continue;
+        if (!combination.covers(store.offset(i, j, k), most, classes, options, scale)) {
+          return false;
+        }
+      }
+  return true;
+}
+
 // Eight corners' classes per value slot, moved by the margins toward danger (`up`) and toward
 // safety (`down`): danger_rank, taken once per cell.
 struct CornerRanks {
@@ -547,19 +569,14 @@ int64_t sample_between(const std::vector<Cell>& refined, double scale, const Out
             bool left_to_combination = !uniform && combined;
             if (left_to_combination) {
               const auto most = most_dangerous_of(ranks, p.corner, p.ends, slots);
-              const int64_t b = leave_box, n = grid.geometry.dims[0];
-              for (int64_t z = std::max<int64_t>(k - b, 0);
-                   left_to_combination && z <= std::min(k + b, n - 1); ++z)
-                for (int64_t y = std::max<int64_t>(j - b, 0);
-                     left_to_combination && y <= std::min(j + b, n - 1); ++y)
-                  for (int64_t x = std::max<int64_t>(i - b, 0); x <= std::min(i + b, n - 1); ++x) {
-                    if (!grid.in_roi(x, y, z) || !store.known(x, y, z)) continue;
-                    if (!combination.covers(store.offset(x, y, z), most, report.classes, options,
-                                            scale)) {
-                      left_to_combination = false;
-                      break;
-                    }
-                  }
+              const int32_t b = leave_box;
+              left_to_combination =
+                  b == 0 ? combination.covers(store.offset(i, j, k), most, report.classes,
+                                              options, scale)
+                         : combination_covers_box(
+                               combination, store, grid,
+                               Cell{int32_t(i) - b, int32_t(j) - b, int32_t(k) - b, 2 * b}, most,
+                               report.classes, options, scale);
             }
             cell_left += left_to_combination ? 1 : 0;
             if (!uniform && !left_to_combination) {
@@ -808,18 +825,8 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   // Whether this phase cannot change the combination's class anywhere in `box` (a cell or a
   // child of one): every voxel of it in the region and the scan covers `most`.
   const auto combination_covers = [&](const Cell& box, const std::array<int, kSlots>& most) {
-    for (int64_t k = std::max<int64_t>(box.k, 0); k <= std::min<int64_t>(box.k + box.size, n - 1);
-         ++k)
-      for (int64_t j = std::max<int64_t>(box.j, 0);
-           j <= std::min<int64_t>(box.j + box.size, n - 1); ++j)
-        for (int64_t i = std::max<int64_t>(box.i, 0);
-             i <= std::min<int64_t>(box.i + box.size, n - 1); ++i) {
-          if (!grid.in_roi(i, j, k) || !store.known(i, j, k)) continue;
-          if (!combination.covers(store.offset(i, j, k), most, report.classes, options, 1.0)) {
-            return false;
-          }
-        }
-    return true;
+    return combination_covers_box(combination, store, grid, box, most, report.classes, options,
+                                  1.0);
   };
   clock.add(StepClock::kCells, t);
   while (!cells.empty()) {
