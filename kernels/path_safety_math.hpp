@@ -311,7 +311,10 @@ CREPUSCULAR_HD int tumor_offset_at_shifted(const TumorGrid<double>& g, Vec3<doub
 }
 
 // The same lookup with the leap of its voxel (TumorGrid::leap): how many voxels around it, d - 1
-// along every axis, are of its kind. 1 (no leap) outside the box or without leaps.
+// along every axis, are of its kind. kLeaps false: the mask itself, leap 1 (no leap), for a grid
+// without leaps; true: the leaps alone (TumorGrid::leap is set), the mask not read. Leap 1
+// outside the box.
+template <bool kLeaps>
 CREPUSCULAR_HD_INLINE int tumor_offset_and_leap(const TumorGrid<double>& g, Vec3<double> shifted,
                                                 int& leap) {
   leap = 1;
@@ -322,20 +325,23 @@ CREPUSCULAR_HD_INLINE int tumor_offset_and_leap(const TumorGrid<double>& g, Vec3
                  mz = unsigned(g.hi[2] - g.lo[2]);
   if (bi > mx || bj > my || bk > mz) return -1;
   const int offset = (k * g.ny + j) * g.nx + i;
-  if (!g.leap) return g.mask[offset] ? offset : -1;
-  const uint8_t code = g.leap[(bk * (my + 1u) + bj) * (mx + 1u) + bi];
-  leap = code & uint8_t(kMaxTumorLeap);
-  return (code & kTumorLeapInside) ? offset : -1;
+  if constexpr (!kLeaps) {
+    return g.mask[offset] ? offset : -1;
+  } else {
+    const uint8_t code = g.leap[(bk * (my + 1u) + bj) * (mx + 1u) + bi];
+    leap = code & uint8_t(kMaxTumorLeap);
+    return (code & kTumorLeapInside) ? offset : -1;
+  }
 }
 
 // Samples a walk may pass over after one whose voxel has leap d (> 1): they move the nearest voxel
 // by less than d - 1 along every axis (a hundredth of a voxel covers the rounding of their
-// positions), so they stay in its cube. inv_step: 1 / the walk's largest index step per sample
-// along an axis (0: no leaping). Capped at 10^9 (tiny steps: a point a millionth of a step from
-// t), which passes every sample of a walk.
-CREPUSCULAR_HD_INLINE int tumor_leap_samples(int leap, double inv_step) {
-  const double samples = (double(leap) - 1.01) * inv_step;
-  return samples < 1e9 ? int(samples) : 1000000000;
+// positions, and of this product in float: a relative 1e-7 of at most 127 voxels), so they stay
+// in its cube. inv_step: 1 / the walk's largest index step per sample along an axis. Capped at
+// 10^9 (tiny steps: a point a millionth of a step from t), which passes every sample of a walk.
+CREPUSCULAR_HD_INLINE int tumor_leap_samples(int leap, float inv_step) {
+  const float samples = (float(leap) - 1.01f) * inv_step;
+  return samples < 1e9f ? int(samples) : 1000000000;
 }
 
 CREPUSCULAR_HD Vec3<double> shift_for_ties(Vec3<double> r) {
@@ -432,15 +438,12 @@ struct TumorCrossing {
   int samples_in_tumor;
 };
 
-template <typename Real>
-CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGeometry<Real>& ray,
-                                         int own_offset, bool want_back) {
+// The walk of cross_tumor, with the grid's leaps (kLeaps: TumorGrid::leap is set) or without.
+template <bool kLeaps, typename Real>
+CREPUSCULAR_HD_INLINE TumorCrossing walk_tumor(const TumorGrid<double>& g,
+                                               const RayGeometry<Real>& ray, int own_offset,
+                                               bool want_back) {
   TumorCrossing c{true, true, 0};
-  if (ray.n == 0) {  // p is t's centre: nothing in front, no direction to look behind
-    c.back_facing = false;
-    c.samples_in_tumor = 1;
-    return c;
-  }
   double k_in, k_out;
   box_range(ray.r0, ray.dr, g.lo, g.hi, k_in, k_out);
   // Samples at shifted0 + k dr: the tie's half voxel added to the origin once, not per sample
@@ -449,8 +452,11 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
   // Leaps (TumorGrid::leap) over the samples whose voxels are known to be of the kind of the one
   // just looked up: never from t's own voxel, so that leapt samples never decide front-facing.
   // The same occupancy as looking at every sample (test: TumorLeapsGiveTheWalkOfEverySample).
-  const double step_max = fmax(fabs(ray.dr.x), fmax(fabs(ray.dr.y), fabs(ray.dr.z)));
-  const double inv_step = g.leap && step_max > 0.0 ? 1.0 / step_max : 0.0;
+  float inv_step = 0.0f;
+  if constexpr (kLeaps) {
+    const double step_max = fmax(fabs(ray.dr.x), fmax(fabs(ray.dr.y), fabs(ray.dr.z)));
+    inv_step = step_max > 0.0 ? float(1.0 / step_max) : 0.0f;
+  }
   if (want_back) {
     // Beyond t with the same step, walked first: where t is not back-facing, the walk toward p
     // below may stop at the first other tumor voxel it meets. Only when p lies within a small
@@ -462,12 +468,14 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
     if (step_sq < 1e-4) stride = 0.01 / sqrt(step_sq);
     for (double k = double(ray.n) + stride; k <= k_out; k = add_rn(k, stride)) {
       int leap;
-      const int off = tumor_offset_and_leap(g, along_rn(shifted0, ray.dr, k), leap);
+      const int off = tumor_offset_and_leap<kLeaps>(g, along_rn(shifted0, ray.dr, k), leap);
       if (off >= 0 && off != own_offset) {
         c.back_facing = false;
         break;
       }
-      if (off < 0 && leap > 1 && stride == 1.0) k += double(tumor_leap_samples(leap, inv_step));
+      if constexpr (kLeaps) {
+        if (off < 0 && leap > 1 && stride == 1.0) k += double(tumor_leap_samples(leap, inv_step));
+      }
     }
   }
   const bool chord_needed = want_back && c.back_facing;
@@ -479,7 +487,7 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
   for (int k = k_first; k <= k_end; ++k) {
     kd += 1.0;
     int leap;
-    const int off = tumor_offset_and_leap(g, along_rn(shifted0, ray.dr, kd), leap);
+    const int off = tumor_offset_and_leap<kLeaps>(g, along_rn(shifted0, ray.dr, kd), leap);
     if (off >= 0) {
       ++c.samples_in_tumor;
       if (off != own_offset && k < ray.n) {
@@ -487,15 +495,27 @@ CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGe
         if (!chord_needed) return c;  // nothing more of this walk is used
       }
     }
-    if (leap > 1 && off != own_offset) {
-      int skip = tumor_leap_samples(leap, inv_step);
-      if (skip > k_end - k) skip = k_end - k;
-      if (off >= 0) c.samples_in_tumor += skip;
-      k += skip;
-      kd += double(skip);
+    if constexpr (kLeaps) {
+      if (leap > 1 && off != own_offset) {
+        int skip = tumor_leap_samples(leap, inv_step);
+        if (skip > k_end - k) skip = k_end - k;
+        if (off >= 0) c.samples_in_tumor += skip;
+        k += skip;
+        kd += double(skip);
+      }
     }
   }
   return c;
+}
+
+template <typename Real>
+CREPUSCULAR_HD TumorCrossing cross_tumor(const TumorGrid<double>& g, const RayGeometry<Real>& ray,
+                                         int own_offset, bool want_back) {
+  if (ray.n == 0) {  // p is t's centre: nothing in front, no direction to look behind
+    return TumorCrossing{true, false, 1};
+  }
+  return g.leap ? walk_tumor<true>(g, ray, own_offset, want_back)
+                : walk_tumor<false>(g, ray, own_offset, want_back);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -643,6 +663,18 @@ struct GridSampler {
   CREPUSCULAR_HD_INLINE Real mixed(Vec3<Real> q) const { return trilinear_blocking(grid, q); }
 };
 
+// What a sampler adds to a blocking index (its member kShift; 0 without one): combine_ray adds it
+// to a ray's origin once, so the sampler takes shifted coordinates. A sampler with a shift is
+// used with kMarchEverySample only (it reads no brick codes at blocking indices).
+template <typename Sampler, typename = void>
+struct SamplerShift {
+  static constexpr float value = 0.0f;
+};
+template <typename Sampler>
+struct SamplerShift<Sampler, std::void_t<decltype(Sampler::kShift)>> {
+  static constexpr float value = Sampler::kShift;
+};
+
 // How a ray crosses empty space: leaping over the samples in a cube of empty bricks
 // (kLeapEmptySpace), or sampling each (kMarchEverySample: the sampler maps every brick code to its
 // value). The values are the same bits either way.
@@ -716,9 +748,17 @@ CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>
     if constexpr (kLine) Svv::accumulate(line_ray, sample);  // = Isbv's = Ivbv's
     if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_ray, sample);
   };
+  // The sampler's coordinates: the blocking index plus its shift (SamplerShift; a texture's
+  // voxel centres lie at +0.5), added to the origin once rather than at every sample.
+  Vec3<Real> q0 = ray.q0;
+  constexpr float kShift = SamplerShift<Sampler>::value;
+  if constexpr (kShift != 0.0f) {
+    static_assert(Empty == kMarchEverySample, "a shifted sampler reads no brick codes");
+    q0 = Vec3<Real>{q0.x + Real(kShift), q0.y + Real(kShift), q0.z + Real(kShift)};
+  }
   const int stride = s.blocking_stride;
   if (stride <= 1) {
-    march_samples<Empty>(s.blocking, blocking_at, ray.q0, ray.dq, ray.n, accumulate);
+    march_samples<Empty>(s.blocking, blocking_at, q0, ray.dq, ray.n, accumulate);
   } else {
     // Fast mode's quadrature (PathSafetyScene::blocking_stride): the samples k = 1..N taken in
     // runs of `stride`, each run by one sample at its midpoint k_c = stride j - (stride - 1) / 2,
@@ -736,13 +776,13 @@ CREPUSCULAR_HD void combine_ray(VoxelState<Real>& v, const PathSafetyScene<Real>
       if constexpr ((Values & kBvv) != 0) Bvv::accumulate(bvv_runs, sample);
     };
     const Vec3<Real> dq_run = {ray.dq.x * sr, ray.dq.y * sr, ray.dq.z * sr};
-    march_samples<Empty>(s.blocking, blocking_at, along(ray.q0, ray.dq, -half), dq_run, runs,
+    march_samples<Empty>(s.blocking, blocking_at, along(q0, ray.dq, -half), dq_run, runs,
                          accumulate_run);
     if constexpr ((Values & kBvv) != 0) bvv_ray.weighted = bvv_runs.weighted * sr;
     Real kr = Real(runs) * sr;
     for (int k = runs * stride + 1; k <= ray.n; ++k) {
       kr += Real(1);
-      accumulate(Real(blocking_at(along(ray.q0, ray.dq, kr))), kr);
+      accumulate(Real(blocking_at(along(q0, ray.dq, kr))), kr);
     }
   }
   if constexpr ((Values & kBvv) != 0) Bvv::close(bvv_ray, inv_n, ray.step);

@@ -1088,9 +1088,10 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       report.evaluated += computed;
       add_level(2, computed);
       // Their children of edge 2: to the finest level where their corners (computed or
-      // interpolated) differ in a class or lie near a threshold, filled from them where they
-      // agree, as a uniform cell of edge 2 is, or where this phase cannot change the
-      // combination's class anywhere in the child (as a cell of edge 2 is left).
+      // interpolated) differ in a class or lie near a threshold with the finest level's margins
+      // (elsewhere it would compute none of their points), filled from them where they agree, as
+      // a uniform cell of edge 2 is, or where this phase cannot change the combination's class
+      // anywhere in the child (as a cell of edge 2 is left).
       t = std::chrono::steady_clock::now();
       children.assign(finest.size(), 0);
       left_children.assign(finest.size(), 0);
@@ -1106,7 +1107,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
             v[m][s] = store.value_if_any(cell.i + (m % 3) * 2, cell.j + (m / 3 % 3) * 2,
                                          cell.k + (m / 9) * 2, s);
           }
-          key[m] = class_key(v[m], slots, report, options, 1.0);
+          key[m] = class_key(v[m], slots, report, options, options.finest_margin);
         }
         uint8_t split = 0, filled_bits = 0;
         for (int child = 0; child < 8; ++child) {

@@ -50,7 +50,9 @@ struct AdaptiveOptions {
   // the finest level where their corners differ and are filled where they agree. A cell refined
   // only as a dilated neighbour is split whole. Only with pointwise_finest. (H100, 513^3 grid:
   // one phase 5.07 -> 4.65 M points, ten phases 26.9 -> 23.8 M, the classes unchanged;
-  // bench/RESULTS.md, twenty-second session.)
+  // bench/RESULTS.md, twenty-second session.) The children of edge 2 go to the finest level only
+  // where their corners differ with the finest level's margins (finest_margin): elsewhere it
+  // would compute none of their points and interpolate them all.
   bool pointwise_halves = true;
   // For an evaluator on another device (the GPU), whose calls leave the cores free: the host's
   // steps beside its work. The finest level is gathered in `finest_pieces` pieces, each computed
