@@ -6,6 +6,7 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <array>
 #include <filesystem>
 #include <atomic>
 #include <exception>
@@ -176,10 +177,12 @@ std::future<double> area_safety_beside_writes(const PlanRequest& req,
 }
 
 // Step 3b: voxel states and path safety volumes into the staged folder, concurrently, and the
-// writes of step 3a finished.
+// writes of step 3a finished. `beside`, when given, runs once every volume's classes are taken,
+// while the writes go on.
 Written write_volumes(const StagedDirectory& out, PathSafetyResult& result,
                       const Volume<uint8_t>& region, std::vector<std::future<void>> writes,
-                      const nlohmann::json& outputs) {
+                      const nlohmann::json& outputs,
+                      const std::function<void()>& beside = nullptr) {
   const std::string ext = volume_extension(result.grid.geometry.voxel_count());
   Written w;
   w.outputs = outputs;
@@ -199,6 +202,14 @@ Written write_volumes(const StagedDirectory& out, PathSafetyResult& result,
     w.outputs[name] = file;
     w.classes[name] = classes_json(classes_of(result, bit));  // taken once (fast mode's check)
     w.statistics[name] = statistics_json(vol);
+  }
+  if (beside) {
+    try {
+      beside();
+    } catch (...) {
+      for (auto& f : writes) f.wait();  // before the staged folder goes
+      throw;
+    }
   }
   for (auto& f : writes) f.get();  // rethrows the first failure; the staged folder goes with it
   return w;
@@ -869,9 +880,24 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   AreaSafetyGeometry geometry;
   std::future<double> area = area_safety_beside_writes(req, first.inputs.tumor, combined, out,
                                                        region, area_safety, geometry);
+  // The share of the region whose class changes over the cycle, on every core while the
+  // volumes are written (it needs their classes, which the writes take).
+  std::array<double, kernels::kValueCount> class_change{};
+  const auto class_change_beside = [&] {
+    // The last fold's other extreme: taken after its combination (fold_turn follows the whole
+    // fold; a failed finish fails it too).
+    if (order.size() > 1) fold_turn.back().done.get();
+    std::array<const SafetyClasses*, kernels::kValueCount> classes{};
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      if (combined.values & (1u << v)) classes[size_t(v)] = &classes_of(combined, 1u << v);
+    }
+    class_change = combiner.class_change_shares(classes);
+    trace::event("class_change", 0, -1);
+  };
   Written written;
   try {
-    written = write_volumes(out, combined, region, std::move(input_writes), outputs);
+    written = write_volumes(out, combined, region, std::move(input_writes), outputs,
+                            class_change_beside);
   } catch (...) {
     if (area.valid()) area.wait();  // before the staged folder goes
     throw;
@@ -899,8 +925,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   for (int v = 0; v < kernels::kValueCount; ++v) {
     const unsigned bit = 1u << v;
     if (!(combined.values & bit)) continue;
-    const SafetyClasses classes = classes_of(combined, bit);  // taken by the writes
-    const double share = combiner.class_change_share(v, classes);
+    const double share = class_change[size_t(v)];
     breathing["class_change_share"][value_name(bit)] = share;
     spdlog::info("breathing: {} class changes over the cycle in {:.1f} % of the known region",
                  value_name(bit), 100.0 * share);
@@ -908,8 +933,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   breathing["class_change_rule"] =
       "share of the computed voxels whose class (the combined plan's thresholds) is not the same "
       "in every phase";
-
-  trace::event("class_change", 0, -1);
+  trace::event("finishes_and_area", 0, -1);
   if (area.valid()) {
     timings["area_safety_s"] = area.get();  // rethrows its failure
     written.outputs["area_safety"] = "area_safety.vtk";

@@ -280,16 +280,38 @@ void PhaseCombiner::fold_check(const PathSafetyResult& phase) {
 }
 
 double PhaseCombiner::class_change_share(int slot, const SafetyClasses& classes) const {
-  const Volume<float>& worst = combined_.volumes[size_t(slot)];
-  const Volume<float>& other = other_extreme(slot);
-  int64_t known = 0, changing = 0;
-#pragma omp parallel for schedule(static) reduction(+ : known, changing)
-  for (int64_t i = 0; i < worst.voxel_count(); ++i) {
-    if (region_[i] != kRegionComputed || std::isnan(worst[i])) continue;
-    ++known;
-    if (classes.classify(worst[i]) != classes.classify(other[i])) ++changing;
+  std::array<const SafetyClasses*, kernels::kValueCount> asked{};
+  asked[size_t(slot)] = &classes;
+  return class_change_shares(asked)[size_t(slot)];
+}
+
+std::array<double, kernels::kValueCount> PhaseCombiner::class_change_shares(
+    const std::array<const SafetyClasses*, kernels::kValueCount>& classes) const {
+  constexpr int kSlots = kernels::kValueCount;
+  const float* worst[kSlots] = {};
+  const float* other[kSlots] = {};
+  for (int s = 0; s < kSlots; ++s) {
+    if (!classes[size_t(s)]) continue;
+    worst[s] = combined_.volumes[size_t(s)].data();
+    other[s] = other_extreme(s).data();
   }
-  return known ? double(changing) / double(known) : 0.0;
+  int64_t known[kSlots] = {}, changing[kSlots] = {};
+#pragma omp parallel for schedule(static) reduction(+ : known[:kSlots], changing[:kSlots])
+  for (int64_t i = 0; i < region_.voxel_count(); ++i) {
+    if (region_[i] != kRegionComputed) continue;
+    for (int s = 0; s < kSlots; ++s) {
+      if (!worst[s] || std::isnan(worst[s][i])) continue;
+      ++known[s];
+      if (classes[size_t(s)]->classify(worst[s][i]) != classes[size_t(s)]->classify(other[s][i])) {
+        ++changing[s];
+      }
+    }
+  }
+  std::array<double, kSlots> share{};
+  for (int s = 0; s < kSlots; ++s) {
+    share[size_t(s)] = known[s] ? double(changing[s]) / double(known[s]) : 0.0;
+  }
+  return share;
 }
 
 }  // namespace crepuscular::planning

@@ -60,6 +60,9 @@ class PhaseCombiner {
   // same in every phase: classes are monotone in the value, so the class changes over the cycle
   // exactly where the minimum and the maximum over the phases fall in different classes.
   double class_change_share(int slot, const SafetyClasses& classes) const;
+  // The same for every slot whose classes are given (null: not asked, 0 returned), in one pass.
+  std::array<double, kernels::kValueCount> class_change_shares(
+      const std::array<const SafetyClasses*, kernels::kValueCount>& classes) const;
 
  private:
   void add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region,

@@ -205,6 +205,29 @@ TEST(PlanBreathing, PhasesFinishedBesideTheNextAreEachPhasesOwnAndCombineInOrder
   }
 }
 
+TEST_F(MovingVessel, ClassChangeShareCountsTheVoxelsWhosePhasesDifferInClass) {
+  // Brute force over the written volumes: a computed voxel changes class over the cycle where
+  // its two phases fall in different classes under the plan's thresholds.
+  const Volume<uint8_t> roi = read_volume<uint8_t>(dir_.file("plan/roi.nii.gz"));
+  for (const char* v : kValues) {
+    const std::string value = v;
+    const Volume<float> a = volume("path_safety_" + value + "_phase00");
+    const Volume<float> b = volume("path_safety_" + value + "_phase01");
+    const SafetyClasses classes = classes_from_json(plan_, value, "plan.json");
+    int64_t known = 0, changing = 0;
+    for (int64_t n = 0; n < a.voxel_count(); ++n) {
+      if (roi[n] != kRegionComputed) continue;
+      ++known;
+      changing += classes.classify(a[n]) != classes.classify(b[n]) ? 1 : 0;
+    }
+    ASSERT_GT(known, 1000) << value;
+    EXPECT_GT(changing, 0) << value << ": the vessel's move changes no class";
+    EXPECT_DOUBLE_EQ(plan_["breathing"]["class_change_share"][value].get<double>(),
+                     double(changing) / double(known))
+        << value;
+  }
+}
+
 TEST_F(MovingVessel, PathSafeInOnePhaseIsUnsafeInTheCombination) {
   // Voxel (18, 11, 11) of the mini grid, on the +x side of the tumor: behind the vessel at
   // i = 16 in phase 0, in the open in phase 1 (the vessel then lies at i = 4, on the far side).
