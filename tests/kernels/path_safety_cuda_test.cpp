@@ -278,6 +278,40 @@ TEST(CudaPointKernel, ValuesOfTheDefinitionAtNeighboursAndScatteredPoints) {
                 value_name(1u << v), rel);
     EXPECT_LE(rel, 1e-4) << value_name(1u << v);
   }
+
+  // Through the texture (fast mode's storage): the kernel's own bricks at texture coordinates
+  // (MarchTextureSampler) against the scene's bricks (TextureSampler), which a call takes when
+  // one of its points lies beyond the reach of the kernel's bricks. The same hardware filtering,
+  // so they differ only by rounding; a brick that stood for the wrong value would move a
+  // crossing ray's integral by tenths.
+  std::vector<float> march(size_t(count) * kernels::kValueCount);
+  std::vector<float> scene_bricks(size_t(count + 1) * kernels::kValueCount);
+  {
+    kernels::CudaPointEvaluator evaluator(scene, desc, kernels::kAllValues,
+                                          kernels::BlockingStorage::kTexture, 1);
+    evaluator.evaluate(ijk.data(), count, march.data());
+    std::vector<int32_t> beyond = ijk;
+    beyond.insert(beyond.end(), {desc.n + 70, desc.half, desc.half});  // past the 64 of reach
+    evaluator.evaluate(beyond.data(), count + 1, scene_bricks.data());
+  }
+  for (int v = 0; v < 4; ++v) {
+    double d2 = 0.0, r2 = 0.0, t2 = 0.0;
+    for (int64_t p = 0; p < count; ++p) {
+      const double a = march[size_t(p) * 4 + size_t(v)], b = scene_bricks[size_t(p) * 4 + size_t(v)];
+      d2 += (a - b) * (a - b);
+      r2 += b * b;
+    }
+    for (int64_t p = 0; p < count; p += 7) {
+      const double a = march[size_t(p) * 4 + size_t(v)], b = gpu[size_t(p) * 4 + size_t(v)];
+      t2 += (a - b) * (a - b);
+    }
+    ASSERT_GT(r2, 0.0) << value_name(1u << v);
+    const double rel = std::sqrt(d2 / r2);
+    std::printf("[ points   ] %s: relative L2 march bricks vs scene bricks (texture) %.2e\n",
+                value_name(1u << v), rel);
+    EXPECT_LE(rel, 1e-3) << value_name(1u << v);
+    EXPECT_LE(std::sqrt(t2 / r2 * 7.0), 5e-2) << value_name(1u << v) << ": texture far off";
+  }
 }
 
 }  // namespace
