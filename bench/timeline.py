@@ -37,8 +37,11 @@ def main():
     if cur:
         busy += cur[1] - cur[0]
     end = max(t for t, _, _, _ in events)
-    print(f"end {end:.2f} s; points computed from {calls[0][0]:.2f} to {calls[-1][1]:.2f} s, "
-          f"calls in flight {busy:.2f} s, {sum(c[3] for c in calls) / 1e6:.2f} M points")
+    if calls:
+        print(f"end {end:.2f} s; points computed from {calls[0][0]:.2f} to {calls[-1][1]:.2f} s, "
+              f"calls in flight {busy:.2f} s, {sum(c[3] for c in calls) / 1e6:.2f} M points")
+    else:
+        print(f"end {end:.2f} s; no evaluator calls (exact mode)")
     print("gaps over 0.1 s:", [(round(g0, 2), round(g1 - g0, 2)) for g0, g1 in gaps if g1 - g0 > 0.1])
     edges = sorted([(a, 1) for a, _, _, _ in calls] + [(b, -1) for _, b, _, _ in calls])
     inflight, level, last = collections.Counter(), 0, 0.0
@@ -61,14 +64,16 @@ def main():
             points[p][0] += b - a
             points[p][1] += n
         names = sorted({w for c in steps.values() for w in c})
-        print("phase start compute_begin comb_wait_end compute_end folded | calls_s M_points | "
-              + " ".join(names))
+        columns = ("start", "compute_begin", "comb_wait_end", "compute_end", "folded", "finish_end")
+        print("phase " + " ".join(columns) + " | calls_s M_points | " + " ".join(names))
         for p in sorted(k for k in marks if k >= 0):
             m = marks[p]
-            cols = " ".join(f"{m.get(w, float('nan')):6.2f}" for w in
-                            ("start", "compute_begin", "comb_wait_end", "compute_end", "folded"))
+            cols = " ".join(f"{m.get(w, float('nan')):6.2f}" for w in columns)
             print(f"{p:3d} {cols} | {points[p][0]:5.2f} {points[p][1] / 1e6:5.2f} | "
                   + " ".join(f"{steps[p][w]:5.2f}" for w in names))
+        # The plan's own steps (the reads before, the writes, area safety and finishes after).
+        plan = {w: t for t, p, w, _ in events if p < 0 and w not in ("eval_begin", "eval_end")}
+        print("plan:", " ".join(f"{w} {t:.2f}" for w, t in sorted(plan.items(), key=lambda e: e[1])))
     if "--events" in sys.argv:
         for t, p, w, _ in events:
             if w not in ("eval_begin", "eval_end"):
