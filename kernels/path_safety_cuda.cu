@@ -1,5 +1,6 @@
 // CUDA launchers of the path safety values: one thread per output voxel, 8x8x4 voxel blocks,
 // every visible GPU taking a slab of z-slices. The math is kernels/path_safety_math.hpp.
+#include <cuda_fp16.h>
 #include <cuda_runtime.h>
 
 #include <algorithm>
@@ -113,6 +114,19 @@ __global__ void march_bricks_kernel(BlockingGrid<float> g, int lo0, int lo1, int
   }
 }
 
+__global__ void to_half_kernel(const float* __restrict__ in, int64_t n, __half* __restrict__ out) {
+  for (int64_t i = blockIdx.x * int64_t(blockDim.x) + threadIdx.x; i < n;
+       i += int64_t(gridDim.x) * blockDim.x)
+    out[i] = __float2half_rn(in[i]);
+}
+
+// Uniform brick codes (c > 0) rounded to the nearest half, in place; leap and mixed codes stay.
+__global__ void round_to_half_kernel(float* codes, int64_t n) {
+  for (int64_t i = blockIdx.x * int64_t(blockDim.x) + threadIdx.x; i < n;
+       i += int64_t(gridDim.x) * blockDim.x)
+    if (codes[i] > 0.0f) codes[i] = __half2float(__float2half_rn(codes[i]));
+}
+
 struct SlabGrid {
   double origin[3];
   double axes[3][3];
@@ -194,6 +208,11 @@ struct DeviceScene {
       bricks.allocate(count);
       check(cudaMemcpy(bricks.ptr, host.bricks, count * sizeof(float), cudaMemcpyHostToDevice),
             "upload bricks");
+      if (storage == BlockingStorage::kTextureHalf) {  // uniform values as the texture holds them
+        round_to_half_kernel<<<unsigned(std::min<size_t>((count + 255) / 256, 4096)), 256>>>(
+            bricks.ptr, int64_t(count));
+        check(cudaGetLastError(), "brick rounding launch");
+      }
       scene.blocking.bricks = bricks.ptr;
       scene.blocking.bx = host.bx;
       scene.blocking.by = host.by;
@@ -205,23 +224,41 @@ struct DeviceScene {
             "upload blocking volume");
       scene.blocking.values = blocking.ptr;
     } else {
-      upload_texture(host);
+      upload_texture(host, storage == BlockingStorage::kTextureHalf);
       scene.blocking.values = nullptr;
     }
   }
 
-  // The blocking volume as a 3D texture with hardware trilinear filtering, border 0.
-  void upload_texture(const BlockingGrid<double>& host) {
-    const cudaChannelFormatDesc desc = cudaCreateChannelDesc<float>();
+  // The blocking volume as a 3D texture with hardware trilinear filtering, border 0; halves are
+  // rounded on the device (the volume's floats uploaded once).
+  void upload_texture(const BlockingGrid<double>& host, bool half) {
+    const cudaChannelFormatDesc desc =
+        half ? cudaCreateChannelDescHalf() : cudaCreateChannelDesc<float>();
     const cudaExtent extent = make_cudaExtent(size_t(host.nx), size_t(host.ny), size_t(host.nz));
     check(cudaMalloc3DArray(&array, &desc, extent), "cudaMalloc3DArray");
     cudaMemcpy3DParms copy = {};
-    copy.srcPtr =
-        make_cudaPitchedPtr(const_cast<float*>(host.values), size_t(host.nx) * sizeof(float),
-                            size_t(host.nx), size_t(host.ny));
+    const size_t n = size_t(host.nx) * host.ny * host.nz;
+    DeviceBuffer<float> staged;
+    DeviceBuffer<__half> halves;
+    if (half) {
+      staged.allocate(n);
+      check(cudaMemcpy(staged.ptr, host.values, n * sizeof(float), cudaMemcpyHostToDevice),
+            "upload blocking volume");
+      halves.allocate(n);
+      to_half_kernel<<<unsigned(std::min<size_t>((n + 255) / 256, 65536)), 256>>>(
+          staged.ptr, int64_t(n), halves.ptr);
+      check(cudaGetLastError(), "half conversion launch");
+      copy.srcPtr = make_cudaPitchedPtr(halves.ptr, size_t(host.nx) * sizeof(__half),
+                                        size_t(host.nx), size_t(host.ny));
+      copy.kind = cudaMemcpyDeviceToDevice;
+    } else {
+      copy.srcPtr =
+          make_cudaPitchedPtr(const_cast<float*>(host.values), size_t(host.nx) * sizeof(float),
+                              size_t(host.nx), size_t(host.ny));
+      copy.kind = cudaMemcpyHostToDevice;
+    }
     copy.dstArray = array;
     copy.extent = extent;
-    copy.kind = cudaMemcpyHostToDevice;
     check(cudaMemcpy3D(&copy), "upload blocking texture");
     cudaResourceDesc res = {};
     res.resType = cudaResourceTypeArray;
@@ -615,7 +652,7 @@ class FastRun {
       const int count = std::min(slots, p1 - p);
       const dim3 cast_blocks(unsigned((layout_.cells + 255) / 256), unsigned(count));
       check(cudaEventRecord(cast_events.begin), "cudaEventRecord");
-      if (options_.storage == BlockingStorage::kTexture) {
+      if (is_texture(options_.storage)) {
         cast_directions_kernel<<<cast_blocks, 256>>>(ds.scene, tables.batch, p, count,
                                                      TextureSampler{ds.texture, ds.scene.blocking});
       } else {
@@ -734,7 +771,7 @@ void launch_slab(const DeviceScene& ds, SlabGrid g, int z0, int z1, const Device
     g.z_begin = z;
     g.z_end = std::min(z + kSlicesPerLaunch, z1);
     const dim3 blocks((n + 7) / 8, (n + 7) / 8, (g.z_end - g.z_begin + 3) / 4);
-    if (storage == BlockingStorage::kTexture) {
+    if (is_texture(storage)) {
       path_safety_kernel<Values><<<blocks, block>>>(ds.scene, g,
                                                     TextureSampler{ds.texture, ds.scene.blocking},
                                                     dev_out[0], dev_out[1], dev_out[2], dev_out[3]);
@@ -927,7 +964,7 @@ CudaPointEvaluator::CudaPointEvaluator(const PathSafetyScene<double>& scene,
     on_every_device(devices, [&](int d) {
       check(cudaSetDevice(d), "cudaSetDevice");
       impl_->scenes[size_t(d)] = std::make_unique<DeviceScene>(scene, storage);
-      if (storage == BlockingStorage::kTexture) {
+      if (is_texture(storage)) {
         auto bricks = std::make_unique<MarchBricks>();
         Impl::march_extent(scene, grid, bricks->lo, bricks->dims);
         const int64_t count = int64_t(bricks->dims[0]) * bricks->dims[1] * bricks->dims[2];
@@ -962,7 +999,7 @@ void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out)
   trace::event("eval_begin", count);
   const int devices = impl_->devices;
   // Whether every point lies within kReach of the grid, where the march bricks cover its rays.
-  bool within = impl_->storage == BlockingStorage::kTexture;
+  bool within = is_texture(impl_->storage);
   if (within) {
     int32_t lo = 0, hi = 0;
     for (int64_t c = 0; c < 3 * count; ++c) {
@@ -1013,7 +1050,7 @@ void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out)
           }
         });
       };
-      if (impl_->storage == BlockingStorage::kTexture) {
+      if (is_texture(impl_->storage)) {
         const TextureSampler texture{ds.texture, ds.scene.blocking};
         if (within) {
           launch(texture, impl_->march[size_t(d)]->sampler(ds.texture));

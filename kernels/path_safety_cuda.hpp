@@ -30,8 +30,11 @@ struct OutputGridDesc {
 };
 
 // Where the blocking volume lives on the device: global memory with trilinear filtering in float
-// (the exact definition), or a 3D texture with hardware filtering (9-bit interpolation weights).
-enum class BlockingStorage { kGlobal, kTexture };
+// (the exact definition), or a 3D texture with hardware filtering (9-bit interpolation weights) of
+// floats or of halves (11-bit significands: half the bytes read per sample; fast mode's storage).
+enum class BlockingStorage { kGlobal, kTexture, kTextureHalf };
+
+inline bool is_texture(BlockingStorage s) { return s != BlockingStorage::kGlobal; }
 
 struct CudaRunOptions {
   BlockingStorage storage = BlockingStorage::kGlobal;

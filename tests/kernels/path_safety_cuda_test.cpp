@@ -279,38 +279,51 @@ TEST(CudaPointKernel, ValuesOfTheDefinitionAtNeighboursAndScatteredPoints) {
     EXPECT_LE(rel, 1e-4) << value_name(1u << v);
   }
 
-  // Through the texture (fast mode's storage): the kernel's own bricks at texture coordinates
-  // (MarchTextureSampler) against the scene's bricks (TextureSampler), which a call takes when
-  // one of its points lies beyond the reach of the kernel's bricks. The same hardware filtering,
-  // so they differ only by rounding; a brick that stood for the wrong value would move a
-  // crossing ray's integral by tenths.
-  std::vector<float> march(size_t(count) * kernels::kValueCount);
-  std::vector<float> scene_bricks(size_t(count + 1) * kernels::kValueCount);
-  {
-    kernels::CudaPointEvaluator evaluator(scene, desc, kernels::kAllValues,
-                                          kernels::BlockingStorage::kTexture, 1);
-    evaluator.evaluate(ijk.data(), count, march.data());
-    std::vector<int32_t> beyond = ijk;
-    beyond.insert(beyond.end(), {desc.n + 70, desc.half, desc.half});  // past the 64 of reach
-    evaluator.evaluate(beyond.data(), count + 1, scene_bricks.data());
-  }
-  for (int v = 0; v < 4; ++v) {
-    double d2 = 0.0, r2 = 0.0, t2 = 0.0;
-    for (int64_t p = 0; p < count; ++p) {
-      const double a = march[size_t(p) * 4 + size_t(v)], b = scene_bricks[size_t(p) * 4 + size_t(v)];
-      d2 += (a - b) * (a - b);
-      r2 += b * b;
+  // Through the texture (fast mode's storage, of floats and of halves): the kernel's own bricks
+  // at texture coordinates (MarchTextureSampler) against the scene's bricks (TextureSampler),
+  // which a call takes when one of its points lies beyond the reach of the kernel's bricks. The
+  // same hardware filtering, so they differ only by rounding; a brick that stood for the wrong
+  // value would move a crossing ray's integral by tenths.
+  const auto relative_l2 = [&](const std::vector<float>& a, const std::vector<float>& b, int v,
+                               int64_t every) {
+    double d2 = 0.0, r2 = 0.0;
+    for (int64_t p = 0; p < count; p += every) {
+      const double x = a[size_t(p) * 4 + size_t(v)], y = b[size_t(p) * 4 + size_t(v)];
+      d2 += (x - y) * (x - y);
+      r2 += y * y;
     }
-    for (int64_t p = 0; p < count; p += 7) {
-      const double a = march[size_t(p) * 4 + size_t(v)], b = gpu[size_t(p) * 4 + size_t(v)];
-      t2 += (a - b) * (a - b);
+    EXPECT_GT(r2, 0.0) << value_name(1u << v);
+    return r2 > 0.0 ? std::sqrt(d2 / r2) : 1.0;
+  };
+  std::vector<float> texture_floats;
+  for (const kernels::BlockingStorage storage :
+       {kernels::BlockingStorage::kTexture, kernels::BlockingStorage::kTextureHalf}) {
+    const bool half = storage == kernels::BlockingStorage::kTextureHalf;
+    std::vector<float> march(size_t(count) * kernels::kValueCount);
+    std::vector<float> scene_bricks(size_t(count + 1) * kernels::kValueCount);
+    {
+      kernels::CudaPointEvaluator evaluator(scene, desc, kernels::kAllValues, storage, 1);
+      evaluator.evaluate(ijk.data(), count, march.data());
+      std::vector<int32_t> beyond = ijk;
+      beyond.insert(beyond.end(), {desc.n + 70, desc.half, desc.half});  // past the 64 of reach
+      evaluator.evaluate(beyond.data(), count + 1, scene_bricks.data());
     }
-    ASSERT_GT(r2, 0.0) << value_name(1u << v);
-    const double rel = std::sqrt(d2 / r2);
-    std::printf("[ points   ] %s: relative L2 march bricks vs scene bricks (texture) %.2e\n",
-                value_name(1u << v), rel);
-    EXPECT_LE(rel, 1e-3) << value_name(1u << v);
-    EXPECT_LE(std::sqrt(t2 / r2 * 7.0), 5e-2) << value_name(1u << v) << ": texture far off";
+    for (int v = 0; v < 4; ++v) {
+      const double bricks = relative_l2(march, scene_bricks, v, 1);
+      std::printf("[ points   ] %s: relative L2 march vs scene bricks (texture of %s) %.2e\n",
+                  value_name(1u << v), half ? "halves" : "floats", bricks);
+      EXPECT_LE(bricks, 1e-3) << value_name(1u << v);
+      EXPECT_LE(relative_l2(march, gpu, v, 7), 5e-2) << value_name(1u << v) << ": texture far off";
+      if (half) {
+        // Halves round each voxel by at most 2^-12 of its value; a texture read with the wrong
+        // layout or format would be off by whole values.
+        const double floats = relative_l2(march, texture_floats, v, 1);
+        std::printf("[ points   ] %s: relative L2 texture of halves vs of floats %.2e\n",
+                    value_name(1u << v), floats);
+        EXPECT_LE(floats, 2e-3) << value_name(1u << v);
+      }
+    }
+    if (!half) texture_floats = march;
   }
 }
 
