@@ -227,6 +227,7 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
     }
   }
   combined_.classes = {};  // the first phase's, if taken: the combination's values have changed
+  combined_.statistics = {};
   combined_.seconds += phase.seconds;
   combined_.rays += phase.rays;
   // The combination is complete: the samplers waiting for it go on while the other extreme is

@@ -236,6 +236,8 @@ struct PathSafetyResult {
   // writing), so that the writes and area safety do not take them again; reset by whatever
   // changes a volume's values (apply_scan_coverage). classes_of() fills a missing one.
   std::array<std::optional<SafetyClasses>, kernels::kValueCount> classes;
+  // The volumes' statistics, kept as the classes are (classes_of takes both in one pass).
+  std::array<std::optional<ValueStatistics>, kernels::kValueCount> statistics;
   // PathSafetyOptions::fast_check_later: the check's comparison, for finish_fast_check.
   std::function<void(PathSafetyResult&)> pending_check;
   // The check's voxels and exact values (breathing combines the phases' into the combination's).
@@ -257,6 +259,9 @@ void finish_fast_check(PathSafetyResult& result);
 
 // default_classes of the volume of `value_bit`, taken once and kept in result.classes.
 const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit);
+// value_statistics of the volume of `value_bit`, taken once (with its classes where they are
+// not yet taken) and kept in result.statistics.
+const ValueStatistics& statistics_of(PathSafetyResult& result, unsigned value_bit);
 
 // Computes the requested values. Checks every input first (geometry, negative or NaN blocking,
 // empty tumor, tumor outside the blocking volume, memory) and throws Error before allocating.

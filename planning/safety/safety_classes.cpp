@@ -25,65 +25,123 @@ uint32_t bucket_of(float x) {
   return bits >> kBucketShift;
 }
 
+// The statistics of the finite values, on every core: thread(chunks) runs on each thread, and
+// chunks(f) goes through the thread's share of the values calling f(x) for every finite one and
+// returns its statistics without their sum. The sum is taken in chunks of fixed size added in
+// order: the same mean, bit for bit, whatever the number of threads.
+template <typename Thread>
+ValueStatistics scan_finite(const std::vector<float>& values, const Thread& thread) {
+  constexpr int64_t kChunk = int64_t(1) << 18;
+  const int64_t n = int64_t(values.size());
+  const int64_t count = (n + kChunk - 1) / kChunk;
+  std::vector<double> sums(size_t(count), 0.0);
+  ValueStatistics all;
+#pragma omp parallel
+  {
+    const auto chunks = [&](const auto& f) {
+      ValueStatistics own;
+#pragma omp for schedule(static) nowait
+      for (int64_t c = 0; c < count; ++c) {
+        const int64_t end = std::min(n, (c + 1) * kChunk);
+        double sum = 0.0;
+        for (int64_t i = c * kChunk; i < end; ++i) {
+          const float x = values[size_t(i)];
+          if (!std::isfinite(x)) continue;
+          ++own.voxels;
+          own.min = std::min(own.min, double(x));
+          own.max = std::max(own.max, double(x));
+          sum += x;
+          f(x);
+        }
+        sums[size_t(c)] = sum;
+      }
+      return own;
+    };
+    const ValueStatistics own = thread(chunks);
+#pragma omp critical
+    {
+      all.voxels += own.voxels;
+      all.min = std::min(all.min, own.min);
+      all.max = std::max(all.max, own.max);
+    }
+  }
+  for (const double s : sums) all.sum += s;
+  return all;
+}
+
 // The order statistics of a volume's positive finite values that default_classes_of takes by
 // nth_element, found without copying the values: a parallel histogram of their top bits names the
 // bucket that holds each rank, and only that bucket's values are gathered and ordered.
 class PositiveValues {
  public:
-  explicit PositiveValues(const std::vector<float>& values) : values_(values), cumulative_(kBuckets + 1, 0) {
-    const int64_t n = int64_t(values.size());
+  // One pass: the histogram of the positive values, and the statistics of every finite one.
+  explicit PositiveValues(const std::vector<float>& values)
+      : values_(values), cumulative_(kBuckets + 1, 0) {
     std::vector<uint64_t> histogram(kBuckets, 0);
-#pragma omp parallel
-    {
+    statistics_ = scan_finite(values, [&](const auto& chunks) {
       std::vector<uint64_t> mine(kBuckets, 0);
-      float most = 0.0f;
-#pragma omp for schedule(static) nowait
-      for (int64_t i = 0; i < n; ++i) {
-        const float x = values[size_t(i)];
-        if (!counted(x)) continue;
-        ++mine[bucket_of(x)];
-        most = std::max(most, x);
-      }
+      ValueStatistics own = chunks([&](float x) {
+        if (x > 0.0f) ++mine[bucket_of(x)];
+      });
 #pragma omp critical
-      {
-        for (size_t b = 0; b < kBuckets; ++b) histogram[b] += mine[b];
-        largest_ = std::max(largest_, most);
-      }
-    }
+      for (size_t b = 0; b < kBuckets; ++b) histogram[b] += mine[b];
+      return own;
+    });
     for (size_t b = 0; b < kBuckets; ++b) cumulative_[b + 1] = cumulative_[b] + histogram[b];
   }
   uint64_t count() const { return cumulative_[kBuckets]; }
-  float largest() const { return largest_; }
+  float largest() const { return count() > 0 ? float(statistics_.max) : 0.0f; }
+  const ValueStatistics& statistics() const { return statistics_; }
 
-  // The value of rank i (0-based) in ascending order.
-  float at_rank(uint64_t i) const {
-    const size_t b = size_t(std::upper_bound(cumulative_.begin(), cumulative_.end(), i) -
-                            cumulative_.begin()) - 1;
-    // The bucket's values gathered on every core (a pass over the volume), then joined.
+  // The values of ranks i (0-based, ascending order), in one more pass over the volume: the
+  // buckets that hold them gathered on every core, then each ordered.
+  std::vector<float> at_ranks(const std::vector<uint64_t>& ranks) const {
+    std::vector<size_t> buckets;
+    for (const uint64_t i : ranks) buckets.push_back(bucket_of_rank(i));
+    std::vector<size_t> wanted = buckets;
+    std::sort(wanted.begin(), wanted.end());
+    wanted.erase(std::unique(wanted.begin(), wanted.end()), wanted.end());
     const size_t threads = size_t(omp_get_max_threads());
-    std::vector<std::vector<float>> parts(threads);
+    std::vector<std::vector<std::vector<float>>> parts(
+        threads, std::vector<std::vector<float>>(wanted.size()));
     const int64_t n = int64_t(values_.size());
 #pragma omp parallel
     {
-      std::vector<float>& mine = parts[size_t(omp_get_thread_num())];
+      std::vector<std::vector<float>>& mine = parts[size_t(omp_get_thread_num())];
 #pragma omp for schedule(static) nowait
       for (int64_t v = 0; v < n; ++v) {
         const float x = values_[size_t(v)];
-        if (counted(x) && bucket_of(x) == b) mine.push_back(x);
+        if (!counted(x)) continue;
+        const size_t b = bucket_of(x);
+        for (size_t w = 0; w < wanted.size(); ++w) {
+          if (wanted[w] == b) mine[w].push_back(x);
+        }
       }
     }
-    std::vector<float> bucket;
-    bucket.reserve(size_t(cumulative_[b + 1] - cumulative_[b]));
-    for (const auto& part : parts) bucket.insert(bucket.end(), part.begin(), part.end());
-    const size_t k = size_t(i - cumulative_[b]);
-    std::nth_element(bucket.begin(), bucket.begin() + std::ptrdiff_t(k), bucket.end());
-    return bucket[k];
+    std::vector<float> out;
+    for (size_t r = 0; r < ranks.size(); ++r) {
+      const size_t w = size_t(std::lower_bound(wanted.begin(), wanted.end(), buckets[r]) -
+                              wanted.begin());
+      std::vector<float> bucket;
+      bucket.reserve(size_t(cumulative_[buckets[r] + 1] - cumulative_[buckets[r]]));
+      for (const auto& part : parts) bucket.insert(bucket.end(), part[w].begin(), part[w].end());
+      const size_t k = size_t(ranks[r] - cumulative_[buckets[r]]);
+      std::nth_element(bucket.begin(), bucket.begin() + std::ptrdiff_t(k), bucket.end());
+      out.push_back(bucket[k]);
+    }
+    return out;
   }
 
+
  private:
+  size_t bucket_of_rank(uint64_t i) const {
+    return size_t(std::upper_bound(cumulative_.begin(), cumulative_.end(), i) -
+                  cumulative_.begin()) - 1;
+  }
+
   const std::vector<float>& values_;
   std::vector<uint64_t> cumulative_;
-  float largest_ = 0.0f;
+  ValueStatistics statistics_;
 };
 
 }  // namespace
@@ -93,23 +151,35 @@ class PositiveValues {
 // largest in the region (the far tails of a safety margin, a path grazing a structure) is no
 // blocking: neither level sits among such values, where it would split voxels that differ by
 // nothing a needle meets.
-template <typename AtRank>
-SafetyClasses blocking_classes(uint64_t n, double largest, const AtRank& at_rank) {
-  const auto percentile = [&](double q) -> double {
-    if (n == 0) return 0.0;
-    return at_rank(std::min(n - 1, uint64_t(q * double(n - 1) + 0.5)));
-  };
+template <typename AtRanks>
+SafetyClasses blocking_classes(uint64_t n, double largest, const AtRanks& at_ranks) {
   SafetyClasses c;
-  c.safe = std::max(percentile(0.2), kInsignificantShare * largest);
-  c.dangerous = std::max(percentile(0.6), c.safe);
+  double p20 = 0.0, p60 = 0.0;
+  if (n > 0) {
+    const auto rank = [&](double q) { return std::min(n - 1, uint64_t(q * double(n - 1) + 0.5)); };
+    const std::vector<float> v = at_ranks(std::vector<uint64_t>{rank(0.2), rank(0.6)});
+    p20 = double(v[0]);
+    p60 = double(v[1]);
+  }
+  c.safe = std::max(p20, kInsignificantShare * largest);
+  c.dangerous = std::max(p60, c.safe);
   return c;
 }
 
-SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume) {
-  if (value_bit == kernels::kSvv) return default_classes_of(value_bit, {});
+ValueStatistics value_statistics(const Volume<float>& volume) {
+  return scan_finite(volume.values(), [](const auto& chunks) { return chunks([](float) {}); });
+}
+
+SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume,
+                              ValueStatistics* statistics) {
+  if (value_bit == kernels::kSvv) {
+    if (statistics) *statistics = value_statistics(volume);
+    return default_classes_of(value_bit, {});
+  }
   const PositiveValues positive(volume.values());
+  if (statistics) *statistics = positive.statistics();
   return blocking_classes(positive.count(), double(positive.largest()),
-                          [&](uint64_t i) { return double(positive.at_rank(i)); });
+                          [&](const std::vector<uint64_t>& r) { return positive.at_ranks(r); });
 }
 
 SafetyClasses default_classes_of(unsigned value_bit, std::vector<float> values) {
@@ -123,9 +193,13 @@ SafetyClasses default_classes_of(unsigned value_bit, std::vector<float> values) 
   std::vector<float>& v = values;
   v.erase(std::remove_if(v.begin(), v.end(), [](float x) { return !counted(x); }), v.end());
   const double largest = v.empty() ? 0.0 : double(*std::max_element(v.begin(), v.end()));
-  return blocking_classes(uint64_t(v.size()), largest, [&](uint64_t i) {
-    std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(i), v.end());
-    return double(v[size_t(i)]);
+  return blocking_classes(uint64_t(v.size()), largest, [&](const std::vector<uint64_t>& ranks) {
+    std::vector<float> out;
+    for (const uint64_t i : ranks) {
+      std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(i), v.end());
+      out.push_back(v[size_t(i)]);
+    }
+    return out;
   });
 }
 

@@ -38,7 +38,18 @@ struct SafetyClasses {
 // levels are at least kInsignificantShare of the largest value in the region: values far below
 // it are margin tails and grazing paths, not blocking.
 constexpr double kInsignificantShare = 1e-3;
-SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume);
+
+// A volume's finite values (NaN: not computed or unknown, left out): count, least, largest, sum.
+struct ValueStatistics {
+  int64_t voxels = 0;
+  double min = INFINITY, max = -INFINITY, sum = 0.0;
+};
+ValueStatistics value_statistics(const Volume<float>& volume);
+
+// With `statistics`, the volume's statistics too, from the same pass over it (a blocking value's
+// classes take one more, for both percentiles; SVV's none but this one).
+SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume,
+                              ValueStatistics* statistics = nullptr);
 // The same rule over a sample of the region's values (NaN and values <= 0 are left out).
 SafetyClasses default_classes_of(unsigned value_bit, std::vector<float> values);
 

@@ -110,7 +110,10 @@ Volume<uint8_t> apply_scan_coverage(PathSafetyResult& result, const ScanCoverage
       }
     }
   }
-  if (changed > 0) result.classes = {};  // taken before these voxels became unknown
+  if (changed > 0) {  // taken before these voxels became unknown
+    result.classes = {};
+    result.statistics = {};
+  }
   if (report) {
     report->roi_voxels = roi;
     report->unknown_voxels = options.crop_to_scan ? 0 : uncovered;

@@ -4,9 +4,11 @@
 #include "planning/safety/unknown.hpp"
 
 #include <gtest/gtest.h>
+#include <omp.h>
 
 #include <Eigen/Geometry>
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <limits>
@@ -699,10 +701,31 @@ TEST(PathSafety, DefaultClassesOfAVolumeAreThoseOfItsPositiveValues) {
         : k <= 7 ? 2.5f  // ties
                  : size(rng);
     }
+    // The statistics of the same pass: the finite values (infinities and NaN left out).
+    ValueStatistics truth;
+    for (const float x : v.values()) {
+      if (!std::isfinite(x)) continue;
+      ++truth.voxels;
+      truth.min = std::min(truth.min, double(x));
+      truth.max = std::max(truth.max, double(x));
+      truth.sum += x;
+    }
     for (unsigned bit : {kernels::kIsbv, kernels::kIvbv, kernels::kBvv, kernels::kSvv}) {
       std::vector<float> copy(v.values().begin(), v.values().end());
       const SafetyClasses want = default_classes_of(bit, copy);
-      const SafetyClasses got = default_classes(bit, v);
+      ValueStatistics statistics;
+      const SafetyClasses got = default_classes(bit, v, &statistics);
+      EXPECT_EQ(statistics.voxels, truth.voxels) << "side " << side;
+      EXPECT_EQ(statistics.min, truth.min) << "side " << side;
+      EXPECT_EQ(statistics.max, truth.max) << "side " << side;
+      EXPECT_NEAR(statistics.sum, truth.sum, 1e-9 * std::abs(truth.sum)) << "side " << side;
+      // The sum's chunks are added in order: the same bits on one thread as on several.
+      const int threads = omp_get_max_threads();
+      omp_set_num_threads(1);
+      const ValueStatistics alone = value_statistics(v);
+      omp_set_num_threads(threads);
+      EXPECT_EQ(alone.sum, statistics.sum) << "side " << side;
+      EXPECT_EQ(alone.voxels, statistics.voxels) << "side " << side;
       EXPECT_EQ(got.safe, want.safe) << "side " << side << " value " << bit;
       EXPECT_EQ(got.dangerous, want.dangerous) << "side " << side << " value " << bit;
       EXPECT_EQ(got.higher_is_safer, want.higher_is_safer);
@@ -856,6 +879,9 @@ TEST(PathSafety, ClassesTakenOnceFollowTheVolumeThroughTheScanCoverage) {
   EXPECT_EQ(before.safe, reference.safe);
   EXPECT_EQ(before.dangerous, reference.dangerous);
   ASSERT_TRUE(r.classes[1].has_value());
+  ASSERT_TRUE(r.statistics[1].has_value()) << "taken in the classes' pass";
+  EXPECT_EQ(statistics_of(r, kIsbv).max, value_statistics(r.volumes[1]).max);
+  EXPECT_EQ(statistics_of(r, kIsbv).voxels, value_statistics(r.volumes[1]).voxels);
   EXPECT_GT(before.dangerous, before.safe);
 
   // A scan covering the whole grid changes nothing: the classes stay.
@@ -863,6 +889,7 @@ TEST(PathSafety, ClassesTakenOnceFollowTheVolumeThroughTheScanCoverage) {
   everything.add(g, "scan");
   apply_scan_coverage(r, everything, tumor, CoverageOptions{}, nullptr);
   EXPECT_TRUE(r.classes[1].has_value());
+  const int64_t before_voxels = statistics_of(r, kIsbv).voxels;
 
   // A scan ending at the grid's middle slab along x: half the region becomes unknown.
   ImageGeometry half = g;
@@ -871,6 +898,9 @@ TEST(PathSafety, ClassesTakenOnceFollowTheVolumeThroughTheScanCoverage) {
   partial.add(half, "scan");
   apply_scan_coverage(r, partial, tumor, CoverageOptions{}, nullptr);
   EXPECT_FALSE(r.classes[1].has_value());
+  EXPECT_FALSE(r.statistics[1].has_value());
+  EXPECT_EQ(statistics_of(r, kIsbv).voxels, value_statistics(r.volumes[1]).voxels);
+  EXPECT_LT(statistics_of(r, kIsbv).voxels, before_voxels);
   const SafetyClasses after = classes_of(r, kIsbv);
   const SafetyClasses now = default_classes(kIsbv, r.volumes[1]);
   EXPECT_EQ(after.safe, now.safe);
