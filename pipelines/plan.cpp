@@ -102,33 +102,11 @@ struct Written {
   nlohmann::json outputs, classes, statistics;
 };
 
-// On every core, in chunks of fixed size whose sums are added in order: the same mean, bit for
-// bit, whatever the number of threads (one pass over a 513^3 volume took 0.1-0.2 s on one core,
-// four of them in a row while the volumes were written).
-nlohmann::json statistics_json(const Volume<float>& vol) {
-  const std::vector<float>& values = vol.values();
-  constexpr int64_t kChunk = int64_t(1) << 18;
-  const int64_t chunks = (int64_t(values.size()) + kChunk - 1) / kChunk;
-  std::vector<double> sums(size_t(chunks), 0.0);
-  double lo = INFINITY, hi = -INFINITY;
-  int64_t n = 0;
-#pragma omp parallel for schedule(static) reduction(min : lo) reduction(max : hi) reduction(+ : n)
-  for (int64_t c = 0; c < chunks; ++c) {
-    const size_t end = std::min(values.size(), size_t((c + 1) * kChunk));
-    double sum = 0.0;
-    for (size_t i = size_t(c * kChunk); i < end; ++i) {
-      const float x = values[i];
-      if (!std::isfinite(x)) continue;
-      lo = std::min(lo, double(x));
-      hi = std::max(hi, double(x));
-      sum += x;
-      ++n;
-    }
-    sums[size_t(c)] = sum;
-  }
-  double sum = 0.0;
-  for (const double s : sums) sum += s;
-  return {{"min", lo}, {"max", hi}, {"mean", n ? sum / double(n) : 0.0}, {"voxels", n}};
+nlohmann::json statistics_json(const ValueStatistics& s) {
+  return {{"min", s.min},
+          {"max", s.max},
+          {"mean", s.voxels ? s.sum / double(s.voxels) : 0.0},
+          {"voxels", s.voxels}};
 }
 
 // Step 3: blocking, region of interest and path safety volumes into the staged folder.
@@ -200,9 +178,11 @@ Written write_volumes(const StagedDirectory& out, PathSafetyResult& result,
     writes.push_back(
         std::async(std::launch::async, [&out, &vol, file] { write_volume(vol, out.file(file)); }));
     w.outputs[name] = file;
-    w.classes[name] = classes_json(classes_of(result, bit));  // taken once (fast mode's check)
-    w.statistics[name] = statistics_json(vol);
+    // Taken once, in one pass (or where fast mode's check took the classes, one for these).
+    w.classes[name] = classes_json(classes_of(result, bit));
+    w.statistics[name] = statistics_json(statistics_of(result, bit));
   }
+  trace::event("classes_taken", 0, -1);
   if (beside) {
     try {
       beside();
@@ -469,11 +449,31 @@ void read_phase_tumor(PhaseInputs& p) {
   p.centroid = extract_tumor_surface(p.inputs.tumor, tumor_file(p.phase.tumor)).centroid;
 }
 
+// A phase's input file as plan.json records it: a frame of a 4D input as that file.
+std::string recorded_file(const PlanPhase& phase, const std::string& f) {
+  const auto four_d = phase.frame_of.find(f);
+  return four_d == phase.frame_of.end() ? f : four_d->second;
+}
+
 // A phase's blocking volume. Only the first phase's label map is used again (the plan's own
-// files, area safety's skin); the others would hold 4 bytes of every voxel to the end.
+// files, area safety's skin); the others would hold 4 bytes of every voxel to the end. A later
+// phase's inputs are also checksummed here, beside the computation, for its entry in plan.json
+// (file_checksum keeps them): the last phase's finish is on the plan's way to its end.
 void read_phase_blocking(PhaseInputs& p, size_t k) {
   read_plan_blocking(p.request, p.inputs);
-  if (k > 0) p.inputs.labels = {};
+  if (k == 0) return;
+  p.inputs.labels = {};
+  std::vector<std::string> files = label_files(p.phase.labels);
+  files.push_back(tumor_file(p.phase.tumor));
+  files.push_back(p.phase.ct);
+  for (const std::string& f : files) {
+    if (f.empty()) continue;
+    try {
+      file_checksum(recorded_file(p.phase, f));
+    } catch (const Error&) {
+      // Reported where the entry is written.
+    }
+  }
 }
 
 // Every phase's inputs, side by side. An error is the first failing phase's, in the list's order.
@@ -706,8 +706,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     entry["name"] = p.phase.name;
     // A frame of a 4D input is recorded as that file (the frame is the phase's).
     const auto recorded = [&](const std::string& f) {
-      const auto four_d = p.phase.frame_of.find(f);
-      return input_json(four_d == p.phase.frame_of.end() ? f : four_d->second, req.out_dir);
+      return input_json(recorded_file(p.phase, f), req.out_dir);
     };
     nlohmann::json labels = nlohmann::json::array();
     for (const auto& f : label_files(p.phase.labels)) labels.push_back(recorded(f));
@@ -735,7 +734,8 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     for (int v = 0; v < kernels::kValueCount; ++v) {
       const unsigned bit = 1u << v;
       if (!(r.values & bit)) continue;
-      entry["statistics"][value_name(bit)] = statistics_json(r.volumes[size_t(v)]);
+      entry["statistics"][value_name(bit)] =
+          statistics_json(value_statistics(r.volumes[size_t(v)]));
       if (req.per_phase) {
         const std::string file = std::string("path_safety_") + value_name(bit) + "_" +
                                  p.phase.name + ".nii.gz";
@@ -887,6 +887,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     // The last fold's other extreme: taken after its combination (fold_turn follows the whole
     // fold; a failed finish fails it too).
     if (order.size() > 1) fold_turn.back().done.get();
+    trace::event("last_extreme", 0, -1);
     std::array<const SafetyClasses*, kernels::kValueCount> classes{};
     for (int v = 0; v < kernels::kValueCount; ++v) {
       if (combined.values & (1u << v)) classes[size_t(v)] = &classes_of(combined, 1u << v);
@@ -936,6 +937,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   trace::event("finishes_and_area", 0, -1);
   if (area.valid()) {
     timings["area_safety_s"] = area.get();  // rethrows its failure
+    trace::event("area_done", 0, -1);
     written.outputs["area_safety"] = "area_safety.vtk";
     const std::string value = area_safety["value"].get<std::string>();
     const std::vector<RegionTrajectory> planned = region_trajectories(
@@ -949,6 +951,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     written.outputs["trajectories"] = "trajectories.mrk.json";
     written.outputs["entries"] = "entries.mrk.json";
   }
+  trace::event("trajectories", 0, -1);
   timings["total_s"] = seconds_since(t_start);
 
   // Unknown in the combination: in any phase.
@@ -966,6 +969,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   plan["outputs"] = written.outputs;
   plan["timings"] = timings;
   write_text_file(out.file("plan.json"), plan.dump(2) + "\n");
+  trace::event("plan_json", 0, -1);
   out.commit();
   spdlog::info("plan over {} breathing phases written to {} ({:.1f} s)", phases.size(),
                req.out_dir, seconds_since(t_start));

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
+#include <chrono>
 #include <fstream>
 
 #include "foundation/error.hpp"
@@ -140,6 +141,14 @@ TEST_F(PlanTest, ChecksumIsMd5OfTheFile) {
   std::ofstream(dir_ / "abc.txt") << "abc";
   // MD5("abc"), RFC 1321 test suite.
   EXPECT_EQ(file_checksum((dir_ / "abc.txt").string()), "900150983cd24fb0d6963f7d28e17f72");
+  // Kept for the file as it is, taken again once it changes: other bytes of the same size (with
+  // a later time), then other bytes of another size.
+  const auto written = fs::last_write_time(dir_ / "abc.txt");
+  std::ofstream(dir_ / "abc.txt") << "abd";
+  fs::last_write_time(dir_ / "abc.txt", written + std::chrono::seconds(2));
+  EXPECT_EQ(file_checksum((dir_ / "abc.txt").string()), "4911e516e5aa21d327512e0c8b197616");
+  std::ofstream(dir_ / "abc.txt") << "message digest";
+  EXPECT_EQ(file_checksum((dir_ / "abc.txt").string()), "f96b697d7cb7938d525a2f31aaf161d0");
 }
 
 TEST_F(PlanTest, FailedRunLeavesNoOutputAndKeepsTheEarlierPlan) {
