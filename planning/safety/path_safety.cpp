@@ -1233,13 +1233,7 @@ const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit) {
 
 const ValueStatistics& statistics_of(PathSafetyResult& result, unsigned value_bit) {
   const size_t slot = size_t(kernels::value_slot(value_bit));
-  if (!result.statistics[slot]) {
-    if (!result.classes[slot]) {
-      classes_of(result, value_bit);
-    } else {
-      result.statistics[slot] = value_statistics(result.volumes[slot]);
-    }
-  }
+  if (!result.statistics[slot]) result.statistics[slot] = value_statistics(result.volumes[slot]);
   return *result.statistics[slot];
 }
 

@@ -259,8 +259,8 @@ void finish_fast_check(PathSafetyResult& result);
 
 // default_classes of the volume of `value_bit`, taken once and kept in result.classes.
 const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit);
-// value_statistics of the volume of `value_bit`, taken once (with its classes where they are
-// not yet taken) and kept in result.statistics.
+// value_statistics of the volume of `value_bit`, taken once and kept in result.statistics
+// (classes_of takes them in its pass).
 const ValueStatistics& statistics_of(PathSafetyResult& result, unsigned value_bit);
 
 // Computes the requested values. Checks every input first (geometry, negative or NaN blocking,
