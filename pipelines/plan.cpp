@@ -701,7 +701,9 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       // them all, beside the plan's writes).
       if (at + 1 < order.size()) omp_set_num_threads(std::max(1, omp_get_num_procs() / 4));
     }
+    trace::event("fold_done", 0, int(at));  // with the other extreme
     finish_fast_check(*own);
+    trace::event("checked", 0, int(at));
     nlohmann::json entry;
     entry["name"] = p.phase.name;
     // A frame of a 4D input is recorded as that file (the frame is the phase's).
