@@ -388,6 +388,16 @@ class PhaseReaders {
     ready_[k].wait();
     if (failed_) rethrow_first();
   }
+  // Returns when phase k is read (true) or has failed (false); unlike `wait`, it neither joins
+  // the readers nor throws, so another thread may call it beside `wait`.
+  bool read(size_t k) const {
+    try {
+      ready_[k].get();
+      return true;
+    } catch (...) {
+      return false;
+    }
+  }
   // The phases not yet taken are not read (after an error elsewhere).
   void stop() { stopped_ = true; }
   // Every phase read (or an error, as in `wait`).
@@ -456,22 +466,24 @@ std::string recorded_file(const PlanPhase& phase, const std::string& f) {
 }
 
 // A phase's blocking volume. Only the first phase's label map is used again (the plan's own
-// files, area safety's skin); the others would hold 4 bytes of every voxel to the end. A later
-// phase's inputs are also checksummed here, beside the computation, for its entry in plan.json
-// (file_checksum keeps them): the last phase's finish is on the plan's way to its end.
+// files, area safety's skin); the others would hold 4 bytes of every voxel to the end.
 void read_phase_blocking(PhaseInputs& p, size_t k) {
   read_plan_blocking(p.request, p.inputs);
-  if (k == 0) return;
-  p.inputs.labels = {};
-  std::vector<std::string> files = label_files(p.phase.labels);
-  files.push_back(tumor_file(p.phase.tumor));
-  files.push_back(p.phase.ct);
+  if (k > 0) p.inputs.labels = {};
+}
+
+// A phase's input files checksummed ahead of its entry in plan.json (file_checksum keeps them):
+// the last phase's finish is on the plan's way to its end. A file that cannot be read is
+// reported where the entry is written.
+void checksum_phase_inputs(const PlanPhase& phase) {
+  std::vector<std::string> files = label_files(phase.labels);
+  files.push_back(tumor_file(phase.tumor));
+  files.push_back(phase.ct);
   for (const std::string& f : files) {
     if (f.empty()) continue;
     try {
-      file_checksum(recorded_file(p.phase, f));
+      file_checksum(recorded_file(phase, f));
     } catch (const Error&) {
-      // Reported where the entry is written.
     }
   }
 }
@@ -613,6 +625,18 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
           spdlog::info("breathing: read {} ({} of {} later phases)", phases[k].phase.name,
                        ++*done, phases.size() - 1);
         });
+  }
+  // The later phases' inputs checksummed as they are read, on one thread beside the computation
+  // (in the readers, they held back each phase's start). Declared after `blocking_reads`:
+  // joined before it goes.
+  std::future<void> checksums;
+  if (blocking_reads) {
+    checksums = std::async(std::launch::async, [&phases, &order, &blocking_reads] {
+      for (size_t at = 1; at < order.size(); ++at) {
+        if (!blocking_reads->read(order[at])) return;  // the plan fails with the reader's error
+        checksum_phase_inputs(phases[order[at]].phase);
+      }
+    });
   }
   // Fast mode leaves refinement out where a phase cannot change the combination's class
   // (PathSafetyOptions::combined_so_far), unless every phase's own volumes are written.

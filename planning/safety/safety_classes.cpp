@@ -132,7 +132,6 @@ class PositiveValues {
     return out;
   }
 
-
  private:
   size_t bucket_of_rank(uint64_t i) const {
     return size_t(std::upper_bound(cumulative_.begin(), cumulative_.end(), i) -
