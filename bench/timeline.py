@@ -64,8 +64,8 @@ def main():
             points[p][0] += b - a
             points[p][1] += n
         names = sorted({w for c in steps.values() for w in c})
-        columns = ("start", "compute_begin", "comb_wait_end", "compute_end", "folded", "fold_done",
-                   "checked", "finish_end")
+        columns = ("start", "compute_begin", "comb_wait_end", "compute_end", "finish_begin",
+                   "coverage_applied", "folded", "fold_done", "checked", "finish_end")
         print("phase " + " ".join(columns) + " | calls_s M_points | " + " ".join(names))
         for p in sorted(k for k in marks if k >= 0):
             m = marks[p]

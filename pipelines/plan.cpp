@@ -680,6 +680,8 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   // The folds in order: a phase folds once the one before it has (and the first phase has taken
   // its own statistics of the volumes it lends).
   std::vector<Signal> fold_turn(phases.size());
+  // A phase's fold into the other extreme done (PhaseCombiner::fold_extreme), after its fold.
+  std::vector<Signal> extreme_turn(phases.size());
   std::vector<Clock::time_point> t_phase(phases.size());
   // With phases side by side (on a GPU), one more phase is prepared (its scene uploaded, its
   // volumes allocated) beside them and samples once the phase `at_once` before it has computed:
@@ -703,6 +705,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     const Volume<uint8_t> region =
         apply_scan_coverage(result, p.inputs.coverage, p.inputs.tumor, {req.crop_to_scan},
                             &coverage);
+    trace::event("coverage_applied", 0, int(at));
     if (k == 0) first_coverage = coverage;
     warn_about_coverage(coverage, req.crop_to_scan);
     // Folded in first, for the later phases' samplers (which wait for it). The first phase lends
@@ -716,16 +719,17 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     if (at == 0) {
       combiner.add(std::move(result), region, combined);
       own = &combiner.combined();
+      extreme_turn[at].set();
     } else {
-      combiner.add(result, region, combined);
-    }
-    if (at > 0) {
+      combiner.fold(result, region, combined);
       fold_turn[at].set();
       // Off the folds' path: fewer cores while samplers run beside it (the last phase's take
-      // them all, beside the plan's writes).
+      // them all, beside the plan's writes). The other extreme beside the next phase's fold.
       if (at + 1 < order.size()) omp_set_num_threads(std::max(1, omp_get_num_procs() / 4));
+      combiner.fold_extreme(result);
+      extreme_turn[at].set();
     }
-    trace::event("fold_done", 0, int(at));  // with the other extreme
+    trace::event("fold_done", 0, int(at));  // and the other extreme
     finish_fast_check(*own);
     trace::event("checked", 0, int(at));
     nlohmann::json entry;
@@ -782,6 +786,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     } catch (...) {
       folded[at].fail(std::current_exception());
       fold_turn[at].fail(std::current_exception());
+      extreme_turn[at].fail(std::current_exception());
       throw;
     }
   };
@@ -874,6 +879,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     if (blocking_reads) blocking_reads->stop();
     for (Signal& s : folded) s.fail(error);
     for (Signal& s : fold_turn) s.fail(error);
+    for (Signal& s : extreme_turn) s.fail(error);
     for (Signal& s : turn) s.fail(error);
     for (auto& c : computing) {
       if (c.valid()) c.wait();
@@ -911,9 +917,8 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   // volumes are written (it needs their classes, which the writes take).
   std::array<double, kernels::kValueCount> class_change{};
   const auto class_change_beside = [&] {
-    // The last fold's other extreme: taken after its combination (fold_turn follows the whole
-    // fold; a failed finish fails it too).
-    if (order.size() > 1) fold_turn.back().done.get();
+    // Every phase's other extreme, taken after its fold (a failed finish fails its turn too).
+    for (Signal& e : extreme_turn) e.done.get();
     trace::event("last_extreme", 0, -1);
     std::array<const SafetyClasses*, kernels::kValueCount> classes{};
     for (int v = 0; v < kernels::kValueCount; ++v) {

@@ -1198,23 +1198,28 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   // scan.
   const float nan = std::numeric_limits<float>::quiet_NaN();
 #pragma omp parallel for schedule(static)
-  for (int64_t k = 0; k < n; ++k)
-    for (int64_t j = 0; j < n; ++j)
-      for (int64_t i = 0; i < n; ++i) {
-        uint8_t& st = store.state(i, j, k);
-        if (!grid.in_roi(i, j, k)) {
-          if (st == kEvaluated) {
-            for (const int s : slots) store.set(store.offset(i, j, k), s, nan);
-          }
-          continue;
-        }
-        // Interpolation supports outside the scan, and the voxels of cells that never reached
-        // into it: unknown.
-        if (st == kUnknown || st == kPending || (st == kEvaluated && !store.known(i, j, k))) {
-          st = kUnknown;
+  for (int64_t row = 0; row < n * n; ++row) {
+    const int64_t j = row % n, k = row / n;
+    // The row's run in the region (a ball).
+    const int64_t w = grid.roi_half_width(j, k);
+    const int64_t first = w < 0 ? n : std::max<int64_t>(0, half - w);
+    const int64_t last = w < 0 ? -1 : std::min<int64_t>(n - 1, half + w);
+    for (int64_t i = 0; i < n; ++i) {
+      uint8_t& st = store.state(i, j, k);
+      if (i < first || i > last) {
+        if (st == kEvaluated) {
           for (const int s : slots) store.set(store.offset(i, j, k), s, nan);
         }
+        continue;
       }
+      // Interpolation supports outside the scan, and the voxels of cells that never reached
+      // into it: unknown.
+      if (st == kUnknown || st == kPending || (st == kEvaluated && !store.known(i, j, k))) {
+        st = kUnknown;
+        for (const int s : slots) store.set(store.offset(i, j, k), s, nan);
+      }
+    }
+  }
   clock.add(StepClock::kFinish, t);
   report.seconds = clock.named();
   progress.at(levels - 1, 1.0);

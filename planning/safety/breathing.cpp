@@ -66,14 +66,16 @@ void PhaseCombiner::add(const PathSafetyResult& phase, const Volume<uint8_t>& re
     PathSafetyResult first = phase;
     add(std::move(first), region, combined);
   } else {
-    add_phase(phase, region, combined);
+    fold(phase, region, combined);
+    fold_extreme(phase);
   }
 }
 
 void PhaseCombiner::add(PathSafetyResult&& phase, const Volume<uint8_t>& region,
                         const std::function<void()>& combined) {
   if (phases_ > 0) {
-    add_phase(phase, region, combined);
+    fold(phase, region, combined);
+    fold_extreme(phase);
     return;
   }
   if (!region.geometry().same_grid(phase.grid.geometry, 1e-6)) {
@@ -83,9 +85,8 @@ void PhaseCombiner::add(PathSafetyResult&& phase, const Volume<uint8_t>& region,
   if (combined_.check_sample) check_ = std::make_shared<CheckSample>(*combined_.check_sample);
   combined_.check_sample = nullptr;
   region_ = parallel_copy(region);
-  // The other extreme of one phase is the phase itself: made by the second fold, which reads the
-  // first phase's values anyway (a copy here would hold up the next phase's sampler); its volumes
-  // are made meanwhile.
+  // The other extreme of one phase is the phase itself: copied, with the buffers of the folds to
+  // come, on a thread of its own (here it would hold up the next phase's sampler).
   spares_ = std::async(std::launch::async, [this] { make_spares(); });
   {
     const std::lock_guard<std::mutex> lock(swap_);
@@ -98,7 +99,7 @@ void PhaseCombiner::make_spares() {
   const ImageGeometry& g = combined_.grid.geometry;
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (!(combined_.values & (1u << v))) continue;
-    other_[size_t(v)] = Volume<float>(g);
+    other_[size_t(v)] = parallel_copy(combined_.volumes[size_t(v)]);
   }
   earlier_.resize(size_t(keep_));
   for (auto& set : earlier_) {
@@ -129,8 +130,8 @@ std::array<const float*, kernels::kValueCount> PhaseCombiner::volumes_after(int 
   return out;
 }
 
-void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region,
-                              const std::function<void()>& combined) {
+void PhaseCombiner::fold(const PathSafetyResult& phase, const Volume<uint8_t>& region,
+                         const std::function<void()>& combined) {
   const ImageGeometry& g = phase.grid.geometry;
   if (!region.geometry().same_grid(g, 1e-6)) {
     throw Error("breathing phase " + std::to_string(phases_ + 1) +
@@ -165,16 +166,13 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
       earlier_.back()[size_t(v)] = Volume<float>(g);
     }
     Volume<float>& worst = keep_ > 0 ? earlier_.back()[size_t(v)] : combined_.volumes[size_t(v)];
-    const bool first_other = phases_ == 1;  // the other extreme is the first phase's: `was`
-    if (other_[size_t(v)].empty()) other_[size_t(v)] = Volume<float>(g);
     Volume<float>& other = other_[size_t(v)];
     const Volume<float>& x = phase.volumes[size_t(v)];
     if (keep_ == 0) {
-      // In place: the other extreme in the same pass, while `was` (the combination, and for the
-      // second fold the first phase) is still there to read.
+      // In place: the other extreme in the same pass.
 #pragma omp parallel for schedule(static)
       for (int64_t i = 0; i < n; ++i) {
-        const float w = was[i], o = first_other ? w : other[i], p = x[i];
+        const float w = was[i], o = other[i], p = x[i];
         if (std::isnan(w) || std::isnan(p)) {
           worst[i] = nan;
           other[i] = nan;
@@ -186,14 +184,19 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
       continue;
     }
     // Outside the region every volume is NaN: only the region's runs, once the buffer written
-    // holds NaN outside it (the first `keep_` folds write fresh buffers whole).
-    const auto fold = [&](int64_t first, int64_t last) {
+    // holds NaN outside it (the first `keep_` folds write fresh buffers whole). A voxel not
+    // computed in some phase (unknown there, NaN) is NaN without reading the values.
+    const auto fold_runs = [&](int64_t first, int64_t last) {
       for (int64_t i = first; i <= last; ++i) {
+        if (region_[i] != kRegionComputed) {
+          worst[i] = nan;
+          continue;
+        }
         const float w = was[i], p = x[i];
         worst[i] = std::isnan(w) || std::isnan(p) ? nan : svv ? std::min(w, p) : std::max(w, p);
       }
     };
-    for_runs(phase.grid, /*whole=*/phases_ <= keep_, fold);
+    for_runs(phase.grid, /*whole=*/phases_ <= keep_, fold_runs);
   }
   {
     const std::lock_guard<std::mutex> lock(swap_);
@@ -230,30 +233,26 @@ void PhaseCombiner::add_phase(const PathSafetyResult& phase, const Volume<uint8_
   combined_.statistics = {};
   combined_.seconds += phase.seconds;
   combined_.rays += phase.rays;
-  // The combination is complete: the samplers waiting for it go on while the other extreme is
-  // taken (with keep_earlier: `was` is kept, the first phase's values for the second fold).
+  // The combination is complete: the samplers waiting for it go on.
   if (combined) combined();
-  if (keep_ > 0) {
-    for (int v = 0; v < kernels::kValueCount; ++v) {
-      if (!(phase.values & (1u << v))) continue;
-      const bool svv = higher_is_safer(v);
-      const Volume<float>& now = combined_.volumes[size_t(v)];
-      const Volume<float>& first = earlier_[0][size_t(v)];  // read for the second fold only
-      const bool first_other = phases_ == 2;
-      Volume<float>& other = other_[size_t(v)];
-      const Volume<float>& x = phase.volumes[size_t(v)];
-      const auto fold = [&](int64_t start, int64_t last) {
-        for (int64_t i = start; i <= last; ++i) {
-          if (std::isnan(now[i])) {
-            other[i] = nan;
-            continue;
-          }
-          const float o = first_other ? first[i] : other[i], p = x[i];
-          other[i] = svv ? std::max(o, p) : std::min(o, p);
-        }
-      };
-      for_runs(phase.grid, /*whole=*/first_other, fold);  // a fresh buffer: written whole
-    }
+}
+
+void PhaseCombiner::fold_extreme(const PathSafetyResult& phase) {
+  if (keep_ == 0) return;  // taken in the fold's own pass
+  const std::lock_guard<std::mutex> lock(extreme_);
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  for (int v = 0; v < kernels::kValueCount; ++v) {
+    if (!(phase.values & (1u << v))) continue;
+    const bool svv = higher_is_safer(v);
+    float* other = other_[size_t(v)].data();
+    const float* x = phase.volumes[size_t(v)].data();
+    // NaN where some phase folded in is: where the combination is, once every phase is in.
+    for_runs(phase.grid, /*whole=*/false, [&](int64_t first, int64_t last) {
+      for (int64_t i = first; i <= last; ++i) {
+        const float o = other[i], p = x[i];
+        other[i] = std::isnan(o) || std::isnan(p) ? nan : svv ? std::max(o, p) : std::min(o, p);
+      }
+    });
   }
 }
 

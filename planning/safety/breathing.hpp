@@ -25,11 +25,19 @@ class PhaseCombiner {
   // The first phase fixes the grid and the values; later ones must match (Error otherwise).
   // Every voxel on every core; a first phase given as an rvalue lends its volumes.
   // `combined`, where given, is called as soon as the combination is complete and readable
-  // (volumes_after), before the other extreme and the check are folded in.
+  // (volumes_after), before the other extreme is folded in. A later phase's add is its fold
+  // and its fold_extreme.
   void add(const PathSafetyResult& phase, const Volume<uint8_t>& region,
            const std::function<void()>& combined = {});
   void add(PathSafetyResult&& phase, const Volume<uint8_t>& region,
            const std::function<void()>& combined = {});
+  // A later phase in two steps: its fold into the combination (the folds one after another),
+  // then its fold into the other extreme, which may run beside the next phases' folds (those
+  // one after another too; in any order, the extreme is the same). Every phase's extreme must be
+  // in before other_extreme or class_change_shares is read.
+  void fold(const PathSafetyResult& phase, const Volume<uint8_t>& region,
+            const std::function<void()>& combined = {});
+  void fold_extreme(const PathSafetyResult& phase);
 
   int phases() const;
   // Keeps the `count` combinations before the last fold readable while later ones are folded
@@ -65,17 +73,17 @@ class PhaseCombiner {
       const std::array<const SafetyClasses*, kernels::kValueCount>& classes) const;
 
  private:
-  void add_phase(const PathSafetyResult& phase, const Volume<uint8_t>& region,
-                 const std::function<void()>& combined);
   void fold_check(const PathSafetyResult& phase);
-  // The volumes the second fold writes (the other extreme, and with keep_earlier the buffers
-  // beside the combination) made on a thread of their own after the first fold: cleared pages of
-  // a few GB, which would otherwise hold up the second fold and every sampler waiting for it.
+  // The volumes the later folds write (the other extreme, a copy of the first phase, and with
+  // keep_earlier the buffers beside the combination) made on a thread of their own after the
+  // first fold: a few GB, which would otherwise hold up the second fold and every sampler
+  // waiting for it.
   void make_spares();
 
   int phases_ = 0;
   int keep_ = 0;
   mutable std::mutex swap_;  // phases_ and which buffer holds which combination
+  std::mutex extreme_;       // one fold_extreme at a time
   PathSafetyResult combined_;
   // With keep_earlier: the combinations before the latest, the newest first (the last one is
   // the buffer the next fold writes).

@@ -1220,12 +1220,23 @@ void finish_fast_check(PathSafetyResult& result) {
   check(result);
 }
 
+RowRun roi_runs(const OutputGrid& grid, const Volume<float>& volume) {
+  const Index3& d = grid.geometry.dims;
+  if (grid.roi_voxels <= 0 || volume.geometry().dims != d) return {};
+  return [&grid, nx = d[0], ny = d[1]](int64_t row) -> std::pair<int64_t, int64_t> {
+    const int64_t w = grid.roi_half_width(row % ny, row / ny);
+    if (w < 0) return {1, 0};
+    return {std::max<int64_t>(0, grid.half - w), std::min<int64_t>(nx - 1, grid.half + w)};
+  };
+}
+
 const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit) {
   const size_t slot = size_t(kernels::value_slot(value_bit));
   std::optional<SafetyClasses>& c = result.classes[slot];
   if (!c) {
+    const Volume<float>& volume = result.volumes[slot];
     ValueStatistics statistics;
-    c = default_classes(value_bit, result.volumes[slot], &statistics);
+    c = default_classes(value_bit, volume, &statistics, roi_runs(result.grid, volume));
     result.statistics[slot] = statistics;
   }
   return *c;
@@ -1233,7 +1244,10 @@ const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit) {
 
 const ValueStatistics& statistics_of(PathSafetyResult& result, unsigned value_bit) {
   const size_t slot = size_t(kernels::value_slot(value_bit));
-  if (!result.statistics[slot]) result.statistics[slot] = value_statistics(result.volumes[slot]);
+  if (!result.statistics[slot]) {
+    const Volume<float>& volume = result.volumes[slot];
+    result.statistics[slot] = value_statistics(volume, roi_runs(result.grid, volume));
+  }
   return *result.statistics[slot];
 }
 

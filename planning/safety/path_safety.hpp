@@ -209,7 +209,8 @@ struct PathSafetyResult {
   // outside the region of interest are NaN (not computed).
   std::array<Volume<float>, kernels::kValueCount> volumes;
   // The scan's mask on the output grid (1 in the scan) where the inputs do not cover the whole
-  // grid and path safety used it; empty otherwise (apply_scan_coverage takes it over).
+  // grid and path safety used it; empty otherwise (apply_scan_coverage takes it over). Path
+  // safety computes no voxel outside it: those are NaN in every volume.
   Volume<uint8_t> scan_mask;
   int64_t tumor_voxels = 0;
   int64_t surface_points = 0;
@@ -257,7 +258,13 @@ void compare_with_check_sample(const CheckSample& sample, unsigned values,
 // (check_voxels, check_relative_l2, check_class_agreement filled); nothing otherwise.
 void finish_fast_check(PathSafetyResult& result);
 
-// default_classes of the volume of `value_bit`, taken once and kept in result.classes.
+// The region of interest's runs of `grid` (default_classes, value_statistics) for one of its
+// volumes, whose voxels outside the region are NaN; null (every voxel) for a volume of another
+// grid or a grid without a region.
+RowRun roi_runs(const OutputGrid& grid, const Volume<float>& volume);
+
+// default_classes of the volume of `value_bit`, taken once and kept in result.classes (over the
+// region of interest's runs).
 const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit);
 // value_statistics of the volume of `value_bit`, taken once and kept in result.statistics
 // (classes_of takes them in its pass).

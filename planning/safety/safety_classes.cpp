@@ -25,12 +25,32 @@ uint32_t bucket_of(float x) {
   return bits >> kBucketShift;
 }
 
+// Calls f(first, end) for the parts of the offsets [begin, end) that lie in `runs` (all of them
+// without runs), in increasing order; rows are `row_length` voxels long.
+template <typename F>
+void in_runs(const RowRun& runs, int64_t row_length, int64_t begin, int64_t end, const F& f) {
+  if (!runs) {
+    f(begin, end);
+    return;
+  }
+  for (int64_t i = begin; i < end;) {
+    const int64_t row = i / row_length, start = row * row_length;
+    const int64_t row_end = std::min(end, start + row_length);
+    const auto [first, last] = runs(row);
+    const int64_t lo = std::max(i, start + first), hi = std::min(row_end, start + last + 1);
+    if (lo < hi) f(lo, hi);
+    i = row_end;
+  }
+}
+
 // The statistics of the finite values, on every core: thread(chunks) runs on each thread, and
 // chunks(f) goes through the thread's share of the values calling f(x) for every finite one and
 // returns its statistics without their sum. The sum is taken in chunks of fixed size added in
-// order: the same mean, bit for bit, whatever the number of threads.
+// order: the same mean, bit for bit, whatever the number of threads, and with or without `runs`
+// (the values beyond them are NaN, which the sum leaves out either way).
 template <typename Thread>
-ValueStatistics scan_finite(const std::vector<float>& values, const Thread& thread) {
+ValueStatistics scan_finite(const std::vector<float>& values, int64_t row_length,
+                            const RowRun& runs, const Thread& thread) {
   constexpr int64_t kChunk = int64_t(1) << 18;
   const int64_t n = int64_t(values.size());
   const int64_t count = (n + kChunk - 1) / kChunk;
@@ -42,17 +62,19 @@ ValueStatistics scan_finite(const std::vector<float>& values, const Thread& thre
       ValueStatistics own;
 #pragma omp for schedule(static) nowait
       for (int64_t c = 0; c < count; ++c) {
-        const int64_t end = std::min(n, (c + 1) * kChunk);
         double sum = 0.0;
-        for (int64_t i = c * kChunk; i < end; ++i) {
-          const float x = values[size_t(i)];
-          if (!std::isfinite(x)) continue;
-          ++own.voxels;
-          own.min = std::min(own.min, double(x));
-          own.max = std::max(own.max, double(x));
-          sum += x;
-          f(x);
-        }
+        in_runs(runs, row_length, c * kChunk, std::min(n, (c + 1) * kChunk),
+                [&](int64_t begin, int64_t end) {
+                  for (int64_t i = begin; i < end; ++i) {
+                    const float x = values[size_t(i)];
+                    if (!std::isfinite(x)) continue;
+                    ++own.voxels;
+                    own.min = std::min(own.min, double(x));
+                    own.max = std::max(own.max, double(x));
+                    sum += x;
+                    f(x);
+                  }
+                });
         sums[size_t(c)] = sum;
       }
       return own;
@@ -75,10 +97,10 @@ ValueStatistics scan_finite(const std::vector<float>& values, const Thread& thre
 class PositiveValues {
  public:
   // One pass: the histogram of the positive values, and the statistics of every finite one.
-  explicit PositiveValues(const std::vector<float>& values)
-      : values_(values), cumulative_(kBuckets + 1, 0) {
+  PositiveValues(const std::vector<float>& values, int64_t row_length, const RowRun& runs)
+      : values_(values), row_length_(row_length), runs_(runs), cumulative_(kBuckets + 1, 0) {
     std::vector<uint64_t> histogram(kBuckets, 0);
-    statistics_ = scan_finite(values, [&](const auto& chunks) {
+    statistics_ = scan_finite(values, row_length, runs, [&](const auto& chunks) {
       std::vector<uint64_t> mine(kBuckets, 0);
       ValueStatistics own = chunks([&](float x) {
         if (x > 0.0f) ++mine[bucket_of(x)];
@@ -105,17 +127,22 @@ class PositiveValues {
     std::vector<std::vector<std::vector<float>>> parts(
         threads, std::vector<std::vector<float>>(wanted.size()));
     const int64_t n = int64_t(values_.size());
+    constexpr int64_t kChunk = int64_t(1) << 16;
 #pragma omp parallel
     {
       std::vector<std::vector<float>>& mine = parts[size_t(omp_get_thread_num())];
 #pragma omp for schedule(static) nowait
-      for (int64_t v = 0; v < n; ++v) {
-        const float x = values_[size_t(v)];
-        if (!counted(x)) continue;
-        const size_t b = bucket_of(x);
-        for (size_t w = 0; w < wanted.size(); ++w) {
-          if (wanted[w] == b) mine[w].push_back(x);
-        }
+      for (int64_t c = 0; c < n; c += kChunk) {
+        in_runs(runs_, row_length_, c, std::min(n, c + kChunk), [&](int64_t begin, int64_t end) {
+          for (int64_t v = begin; v < end; ++v) {
+            const float x = values_[size_t(v)];
+            if (!counted(x)) continue;
+            const size_t b = bucket_of(x);
+            for (size_t w = 0; w < wanted.size(); ++w) {
+              if (wanted[w] == b) mine[w].push_back(x);
+            }
+          }
+        });
       }
     }
     std::vector<float> out;
@@ -139,6 +166,8 @@ class PositiveValues {
   }
 
   const std::vector<float>& values_;
+  int64_t row_length_;
+  const RowRun& runs_;
   std::vector<uint64_t> cumulative_;
   ValueStatistics statistics_;
 };
@@ -165,17 +194,18 @@ SafetyClasses blocking_classes(uint64_t n, double largest, const AtRanks& at_ran
   return c;
 }
 
-ValueStatistics value_statistics(const Volume<float>& volume) {
-  return scan_finite(volume.values(), [](const auto& chunks) { return chunks([](float) {}); });
+ValueStatistics value_statistics(const Volume<float>& volume, const RowRun& runs) {
+  return scan_finite(volume.values(), volume.geometry().dims[0], runs,
+                     [](const auto& chunks) { return chunks([](float) {}); });
 }
 
 SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume,
-                              ValueStatistics* statistics) {
+                              ValueStatistics* statistics, const RowRun& runs) {
   if (value_bit == kernels::kSvv) {
-    if (statistics) *statistics = value_statistics(volume);
+    if (statistics) *statistics = value_statistics(volume, runs);
     return default_classes_of(value_bit, {});
   }
-  const PositiveValues positive(volume.values());
+  const PositiveValues positive(volume.values(), volume.geometry().dims[0], runs);
   if (statistics) *statistics = positive.statistics();
   return blocking_classes(positive.count(), double(positive.largest()),
                           [&](const std::vector<uint64_t>& r) { return positive.at_ranks(r); });

@@ -5,6 +5,8 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <functional>
+#include <utility>
 #include <vector>
 
 #include "kernels/path_safety_math.hpp"
@@ -44,12 +46,20 @@ struct ValueStatistics {
   int64_t voxels = 0;
   double min = INFINITY, max = -INFINITY, sum = 0.0;
 };
-ValueStatistics value_statistics(const Volume<float>& volume);
+
+// Where a volume's finite values may lie, row by row (a row: the voxels of one j and k, numbered
+// j + k * ny): the first and last i of the row's run, none where first > last. Every voxel beyond
+// the runs must be NaN (a path safety volume outside its region of interest, a ball): the passes
+// below then read the runs alone, and give the same bits as reading every voxel.
+using RowRun = std::function<std::pair<int64_t, int64_t>(int64_t row)>;
+
+// `runs`: null, every voxel.
+ValueStatistics value_statistics(const Volume<float>& volume, const RowRun& runs = {});
 
 // With `statistics`, the volume's statistics too, from the same pass over it (a blocking value's
 // classes take one more, for both percentiles; SVV's none but this one).
 SafetyClasses default_classes(unsigned value_bit, const Volume<float>& volume,
-                              ValueStatistics* statistics = nullptr);
+                              ValueStatistics* statistics = nullptr, const RowRun& runs = {});
 // The same rule over a sample of the region's values (NaN and values <= 0 are left out).
 SafetyClasses default_classes_of(unsigned value_bit, std::vector<float> values);
 

@@ -74,39 +74,42 @@ Volume<uint8_t> apply_scan_coverage(PathSafetyResult& result, const ScanCoverage
                                     const Volume<uint8_t>& tumor, const CoverageOptions& options,
                                     CoverageReport* report) {
   const OutputGrid& grid = result.grid;
-  // 1 covered, 0 not: path safety's own mask where it made one for this grid.
-  Volume<uint8_t> state = result.scan_mask.geometry().same_grid(grid.geometry, 0.0) &&
-                                  result.scan_mask.voxel_count() > 0
-                              ? std::move(result.scan_mask)
-                              : coverage.mask(grid.geometry);
+  // 1 covered, 0 not: path safety's own mask where it made one for this grid. Path safety
+  // computes no voxel outside it (they are NaN already): only the states are set then.
+  const bool own_mask = result.scan_mask.geometry().same_grid(grid.geometry, 0.0) &&
+                        result.scan_mask.voxel_count() > 0;
+  Volume<uint8_t> state = own_mask ? std::move(result.scan_mask) : coverage.mask(grid.geometry);
   result.scan_mask = Volume<uint8_t>();
   const Index3& d = grid.geometry.dims;
   const uint8_t outside_scan = options.crop_to_scan ? kRegionNotComputed : kRegionUnknown;
   const float nan = std::numeric_limits<float>::quiet_NaN();
   int64_t roi = 0, uncovered = 0, changed = 0;
-#pragma omp parallel for reduction(+ : roi, uncovered, changed) schedule(dynamic, 1)
-  for (int64_t k = 0; k < d[2]; ++k) {
-    for (int64_t j = 0; j < d[1]; ++j) {
-      for (int64_t i = 0; i < d[0]; ++i) {
-        uint8_t& s = state(i, j, k);
-        if (!grid.in_roi(i, j, k)) {
-          s = kRegionNotComputed;
-          continue;
-        }
-        ++roi;
-        if (s) {
-          s = kRegionComputed;
-          continue;
-        }
-        ++uncovered;
-        s = outside_scan;
-        const int64_t offset = grid.geometry.offset(i, j, k);
-        for (int v = 0; v < kernels::kValueCount; ++v) {
-          if (!(result.values & (1u << v))) continue;
-          float& x = result.volumes[size_t(v)].data()[offset];
-          changed += std::isnan(x) ? 0 : 1;
-          x = nan;
-        }
+  // Row by row: the region's run of the row (a ball), the rest not computed.
+#pragma omp parallel for reduction(+ : roi, uncovered, changed) schedule(static)
+  for (int64_t row = 0; row < d[1] * d[2]; ++row) {
+    uint8_t* s = state.data() + row * d[0];
+    const int64_t w = grid.roi_half_width(row % d[1], row / d[1]);
+    const int64_t first = w < 0 ? d[0] : std::max<int64_t>(0, grid.half - w);
+    const int64_t last = w < 0 ? -1 : std::min<int64_t>(d[0] - 1, grid.half + w);
+    for (int64_t i = 0; i < d[0]; ++i) {
+      if (i < first || i > last) {
+        s[i] = kRegionNotComputed;
+        continue;
+      }
+      ++roi;
+      if (s[i]) {
+        s[i] = kRegionComputed;
+        continue;
+      }
+      ++uncovered;
+      s[i] = outside_scan;
+      if (own_mask) continue;
+      const int64_t offset = row * d[0] + i;
+      for (int v = 0; v < kernels::kValueCount; ++v) {
+        if (!(result.values & (1u << v))) continue;
+        float& x = result.volumes[size_t(v)].data()[offset];
+        changed += std::isnan(x) ? 0 : 1;
+        x = nan;
       }
     }
   }

@@ -857,6 +857,49 @@ TEST(PathSafetyInput, ValueNamesParse) {
   EXPECT_THROW(parse_value_set(""), Error);
 }
 
+// A volume read over the runs of its region (a ball, NaN beyond it) gives the classes and the
+// statistics of every voxel, bit for bit (the sum's chunks span rows cut by the runs), and the
+// runs are what is read: a finite value left beyond them is not counted.
+TEST(PathSafety, ClassesOverTheRegionsRunsAreThoseOfEveryVoxel) {
+  const int64_t side = 85;  // 614 125 voxels: the sum's chunks of 2^18 end inside rows
+  OutputGrid grid;
+  grid.geometry = centred_cube_grid(side, 1.0);
+  grid.half = side / 2;
+  grid.max_sq = 40 * 40;
+  Volume<float> v(grid.geometry, std::numeric_limits<float>::quiet_NaN());
+  std::mt19937 rng(11);
+  std::lognormal_distribution<float> size(0.0f, 1.0f);
+  for (int64_t k = 0; k < side; ++k)
+    for (int64_t j = 0; j < side; ++j)
+      for (int64_t i = 0; i < side; ++i) {
+        if (!grid.in_roi(i, j, k)) continue;
+        ++grid.roi_voxels;
+        v(i, j, k) = (i + j) % 5 == 0 ? 0.0f : size(rng);
+      }
+  const RowRun runs = roi_runs(grid, v);
+  ASSERT_TRUE(runs);
+  for (unsigned bit : {kernels::kIsbv, kernels::kSvv}) {
+    ValueStatistics all, in_runs;
+    const SafetyClasses a = default_classes(bit, v, &all);
+    const SafetyClasses b = default_classes(bit, v, &in_runs, runs);
+    EXPECT_EQ(a.safe, b.safe);
+    EXPECT_EQ(a.dangerous, b.dangerous);
+    EXPECT_EQ(in_runs.voxels, grid.roi_voxels);
+    EXPECT_EQ(all.voxels, in_runs.voxels);
+    EXPECT_EQ(all.min, in_runs.min);
+    EXPECT_EQ(all.max, in_runs.max);
+    EXPECT_EQ(all.sum, in_runs.sum) << "the same chunks, added in the same order";
+  }
+  // A corner voxel (outside the ball) given a value: every voxel counts it, the runs do not.
+  v(0, 0, 0) = 1e6f;
+  EXPECT_EQ(value_statistics(v).voxels, grid.roi_voxels + 1);
+  EXPECT_EQ(value_statistics(v, runs).voxels, grid.roi_voxels);
+  EXPECT_LT(value_statistics(v, runs).max, 1e6);
+  // A volume of another grid is read whole.
+  const Volume<float> other(centred_cube_grid(side - 1, 1.0), 1.0f);
+  EXPECT_FALSE(roi_runs(grid, other));
+}
+
 // The classes the self-check and the plan take once (PathSafetyResult::classes) are the
 // volume's default_classes, and are dropped when the scan's coverage turns computed voxels
 // unknown (their percentiles change); a coverage that changes no value keeps them.
