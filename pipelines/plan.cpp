@@ -682,6 +682,14 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   std::vector<Signal> fold_turn(phases.size());
   // A phase's fold into the other extreme done (PhaseCombiner::fold_extreme), after its fold.
   std::vector<Signal> extreme_turn(phases.size());
+  // A later phase's result once its scan's coverage is applied (its volumes final), kept here
+  // until its fold is made: a phase asking for the combination with it reads it through the
+  // combination of the phases before it (CombinedVolumes::pending) rather than wait for the
+  // fold. `reading`: per phase, the result its sampler reads so, held until it has computed.
+  std::vector<Signal> covered(phases.size());
+  std::mutex pending_lock;
+  std::vector<std::shared_ptr<const PathSafetyResult>> pending(phases.size());
+  std::vector<std::shared_ptr<const PathSafetyResult>> reading(phases.size());
   std::vector<Clock::time_point> t_phase(phases.size());
   // With phases side by side (on a GPU), one more phase is prepared (its scene uploaded, its
   // volumes allocated) beside them and samples once the phase `at_once` before it has computed:
@@ -706,13 +714,26 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
         apply_scan_coverage(result, p.inputs.coverage, p.inputs.tumor, {req.crop_to_scan},
                             &coverage);
     trace::event("coverage_applied", 0, int(at));
+    // A later phase's volumes are final now: lent to the samplers that read them before its fold.
+    std::shared_ptr<PathSafetyResult> kept;
+    if (at > 0) {
+      kept = std::make_shared<PathSafetyResult>(std::move(result));
+      const std::lock_guard<std::mutex> lock(pending_lock);
+      pending[at] = kept;
+    }
+    covered[at].set();
     if (k == 0) first_coverage = coverage;
     warn_about_coverage(coverage, req.crop_to_scan);
+    if (at > 0) fold_turn[at - 1].done.get();  // the folds in order (its error taken here)
     // Folded in first, for the later phases' samplers (which wait for it). The first phase lends
     // its volumes to the combination; its own check and statistics are then taken of them there,
     // before the next fold may change them.
-    PathSafetyResult* own = &result;
-    const auto combined = [&folded, at] {
+    PathSafetyResult* own = kept ? kept.get() : &result;
+    const auto combined = [&folded, &pending_lock, &pending, at] {
+      {
+        const std::lock_guard<std::mutex> lock(pending_lock);
+        pending[at].reset();  // its samplers read the combination from now on
+      }
       folded[at].set();
       trace::event("folded", 0, int(at));
     };
@@ -721,16 +742,19 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       own = &combiner.combined();
       extreme_turn[at].set();
     } else {
-      combiner.fold(result, region, combined);
+      combiner.fold(*kept, region, combined);
       fold_turn[at].set();
       // Off the folds' path: fewer cores while samplers run beside it (the last phase's take
       // them all, beside the plan's writes). The other extreme beside the next phase's fold.
       if (at + 1 < order.size()) omp_set_num_threads(std::max(1, omp_get_num_procs() / 4));
-      combiner.fold_extreme(result);
+      combiner.fold_extreme(*kept);
       extreme_turn[at].set();
     }
     trace::event("fold_done", 0, int(at));  // and the other extreme
-    finish_fast_check(*own);
+    // The first phase's own check (its statistics come from the check's pass). A later phase
+    // that left refinement to the phases before it has approximate values there, so its own
+    // check would tell little (the combination's is the plan's): its statistics alone.
+    if (at == 0 || !leave_to_combination) finish_fast_check(*own);
     trace::event("checked", 0, int(at));
     nlohmann::json entry;
     entry["name"] = p.phase.name;
@@ -781,12 +805,12 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   // The finish of the phase at `at`, its fold after the one before (whose error it takes).
   const auto finish_phase = [&](size_t at, PathSafetyResult result) {
     try {
-      if (at > 0) fold_turn[at - 1].done.get();
       finish_one(at, std::move(result));
     } catch (...) {
       folded[at].fail(std::current_exception());
       fold_turn[at].fail(std::current_exception());
       extreme_turn[at].fail(std::current_exception());
+      covered[at].fail(std::current_exception());
       throw;
     }
   };
@@ -816,7 +840,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       // the phase waits for the newer one only before its finer levels (the combiner keeps the
       // combinations read: none is written over before the phases reading it are done).
       const auto combination_of = [&folded, &combiner](size_t source) {
-        return [&folded, &combiner, source] {
+        return [&folded, &combiner, source]() -> CombinedVolumes {
           trace::event("comb_wait_begin");
           folded[source].done.get();
           trace::event("comb_wait_end");
@@ -827,7 +851,33 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       const size_t early = at > early_lag ? at - early_lag : 0;
       phase_request.path_safety.combined_so_far = combination_of(early);
       if (early != source) {
-        phase_request.path_safety.combined_newer = combination_of(source);
+        // The newer combination without waiting for the fold of `source`: its volumes, once
+        // final, read through the combination of the phases before it (folded before it, in
+        // order). Where its fold is made already, the combination itself. The combination before
+        // `source` stays put while this phase samples: it is written over only by the fold of
+        // the phase `keep_earlier` + 1 after `source`, which is this one or a later one.
+        phase_request.path_safety.combined_newer = [&, source, at]() -> CombinedVolumes {
+          trace::event("comb_wait_begin");
+          covered[source].done.get();
+          std::shared_ptr<const PathSafetyResult> lent;
+          {
+            const std::lock_guard<std::mutex> lock(pending_lock);
+            lent = pending[source];
+          }
+          if (!lent) {
+            folded[source].done.get();
+            trace::event("comb_wait_end");
+            return combiner.volumes_after(int(source) + 1);
+          }
+          folded[source - 1].done.get();
+          CombinedVolumes v = combiner.volumes_after(int(source));
+          for (int s = 0; s < kernels::kValueCount; ++s) {
+            if (v.folded[size_t(s)]) v.pending[size_t(s)] = lent->volumes[size_t(s)].data();
+          }
+          reading[at] = std::move(lent);  // released once this phase has computed
+          trace::event("comb_wait_end");
+          return v;
+        };
         phase_request.path_safety.newer_from_level = newer_from_level;
       }
     }
@@ -835,18 +885,21 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       phase_request.path_safety.before_sampling = [&turn, at] { turn[at].done.get(); };
     }
     trace::event("start", 0, int(at));
-    computing[at] = std::async(std::launch::async, [&p, &turn, at, at_once,
+    computing[at] = std::async(std::launch::async, [&p, &turn, &reading, at, at_once,
                                                     phase_request = std::move(phase_request)] {
       trace::current_phase() = int(at);
       trace::event("compute_begin");
-      // The next phase's turn comes when this one has computed, or failed.
+      // The next phase's turn comes when this one has computed, or failed; the phase it read
+      // before that phase's fold is released then.
       struct TurnOnExit {
         std::vector<Signal>& turn;
+        std::shared_ptr<const PathSafetyResult>& read;
         size_t next;
         ~TurnOnExit() {
+          read.reset();
           if (next < turn.size()) turn[next].set();
         }
-      } turn_on_exit{turn, at + at_once};
+      } turn_on_exit{turn, reading[at], at + at_once};
       auto r = compute(phase_request, p.inputs);
       trace::event("compute_end");
       return r;
@@ -880,6 +933,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     for (Signal& s : folded) s.fail(error);
     for (Signal& s : fold_turn) s.fail(error);
     for (Signal& s : extreme_turn) s.fail(error);
+    for (Signal& s : covered) s.fail(error);
     for (Signal& s : turn) s.fail(error);
     for (auto& c : computing) {
       if (c.valid()) c.wait();

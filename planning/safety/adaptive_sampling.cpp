@@ -245,11 +245,27 @@ int danger_rank(const SafetyClasses& c, double v, const AdaptiveOptions& o, doub
 // (-1: the value needs nothing from the combination; -2: a support is unknown, never left).
 struct Combination {
   std::array<const float*, kernels::kValueCount> worst{};
+  // A phase not folded into `worst` yet, read through it (CombinedVolumes::pending).
+  std::array<const float*, kernels::kValueCount> pending{};
+  Combination& operator=(const CombinedVolumes& v) {
+    worst = v.folded;
+    pending = v.pending;
+    return *this;
+  }
   bool any() const {
     for (const float* w : worst) {
       if (w) return true;
     }
     return false;
+  }
+  // Slot s's combined value at `offset` (its volume must be given).
+  float at(int s, int64_t offset) const {
+    const float w = worst[size_t(s)][offset];
+    const float* p = pending[size_t(s)];
+    if (!p) return w;
+    const float q = p[offset];
+    if (std::isnan(w) || std::isnan(q)) return std::numeric_limits<float>::quiet_NaN();
+    return (1u << s) == kernels::kSvv ? std::min(w, q) : std::max(w, q);
   }
   // The voxel at `offset` is at least as dangerous in the combination (toward safety) as
   // `most_dangerous` for every value that needs it; a voxel unknown in the combination is
@@ -260,7 +276,7 @@ struct Combination {
     for (int s = 0; s < kernels::kValueCount; ++s) {
       if (most_dangerous[size_t(s)] == -1) continue;
       if (most_dangerous[size_t(s)] < -1 || !worst[size_t(s)]) return false;
-      const float w = worst[size_t(s)][offset];
+      const float w = at(s, offset);
       if (std::isnan(w)) continue;
       if (danger_rank(classes[size_t(s)], w, o, scale, false) < most_dangerous[size_t(s)]) {
         return false;
@@ -861,21 +877,21 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     if (!classes_known) {
       if (options.combined_so_far) {
         const auto tw = std::chrono::steady_clock::now();
-        combination.worst = options.combined_so_far();
+        combination = options.combined_so_far();
         clock.add(StepClock::kCombinationWait, tw);
         t += std::chrono::steady_clock::now() - tw;  // the refinement's own time excludes it
       }
       for (const int s : slots) {
         std::vector<float> sample;
-        const float* worst = combination.worst[size_t(s)];
+        const bool combined = combination.worst[size_t(s)] != nullptr;
         const bool svv = (1u << s) == kernels::kSvv;
         for (size_t p = 0; p < queue.size(); ++p) {
           const GridPoint& g = queue[p];
           const double di = g.i - half, dj = g.j - half, dk = g.k - half;
           if (di * di + dj * dj + dk * dk <= radius_sq && store.known(g.i, g.j, g.k)) {
             float v = values[p * kSlots + s];
-            if (worst) {
-              const float w = worst[store.offset(g.i, g.j, g.k)];
+            if (combined) {
+              const float w = combination.at(s, store.offset(g.i, g.j, g.k));
               if (std::isnan(w)) continue;  // unknown in the combination
               v = svv ? std::min(v, w) : std::max(v, w);
             }
@@ -891,7 +907,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     if (options.combined_newer && combination.any() && level == options.newer_from_level &&
         level > 0) {
       const auto tw = std::chrono::steady_clock::now();
-      combination.worst = options.combined_newer();
+      combination = options.combined_newer();
       clock.add(StepClock::kCombinationWait, tw);
       t += std::chrono::steady_clock::now() - tw;
     }

@@ -77,9 +77,9 @@ struct AdaptiveOptions {
   // `known` is then asked only about lattice corners beyond the grid's edge.
   const uint8_t* known_mask = nullptr;
   // Breathing (planning/safety/breathing.hpp): the phases computed before this one, combined on
-  // this grid (per value slot: SVV the minimum over them, the others the maximum; NaN where one
-  // of them is unknown; null: that value is not combined yet), asked for once, after the coarsest
-  // level (it may wait for the phase before to be folded in). With it:
+  // this grid (CombinedVolumes: per value slot SVV the minimum over them, the others the
+  // maximum; NaN where one of them is unknown; null: that value is not combined yet), asked for
+  // once, after the coarsest level (it may wait for the phase before to be computed). With it:
   // - the thresholds are the default classes of the coarsest samples combined with it, the
   //   classes the combination will have;
   // - refinement is left out where this phase cannot change the combination's class: a cell
@@ -91,13 +91,13 @@ struct AdaptiveOptions {
   //   the one it had, which is what refining would have found where the phase's class inside a
   //   cell lies within the classes of its corners (fast mode's premise). This phase's own
   //   volumes are then approximate there: a plan that writes them (--per-phase) does not use it.
-  std::function<std::array<const float*, kernels::kValueCount>()> combined_so_far;
+  std::function<CombinedVolumes()> combined_so_far;
   // With combined_so_far: a later combination (more phases folded in), asked for once before the
   // decisions of level `newer_from_level` (1: the cells of the second lattice; 0 never): those
   // and every finer level's leave to it instead. The thresholds stay those of combined_so_far.
   // A phase computed beside the phase before its newest source thus samples its coarser levels
   // while that source is still computed, and waits for it only at the finer ones.
-  std::function<std::array<const float*, kernels::kValueCount>()> combined_newer;
+  std::function<CombinedVolumes()> combined_newer;
   int newer_from_level = 1;
   std::function<void(double)> progress;
 };

@@ -36,19 +36,21 @@ Volume<T> parallel_copy(const Volume<T>& from) {
 
 // Calls f(first, last) for runs of voxel offsets (first..last inclusive), in parallel: the whole
 // grid in chunks, or (`whole` false) only the rows' runs inside the region of interest, a ball.
-// Voxels outside it are not computed in any phase (NaN in every volume).
+// Voxels outside it are not computed in any phase (NaN in every volume). Dynamic: the folds run
+// beside the samplers of other phases, whose threads share the cores, and a share fixed per
+// thread would wait for the thread the system serves last.
 template <typename F>
 void for_runs(const OutputGrid& grid, bool whole, const F& f) {
   const Index3& d = grid.geometry.dims;
   if (whole) {
     const int64_t n = grid.geometry.voxel_count();
     constexpr int64_t kChunk = int64_t(1) << 16;
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(dynamic, 1)
     for (int64_t c = 0; c < n; c += kChunk) f(c, std::min(n, c + kChunk) - 1);
     return;
   }
   const int64_t rows = d[1] * d[2];
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(dynamic, 128)
   for (int64_t row = 0; row < rows; ++row) {
     const int64_t w = grid.roi_half_width(row % d[1], row / d[1]);
     if (w < 0) continue;
@@ -150,11 +152,15 @@ void PhaseCombiner::fold(const PathSafetyResult& phase, const Volume<uint8_t>& r
   const int64_t n = g.voxel_count();
   const float nan = std::numeric_limits<float>::quiet_NaN();
   // Voxel states: computed only where computed in every phase; unknown wins over not computed.
-#pragma omp parallel for schedule(static)
-  for (int64_t i = 0; i < n; ++i) {
-    const uint8_t a = region_[i], b = region[i];
-    if (a == kRegionComputed && b == kRegionComputed) continue;
-    region_[i] = (a == kRegionUnknown || b == kRegionUnknown) ? kRegionUnknown : kRegionNotComputed;
+  constexpr int64_t kChunk = int64_t(1) << 16;
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int64_t c = 0; c < n; c += kChunk) {
+    for (int64_t i = c; i < std::min(n, c + kChunk); ++i) {
+      const uint8_t a = region_[i], b = region[i];
+      if (a == kRegionComputed && b == kRegionComputed) continue;
+      region_[i] =
+          (a == kRegionUnknown || b == kRegionUnknown) ? kRegionUnknown : kRegionNotComputed;
+    }
   }
   // With keep_earlier the combination is written beside the ones kept (into the buffer of the
   // oldest, which no phase reads any more), then the buffers move down one place.

@@ -37,6 +37,19 @@ const char* device_name(Device device);
 Mode parse_mode(const std::string& text);
 const char* mode_name(Mode mode);
 
+// Breathing: the phases computed before one, combined on its grid, as its sampler reads them.
+// Per value slot (null where that value is not combined): the combination of the phases folded
+// so far, and where given the volume of one more phase not folded into it yet, read through it
+// (SVV the minimum of the two, the other values the maximum; NaN, unknown, where either is NaN),
+// which is what its fold will write. So a phase need not wait for the fold of the phase before.
+struct CombinedVolumes {
+  std::array<const float*, kernels::kValueCount> folded{};
+  std::array<const float*, kernels::kValueCount> pending{};
+  CombinedVolumes() = default;
+  CombinedVolumes(const std::array<const float*, kernels::kValueCount>& combination)  // NOLINT
+      : folded(combination) {}
+};
+
 struct PathSafetyOptions {
   unsigned values = kernels::kAllValues;
   // Insignificant blocking for SVV: a path whose line integral of b is <= eps counts as clear.
@@ -115,14 +128,14 @@ struct PathSafetyOptions {
   // The scanned volume (DESIGN.md §4): output voxels outside it are unknown and not computed
   // (left NaN) in exact and fast mode. Null or empty: every voxel of the ball is computed.
   const ScanCoverage* coverage = nullptr;
-  // Fast mode, breathing: the phases computed before this one, combined on this grid (per value
-  // slot, null where not combined), asked for once the coarsest level is computed: refinement
-  // is then left out where this phase cannot change the combination's class
+  // Fast mode, breathing: the phases computed before this one, combined on this grid
+  // (CombinedVolumes), asked for once the coarsest level is computed: refinement is then left
+  // out where this phase cannot change the combination's class
   // (AdaptiveOptions::combined_so_far). Null: every class boundary of this phase is refined.
-  std::function<std::array<const float*, kernels::kValueCount>()> combined_so_far;
+  std::function<CombinedVolumes()> combined_so_far;
   // A later combination, asked for before the decisions of level `newer_from_level`
   // (AdaptiveOptions::combined_newer). Null: combined_so_far throughout.
-  std::function<std::array<const float*, kernels::kValueCount>()> combined_newer;
+  std::function<CombinedVolumes()> combined_newer;
   int newer_from_level = 1;
   // Fast mode: called once everything is prepared (the scene on the device, the volumes
   // allocated), before the first point is sampled; a plan computing phases side by side holds a

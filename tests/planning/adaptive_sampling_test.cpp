@@ -332,9 +332,10 @@ struct Phase {
 };
 
 // One phase sampled, after `before` (the phases combined so far; empty: none).
+// `pending`: a phase not folded into `newer` yet, read through it (CombinedVolumes::pending).
 Phase sample_phase(const OutputGrid& g, const Field& field, const std::vector<float>& before,
                    int stride = 8, const std::vector<float>* newer = nullptr,
-                   int newer_from_level = 1) {
+                   int newer_from_level = 1, const std::vector<float>* pending = nullptr) {
   Phase run;
   const int64_t n = g.geometry.dims[0];
   run.svv.assign(size_t(n * n * n), std::nanf(""));
@@ -349,9 +350,11 @@ Phase sample_phase(const OutputGrid& g, const Field& field, const std::vector<fl
     };
   }
   if (newer) {
-    o.combined_newer = [newer] {
-      return std::array<const float*, kernels::kValueCount>{newer->data(), nullptr, nullptr,
-                                                            nullptr};
+    o.combined_newer = [newer, pending] {
+      CombinedVolumes v = std::array<const float*, kernels::kValueCount>{newer->data(), nullptr,
+                                                                         nullptr, nullptr};
+      if (pending) v.pending[0] = pending->data();
+      return v;
     };
     o.newer_from_level = newer_from_level;
   }
@@ -476,6 +479,45 @@ TEST(AdaptiveSampling, ALaterCombinationDecidesFromItsLevelOn) {
   }
   EXPECT_EQ(differ, 0);
   EXPECT_EQ(changed_where_first_safe, 0);
+}
+
+// A later combination read through a phase not folded into it yet (CombinedVolumes::pending)
+// is that phase folded in: the same points and values, bit for bit, with unknown voxels (NaN)
+// in either; and the pending phase is read: the combination alone decides otherwise.
+TEST(AdaptiveSampling, APhaseReadThroughTheCombinationIsItsFold) {
+  const OutputGrid g = ball_grid(32);
+  const double h = double(g.half);
+  const int64_t n = g.geometry.dims[0];
+  const Field first = first_phase_field(g), second = second_phase_field(g);
+  const Field third = [h](int64_t i, int64_t j, int64_t k) {
+    return ramp_shadow(double(i), double(j), double(k), h + 5.0, h, h);
+  };
+  Phase a = sample_phase(g, first, {});
+  Phase c = sample_phase(g, third, {});
+  std::vector<float> folded(a.svv.size());
+  int64_t unknown = 0;
+  for (int64_t v = 0; v < n * n * n; ++v) {
+    const int64_t i = v % n, j = (v / n) % n;
+    if (double(i) < h - 20.0) a.svv[size_t(v)] = std::nanf("");  // unknown in one phase
+    if (double(j) > h + 20.0) c.svv[size_t(v)] = std::nanf("");  // and in the other
+    const float x = a.svv[size_t(v)], y = c.svv[size_t(v)];
+    folded[size_t(v)] = std::isnan(x) || std::isnan(y) ? std::nanf("") : std::min(x, y);
+    unknown += std::isnan(folded[size_t(v)]) && g.in_roi(i, j, v / (n * n));
+  }
+  EXPECT_GT(unknown, 1000);
+  const std::vector<float> safe(size_t(n * n * n), 95.0f);
+  const Phase materialized = sample_phase(g, second, safe, 8, &folded);
+  const Phase read_through = sample_phase(g, second, safe, 8, &a.svv, 1, &c.svv);
+  EXPECT_GT(materialized.report.cells_left_to_combination +
+                materialized.report.points_left_to_combination,
+            0);
+  EXPECT_EQ(read_through.evaluated, materialized.evaluated);
+  EXPECT_EQ(read_through.report.cells_left_to_combination,
+            materialized.report.cells_left_to_combination);
+  EXPECT_EQ(0, std::memcmp(read_through.svv.data(), materialized.svv.data(),
+                           materialized.svv.size() * 4));
+  const Phase without = sample_phase(g, second, safe, 8, &a.svv);
+  EXPECT_NE(without.evaluated, materialized.evaluated);
 }
 
 // A combination that is safe everywhere decides nothing: the phase is sampled as on its own,
