@@ -25,22 +25,19 @@ uint32_t bucket_of(float x) {
   return bits >> kBucketShift;
 }
 
-// Calls f(first, end) for the parts of the offsets [begin, end) that lie in `runs` (all of them
-// without runs), in increasing order; rows are `row_length` voxels long.
-template <typename F>
-void in_runs(const RowRun& runs, int64_t row_length, int64_t begin, int64_t end, const F& f) {
-  if (!runs) {
-    f(begin, end);
-    return;
-  }
-  for (int64_t i = begin; i < end;) {
-    const int64_t row = i / row_length, start = row * row_length;
-    const int64_t row_end = std::min(end, start + row_length);
-    const auto [first, last] = runs(row);
-    const int64_t lo = std::max(i, start + first), hi = std::min(row_end, start + last + 1);
-    if (lo < hi) f(lo, hi);
-    i = row_end;
-  }
+// The part [lo, hi) of the offsets [i, end) that lies in the run of i's row (all of it up to the
+// row's end without runs), and where the next part starts (`next`: the row's end or `end`); rows
+// are `row_length` voxels long. Walked part by part, [begin, end) in increasing order.
+struct RunPart {
+  int64_t lo, hi, next;
+};
+RunPart run_part(const RowRun& runs, int64_t row_length, int64_t i, int64_t end) {
+  if (!runs) return {i, end, end};
+  const int64_t row = i / row_length, start = row * row_length;
+  const int64_t row_end = std::min(end, start + row_length);
+  const auto [first, last] = runs(row);
+  const int64_t lo = std::max(i, start + first), hi = std::min(row_end, start + last + 1);
+  return {lo, std::max(lo, hi), row_end};
 }
 
 // The statistics of the finite values, on every core: thread(chunks) runs on each thread, and
@@ -63,18 +60,20 @@ ValueStatistics scan_finite(const std::vector<float>& values, int64_t row_length
 #pragma omp for schedule(static) nowait
       for (int64_t c = 0; c < count; ++c) {
         double sum = 0.0;
-        in_runs(runs, row_length, c * kChunk, std::min(n, (c + 1) * kChunk),
-                [&](int64_t begin, int64_t end) {
-                  for (int64_t i = begin; i < end; ++i) {
-                    const float x = values[size_t(i)];
-                    if (!std::isfinite(x)) continue;
-                    ++own.voxels;
-                    own.min = std::min(own.min, double(x));
-                    own.max = std::max(own.max, double(x));
-                    sum += x;
-                    f(x);
-                  }
-                });
+        const int64_t end = std::min(n, (c + 1) * kChunk);
+        for (int64_t at = c * kChunk; at < end;) {
+          const RunPart part = run_part(runs, row_length, at, end);
+          for (int64_t i = part.lo; i < part.hi; ++i) {
+            const float x = values[size_t(i)];
+            if (!std::isfinite(x)) continue;
+            ++own.voxels;
+            own.min = std::min(own.min, double(x));
+            own.max = std::max(own.max, double(x));
+            sum += x;
+            f(x);
+          }
+          at = part.next;
+        }
         sums[size_t(c)] = sum;
       }
       return own;
@@ -133,8 +132,10 @@ class PositiveValues {
       std::vector<std::vector<float>>& mine = parts[size_t(omp_get_thread_num())];
 #pragma omp for schedule(static) nowait
       for (int64_t c = 0; c < n; c += kChunk) {
-        in_runs(runs_, row_length_, c, std::min(n, c + kChunk), [&](int64_t begin, int64_t end) {
-          for (int64_t v = begin; v < end; ++v) {
+        const int64_t end = std::min(n, c + kChunk);
+        for (int64_t at = c; at < end;) {
+          const RunPart part = run_part(runs_, row_length_, at, end);
+          for (int64_t v = part.lo; v < part.hi; ++v) {
             const float x = values_[size_t(v)];
             if (!counted(x)) continue;
             const size_t b = bucket_of(x);
@@ -142,7 +143,8 @@ class PositiveValues {
               if (wanted[w] == b) mine[w].push_back(x);
             }
           }
-        });
+          at = part.next;
+        }
       }
     }
     std::vector<float> out;
