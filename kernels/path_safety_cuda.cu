@@ -20,6 +20,7 @@
 #include "foundation/error.hpp"
 #include "foundation/trace.hpp"
 #include "kernels/cuda_memory.cuh"
+#include "kernels/launch_order.hpp"
 #include "kernels/path_safety_cuda.hpp"
 #include "kernels/path_safety_fast.hpp"
 #include "kernels/value_set.hpp"
@@ -392,10 +393,30 @@ int cuda_device_count() {
 int cuda_warm_up() {
   const int count = cuda_device_count();
   for (int d = 0; d < count; ++d) {
-    if (cudaSetDevice(d) == cudaSuccess) cudaFree(nullptr);
+    if (cudaSetDevice(d) != cudaSuccess) continue;
+    // A thread waiting for the device sleeps until the device is done instead of spinning (the
+    // default with fewer contexts than cores): a breathing plan has up to five launches in
+    // flight, each waited for by a thread of its own, while the phases' host steps, folds and
+    // checks need every core (H200, 10 phases: bench/RESULTS.md, twenty-sixth session). A wait
+    // ends a few microseconds later; a launch takes milliseconds at least. Flags set on a device
+    // already started replace its earlier ones.
+    cudaSetDeviceFlags(cudaDeviceScheduleBlockingSync);
+    cudaFree(nullptr);
   }
   cudaGetLastError();
   return count;
+}
+
+bool cuda_waits_sleep() {
+  const int count = cuda_device_count();
+  bool all = count > 0;
+  for (int d = 0; d < count; ++d) {
+    unsigned flags = 0;
+    all = all && cudaSetDevice(d) == cudaSuccess && cudaGetDeviceFlags(&flags) == cudaSuccess &&
+          (flags & cudaDeviceScheduleMask) == cudaDeviceScheduleBlockingSync;
+  }
+  cudaGetLastError();
+  return all;
 }
 
 namespace {
@@ -832,8 +853,10 @@ template <unsigned Values, typename Sampler>
 __global__ void __launch_bounds__(128, 8)
     path_safety_points_kernel(PathSafetyScene<float> scene, PointFrame frame,
                                           const int32_t* __restrict__ ijk, int count,
+                                          const int32_t* __restrict__ block_order,
                                           Sampler sampler, float* __restrict__ out) {
-  const int p = blockIdx.x * blockDim.x + threadIdx.x;
+  // The block of points this one computes (launch_order.hpp: the longest started first).
+  const int p = block_order[blockIdx.x] * blockDim.x + threadIdx.x;
   if (p >= count) return;
   const Vec3<double> x =
       grid_point(frame.origin, frame.axes, ijk[3 * p], ijk[3 * p + 1], ijk[3 * p + 2]);
@@ -890,9 +913,13 @@ struct CudaPointEvaluator::Impl {
   // waits for the whole device, so a phase computed beside another would wait for its rays.
   struct Launch {
     DeviceBuffer<int32_t> points;
+    DeviceBuffer<int32_t> block_order;  // launch_order.hpp
     DeviceBuffer<float> values;
     int64_t capacity = 0;
   };
+  // The tumor's centroid and the surface's mean distance from it: a point's work estimate.
+  double centre[3] = {0.0, 0.0, 0.0};
+  double reach = 0.0;
   std::vector<std::unique_ptr<Launch>> launches;
   // Texture storage: per device, the brick codes of MarchTextureSampler, which cover every ray of
   // a point whose indices lie within kReach of the grid (a sampler's lattice corners lie within
@@ -961,6 +988,21 @@ CudaPointEvaluator::CudaPointEvaluator(const PathSafetyScene<double>& scene,
     impl_->launches.resize(size_t(devices));
     impl_->march.resize(size_t(devices));
     impl_->grid_n = grid.n;
+    if (scene.surface_count > 0) {
+      for (int t = 0; t < scene.surface_count; ++t) {
+        impl_->centre[0] += scene.surface[t].position.x;
+        impl_->centre[1] += scene.surface[t].position.y;
+        impl_->centre[2] += scene.surface[t].position.z;
+      }
+      for (double& c : impl_->centre) c /= scene.surface_count;
+      for (int t = 0; t < scene.surface_count; ++t) {
+        const Vec3<double>& x = scene.surface[t].position;
+        impl_->reach += std::sqrt((x.x - impl_->centre[0]) * (x.x - impl_->centre[0]) +
+                                  (x.y - impl_->centre[1]) * (x.y - impl_->centre[1]) +
+                                  (x.z - impl_->centre[2]) * (x.z - impl_->centre[2]));
+      }
+      impl_->reach /= scene.surface_count;
+    }
     on_every_device(devices, [&](int d) {
       check(cudaSetDevice(d), "cudaSetDevice");
       impl_->scenes[size_t(d)] = std::make_unique<DeviceScene>(scene, storage);
@@ -1025,6 +1067,7 @@ void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out)
       buffers.reset();
       buffers = std::make_unique<Impl::Launch>();
       buffers->points.allocate(size_t(3 * room));
+      buffers->block_order.allocate(size_t((room + 127) / 128));
       buffers->values.allocate(size_t(kValueCount * room));
       buffers->capacity = room;
     }
@@ -1036,6 +1079,14 @@ void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out)
                        cudaMemcpyHostToDevice),
             "upload points");
       const unsigned blocks = unsigned((m + 127) / 128);
+      if (m >= kSplitBelow) {
+        const std::vector<int32_t> order = blocks_longest_first(
+            ijk + 3 * c0, m, 128, impl_->frame.origin, impl_->frame.axes, impl_->centre,
+            impl_->reach);
+        check(cudaMemcpy(buffers->block_order.ptr, order.data(), order.size() * sizeof(int32_t),
+                         cudaMemcpyHostToDevice),
+              "upload block order");
+      }
       // Few points: a block per point, which leaps over empty space (kLeapEmptySpace) with the
       // scene's bricks; many: a thread per point, which marches every sample.
       const auto launch = [&](auto sampler, auto march_sampler) {
@@ -1046,7 +1097,8 @@ void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out)
                 ds.scene, impl_->frame, points.ptr, sampler, values.ptr);
           } else {
             path_safety_points_kernel<kValues><<<blocks, 128>>>(
-                ds.scene, impl_->frame, points.ptr, m, march_sampler, values.ptr);
+                ds.scene, impl_->frame, points.ptr, m, buffers->block_order.ptr, march_sampler,
+                values.ptr);
           }
         });
       };

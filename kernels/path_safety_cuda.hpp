@@ -69,6 +69,8 @@ struct CudaRunReport {
 // Number of CUDA devices, after creating the context of each (the first CUDA call of a process
 // costs a good part of a second; callers overlap it with other work).
 int cuda_warm_up();
+// Whether every device's waiting host threads sleep rather than spin (cuda_warm_up sets it).
+bool cuda_waits_sleep();
 
 // Exact values at listed points of an output grid (fast mode's coarse-to-fine sampling): the
 // scene is uploaded once to every device (up to max_devices; 0: all visible) and kept for every

@@ -203,6 +203,15 @@ TEST(CudaFastCheck, LeftForLaterGivesTheImmediateChecksNumbers) {
   }
 }
 
+// After the warm-up, a thread waiting for a device sleeps rather than spins (the cores stay free
+// for the host steps of the phases beside it); the launches still give the definition's values
+// (the tests after this one).
+TEST(CudaWarmUp, WaitingThreadsSleep) {
+  if (kernels::cuda_device_count() == 0) GTEST_SKIP() << "no CUDA device";
+  EXPECT_GT(kernels::cuda_warm_up(), 0);
+  EXPECT_TRUE(kernels::cuda_waits_sleep());
+}
+
 // Fast mode's point kernel (one thread per point, every sample marched, uniform bricks read from
 // their codes) against the definition in double on the cores, at points side by side and
 // scattered, in a large empty volume with an organ, a vessel and a tumor: a sample that took a
