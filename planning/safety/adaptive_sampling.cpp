@@ -1217,9 +1217,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   for (int64_t row = 0; row < n * n; ++row) {
     const int64_t j = row % n, k = row / n;
     // The row's run in the region (a ball).
-    const int64_t w = grid.roi_half_width(j, k);
-    const int64_t first = w < 0 ? n : std::max<int64_t>(0, half - w);
-    const int64_t last = w < 0 ? -1 : std::min<int64_t>(n - 1, half + w);
+    const auto [first, last] = grid.roi_run(j, k);
     for (int64_t i = 0; i < n; ++i) {
       uint8_t& st = store.state(i, j, k);
       if (i < first || i > last) {

@@ -52,10 +52,7 @@ void for_runs(const OutputGrid& grid, bool whole, const F& f) {
   const int64_t rows = d[1] * d[2];
 #pragma omp parallel for schedule(dynamic, 128)
   for (int64_t row = 0; row < rows; ++row) {
-    const int64_t w = grid.roi_half_width(row % d[1], row / d[1]);
-    if (w < 0) continue;
-    const int64_t i0 = std::max<int64_t>(0, grid.half - w);
-    const int64_t i1 = std::min<int64_t>(d[0] - 1, grid.half + w);
+    const auto [i0, i1] = grid.roi_run(row % d[1], row / d[1]);
     if (i0 <= i1) f(row * d[0] + i0, row * d[0] + i1);
   }
 }

@@ -1223,11 +1223,7 @@ void finish_fast_check(PathSafetyResult& result) {
 RowRun roi_runs(const OutputGrid& grid, const Volume<float>& volume) {
   const Index3& d = grid.geometry.dims;
   if (grid.roi_voxels <= 0 || volume.geometry().dims != d) return {};
-  return [&grid, nx = d[0], ny = d[1]](int64_t row) -> std::pair<int64_t, int64_t> {
-    const int64_t w = grid.roi_half_width(row % ny, row / ny);
-    if (w < 0) return {1, 0};
-    return {std::max<int64_t>(0, grid.half - w), std::min<int64_t>(nx - 1, grid.half + w)};
-  };
+  return [&grid, ny = d[1]](int64_t row) { return grid.roi_run(row % ny, row / ny); };
 }
 
 const SafetyClasses& classes_of(PathSafetyResult& result, unsigned value_bit) {

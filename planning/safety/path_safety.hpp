@@ -3,6 +3,7 @@
 // backend (kernels/) runs the same host/device math.
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdint>
@@ -176,6 +177,12 @@ struct OutputGrid {
     while (w * w > rest) --w;
     while ((w + 1) * (w + 1) <= rest) ++w;
     return w;
+  }
+  // The ROI's voxels of row (j, k) within the grid: i from first to last; none: first > last.
+  std::pair<int64_t, int64_t> roi_run(int64_t j, int64_t k) const {
+    const int64_t w = roi_half_width(j, k);
+    if (w < 0) return {geometry.dims[0], -1};
+    return {std::max<int64_t>(0, half - w), std::min<int64_t>(geometry.dims[0] - 1, half + w)};
   }
   bool in_roi(int64_t i, int64_t j, int64_t k) const {
     const int64_t di = i - half, dj = j - half, dk = k - half;

@@ -88,9 +88,7 @@ Volume<uint8_t> apply_scan_coverage(PathSafetyResult& result, const ScanCoverage
 #pragma omp parallel for reduction(+ : roi, uncovered, changed) schedule(static)
   for (int64_t row = 0; row < d[1] * d[2]; ++row) {
     uint8_t* s = state.data() + row * d[0];
-    const int64_t w = grid.roi_half_width(row % d[1], row / d[1]);
-    const int64_t first = w < 0 ? d[0] : std::max<int64_t>(0, grid.half - w);
-    const int64_t last = w < 0 ? -1 : std::min<int64_t>(d[0] - 1, grid.half + w);
+    const auto [first, last] = grid.roi_run(row % d[1], row / d[1]);
     for (int64_t i = 0; i < d[0]; ++i) {
       if (i < first || i > last) {
         s[i] = kRegionNotComputed;
