@@ -397,9 +397,10 @@ int cuda_warm_up() {
     // A thread waiting for the device sleeps until the device is done instead of spinning (the
     // default with fewer contexts than cores): a breathing plan has up to five launches in
     // flight, each waited for by a thread of its own, while the phases' host steps, folds and
-    // checks need every core (H200, 10 phases: bench/RESULTS.md, twenty-sixth session). A wait
-    // ends a few microseconds later; a launch takes milliseconds at least. Flags set on a device
-    // already started replace its earlier ones.
+    // checks need every core. A wait ends a few microseconds later; a launch takes milliseconds
+    // at least. (H200, 10 phases: no change measurable within the instances' spread, which the
+    // host steps set; bench/RESULTS.md, twenty-sixth session.) Flags set on a device already
+    // started replace its earlier ones.
     cudaSetDeviceFlags(cudaDeviceScheduleBlockingSync);
     cudaFree(nullptr);
   }
