@@ -149,16 +149,14 @@ void PhaseCombiner::fold(const PathSafetyResult& phase, const Volume<uint8_t>& r
   const int64_t n = g.voxel_count();
   const float nan = std::numeric_limits<float>::quiet_NaN();
   // Voxel states: computed only where computed in every phase; unknown wins over not computed.
-  constexpr int64_t kChunk = int64_t(1) << 16;
-#pragma omp parallel for schedule(dynamic, 1)
-  for (int64_t c = 0; c < n; c += kChunk) {
-    for (int64_t i = c; i < std::min(n, c + kChunk); ++i) {
+  for_runs(phase.grid, /*whole=*/true, [&](int64_t first, int64_t last) {
+    for (int64_t i = first; i <= last; ++i) {
       const uint8_t a = region_[i], b = region[i];
       if (a == kRegionComputed && b == kRegionComputed) continue;
       region_[i] =
           (a == kRegionUnknown || b == kRegionUnknown) ? kRegionUnknown : kRegionNotComputed;
     }
-  }
+  });
   // With keep_earlier the combination is written beside the ones kept (into the buffer of the
   // oldest, which no phase reads any more), then the buffers move down one place.
   for (int v = 0; v < kernels::kValueCount; ++v) {
