@@ -162,46 +162,126 @@ struct Cell {
   int64_t ck(int q) const { return k + ((q >> 2) & 1) * size; }
 };
 
-// Fills the voxels of a uniform cell (or of `part` of it, a child) by trilinear interpolation of
-// its corners (never a voxel evaluated, queued or outside the scan); returns how many voxels
-// became interpolated.
-int64_t fill_cell(const Cell& cell, const OutputGrid& grid,
-                  const std::vector<int>& slots, SampleStore& store, const Cell* part = nullptr) {
-  const Cell& box = part ? *part : cell;
+// The uniform cells of one edge that one fill interpolates, marked by their lattice position, so
+// that a voxel shared by several of them (on a face, an edge or a corner) is written by one alone
+// (fill_owned). The cells of a fill are then filled side by side, in lattice order, each voxel
+// once: in passes by lattice parity, every shared voxel was written by each of its cells, and
+// consecutive cells of a pass lay apart in memory (the fills took a quarter of a ten-phase plan's
+// core time, bench/RESULTS.md, twenty-seventh session).
+class FilledCells {
+ public:
+  // The lattice of edge `size` through the centre voxel `half`, over a grid of n voxels per axis,
+  // with room for every cell meeting the grid and its neighbours.
+  void reset(int64_t n, int64_t half, int size) {
+    size_ = size;
+    half_ = half;
+    lo_ = -((half + size - 1) / size) - 2;
+    na_ = (n - 1 - half) / size + 2 - lo_ + 1;
+    marks_.assign(size_t(na_ * na_ * na_), 0);
+  }
+  // Safe from several threads for distinct cells.
+  void mark(const Cell& c) {
+    const int64_t a = coord(c.i) - lo_, b = coord(c.j) - lo_, d = coord(c.k) - lo_;
+    // Every cell of a fill meets the grid; one that did not would be written by each neighbour.
+    if (a < 0 || b < 0 || d < 0 || a >= na_ || b >= na_ || d >= na_) return;
+    marks_[size_t((d * na_ + b) * na_ + a)] = 1;
+  }
+  // A cell's lattice coordinate along one axis (its lower corner lies on the lattice).
+  int64_t coord(int64_t lower) const { return (lower - half_) / size_; }
+  bool filled(int64_t a, int64_t b, int64_t d) const {
+    a -= lo_;
+    b -= lo_;
+    d -= lo_;
+    if (a < 0 || b < 0 || d < 0 || a >= na_ || b >= na_ || d >= na_) return false;
+    return marks_[size_t((d * na_ + b) * na_ + a)] != 0;
+  }
+
+ private:
+  int size_ = 1;
+  int64_t half_ = 0, lo_ = 0, na_ = 0;
+  std::vector<uint8_t> marks_;
+};
+
+// Fills the voxels of a uniform cell (or of `part` of it, a child) that it owns by trilinear
+// interpolation of the cell's corners, never a voxel evaluated, queued or outside the scan;
+// returns how many voxels became interpolated. Every cell (or part) of the fill is marked in
+// `filled`. A voxel lies on 0 to 3 lattice planes; the cells of the fill whose boxes hold
+// it are the cell c* whose half-open box [lower, lower + size) holds it and those below c* across
+// its planes (c* - r, r a set of those axes). Its owner is the marked one of smallest r (bit 0:
+// i, bit 1: j, bit 2: k), so every voxel is written once, by the same cell whatever the order.
+// Its value is the owner's trilinear interpolation, taken so that on a shared face it is the
+// same bits from either cell (the face's corners alone weigh there).
+int64_t fill_owned(const Cell& cell, const FilledCells& filled, const OutputGrid& grid,
+                   const std::vector<int>& slots, SampleStore& store, const Cell* part = nullptr) {
+  const Cell& box = part ? *part : cell;  // the cells marked in `filled` are of the box's edge
+  const int64_t a = filled.coord(box.i), b = filled.coord(box.j), d = filled.coord(box.k);
+  bool neighbour[27];
+  for (int m = 0; m < 27; ++m) {
+    neighbour[m] = filled.filled(a + m % 3 - 1, b + m / 3 % 3 - 1, d + m / 9 - 1);
+  }
+  // Per voxel class (per axis 0: on the box's lower plane, 1: inside, 2: on its upper plane; i
+  // fastest), whether this box writes it: box = c* - own, own the axes of its upper planes.
+  bool writes[27];
+  for (int m = 0; m < 27; ++m) {
+    const int p[3] = {m % 3, m / 3 % 3, m / 9};
+    int own = 0, planes = 0;
+    for (int axis = 0; axis < 3; ++axis) {
+      if (p[axis] == 2) own |= 1 << axis;
+      if (p[axis] != 1) planes |= 1 << axis;
+    }
+    bool w = true;
+    for (int r = 0; r < own && w; ++r) {
+      if ((r & ~planes) != 0) continue;  // not a box holding the voxel
+      int at = 0;  // c* - r relative to the box: own - r per axis
+      for (int axis = 2; axis >= 0; --axis) at = at * 3 + ((own >> axis) & 1) - ((r >> axis) & 1) + 1;
+      w = !neighbour[at];
+    }
+    writes[m] = w;
+  }
   const int64_t n = grid.geometry.dims[0];
-  const int size = cell.size;
   int64_t interpolated = 0;
   float corner[8][kSlots];
   for (int q = 0; q < 8; ++q) {
     for (const int s : slots) corner[q][s] = store.value(cell.ci(q), cell.cj(q), cell.ck(q), s);
   }
+  const auto plane = [](int64_t v, int64_t lower, int size) {
+    return v == lower ? 0 : v == lower + size ? 2 : 1;
+  };
+  // On the cell's upper plane the upper value itself (a + 1 (b - a) can round away from b): a
+  // voxel of a face, edge or corner shared with a neighbouring cell then takes the same bits from
+  // either, those of the face's corners alone (inside a cell, its parts share its weights).
+  const auto lerp = [](float a, float b, float w, bool upper) { return upper ? b : a + w * (b - a); };
+  const int size = cell.size;
   const float inv = 1.0f / float(size);
   for (int64_t k = std::max<int64_t>(box.k, 0); k <= std::min<int64_t>(box.k + box.size, n - 1);
        ++k) {
     const float wz = float(k - cell.k) * inv;
+    const bool uk = k == cell.k + size;
+    const int pk = plane(k, box.k, box.size);
     for (int64_t j = std::max<int64_t>(box.j, 0);
          j <= std::min<int64_t>(box.j + box.size, n - 1); ++j) {
       const float wy = float(j - cell.j) * inv;
+      const bool uj = j == cell.j + size;
+      const int row = 9 * pk + 3 * plane(j, box.j, box.size);
       for (int64_t i = std::max<int64_t>(box.i, 0);
            i <= std::min<int64_t>(box.i + box.size, n - 1); ++i) {
-        if (!grid.in_roi(i, j, k)) continue;
+        if (!writes[row + plane(i, box.i, box.size)] || !grid.in_roi(i, j, k)) continue;
         uint8_t& st = store.state(i, j, k);
         // Queued: claimed by the next level (a fill beside its evaluation), computed there.
         if (st == kEvaluated || st == kUnknown || st == kQueued) continue;
-        // A voxel outside the scan is never interpolated. It stays pending (unknown when the
-        // sampling finishes), so that a finer cell may still compute it as a support.
         if (!store.known(i, j, k)) continue;
         if (st != kInterpolated) ++interpolated;
         st = kInterpolated;
         const float wx = float(i - cell.i) * inv;
+        const bool ui = i == cell.i + size;
         const int64_t off = store.offset(i, j, k);
         for (const int s : slots) {
-          const float c00 = corner[0][s] + wx * (corner[1][s] - corner[0][s]);
-          const float c10 = corner[2][s] + wx * (corner[3][s] - corner[2][s]);
-          const float c01 = corner[4][s] + wx * (corner[5][s] - corner[4][s]);
-          const float c11 = corner[6][s] + wx * (corner[7][s] - corner[6][s]);
-          const float c0 = c00 + wy * (c10 - c00), c1 = c01 + wy * (c11 - c01);
-          store.set(off, s, c0 + wz * (c1 - c0));
+          const float c00 = lerp(corner[0][s], corner[1][s], wx, ui);
+          const float c10 = lerp(corner[2][s], corner[3][s], wx, ui);
+          const float c01 = lerp(corner[4][s], corner[5][s], wx, ui);
+          const float c11 = lerp(corner[6][s], corner[7][s], wx, ui);
+          const float c0 = lerp(c00, c10, wy, uj), c1 = lerp(c01, c11, wy, uj);
+          store.set(off, s, lerp(c0, c1, wz, uk));
         }
       }
     }
@@ -350,14 +430,6 @@ std::array<int, kernels::kValueCount> most_dangerous_of(const CornerRanks& r, co
     most[size_t(s)] = hi == -2 ? -2 : lo != hi ? hi : -1;
   }
   return most;
-}
-
-// The parity of a cell's position on the lattice of its edge (0..7): no two cells of one parity
-// share a voxel, so each parity is filled in parallel.
-int lattice_parity(const Cell& cell, int64_t half) {
-  const int64_t a = (cell.i - half) / cell.size, b = (cell.j - half) / cell.size,
-                d = (cell.k - half) / cell.size;
-  return int((a & 1) | ((b & 1) << 1) | ((d & 1) << 2));
 }
 
 // Wall time of the sampler's steps, summed over its levels.
@@ -800,19 +872,23 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   std::vector<uint8_t> filling_refine;
   int filling_size = 0;
   // Fills the cells of edge `size` not marked in `refined` by trilinear interpolation, in
-  // parallel: eight passes by the parity of the cell's lattice position, so no two cells of a
-  // pass share a voxel (size 1: every voxel is a corner, evaluated). Returns the voxels filled.
+  // parallel, each voxel by the one cell that owns it (fill_owned; size 1: every voxel is a
+  // corner, evaluated). Returns the voxels filled.
+  // fill_uniform's, fill_finest_beside's, the children left to the combination's.
+  FilledCells uniform_cells, finest_cells, left_cells;
   const auto fill_uniform = [&](const std::vector<Cell>& level, const std::vector<uint8_t>& refined,
                                 int size) {
     int64_t interpolated = 0;
-    for (int parity = 0; size > 1 && parity < 8; ++parity) {
+    if (size <= 1) return interpolated;
+    uniform_cells.reset(n, half, size);
+#pragma omp parallel for schedule(static)
+    for (int64_t c = 0; c < int64_t(level.size()); ++c) {
+      if (!refined[size_t(c)]) uniform_cells.mark(level[size_t(c)]);
+    }
 #pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
-      for (int64_t c = 0; c < int64_t(level.size()); ++c) {
-        const Cell& cell = level[size_t(c)];
-        if (refined[size_t(c)]) continue;
-        if (lattice_parity(cell, half) != parity) continue;
-        interpolated += fill_cell(cell, grid, slots, store);
-      }
+    for (int64_t c = 0; c < int64_t(level.size()); ++c) {
+      if (refined[size_t(c)]) continue;
+      interpolated += fill_owned(level[size_t(c)], uniform_cells, grid, slots, store);
     }
     return interpolated;
   };
@@ -1048,23 +1124,29 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     clock.add(StepClock::kRefine, t);
     if (children_left_count > 0) {
       // The children left to the combination, filled now (before the next level's requests
-      // claim the corners they share with the children that are split): eight passes by the
-      // parity of the child's lattice position, so no two children of a pass share a voxel.
+      // claim the corners they share with the children that are split), each voxel by the one
+      // child that owns it (fill_owned), from its parent's corners.
       t = std::chrono::steady_clock::now();
+      const auto part_of = [h](const Cell& cell, int child) {
+        return Cell{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
+                    cell.k + ((child >> 2) & 1) * h, h};
+      };
+      left_cells.reset(n, half, h);
+#pragma omp parallel for schedule(static)
+      for (int64_t c = 0; c < count; ++c) {
+        const uint8_t bits = left_children[size_t(c)];
+        for (int child = 0; bits && child < 8; ++child) {
+          if (bits & (1u << child)) left_cells.mark(part_of(cells[size_t(c)], child));
+        }
+      }
       int64_t interpolated = 0;
-      for (int parity = 0; parity < 8; ++parity) {
 #pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
-        for (int64_t c = 0; c < count; ++c) {
-          const uint8_t bits = left_children[size_t(c)];
-          if (!bits) continue;
-          const Cell& cell = cells[size_t(c)];
-          for (int child = 0; child < 8; ++child) {
-            if (!(bits & (1u << child))) continue;
-            const Cell part{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
-                            cell.k + ((child >> 2) & 1) * h, h};
-            if (lattice_parity(part, half) != parity) continue;
-            interpolated += fill_cell(cell, grid, slots, store, &part);
-          }
+      for (int64_t c = 0; c < count; ++c) {
+        const uint8_t bits = left_children[size_t(c)];
+        for (int child = 0; bits && child < 8; ++child) {
+          if (!(bits & (1u << child))) continue;
+          const Cell part = part_of(cells[size_t(c)], child);
+          interpolated += fill_owned(cells[size_t(c)], left_cells, grid, slots, store, &part);
         }
       }
       report.interpolated += interpolated;
@@ -1168,19 +1250,26 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       // The children filled from their corners: beside the finest level's computation, once its
       // points are claimed (a point it interpolates on a face they share gets the same value).
       fill_finest_beside = [&, halves = std::move(halves)] {
+        const auto part_of = [](const Cell& cell, int child) {
+          return Cell{cell.i + (child & 1) * 2, cell.j + ((child >> 1) & 1) * 2,
+                      cell.k + ((child >> 2) & 1) * 2, 2};
+        };
+        finest_cells.reset(n, half, 2);
+#pragma omp parallel for schedule(static)
+        for (int64_t c = 0; c < int64_t(halves.size()); ++c) {
+          const uint8_t bits = left_children[size_t(c)];
+          for (int child = 0; bits && child < 8; ++child) {
+            if (bits & (1u << child)) finest_cells.mark(part_of(halves[size_t(c)], child));
+          }
+        }
         int64_t interpolated = 0;
-        for (int parity = 0; parity < 8; ++parity) {
 #pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
-          for (int64_t c = 0; c < int64_t(halves.size()); ++c) {
-            const uint8_t bits = left_children[size_t(c)];
-            const Cell& cell = halves[size_t(c)];
-            for (int child = 0; bits && child < 8; ++child) {
-              if (!(bits & (1u << child))) continue;
-              const Cell part{cell.i + (child & 1) * 2, cell.j + ((child >> 1) & 1) * 2,
-                              cell.k + ((child >> 2) & 1) * 2, 2};
-              if (lattice_parity(part, half) != parity) continue;
-              interpolated += fill_cell(part, grid, slots, store);
-            }
+        for (int64_t c = 0; c < int64_t(halves.size()); ++c) {
+          const uint8_t bits = left_children[size_t(c)];
+          for (int child = 0; bits && child < 8; ++child) {
+            if (!(bits & (1u << child))) continue;
+            interpolated += fill_owned(part_of(halves[size_t(c)], child), finest_cells, grid,
+                                       slots, store);
           }
         }
         report.interpolated += interpolated;

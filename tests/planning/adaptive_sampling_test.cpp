@@ -1,6 +1,7 @@
 // Coarse-to-fine sampling of fast mode against fields known in closed form: where the sampler
 // interpolates, where it computes, and that it never computes nor interpolates the unknown.
 #include <gtest/gtest.h>
+#include <omp.h>
 
 #include <algorithm>
 #include <array>
@@ -211,6 +212,70 @@ TEST(AdaptiveSampling, HostStepsBesideTheEvaluatorComputeTheSamePoints) {
         ASSERT_EQ(one.report.levels.size(), stride == 4 ? 3u : 4u);
         EXPECT_GT(one.report.levels.back().second, 100);  // a finest level worth splitting
       }
+    }
+  }
+}
+
+// A uniform cell's voxels take the trilinear interpolation of its corners, each written by one
+// cell even where cells share a face, an edge or a corner: with a field linear outside a shadow
+// (its interpolation exact up to rounding), every voxel of the region holds the field's value,
+// the voxels interpolated and computed add up to the region, and the volume is the same bits
+// whatever the number of threads (a voxel written by two cells in turn would depend on their
+// order), with the fills beside the evaluator or not.
+TEST(AdaptiveSampling, UniformCellsFillEachVoxelOnceWithTheirTrilinearValues) {
+  const OutputGrid g = ball_grid(24);
+  const int half = int(g.half);
+  const auto field = [half](int64_t i, int64_t j, int64_t k) {
+    if (shadow_svv(i, j, k, half) < 50.0f) return 20.0f;
+    return float(96.0 + 0.05 * double(i - half) + 0.03 * double(j - half) -
+                 0.02 * double(k - half));
+  };
+  const int64_t n = g.geometry.dims[0];
+  const auto run = [&](int threads, bool beside, int64_t& computed, int64_t& interpolated) {
+    std::vector<float> svv(size_t(n * n * n), std::nanf(""));
+    float* out[kernels::kValueCount] = {svv.data(), nullptr, nullptr, nullptr};
+    AdaptiveOptions o;
+    o.values = kernels::kSvv;
+    o.stride = 8;
+    o.overlap_host_steps = beside;
+    o.overlap_finest_from = 2;
+    const PointEvaluator evaluate = [&](const std::vector<GridPoint>& points,
+                                        std::vector<float>& values) {
+      for (size_t p = 0; p < points.size(); ++p) {
+        values[p * kernels::kValueCount] = field(points[p].i, points[p].j, points[p].k);
+      }
+    };
+    const int before = omp_get_max_threads();
+    omp_set_num_threads(threads);
+    const AdaptiveReport report = sample_adaptively(g, o, evaluate, out);
+    omp_set_num_threads(before);
+    computed = report.evaluated;
+    interpolated = report.interpolated;
+    return svv;
+  };
+  int64_t computed = 0, interpolated = 0;
+  const std::vector<float> one = run(1, false, computed, interpolated);
+  int64_t far = 0;
+  for (int64_t k = 0; k < n; ++k)
+    for (int64_t j = 0; j < n; ++j)
+      for (int64_t i = 0; i < n; ++i) {
+        const float v = one[size_t((k * n + j) * n + i)];
+        if (!g.in_roi(i, j, k)) continue;
+        far += !(std::abs(v - field(i, j, k)) <= 1e-4f);
+      }
+  EXPECT_EQ(far, 0);
+  // Computed points include corners beyond the grid's edge; the region's voxels are each either
+  // computed or interpolated.
+  EXPECT_GT(interpolated, g.roi_voxels / 2);
+  EXPECT_GE(interpolated + computed, g.roi_voxels);
+  for (const int threads : {2, 5}) {
+    for (const bool beside : {false, true}) {
+      SCOPED_TRACE(::testing::Message() << threads << " threads" << (beside ? ", beside" : ""));
+      int64_t c = 0, f = 0;
+      const std::vector<float> other = run(threads, beside, c, f);
+      EXPECT_EQ(0, std::memcmp(other.data(), one.data(), one.size() * sizeof(float)));
+      EXPECT_EQ(c, computed);
+      EXPECT_EQ(f, interpolated);
     }
   }
 }
