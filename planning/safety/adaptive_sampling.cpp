@@ -319,8 +319,6 @@ int danger_rank(const SafetyClasses& c, double v, const AdaptiveOptions& o, doub
   return int(c.classify(v));
 }
 
-class CoverRanks;
-
 // The combination of the phases computed before (AdaptiveOptions::combined_so_far): whether this
 // phase can change its class. `most_dangerous[s]` is, per value slot whose class changes among
 // the supports (or lies near a threshold), the most dangerous class of the supports toward danger
@@ -329,9 +327,6 @@ struct Combination {
   std::array<const float*, kernels::kValueCount> worst{};
   // A phase not folded into `worst` yet, read through it (CombinedVolumes::pending).
   std::array<const float*, kernels::kValueCount> pending{};
-  // Its voxels' classes toward safety with the full margins, kept as asked for (CoverRanks):
-  // emptied whenever the volumes change.
-  CoverRanks* ranks = nullptr;
   Combination& operator=(const CombinedVolumes& v) {
     worst = v.folded;
     pending = v.pending;
@@ -371,88 +366,14 @@ struct Combination {
   }
 };
 
-// Per voxel, the combination's class toward safety with the full margins (danger_rank, scale 1)
-// of every value, two bits each (a value unknown in the combination counts as dangerous, which
-// covers whatever this phase says, as Combination::covers lets it), taken the first time a box
-// check asks for it and kept: the boxes of 125 voxels around the points of stride 2 overlap, and
-// a cell's children are checked after the cell, so a voxel is asked for many times.
-class CoverRanks {
- public:
-  static constexpr uint8_t kUnset = 0xFF;  // no code has a field of 3
-  static constexpr uint8_t kSkip = 0xFE;   // outside the region or the scan: never checked
-
-  // Every voxel unset again, on every core.
-  void reset(int64_t voxels) {
-    if (voxels != voxels_) {
-      codes_.reset(new uint8_t[size_t(voxels)]);
-      voxels_ = voxels;
-      advise_huge_pages(codes_.get(), size_t(voxels));
-    }
-#pragma omp parallel for schedule(static)
-    for (int64_t v = 0; v < voxels; ++v) codes_[size_t(v)] = kUnset;
-  }
-  // Several threads may take a voxel's code at once: they write the same byte.
-  uint8_t get(int64_t offset) const {
-    return __atomic_load_n(&codes_[size_t(offset)], __ATOMIC_RELAXED);
-  }
-  void set(int64_t offset, uint8_t code) {
-    __atomic_store_n(&codes_[size_t(offset)], code, __ATOMIC_RELAXED);
-  }
-
- private:
-  std::unique_ptr<uint8_t[]> codes_;
-  int64_t voxels_ = 0;
-};
-
 // Whether this phase cannot change the combination's class anywhere in `box`: every voxel of it
-// in the region and the scan covers `most` (Combination::covers, margins times `scale`). At
-// scale 1 through the combination's kept ranks, where it has them: the same answer.
+// in the region and the scan covers `most` (Combination::covers, margins times `scale`).
 bool combination_covers_box(const Combination& combination, const SampleStore& store,
                             const OutputGrid& grid, const Cell& box,
                             const std::array<int, kernels::kValueCount>& most,
                             const std::array<SafetyClasses, kernels::kValueCount>& classes,
                             const AdaptiveOptions& options, double scale) {
   const int64_t n = grid.geometry.dims[0];
-  if (combination.ranks && scale == 1.0) {
-    CoverRanks& ranks = *combination.ranks;
-    // A value the combination cannot cover (Combination::covers refuses it at any voxel).
-    bool refused = false;
-    for (int s = 0; s < kernels::kValueCount; ++s) {
-      const int m = most[size_t(s)];
-      if (m != -1 && (m < -1 || !combination.worst[size_t(s)])) refused = true;
-    }
-    for (int64_t k = std::max<int64_t>(box.k, 0);
-         k <= std::min<int64_t>(box.k + box.size, n - 1); ++k)
-      for (int64_t j = std::max<int64_t>(box.j, 0);
-           j <= std::min<int64_t>(box.j + box.size, n - 1); ++j)
-        for (int64_t i = std::max<int64_t>(box.i, 0);
-             i <= std::min<int64_t>(box.i + box.size, n - 1); ++i) {
-          const int64_t offset = store.offset(i, j, k);
-          uint8_t code = ranks.get(offset);
-          if (code == CoverRanks::kUnset) {
-            if (!grid.in_roi(i, j, k) || !store.known(i, j, k)) {
-              code = CoverRanks::kSkip;
-            } else {
-              code = 0;
-              for (int s = 0; s < kernels::kValueCount; ++s) {
-                if (!combination.worst[size_t(s)]) continue;  // refused wherever it is asked
-                const float w = combination.at(s, offset);
-                const int rank =
-                    std::isnan(w) ? 2 : danger_rank(classes[size_t(s)], w, options, 1.0, false);
-                code = uint8_t(code | rank << (2 * s));
-              }
-            }
-            ranks.set(offset, code);
-          }
-          if (code == CoverRanks::kSkip) continue;
-          if (refused) return false;
-          for (int s = 0; s < kernels::kValueCount; ++s) {
-            const int m = most[size_t(s)];
-            if (m >= 0 && ((code >> (2 * s)) & 3) < m) return false;
-          }
-        }
-    return true;
-  }
   for (int64_t k = std::max<int64_t>(box.k, 0); k <= std::min<int64_t>(box.k + box.size, n - 1);
        ++k)
     for (int64_t j = std::max<int64_t>(box.j, 0);
@@ -975,7 +896,6 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   // The phases before, combined (AdaptiveOptions::combined_so_far), asked for after the coarsest
   // level.
   Combination combination;
-  CoverRanks cover_ranks;
   // What the combination must cover for a cell (Combination::covers): its corners' most
   // dangerous class for every value whose class changes at them or lies near a threshold; for a
   // cell refined only as a dilated neighbour (`dilated_only`), dangerous for every value.
@@ -1035,10 +955,6 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
         const auto tw = std::chrono::steady_clock::now();
         combination = options.combined_so_far();
         clock.add(StepClock::kCombinationWait, tw);
-        if (combination.any()) {
-          cover_ranks.reset(n * n * n);
-          combination.ranks = &cover_ranks;
-        }
         t += std::chrono::steady_clock::now() - tw;  // the refinement's own time excludes it
       }
       for (const int s : slots) {
@@ -1069,7 +985,6 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       const auto tw = std::chrono::steady_clock::now();
       combination = options.combined_newer();
       clock.add(StepClock::kCombinationWait, tw);
-      if (combination.ranks) cover_ranks.reset(n * n * n);  // ranks of the volumes before
       t += std::chrono::steady_clock::now() - tw;
     }
 
