@@ -269,6 +269,8 @@ int64_t fill_owned(const Cell& cell, const FilledCells& filled, const OutputGrid
         uint8_t& st = store.state(i, j, k);
         // Queued: claimed by the next level (a fill beside its evaluation), computed there.
         if (st == kEvaluated || st == kUnknown || st == kQueued) continue;
+        // A voxel outside the scan is never interpolated. It stays pending (unknown when the
+        // sampling finishes), so that a finer cell may still compute it as a support.
         if (!store.known(i, j, k)) continue;
         if (st != kInterpolated) ++interpolated;
         st = kInterpolated;
@@ -871,11 +873,12 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   std::vector<Cell> filling;
   std::vector<uint8_t> filling_refine;
   int filling_size = 0;
+  // The cells of the fills (FilledCells): fill_uniform's, fill_finest_beside's, and those of the
+  // children left to the combination.
+  FilledCells uniform_cells, finest_cells, left_cells;
   // Fills the cells of edge `size` not marked in `refined` by trilinear interpolation, in
   // parallel, each voxel by the one cell that owns it (fill_owned; size 1: every voxel is a
   // corner, evaluated). Returns the voxels filled.
-  // fill_uniform's, fill_finest_beside's, the children left to the combination's.
-  FilledCells uniform_cells, finest_cells, left_cells;
   const auto fill_uniform = [&](const std::vector<Cell>& level, const std::vector<uint8_t>& refined,
                                 int size) {
     int64_t interpolated = 0;
