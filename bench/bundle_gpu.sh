@@ -28,6 +28,15 @@ for b in .device/bin/*; do
   ldd "$b" | awk '/=> \// {print $3}'
 done | sort -u | grep -vE '/(libc|libm|libdl|libpthread|librt|ld-linux[^/]*|libcuda)\.so' |
   while read -r lib; do cp -L "$lib" .device/lib/; done
+# WITH_PERF=1: Linux perf and its libraries too (bench/ab_gpu.sh's `profile`), from this machine's
+# linux-perf package.
+if [ -n "${WITH_PERF:-}" ]; then
+  command -v perf >/dev/null || { echo "error: WITH_PERF=1 needs perf (apt-get install linux-perf)" >&2; exit 1; }
+  perf_binary=$(readlink -f "$(command -v perf)")
+  mkdir -p .device/perf/lib && cp "$perf_binary" .device/perf/perf
+  ldd "$perf_binary" | awk '/=> \// {print $3}' |
+    grep -vE '/(libc|libm|libstdc\+\+|libgcc_s)\.so' | while read -r lib; do cp -L "$lib" .device/perf/lib/; done
+fi
 du -sh .device
 # The overlay programs' libraries exceed the carry limit uncompressed: carry .device.tar.xz and
 # unpack it there (run_gpu.sh does).

@@ -18,6 +18,7 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 
+#include "foundation/error.hpp"
 #include "pipelines/plan.hpp"
 #include "planning/imaging/volume_io.hpp"
 #include "planning/simulation/phantom.hpp"
@@ -107,7 +108,7 @@ double peak_rss_gib() {
   return double(usage.ru_maxrss) / (1024.0 * 1024.0);  // KiB on Linux
 }
 
-int main(int argc, char** argv) {
+int bench_plan(int argc, char** argv) {
   CLI::App app{"crepuscular plan end to end, phase by phase"};
   double phantom_spacing = 1.0, tumor_diameter = 30.0, tumor_spacing = 1.0, spacing = 2.0;
   double radius = 100.0;
@@ -332,4 +333,14 @@ int main(int argc, char** argv) {
     fs::remove_all(work);
   }
   return 0;
+}
+
+// A failed plan (no CUDA device, a phantom that cannot be written) is an error line, not an abort.
+int main(int argc, char** argv) {
+  try {
+    return bench_plan(argc, argv);
+  } catch (const crepuscular::Error& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return 1;
+  }
 }
