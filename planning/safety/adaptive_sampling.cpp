@@ -233,7 +233,9 @@ int64_t fill_owned(const Cell& cell, const FilledCells& filled, const OutputGrid
     for (int r = 0; r < own && w; ++r) {
       if ((r & ~planes) != 0) continue;  // not a box holding the voxel
       int at = 0;  // c* - r relative to the box: own - r per axis
-      for (int axis = 2; axis >= 0; --axis) at = at * 3 + ((own >> axis) & 1) - ((r >> axis) & 1) + 1;
+      for (int axis = 2; axis >= 0; --axis) {
+        at = at * 3 + ((own >> axis) & 1) - ((r >> axis) & 1) + 1;
+      }
       w = !neighbour[at];
     }
     writes[m] = w;
@@ -250,7 +252,9 @@ int64_t fill_owned(const Cell& cell, const FilledCells& filled, const OutputGrid
   // On the cell's upper plane the upper value itself (a + 1 (b - a) can round away from b): a
   // voxel of a face, edge or corner shared with a neighbouring cell then takes the same bits from
   // either, those of the face's corners alone (inside a cell, its parts share its weights).
-  const auto lerp = [](float a, float b, float w, bool upper) { return upper ? b : a + w * (b - a); };
+  const auto lerp = [](float a, float b, float w, bool upper) {
+    return upper ? b : a + w * (b - a);
+  };
   const int size = cell.size;
   const float inv = 1.0f / float(size);
   for (int64_t k = std::max<int64_t>(box.k, 0); k <= std::min<int64_t>(box.k + box.size, n - 1);
@@ -286,6 +290,37 @@ int64_t fill_owned(const Cell& cell, const FilledCells& filled, const OutputGrid
           store.set(off, s, lerp(c0, c1, wz, uk));
         }
       }
+    }
+  }
+  return interpolated;
+}
+
+// Fills the children of edge `h` of `cells` whose bits are set in `bits` (bit `child` of each
+// cell's byte), each voxel by the one child that owns it (fill_owned), from the child's own
+// corners or, `from_parent`, from its cell's. Returns how many voxels became interpolated.
+int64_t fill_children(const std::vector<Cell>& cells, const std::vector<uint8_t>& bits, int h,
+                      bool from_parent, FilledCells& filled, const OutputGrid& grid,
+                      const std::vector<int>& slots, SampleStore& store) {
+  const auto part_of = [h](const Cell& cell, int child) {
+    return Cell{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
+                cell.k + ((child >> 2) & 1) * h, h};
+  };
+  const int64_t count = int64_t(cells.size());
+  filled.reset(grid.geometry.dims[0], grid.half, h);
+#pragma omp parallel for schedule(static)
+  for (int64_t c = 0; c < count; ++c) {
+    for (int child = 0; bits[size_t(c)] && child < 8; ++child) {
+      if (bits[size_t(c)] & (1u << child)) filled.mark(part_of(cells[size_t(c)], child));
+    }
+  }
+  int64_t interpolated = 0;
+#pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
+  for (int64_t c = 0; c < count; ++c) {
+    for (int child = 0; bits[size_t(c)] && child < 8; ++child) {
+      if (!(bits[size_t(c)] & (1u << child))) continue;
+      const Cell part = part_of(cells[size_t(c)], child);
+      interpolated += from_parent ? fill_owned(cells[size_t(c)], filled, grid, slots, store, &part)
+                                  : fill_owned(part, filled, grid, slots, store);
     }
   }
   return interpolated;
@@ -1130,29 +1165,8 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       // claim the corners they share with the children that are split), each voxel by the one
       // child that owns it (fill_owned), from its parent's corners.
       t = std::chrono::steady_clock::now();
-      const auto part_of = [h](const Cell& cell, int child) {
-        return Cell{cell.i + (child & 1) * h, cell.j + ((child >> 1) & 1) * h,
-                    cell.k + ((child >> 2) & 1) * h, h};
-      };
-      left_cells.reset(n, half, h);
-#pragma omp parallel for schedule(static)
-      for (int64_t c = 0; c < count; ++c) {
-        const uint8_t bits = left_children[size_t(c)];
-        for (int child = 0; bits && child < 8; ++child) {
-          if (bits & (1u << child)) left_cells.mark(part_of(cells[size_t(c)], child));
-        }
-      }
-      int64_t interpolated = 0;
-#pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
-      for (int64_t c = 0; c < count; ++c) {
-        const uint8_t bits = left_children[size_t(c)];
-        for (int child = 0; bits && child < 8; ++child) {
-          if (!(bits & (1u << child))) continue;
-          const Cell part = part_of(cells[size_t(c)], child);
-          interpolated += fill_owned(cells[size_t(c)], left_cells, grid, slots, store, &part);
-        }
-      }
-      report.interpolated += interpolated;
+      report.interpolated += fill_children(cells, left_children, h, /*from_parent=*/true,
+                                           left_cells, grid, slots, store);
       clock.add(StepClock::kFill, t);
     }
     // Fill the uniform cells: now, or (overlap_host_steps) while the next level is computed,
@@ -1253,29 +1267,8 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       // The children filled from their corners: beside the finest level's computation, once its
       // points are claimed (a point it interpolates on a face they share gets the same value).
       fill_finest_beside = [&, halves = std::move(halves)] {
-        const auto part_of = [](const Cell& cell, int child) {
-          return Cell{cell.i + (child & 1) * 2, cell.j + ((child >> 1) & 1) * 2,
-                      cell.k + ((child >> 2) & 1) * 2, 2};
-        };
-        finest_cells.reset(n, half, 2);
-#pragma omp parallel for schedule(static)
-        for (int64_t c = 0; c < int64_t(halves.size()); ++c) {
-          const uint8_t bits = left_children[size_t(c)];
-          for (int child = 0; bits && child < 8; ++child) {
-            if (bits & (1u << child)) finest_cells.mark(part_of(halves[size_t(c)], child));
-          }
-        }
-        int64_t interpolated = 0;
-#pragma omp parallel for schedule(dynamic, 64) reduction(+ : interpolated)
-        for (int64_t c = 0; c < int64_t(halves.size()); ++c) {
-          const uint8_t bits = left_children[size_t(c)];
-          for (int child = 0; bits && child < 8; ++child) {
-            if (!(bits & (1u << child))) continue;
-            interpolated += fill_owned(part_of(halves[size_t(c)], child), finest_cells, grid,
-                                       slots, store);
-          }
-        }
-        report.interpolated += interpolated;
+        report.interpolated += fill_children(halves, left_children, 2, /*from_parent=*/false,
+                                             finest_cells, grid, slots, store);
       };
       finest_level = level + 2;
     }
