@@ -10,6 +10,7 @@
 #include <limits>
 #include <memory>
 #include <optional>
+#include <stdexcept>
 #include <unordered_map>
 #include <utility>
 
@@ -22,6 +23,11 @@ namespace crepuscular::planning {
 namespace {
 
 constexpr uint8_t kPending = 0, kEvaluated = 1, kInterpolated = 2, kQueued = 3, kUnknown = 4;
+// Interpolated by a level point by point (sample_between), which decides a point alike from every
+// cell that shares it: the others of its pass pass over it. kDecided + the pass's number (from
+// 0), so that a later pass decides it again as any interpolated voxel (its corners may have been
+// computed since). Otherwise as kInterpolated.
+constexpr uint8_t kDecided = 5;
 constexpr int kSlots = kernels::kValueCount;
 
 // The values of every point evaluated so far: voxels of the grid in the output arrays (all four
@@ -81,6 +87,29 @@ class SampleStore {
   bool claim_interpolated(int64_t i, int64_t j, int64_t k) {
     return take(i, j, k, kInterpolated, true);
   }
+  // The same for a point that the present level point by point interpolates (decided()); one
+  // interpolated already (from a coarser cell or an earlier pass) keeps its values and is marked
+  // decided too.
+  bool claim_decided(int64_t i, int64_t j, int64_t k) {
+    uint8_t* s = &state_[size_t(offset(i, j, k))];
+    uint8_t cur = __atomic_load_n(s, __ATOMIC_RELAXED);
+    while (interpolated(cur) && cur != decided_) {
+      if (__atomic_compare_exchange_n(s, &cur, decided_, false, __ATOMIC_RELAXED,
+                                      __ATOMIC_RELAXED)) {
+        return false;
+      }
+    }
+    return take(i, j, k, decided_, true);
+  }
+  // A new level point by point: its own decided state.
+  void begin_decisions() {
+    if (passes_ == 255 - kDecided) {
+      throw std::logic_error("sampler: too many levels point by point");
+    }
+    decided_ = uint8_t(kDecided + passes_++);
+  }
+  uint8_t decided() const { return decided_; }
+  static bool interpolated(uint8_t state) { return state == kInterpolated || state >= kDecided; }
 
   void store(const GridPoint& p, const float* values) {
     if (inside(p.i, p.j, p.k)) {
@@ -105,8 +134,8 @@ class SampleStore {
   float value_if_any(int64_t i, int64_t j, int64_t k, int slot) const {
     if (inside(i, j, k)) {
       const uint8_t st = state_now(i, j, k);
-      return st == kEvaluated || st == kInterpolated ? out_[slot][offset(i, j, k)]
-                                                     : std::numeric_limits<float>::quiet_NaN();
+      return st == kEvaluated || interpolated(st) ? out_[slot][offset(i, j, k)]
+                                                  : std::numeric_limits<float>::quiet_NaN();
     }
     const auto it = outside_.find(key(i, j, k));
     return it == outside_.end() ? std::numeric_limits<float>::quiet_NaN() : it->second[size_t(slot)];
@@ -129,7 +158,8 @@ class SampleStore {
     uint8_t* s = &state_[size_t(off)];
     uint8_t cur = __atomic_load_n(s, __ATOMIC_RELAXED);
     for (;;) {
-      if (!(cur == kPending || (to == kQueued && cur == kInterpolated))) return false;
+      const bool was_interpolated = interpolated(cur);
+      if (!(cur == kPending || (to == kQueued && was_interpolated))) return false;
       const uint8_t next = !in_scan_only || known(i, j, k) ? to : kUnknown;
       if (__atomic_compare_exchange_n(s, &cur, next, false, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {
         if (next == kUnknown) {
@@ -138,7 +168,7 @@ class SampleStore {
           }
           return false;
         }
-        if (cur == kInterpolated) __atomic_fetch_add(&reclaimed_, 1, __ATOMIC_RELAXED);
+        if (was_interpolated) __atomic_fetch_add(&reclaimed_, 1, __ATOMIC_RELAXED);
         return true;
       }
     }
@@ -151,6 +181,8 @@ class SampleStore {
   float* out_[kSlots] = {};
   std::unordered_map<uint64_t, std::array<float, kSlots>> outside_;
   int64_t reclaimed_ = 0;
+  int passes_ = 0;
+  uint8_t decided_ = kDecided;
 };
 
 // A lattice cell: lower corner and edge, in output voxels.
@@ -276,7 +308,7 @@ int64_t fill_owned(const Cell& cell, const FilledCells& filled, const OutputGrid
         // A voxel outside the scan is never interpolated. It stays pending (unknown when the
         // sampling finishes), so that a finer cell may still compute it as a support.
         if (!store.known(i, j, k)) continue;
-        if (st != kInterpolated) ++interpolated;
+        if (!SampleStore::interpolated(st)) ++interpolated;
         st = kInterpolated;
         const float wx = float(i - cell.i) * inv;
         const bool ui = i == cell.i + size;
@@ -659,6 +691,8 @@ int64_t sample_between(const std::vector<Cell>& refined, double scale, const Out
                        const std::function<void()>& beside,
                        const std::function<void(double)>& done) {
   static const std::vector<FinestPoint> kPoints = finest_points();
+  store.begin_decisions();
+  const uint8_t decided = store.decided();
   int64_t interpolated = 0, left = 0;
   const bool combined = combination.any();
   const auto gather = [&](int64_t first, int64_t count, std::vector<GridPoint>& into) {
@@ -683,7 +717,8 @@ int64_t sample_between(const std::vector<Cell>& refined, double scale, const Out
             const int64_t i = cell.i + p.di * h, j = cell.j + p.dj * h, k = cell.k + p.dk * h;
             if (!store.inside(i, j, k) || !grid.in_roi(i, j, k)) continue;
             const uint8_t st = store.state_now(i, j, k);
-            if (st == kEvaluated || st == kQueued || st == kUnknown) continue;
+            // Decided already in this pass, from a cell that shares the point (alike).
+            if (st == kEvaluated || st == kQueued || st == kUnknown || st == decided) continue;
             bool uniform = key[p.corner[0]] != kMixedKey;
             for (int q = 1; q < p.ends && uniform; ++q) {
               uniform = key[p.corner[q]] == key[p.corner[0]];
@@ -706,7 +741,7 @@ int64_t sample_between(const std::vector<Cell>& refined, double scale, const Out
             cell_left += left_to_combination ? 1 : 0;
             if (!uniform && !left_to_combination) {
               offer(i, j, k);  // computed (an interpolation from a coarser cell is reclaimed)
-            } else if (store.claim_interpolated(i, j, k)) {
+            } else if (store.claim_decided(i, j, k)) {
               const int64_t off = store.offset(i, j, k);
               for (const int s : slots) {
                 float sum = 0.0f;

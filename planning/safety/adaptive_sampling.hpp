@@ -114,7 +114,8 @@ struct AdaptiveReport {
   std::vector<std::pair<int, int64_t>> levels;
   std::array<SafetyClasses, kernels::kValueCount> classes{};  // the thresholds refinement used
   // AdaptiveOptions::combined_so_far: cells not split and finest points interpolated because
-  // this phase could not change the combination's class there.
+  // this phase could not change the combination's class there (a point shared by several cells
+  // counted once: the first cell to decide it marks it decided, kDecided).
   int64_t cells_left_to_combination = 0;
   int64_t points_left_to_combination = 0;
   // Wall seconds of the sampler's own work, by step ("sampler_cells" (the coarsest lattice's

@@ -469,6 +469,10 @@ TEST(AdaptiveSampling, APhaseLeavesToTheCombinationOnlyWhatItCannotChange) {
   const Phase whole = sample_phase(g, second, {});
   const Phase left = sample_phase(g, second, a.svv);
   EXPECT_LT(left.evaluated, whole.evaluated * 19 / 20) << left.evaluated << " vs " << whole.evaluated;
+  // Each point left is one the phase refined everywhere computes, counted once however many
+  // cells share it: they cannot outnumber the points saved (counted once per cell, they did).
+  EXPECT_LE(left.report.points_left_to_combination, whole.evaluated - left.evaluated)
+      << left.report.points_left_to_combination << " points left";
   EXPECT_GT(left.report.cells_left_to_combination + left.report.points_left_to_combination, 0);
   EXPECT_EQ(whole.report.cells_left_to_combination + whole.report.points_left_to_combination, 0);
   const std::vector<float> with_whole = minimum(a.svv, whole.svv);
