@@ -241,8 +241,9 @@ class FilledCells {
 // it are the cell c* whose half-open box [lower, lower + size) holds it and those below c* across
 // its planes (c* - r, r a set of those axes). Its owner is the marked one of smallest r (bit 0:
 // i, bit 1: j, bit 2: k), so every voxel is written once, by the same cell whatever the order.
-// Its value is the owner's trilinear interpolation, taken so that on a shared face it is the
-// same bits from either cell (the face's corners alone weigh there).
+// Its value is the owner's trilinear interpolation, in j, then k, then i (along a row, a line
+// between the cell's two faces across i, in the region's run of the row), taken so that on a
+// shared face it is the same bits from either cell (the face's corners alone weigh there).
 int64_t fill_owned(const Cell& cell, const FilledCells& filled, const OutputGrid& grid,
                    const std::vector<int>& slots, SampleStore& store, const Cell* part = nullptr) {
   const Cell& box = part ? *part : cell;  // the cells marked in `filled` are of the box's edge
@@ -289,6 +290,7 @@ int64_t fill_owned(const Cell& cell, const FilledCells& filled, const OutputGrid
   };
   const int size = cell.size;
   const float inv = 1.0f / float(size);
+  const int64_t i0 = std::max<int64_t>(box.i, 0), i1 = std::min<int64_t>(box.i + box.size, n - 1);
   for (int64_t k = std::max<int64_t>(box.k, 0); k <= std::min<int64_t>(box.k + box.size, n - 1);
        ++k) {
     const float wz = float(k - cell.k) * inv;
@@ -296,12 +298,29 @@ int64_t fill_owned(const Cell& cell, const FilledCells& filled, const OutputGrid
     const int pk = plane(k, box.k, box.size);
     for (int64_t j = std::max<int64_t>(box.j, 0);
          j <= std::min<int64_t>(box.j + box.size, n - 1); ++j) {
+      // The row's voxels in the region: all of them where both ends are (a ball is convex).
+      int64_t first = i0, last = i1;
+      if (!grid.in_roi(first, j, k) || !grid.in_roi(last, j, k)) {
+        const auto [a, b] = grid.roi_run(j, k);
+        first = std::max(first, a);
+        last = std::min(last, b);
+      }
+      if (first > last) continue;
       const float wy = float(j - cell.j) * inv;
       const bool uj = j == cell.j + size;
       const int row = 9 * pk + 3 * plane(j, box.j, box.size);
-      for (int64_t i = std::max<int64_t>(box.i, 0);
-           i <= std::min<int64_t>(box.i + box.size, n - 1); ++i) {
-        if (!writes[row + plane(i, box.i, box.size)] || !grid.in_roi(i, j, k)) continue;
+      // The row's values on the cell's two faces across i (the lerps in j, then k): the voxels
+      // between lie on a line from one to the other.
+      float low[kSlots] = {}, high[kSlots] = {};
+      for (const int s : slots) {
+        low[s] = lerp(lerp(corner[0][s], corner[2][s], wy, uj),
+                      lerp(corner[4][s], corner[6][s], wy, uj), wz, uk);
+        high[s] = lerp(lerp(corner[1][s], corner[3][s], wy, uj),
+                       lerp(corner[5][s], corner[7][s], wy, uj), wz, uk);
+      }
+      int64_t off = store.offset(first, j, k);
+      for (int64_t i = first; i <= last; ++i, ++off) {
+        if (!writes[row + plane(i, box.i, box.size)]) continue;
         uint8_t& st = store.state(i, j, k);
         // Queued: claimed by the next level (a fill beside its evaluation), computed there.
         if (st == kEvaluated || st == kUnknown || st == kQueued) continue;
@@ -312,15 +331,7 @@ int64_t fill_owned(const Cell& cell, const FilledCells& filled, const OutputGrid
         st = kInterpolated;
         const float wx = float(i - cell.i) * inv;
         const bool ui = i == cell.i + size;
-        const int64_t off = store.offset(i, j, k);
-        for (const int s : slots) {
-          const float c00 = lerp(corner[0][s], corner[1][s], wx, ui);
-          const float c10 = lerp(corner[2][s], corner[3][s], wx, ui);
-          const float c01 = lerp(corner[4][s], corner[5][s], wx, ui);
-          const float c11 = lerp(corner[6][s], corner[7][s], wx, ui);
-          const float c0 = lerp(c00, c10, wy, uj), c1 = lerp(c01, c11, wy, uj);
-          store.set(off, s, lerp(c0, c1, wz, uk));
-        }
+        for (const int s : slots) store.set(off, s, lerp(low[s], high[s], wx, ui));
       }
     }
   }
