@@ -15,7 +15,9 @@
 # core time in perf_LABEL.txt.
 # Results in $OUT: runs.txt (one JSON line per run, summed by bench/runs_summary.py),
 # progress.txt, trace_LABEL.txt (bench/timeline.py), vm.txt (/proc/vmstat before and after each
-# run), machine.txt.
+# run), machine.txt, and each test's log. A device call brings back at most 8 files: the last run's
+# own output (last.json) is removed at the end, and a call with many tests or traces leaves out
+# the rest (files_left_out).
 set -u
 out="${OUT:-/tmp/crepuscular-ab}"
 mkdir -p "$out"
@@ -69,3 +71,4 @@ for t in ${TESTS:-}; do
   "$bin/$t" >"$out/$t.log" 2>&1
   echo "$t exit $? $(tail -1 "$out/$t.log")" >>"$out/progress.txt"
 done
+rm -f "$out/last.json"  # its line is in runs.txt
