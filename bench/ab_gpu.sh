@@ -9,7 +9,8 @@
 #   TESTS='plan_breathing_test' PROFILE='' bash bench/ab_gpu.sh
 # run LABEL PROGRAM CASE [trace]: CASE br is the breathing case (10 phases of the 513^3 grid,
 # 2 cm tumor, fast mode), hl the headline (one phase); the first run of a case also makes its
-# phantom. An environment prefix applies to one run (OMP_NUM_THREADS=8 run ...).
+# phantom. An environment prefix applies to one run (OMP_NUM_THREADS=8 run ...), ARGS among them
+# (more bench_plan options).
 # profile LABEL [bench_plan options]: one breathing run under `perf record` (perf and its
 # libraries in .device/perf/: WITH_PERF=1 BUNDLE=plan bash bench/bundle_gpu.sh), its functions by
 # core time in perf_LABEL.txt.
@@ -42,6 +43,7 @@ breathing="--phases 10 --phantom-spacing 0.7 --spacing 0.7 --radius 179.2 --mode
 run() {
   local label=$1 program=$2 case=$3 trace=${4:-} args
   if [ "$case" = br ]; then args=$breathing; else args=$headline; fi
+  args="$args ${ARGS:-}"  # more bench_plan options for one run: ARGS='--check-voxels 20000' run ...
   echo "$label before $(vmstat_now)" >>"$out/vm.txt"
   # shellcheck disable=SC2086
   if [ -n "$trace" ]; then

@@ -139,7 +139,11 @@ int bench_plan(int argc, char** argv) {
   int check_voxels = PathSafetyOptions{}.fast_check_voxels;
   app.add_option("--check-voxels", check_voxels, "fast mode: voxels of the self-check");
   double finest_margin = PathSafetyOptions{}.fast_finest_margin;
+  double combination_margin = PathSafetyOptions{}.fast_combination_margin_share;
   app.add_option("--fast-finest-margin", finest_margin, "fast mode: the finest level's margins");
+  app.add_option("--fast-combination-margin", combination_margin,
+                 "breathing, fast mode: the combination's share of the blocking margin where a "
+                 "phase leaves to it");
   app.add_flag("--fast-no-dilate", no_dilate, "fast mode: refine only cells that disagree");
   bool cellwise_halves = false;
   app.add_flag("--fast-cellwise-halves", cellwise_halves,
@@ -183,6 +187,10 @@ int bench_plan(int argc, char** argv) {
                  "breathing, three or more at once: the lattice level from which a phase leaves "
                  "to the combination two phases back (the coarser to three back; 0: every "
                  "level two back)");
+  bool third_after_first = false;
+  app.add_flag("--third-after-first", third_after_first,
+               "breathing, three or more at once: the third phase's finer decisions leave to "
+               "the first phase alone, beside the second (not to the first two, after it)");
   app.add_option("--work", work, "working folder (phantom and plan)");
   app.add_flag("--keep", keep, "keep the working folder");
   bool reuse_phantom = false;
@@ -260,6 +268,7 @@ int bench_plan(int argc, char** argv) {
   req.path_safety.fast_ray_stride = fast_ray_stride;
   req.path_safety.fast_check_voxels = check_voxels;
   req.path_safety.fast_finest_margin = finest_margin;
+  req.path_safety.fast_combination_margin_share = combination_margin;
   req.path_safety.fast_pointwise_halves = !cellwise_halves;
   req.path_safety.fast_svv_margin = svv_margin;
   req.path_safety.fast_blocking_margin = blocking_margin;
@@ -270,6 +279,7 @@ int bench_plan(int argc, char** argv) {
   req.phases_at_once = phases_at_once;
   req.newer_combination_from_level = newer_from_level;
   req.prepare_phase_ahead = !not_ahead;
+  req.third_after_second = !third_after_first;
   req.stream_phase_reads = !read_all_first;
   req.out_dir = work + "/plan";
   const CpuUse before = cpu_use();
@@ -298,6 +308,7 @@ int bench_plan(int argc, char** argv) {
                          {"fast_surface_block", fast_surface_block},
                          {"fast_ray_stride", fast_ray_stride},
                          {"fast_finest_margin", finest_margin},
+                         {"fast_combination_margin", combination_margin},
                          {"fast_pointwise_halves", !cellwise_halves},
                          {"fast_margins", {svv_margin, blocking_margin}},
                          {"texture", texture},
@@ -307,6 +318,7 @@ int bench_plan(int argc, char** argv) {
                          {"phases_at_once", phases_at_once},
                          {"newer_from_level", newer_from_level},
                          {"prepare_phase_ahead", !not_ahead},
+                         {"third_after_second", !third_after_first},
                          {"read_all_first", read_all_first},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},
                          {"device", plan["parameters"]["device"]},

@@ -2,6 +2,7 @@
 // atomically. The folder's format (plan.json's pieces) is planning/plan_folder's.
 #include "pipelines/plan.hpp"
 
+#include <cstdlib>
 #include <omp.h>
 #include <spdlog/spdlog.h>
 
@@ -662,6 +663,11 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   const size_t late_lag = std::min<size_t>(at_once, 2);
   const int newer_from_level = req.newer_combination_from_level;
   const size_t early_lag = at_once >= 3 && newer_from_level > 0 ? 3 : late_lag;
+  // The third phase computed beside the fourth, both after the second: its finer decisions
+  // leave to the first two (H200, 10 phases, 2 cm tumor: 23.85 -> 22.51 M points, 0.17 s less;
+  // bench/RESULTS.md, twenty-ninth session). The second is computed alone then, beside the
+  // coarsest levels of the third and fourth.
+  const bool third_after_second = early_lag == 3 && req.third_after_second;
   combiner.keep_earlier(leave_to_combination && at_once > 1 ? int(early_lag) - 1 : 0);
   // Folded into the combination: a phase's sampler waits for an earlier phase's fold; on an error
   // every fold not yet made fails, so that nothing waits for it.
@@ -835,7 +841,8 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     }
     if (leave_to_combination && at > 0) {
       // The combination of the phases up to the one two before this one (the first phase's for
-      // the second and third): the phase just before is computed beside this one. With three at
+      // the second; for the third the first two's, or the first's with third_after_second off):
+      // the phase just before is computed beside this one. With three at
       // once, the coarsest decisions take the combination up to three before (`early`), so that
       // the phase waits for the newer one only before its finer levels (the combiner keeps the
       // combinations read: none is written over before the phases reading it are done).
@@ -847,7 +854,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
           return combiner.volumes_after(int(source) + 1);
         };
       };
-      const size_t source = at > late_lag ? at - late_lag : 0;
+      const size_t source = at > late_lag ? at - late_lag : at == 2 && third_after_second ? 1 : 0;
       const size_t early = at > early_lag ? at - early_lag : 0;
       phase_request.path_safety.combined_so_far = combination_of(early);
       if (early != source) {
@@ -905,8 +912,13 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       return r;
     });
   };
+  // The plan's own inputs (the first phase's blocking volume and tumor) written once the first
+  // phase has computed, beside the later phases, rather than among the plan's last writes.
+  nlohmann::json outputs;
+  std::vector<std::future<void>> input_writes;
   const auto hand_over = [&](size_t at) {
     PathSafetyResult result = computing[at].get();
+    if (at == 0) input_writes = write_inputs(out, phases.front().inputs, outputs);
     // A later phase's blocking volume is done with (its finish needs its tumor and scan); the
     // first phase's is written as the plan's own.
     if (order[at] > 0) phases[order[at]].inputs.blocking = {};
@@ -941,6 +953,9 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     for (auto& f : finishing) {
       if (f.valid()) f.wait();
     }
+    for (auto& f : input_writes) {
+      if (f.valid()) f.wait();  // before the staged folder goes
+    }
     throw;
   }
   timings["path_safety_s"] = seconds_since(t);
@@ -953,8 +968,6 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   // The plan's own files: the combination, with the first phase's blocking, tumor and labels.
   const PhaseInputs& first = phases.front();
   t = Clock::now();
-  nlohmann::json outputs;
-  std::vector<std::future<void>> input_writes = write_inputs(out, first.inputs, outputs);
   // Area safety beside the writes, as a single phase's.
   nlohmann::json area_safety;
   AreaSafetyGeometry geometry;

@@ -40,6 +40,10 @@ struct PlanRequest : PlanInputOptions {
   // ones to that of the phases up to three before it, folded earlier
   // (PathSafetyOptions::combined_newer). 0: every level to the phases up to two before it.
   int newer_combination_from_level = 1;
+  // With the above (> 0): the third phase computed leaves its finer decisions to the combination
+  // of the first two (waiting for the second's computing, beside which the fourth samples its
+  // coarsest level), not to the first alone beside the second (false).
+  bool third_after_second = true;
   // Phases side by side: one more phase prepared beside them, sampling at its turn (false: a
   // phase is prepared when its turn comes).
   bool prepare_phase_ahead = true;

@@ -427,7 +427,8 @@ struct Combination {
     if (std::isnan(w) || std::isnan(q)) return std::numeric_limits<float>::quiet_NaN();
     return (1u << s) == kernels::kSvv ? std::min(w, q) : std::max(w, q);
   }
-  // The voxel at `offset` is at least as dangerous in the combination (toward safety) as
+  // The voxel at `offset` is at least as dangerous in the combination (toward safety by
+  // AdaptiveOptions::combination_margin_share of the margins) as
   // `most_dangerous` for every value that needs it; a voxel unknown in the combination is
   // unknown whatever this phase says.
   bool covers(int64_t offset, const std::array<int, kernels::kValueCount>& most_dangerous,
@@ -438,7 +439,11 @@ struct Combination {
       if (most_dangerous[size_t(s)] < -1 || !worst[size_t(s)]) return false;
       const float w = at(s, offset);
       if (std::isnan(w)) continue;
-      if (danger_rank(classes[size_t(s)], w, o, scale, false) < most_dangerous[size_t(s)]) {
+      // The combination's side: its margins a share of the blocking ones, none for SVV
+      // (AdaptiveOptions::combination_margin_share).
+      const SafetyClasses& c = classes[size_t(s)];
+      const double side = c.higher_is_safer ? 0.0 : scale * o.combination_margin_share;
+      if (danger_rank(c, w, o, side, false) < most_dangerous[size_t(s)]) {
         return false;
       }
     }
@@ -1383,6 +1388,7 @@ AdaptiveOptions adaptive_options(const PathSafetyOptions& options, const OutputG
   adaptive.finest_margin = options.fast_finest_margin;
   adaptive.pointwise_halves = options.fast_pointwise_halves;
   adaptive.combined_so_far = options.combined_so_far;
+  adaptive.combination_margin_share = options.fast_combination_margin_share;
   adaptive.combined_newer = options.combined_newer;
   adaptive.newer_from_level = options.newer_from_level;
   adaptive.progress = options.progress;

@@ -92,6 +92,17 @@ struct AdaptiveOptions {
   //   cell lies within the classes of its corners (fast mode's premise). This phase's own
   //   volumes are then approximate there: a plan that writes them (--per-phase) does not use it.
   std::function<CombinedVolumes()> combined_so_far;
+  // The combination's side of that comparison. The phase's corners carry the whole margins: they
+  // stand for the values inside the cell. The combination's values are its own, so with fixed
+  // thresholds it needs none: interpolated or refined, this phase cannot make a voxel more
+  // dangerous than the combination's class there. SVV's thresholds are fixed (none). The blocking
+  // values' thresholds are percentiles of the final combination, which rise a little as later
+  // phases are folded in after this one's thresholds were taken (breathing phantom, 2 mm: at most
+  // 3 % between a later phase's thresholds and the plan's): the combination is moved toward
+  // safety by this share of blocking_margin (0.25 of 25 %: about twice that drift). (1, the whole
+  // margins, until the twenty-ninth session: H200, 10 phases, 7 % more points for the same
+  // classes at 20 000 voxels; bench/RESULTS.md.)
+  double combination_margin_share = 0.25;
   // With combined_so_far: a later combination (more phases folded in), asked for once before the
   // decisions of level `newer_from_level` (1: the cells of the second lattice; 0 never): those
   // and every finer level's leave to it instead. The thresholds stay those of combined_so_far.

@@ -85,6 +85,9 @@ struct PathSafetyOptions {
   int fast_stride = 0;
   double fast_svv_margin = 3.0;
   double fast_blocking_margin = 0.25;
+  // Breathing: the combination's side of what a phase leaves to it, a share of the blocking
+  // margin (AdaptiveOptions::combination_margin_share).
+  double fast_combination_margin_share = 0.25;
   bool fast_dilate = true;  // refine the neighbours of refined coarsest cells too
   // The finest level's share of the margins (adaptive_sampling.hpp): 0, a point between two
   // computed voxels is computed only where their classes differ (bench/RESULTS.md, eleventh

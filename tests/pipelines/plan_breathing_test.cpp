@@ -353,8 +353,16 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
   // leaves to two at once.
   const nlohmann::json three_late = run_plan(request("three_late", Mode::kFast, false, 3, 0));
   // The default: the fourth phase's coarsest decisions leave to the first phase alone (three
-  // back), its finer ones to the first two (two back), as two at once.
+  // back), its finer ones to the first two (two back), as two at once; the third's finer ones
+  // to the first two as well (one back, as one at a time), its coarsest to the first alone.
   const nlohmann::json three = run_plan(request("three", Mode::kFast, false, 3));
+  // Three at once with the third beside the second, its finer decisions to the first alone.
+  nlohmann::json three_beside;
+  {
+    PlanRequest r = request("three_beside", Mode::kFast, false, 3);
+    r.third_after_second = false;
+    three_beside = run_plan(r);
+  }
   const auto& phases = left["breathing"]["phases"];
   ASSERT_EQ(phases.size(), 4u);
   EXPECT_EQ(phases[0]["computed_as"], 1);
@@ -387,20 +395,34 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
     EXPECT_EQ(two_phases[k]["computed_as"], phases[k]["computed_as"]);
   }
   EXPECT_EQ(two_phases[2]["points_computed_exactly"], phases[2]["points_computed_exactly"]);
-  bool fourth_differs = false;
+  bool fourth_differs = false, third_differs = false;
+  int64_t third_points = 0, third_points_beside = 0;
   for (size_t k = 0; k < 4; ++k) {
     EXPECT_EQ(three_late["breathing"]["phases"][k]["points_computed_exactly"],
               two_phases[k]["points_computed_exactly"]) << k;
     const auto& p = three["breathing"]["phases"][k];
-    if (p["computed_as"].get<int>() < 4) {  // no phase three back: as two at once
+    const auto& b = three_beside["breathing"]["phases"][k];
+    const int as = p["computed_as"].get<int>();
+    if (as < 3) {  // nothing three back, the second leaves to the first: as two at once
       EXPECT_EQ(p["points_computed_exactly"], two_phases[k]["points_computed_exactly"]) << k;
+      EXPECT_EQ(b["points_computed_exactly"], two_phases[k]["points_computed_exactly"]) << k;
+    } else if (as == 3) {
+      // Beside the second: as two at once. After it: its finer decisions have the second's
+      // boundaries to leave to as well.
+      EXPECT_EQ(b["points_computed_exactly"], two_phases[k]["points_computed_exactly"]) << k;
+      third_differs = p["points_computed_exactly"] != b["points_computed_exactly"];
+      third_points = p["points_computed_exactly"].get<int64_t>();
+      third_points_beside = b["points_computed_exactly"].get<int64_t>();
     } else {
       fourth_differs = p["points_computed_exactly"] != two_phases[k]["points_computed_exactly"];
+      EXPECT_EQ(b["points_computed_exactly"], p["points_computed_exactly"]) << k;
       EXPECT_GT(p["left_to_earlier_phases"]["cells"].get<int64_t>(), 0);
     }
   }
-  // Its coarsest decisions had less to leave to (the first phase only).
+  // The fourth's coarsest decisions had less to leave to (the first phase only).
   EXPECT_TRUE(fourth_differs);
+  EXPECT_TRUE(third_differs);
+  EXPECT_LT(third_points, third_points_beside);
   EXPECT_LT(points_two, points_every * 9 / 10) << points_two << " vs " << points_every;
   EXPECT_EQ(left["fast_mode_vs_exact"]["points_computed_exactly"].get<int64_t>(), points_left);
   const Volume<uint8_t> roi = read_volume<uint8_t>(dir.file("exact/roi.nii.gz"));

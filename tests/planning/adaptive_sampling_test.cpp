@@ -613,6 +613,37 @@ TEST(AdaptiveSampling, ACombinationSafeEverywhereLeavesNothingAndOneUnknownLeave
   EXPECT_GT(alone.evaluated, 2 * alone.report.levels.front().second);
 }
 
+// SVV's thresholds are fixed, so the combination needs no margin of its own: one dangerous by a
+// single point everywhere (49 %, within the 3-point margin of 50 %) is dangerous whatever this
+// phase holds, and every class boundary of the phase is left to it after the coarsest level;
+// the combined classes are the truth's, dangerous throughout. Just above the threshold (51 %),
+// the phase's boundaries between dangerous and medium are refined as before.
+TEST(AdaptiveSampling, ACombinationDangerousByOnePointIsLeftTheBoundariesItDecides) {
+  const OutputGrid g = ball_grid(24);
+  const double h = double(g.half);
+  const Field field = [h](int64_t i, int64_t j, int64_t k) {
+    return ramp_shadow(double(i), double(j), double(k), h + 6.0, h, h);
+  };
+  const int64_t n = g.geometry.dims[0];
+  const Phase alone = sample_phase(g, field, {}, 4);
+  const Phase after_49 = sample_phase(g, field, std::vector<float>(size_t(n * n * n), 49.0f), 4);
+  const Phase after_51 = sample_phase(g, field, std::vector<float>(size_t(n * n * n), 51.0f), 4);
+  ASSERT_FALSE(alone.report.levels.empty());
+  EXPECT_EQ(after_49.evaluated, alone.report.levels.front().second);
+  EXPECT_GT(alone.evaluated, 2 * alone.report.levels.front().second);
+  EXPECT_GT(after_51.evaluated, alone.report.levels.front().second);
+  const SafetyClasses& classes = after_49.report.classes[0];
+  int64_t dangerous = 0, voxels = 0;
+  for (int64_t v = 0; v < n * n * n; ++v) {
+    const int64_t i = v % n, j = (v / n) % n, k = v / (n * n);
+    if (!g.in_roi(i, j, k)) continue;
+    ++voxels;
+    dangerous += classes.classify(std::min(49.0f, after_49.svv[size_t(v)])) ==
+                 SafetyClass::kDangerous;
+  }
+  EXPECT_EQ(dangerous, voxels);
+}
+
 // The thresholds are the combination's: the coarsest samples combined with the phases before.
 // Blocking values have relative thresholds; a phase whose combination so far is twice its own
 // values refines with the classes of a phase of twice its values.
