@@ -5,6 +5,7 @@
 // plan's own timings (plan.json "timings") and the wall time are printed as one JSON line.
 #include <execinfo.h>
 #include <sys/resource.h>
+#include <unistd.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
@@ -250,6 +251,10 @@ int bench_plan(int argc, char** argv) {
     req.labels = {work + "/phantom/labels.nii.gz"};
     req.tumor = work + "/tumor.nii.gz";
   }
+  // The phantom's files on the disk before the plan is timed: a plan reads a scan that is there
+  // already, and the writeback of a fresh phantom's few GB held up the first timed plan after it
+  // by up to 9 s (bench/RESULTS.md, twenty-ninth session).
+  if (!reuse) sync();
   const double setup_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t_setup).count();
 
