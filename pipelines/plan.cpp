@@ -2,7 +2,6 @@
 // atomically. The folder's format (plan.json's pieces) is planning/plan_folder's.
 #include "pipelines/plan.hpp"
 
-#include <cstdlib>
 #include <omp.h>
 #include <spdlog/spdlog.h>
 
@@ -664,9 +663,9 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   const int newer_from_level = req.newer_combination_from_level;
   const size_t early_lag = at_once >= 3 && newer_from_level > 0 ? 3 : late_lag;
   // The third phase computed beside the fourth, both after the second: its finer decisions
-  // leave to the first two (H200, 10 phases, 2 cm tumor: 23.85 -> 22.51 M points, 0.17 s less;
-  // bench/RESULTS.md, twenty-ninth session). The second is computed alone then, beside the
-  // coarsest levels of the third and fourth.
+  // leave to the first two (H200, 10 phases, 2 cm tumor: 23.85 -> 22.51 M points, end to end
+  // within the instances' spread; bench/RESULTS.md, twenty-ninth session). The second is
+  // computed alone then, beside the coarsest levels of the third and fourth.
   const bool third_after_second = early_lag == 3 && req.third_after_second;
   combiner.keep_earlier(leave_to_combination && at_once > 1 ? int(early_lag) - 1 : 0);
   // Folded into the combination: a phase's sampler waits for an earlier phase's fold; on an error

@@ -593,21 +593,28 @@ TEST(AdaptiveSampling, APhaseReadThroughTheCombinationIsItsFold) {
 // bit for bit. One unknown everywhere (NaN: unknown in an earlier phase) decides everything:
 // whatever this phase says, the combination is unknown, so only the coarsest lattice is
 // computed.
-TEST(AdaptiveSampling, ACombinationSafeEverywhereLeavesNothingAndOneUnknownLeavesAll) {
-  const OutputGrid g = ball_grid(24);
+// One shadow beside the centre of `g`, and a combination of one value everywhere.
+Field one_shadow(const OutputGrid& g) {
   const double h = double(g.half);
-  const Field field = [h](int64_t i, int64_t j, int64_t k) {
+  return [h](int64_t i, int64_t j, int64_t k) {
     return ramp_shadow(double(i), double(j), double(k), h + 6.0, h, h);
   };
+}
+std::vector<float> everywhere(const OutputGrid& g, float value) {
   const int64_t n = g.geometry.dims[0];
+  return std::vector<float>(size_t(n * n * n), value);
+}
+
+TEST(AdaptiveSampling, ACombinationSafeEverywhereLeavesNothingAndOneUnknownLeavesAll) {
+  const OutputGrid g = ball_grid(24);
+  const Field field = one_shadow(g);
   const Phase alone = sample_phase(g, field, {}, 4);
-  const Phase after_safe = sample_phase(g, field, std::vector<float>(size_t(n * n * n), 95.0f), 4);
+  const Phase after_safe = sample_phase(g, field, everywhere(g, 95.0f), 4);
   EXPECT_EQ(after_safe.evaluated, alone.evaluated);
   EXPECT_EQ(0, std::memcmp(after_safe.svv.data(), alone.svv.data(), alone.svv.size() * 4));
   EXPECT_EQ(after_safe.report.cells_left_to_combination, 0);
   EXPECT_EQ(after_safe.report.points_left_to_combination, 0);
-  const Phase after_unknown =
-      sample_phase(g, field, std::vector<float>(size_t(n * n * n), std::nanf("")), 4);
+  const Phase after_unknown = sample_phase(g, field, everywhere(g, std::nanf("")), 4);
   ASSERT_FALSE(alone.report.levels.empty());
   EXPECT_EQ(after_unknown.evaluated, alone.report.levels.front().second);
   EXPECT_GT(alone.evaluated, 2 * alone.report.levels.front().second);
@@ -620,14 +627,11 @@ TEST(AdaptiveSampling, ACombinationSafeEverywhereLeavesNothingAndOneUnknownLeave
 // the phase's boundaries between dangerous and medium are refined as before.
 TEST(AdaptiveSampling, ACombinationDangerousByOnePointIsLeftTheBoundariesItDecides) {
   const OutputGrid g = ball_grid(24);
-  const double h = double(g.half);
-  const Field field = [h](int64_t i, int64_t j, int64_t k) {
-    return ramp_shadow(double(i), double(j), double(k), h + 6.0, h, h);
-  };
+  const Field field = one_shadow(g);
   const int64_t n = g.geometry.dims[0];
   const Phase alone = sample_phase(g, field, {}, 4);
-  const Phase after_49 = sample_phase(g, field, std::vector<float>(size_t(n * n * n), 49.0f), 4);
-  const Phase after_51 = sample_phase(g, field, std::vector<float>(size_t(n * n * n), 51.0f), 4);
+  const Phase after_49 = sample_phase(g, field, everywhere(g, 49.0f), 4);
+  const Phase after_51 = sample_phase(g, field, everywhere(g, 51.0f), 4);
   ASSERT_FALSE(alone.report.levels.empty());
   EXPECT_EQ(after_49.evaluated, alone.report.levels.front().second);
   EXPECT_GT(alone.evaluated, 2 * alone.report.levels.front().second);
