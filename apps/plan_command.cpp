@@ -65,8 +65,8 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
                   "With phases: how many phases are computed at once. Default: 3 on a GPU (the "
                   "phases' host steps run beside the others' rays; a phase leaves refinement only "
                   "to the phases before the ones computed beside it: its coarsest decisions to "
-                  "those three back, its finer ones to those two back; the third's finer ones to the first two), "
-                  "1 on the cores; 0 chooses. "
+                  "those three back, its finer ones to those two back; the third's finer ones "
+                  "to the first two), 1 on the cores; 0 chooses. "
                   "Each phase at once holds its volumes in memory (about 2.2 GB at 513^3)")
       ->check(CLI::Range(0, 4));
   return lesion_at;
