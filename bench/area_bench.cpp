@@ -58,7 +58,7 @@ int main(int argc, char** argv) {
   o.max_distance_mm = half * h;
   const auto t0 = std::chrono::steady_clock::now();
   const AreaSafetyGeometry geometry =
-      compute_area_safety(e, path_safety_test(svv, true, 50.0, &states), o);
+      compute_area_safety(e, path_safety_test(svv, true, 50.0, o.max_distance_mm, &states), o);
   const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   std::cout << nlohmann::json{{"vertices", geometry.base.size()},
                               {"unknown_vertices", geometry.unknown_vertex_count},

@@ -168,14 +168,13 @@ void setup_from_plan(const AreaRequest& r, Setup& s) {
                        (fs::path(r.plan_dir) / outputs.at("roi").get<std::string>()).string(),
                        file);
     }
-    s.test = path_safety_test(s.path_safety, higher, s.threshold,
+    const double roi_radius_mm = plan.at("parameters").at("radius_mm").get<double>();
+    s.test = path_safety_test(s.path_safety, higher, s.threshold, roi_radius_mm,
                               s.region.empty() ? nullptr : &s.region);
     s.criterion = "path safety " + value + (higher ? " < " : " > ") + number(s.threshold) + " (" +
                   r.unsafe_class + (r.unsafe_class == "medium" ? " or dangerous" : "") +
                   " is unsafe)";
-    s.options.max_distance_mm = r.max_distance_mm > 0
-                                    ? r.max_distance_mm
-                                    : plan.at("parameters").at("radius_mm").get<double>();
+    s.options.max_distance_mm = r.max_distance_mm > 0 ? r.max_distance_mm : roi_radius_mm;
     if (r.spacing_mm <= 0)
       s.options.spacing_mm = plan.at("parameters").at("spacing_mm").get<double>();
     s.info["mode"] = "path safety";

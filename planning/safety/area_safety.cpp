@@ -210,16 +210,19 @@ int rings_for_edge_bound(const Ellipsoid& e, double max_distance_mm, double spac
 
 SafetyTest blocking_safety_test(const Volume<float>& blocking, double threshold) {
   const kernels::BlockingGrid<double> grid = blocking_grid(blocking);
-  // The same trilinear sampling as the path safety rays (kernels::sample_blocking).
-  return [grid, threshold](const Eigen::Vector3d& p) {
+  const ImageGeometry geometry = blocking.geometry();
+  // The same trilinear sampling as the path safety rays (kernels::sample_blocking), whose 0
+  // beyond the grid would read as "nothing vulnerable" where nothing was scanned.
+  return [grid, geometry, threshold](const Eigen::Vector3d& p) {
     const kernels::Vec3<double> q = grid.physical_to_index.apply({p.x(), p.y(), p.z()});
+    if (!within_extent(geometry, Eigen::Vector3d(q.x, q.y, q.z))) return PointSafety::kUnknown;
     return kernels::sample_blocking(grid, q) >= threshold ? PointSafety::kUnsafe
                                                           : PointSafety::kSafe;
   };
 }
 
 SafetyTest path_safety_test(const Volume<float>& volume, bool higher_is_safer, double threshold,
-                            const Volume<uint8_t>* region_state) {
+                            double roi_radius_mm, const Volume<uint8_t>* region_state) {
   const float* values = volume.data();
   const ImageGeometry geometry = volume.geometry();
   const kernels::Affine<double> to_index = physical_to_index_affine(geometry);
@@ -231,9 +234,20 @@ SafetyTest path_safety_test(const Volume<float>& volume, bool higher_is_safer, d
   const kernels::Affine<double> to_state =
       physical_to_index_affine(states ? states->geometry() : geometry);
   const int64_t nx = geometry.dims[0], ny = geometry.dims[1], nz = geometry.dims[2];
+  // The region of interest in index units: the ball around the centre voxel (the output grid is
+  // isotropic). Every point within it has a cell corner within it (the corner on the centre's
+  // side along each axis), so the interpolation finds a value wherever the ball was computed.
+  const Eigen::Vector3d centre_index(double(nx - 1) / 2.0, double(ny - 1) / 2.0,
+                                    double(nz - 1) / 2.0);
+  const double ball_sq = roi_radius_mm > 0.0
+                             ? std::pow(roi_radius_mm / geometry.spacing.minCoeff(), 2) + 1e-9
+                             : std::numeric_limits<double>::infinity();
   // Trilinear over the computed (finite) voxels around p; none (weight <= 1e-9): outside.
   return [=](const Eigen::Vector3d& p) {
     const kernels::Vec3<double> q = to_index.apply({p.x(), p.y(), p.z()});
+    if ((Eigen::Vector3d(q.x, q.y, q.z) - centre_index).squaredNorm() > ball_sq) {
+      return PointSafety::kBeyond;
+    }
     if (states) {
       const kernels::Vec3<double> s = same_grid ? q : to_state.apply({p.x(), p.y(), p.z()});
       const int64_t i = std::llround(s.x), j = std::llround(s.y), k = std::llround(s.z);
@@ -311,6 +325,7 @@ AreaSafetyGeometry compute_area_safety(const Ellipsoid& e, const SafetyTest& tes
   std::mutex failure_mutex;
   std::atomic<int64_t> done{0};
   std::atomic<int64_t> unknown_count{0};
+  std::atomic<int64_t> uncomputed_count{0};
   int last_decile = 0;
 #pragma omp parallel for schedule(dynamic, 64) num_threads(threads)
   for (int64_t v = 0; v < nv; ++v) {
@@ -322,19 +337,22 @@ AreaSafetyGeometry compute_area_safety(const Ellipsoid& e, const SafetyTest& tes
       for (int64_t k = 0; k <= samples; ++k) {
         const double d = k == samples ? dmax : double(k) * g.step_mm;
         const PointSafety s = test(b + d * n);
+        if (s == PointSafety::kSafe) continue;
         if (s == PointSafety::kUnsafe) {
           length = d;
           safe = 0;
           break;
         }
-        if (s == PointSafety::kOutside || s == PointSafety::kUnknown) {
-          length = k == 0 ? 0.0 : double(k - 1) * g.step_mm;
-          if (s == PointSafety::kUnknown) {
-            safe = 0;  // unknown is never safe
-            ++unknown_count;
-          }
-          break;
+        length = k == 0 ? 0.0 : double(k - 1) * g.step_mm;
+        // Safe only when it left the region of interest through computed, safe values; unknown
+        // and uncomputed points are never safe.
+        safe = s == PointSafety::kBeyond && k > 0;
+        if (s == PointSafety::kUnknown) {
+          ++unknown_count;
+        } else if (!safe) {
+          ++uncomputed_count;
         }
+        break;
       }
       g.extrusion[size_t(v)] = float(length);
       g.safe[size_t(v)] = safe;
@@ -357,6 +375,13 @@ AreaSafetyGeometry compute_area_safety(const Ellipsoid& e, const SafetyTest& tes
   if (g.unknown_vertex_count > 0) {
     spdlog::warn("area safety: {} of {} extrusions reach the unknown (outside the scan): not safe",
                  g.unknown_vertex_count, nv);
+  }
+  g.uncomputed_vertex_count = uncomputed_count;
+  if (g.uncomputed_vertex_count > 0) {
+    spdlog::warn(
+        "area safety: {} of {} extrusions meet points with no path safety value before the edge "
+        "of the region of interest (not computed there): not safe",
+        g.uncomputed_vertex_count, nv);
   }
   measure_regions(g);
   int64_t safe_count = 0;
@@ -993,6 +1018,7 @@ nlohmann::json area_safety_json(const AreaSafetyGeometry& g) {
           {"triangle_count", g.triangles.size()},
           {"safe_vertex_count", safe},
           {"unknown_vertex_count", g.unknown_vertex_count},
+          {"uncomputed_vertex_count", g.uncomputed_vertex_count},
           {"max_edge_full_extrusion_mm",
            g.base.empty() ? nlohmann::json(nullptr)
                           : nlohmann::json(max_edge_length(g, g.max_distance_mm))},
@@ -1042,7 +1068,7 @@ nlohmann::json plan_area_safety(const Volume<uint8_t>& tumor, const PathSafetyRe
   const Ellipsoid e = fit_tumor_ellipsoid(tumor);
   AreaSafetyGeometry g =
       compute_area_safety(e, path_safety_test(volume, classes.higher_is_safer, threshold,
-                                              region_state), o);
+                                              result.grid.radius_mm, region_state), o);
   g.criterion = std::string("path safety ") + value_name(bit) +
                 (classes.higher_is_safer ? " < " : " > ") + number(threshold) + " (" +
                 options.unsafe_class + (options.unsafe_class == "medium" ? " or dangerous" : "") +

@@ -43,9 +43,10 @@ struct AreaSafetyGeometry {
   std::vector<Eigen::Vector3d> normals;       // unit outward normal at the base vertex
   std::vector<Eigen::Vector3d> vertices;      // extruded vertex (LPS mm)
   std::vector<std::array<int, 3>> triangles;  // outward-facing, closed surface
-  std::vector<uint8_t> safe;                  // 1 where the extrusion reached the maximum distance
-                                              // (or the edge of the computed region, all safe);
-                                              // 0 where it stopped unsafe or at unknown
+  std::vector<uint8_t> safe;                  // 1 where the extrusion reached its distance (the
+                                              // maximum distance or the outer edge of the
+                                              // region of interest) through computed, safe
+                                              // values inside the scan; 0 everywhere else
   std::vector<int> region;                    // region id per vertex, -1 where unsafe
   std::vector<float> leeway;                  // per vertex: its region's leeway, 0 where unsafe
   std::vector<AreaRegion> regions;            // by decreasing size
@@ -61,6 +62,9 @@ struct AreaSafetyGeometry {
   double angular_step_deg = 0;   // AreaSafetyOptions::angular_step_deg
   std::string criterion;         // how "unsafe" was decided, in words (for area_safety_json)
   int64_t unknown_vertex_count = 0;  // extrusions stopped at the unknown (outside the scan)
+  // Extrusions stopped at points with no value before their distance (a region of interest that
+  // does not reach the vertex, voxels cropped away): not safe.
+  int64_t uncomputed_vertex_count = 0;
   double threshold = 0;          // the unsafe threshold of that criterion
 };
 
@@ -95,27 +99,35 @@ int rings_for_edge_bound(const Ellipsoid& ellipsoid, double max_distance_mm, dou
 
 // --- Unsafe criterion ---------------------------------------------------------------------------
 
-enum class PointSafety { kSafe, kUnsafe, kOutside, kUnknown };
+enum class PointSafety { kSafe, kUnsafe, kBeyond, kOutside, kUnknown };
 
-// The unsafe criterion at one point (LPS mm). kOutside: no data there (outside the path safety
-// volume's region of interest); the extrusion stops there and the vertex counts as safe, since
-// every point of it that has data is safe. kUnknown: inside the region of interest but outside
-// the scan (planning/safety/unknown.hpp): the extrusion stops there and the vertex is NOT safe
-// (unknown is never safe). Must be callable from several threads at once.
+// The unsafe criterion at one point (LPS mm):
+// - kSafe, kUnsafe: a known value on either side of the threshold;
+// - kBeyond: past the outer edge of the region of interest, where the extrusion has reached its
+//   distance; the vertex is safe when every sample before was safe and there was at least one;
+// - kOutside: no value although inside the region (a region of interest that does not reach
+//   there, voxels cropped to the scan, a hole): the extrusion stops, the vertex is NOT safe;
+// - kUnknown: outside the scan (planning/safety/unknown.hpp): the extrusion stops, the vertex is
+//   NOT safe (unknown is never safe).
+// Must be callable from several threads at once.
 using SafetyTest = std::function<PointSafety(const Eigen::Vector3d& point)>;
 
-// Preview (§3.3 "fast preview"): unsafe where the blocking volume (trilinear, 0 outside its grid)
-// is >= threshold (risk per mm). Never kOutside. `blocking` must outlive the returned test.
+// Preview (§3.3 "fast preview"): unsafe where the blocking volume (trilinear) is >= threshold
+// (risk per mm); kUnknown beyond the extent of its grid (the scan: nothing is known there).
+// `blocking` must outlive the returned test.
 SafetyTest blocking_safety_test(const Volume<float>& blocking, double threshold);
 
 // Path safety: unsafe where the value (trilinear over the computed voxels; NaN voxels are left out
 // and their weight renormalised) is past the threshold: value > threshold, or value < threshold
-// when higher_is_safer (SVV). kOutside where no corner of the interpolation cell was computed.
-// kUnknown where the nearest voxel of `region_state` (RegionState, roi.nii.gz; optional) is
-// unknown, before the value is looked at (the interpolation would borrow computed neighbours).
+// when higher_is_safer (SVV). kBeyond outside the region of interest, the ball of
+// `roi_radius_mm` around the grid's centre voxel (the plan's output grid); no ball (0): nothing
+// is beyond. kUnknown where the nearest voxel of `region_state` (RegionState, roi.nii.gz;
+// optional) is unknown, before the value is looked at (the interpolation would borrow computed
+// neighbours). kOutside inside the ball where no corner of the interpolation cell was computed.
 // `path_safety` and `region_state` must outlive the returned test.
 SafetyTest path_safety_test(const Volume<float>& path_safety, bool higher_is_safer,
-                            double threshold, const Volume<uint8_t>* region_state = nullptr);
+                            double threshold, double roi_radius_mm,
+                            const Volume<uint8_t>* region_state = nullptr);
 
 // --- The geometry -------------------------------------------------------------------------------
 
@@ -133,10 +145,12 @@ struct AreaSafetyOptions {
 };
 
 // Tessellates (rings_for_edge_bound), extrudes every vertex along its normal in steps of at most
-// h/2 from distance 0 up to max_distance_mm, stopping at the first unsafe sample (the vertex is
-// placed there, unsafe) or at the first kOutside sample (placed at the last sample with data,
-// safe) or at the first kUnknown sample (placed at the last sample before it, unsafe, counted in
-// unknown_vertex_count); classifies; finds connected safe regions over the mesh edges; measures them
+// h/2 from distance 0 up to max_distance_mm, stopping at the first sample that is not kSafe: at a
+// kUnsafe one (the vertex is placed there, unsafe); at a kBeyond one (placed at the last sample
+// before it, safe when there was one, else not safe and counted in uncomputed_vertex_count); at a
+// kOutside one (placed at the last sample before it, not safe, counted in
+// uncomputed_vertex_count); at a kUnknown one (the same, counted in unknown_vertex_count);
+// classifies; finds connected safe regions over the mesh edges; measures them
 // (measure_regions). Throws Error on bad options.
 AreaSafetyGeometry compute_area_safety(const Ellipsoid& ellipsoid, const SafetyTest& test,
                                        const AreaSafetyOptions& options);

@@ -430,12 +430,16 @@ TEST(AreaSafetyExtrusion, PathSafetyTestSkipsUncomputedVoxels) {
         const Eigen::Vector3d x = ps.index_to_physical(i, j, k);
         if (x.norm() <= 10.0) ps(i, j, k) = float(x.x());
       }
-  const SafetyTest lower = path_safety_test(ps, false, 3.0);  // unsafe where x > 3
+  const SafetyTest lower = path_safety_test(ps, false, 3.0, 10.0);  // unsafe where x > 3
   EXPECT_EQ(lower(Eigen::Vector3d(2.5, 0.3, 0.2)), PointSafety::kSafe);
   EXPECT_EQ(lower(Eigen::Vector3d(3.5, 0.3, 0.2)), PointSafety::kUnsafe);
-  EXPECT_EQ(lower(Eigen::Vector3d(0.0, 13.0, 0.0)), PointSafety::kOutside);
-  EXPECT_EQ(lower(Eigen::Vector3d(0.0, 40.0, 0.0)), PointSafety::kOutside);
-  const SafetyTest higher = path_safety_test(ps, true, -3.0);  // unsafe where x < -3
+  EXPECT_EQ(lower(Eigen::Vector3d(0.0, 10.1, 0.0)), PointSafety::kBeyond);
+  EXPECT_EQ(lower(Eigen::Vector3d(0.0, 13.0, 0.0)), PointSafety::kBeyond);
+  EXPECT_EQ(lower(Eigen::Vector3d(0.0, 40.0, 0.0)), PointSafety::kBeyond);
+  // Without the region's radius a point with no value is not computed, not beyond.
+  EXPECT_EQ(path_safety_test(ps, false, 3.0, 0.0)(Eigen::Vector3d(0.0, 13.0, 0.0)),
+            PointSafety::kOutside);
+  const SafetyTest higher = path_safety_test(ps, true, -3.0, 10.0);  // unsafe where x < -3
   EXPECT_EQ(higher(Eigen::Vector3d(-3.5, 0.3, 0.2)), PointSafety::kUnsafe);
   // Near the edge of the ball the NaN corners are left out: still the computed value.
   EXPECT_EQ(higher(Eigen::Vector3d(-9.7, 0.5, 0.5)), PointSafety::kUnsafe);
@@ -478,11 +482,11 @@ TEST(AreaSafetyExtrusion, ExtrusionsReachingTheUnknownStopThereNotSafe) {
         state(i, j, k) = x.z() > 5.5 ? kRegionUnknown : kRegionComputed;
         if (state(i, j, k) == kRegionComputed) ps(i, j, k) = 0.0f;
       }
-  const SafetyTest test = path_safety_test(ps, false, 3.0, &state);
+  const SafetyTest test = path_safety_test(ps, false, 3.0, 10.0, &state);
   EXPECT_EQ(test(Eigen::Vector3d(0.3, 0.2, 3.0)), PointSafety::kSafe);
   // Beside computed voxels (the interpolation alone would borrow their value): unknown.
   EXPECT_EQ(test(Eigen::Vector3d(0.3, 0.2, 6.2)), PointSafety::kUnknown);
-  EXPECT_EQ(test(Eigen::Vector3d(0.0, 13.0, 0.0)), PointSafety::kOutside);
+  EXPECT_EQ(test(Eigen::Vector3d(0.0, 13.0, 0.0)), PointSafety::kBeyond);
   AreaSafetyOptions o;
   o.spacing_mm = 1.0;
   o.max_distance_mm = 30.0;
@@ -505,10 +509,68 @@ TEST(AreaSafetyExtrusion, ExtrusionsReachingTheUnknownStopThereNotSafe) {
   EXPECT_GT(toward, 0);
   EXPECT_GE(g.unknown_vertex_count, toward);
   EXPECT_EQ(area_safety_json(g)["unknown_vertex_count"].get<int64_t>(), g.unknown_vertex_count);
-  // Without the states the unknown voxels look like the region's edge: all safe (the old rule).
-  const AreaSafetyGeometry blind = compute_area_safety(sphere(4), path_safety_test(ps, false, 3.0), o);
+  // Without the states the unknown voxels are voxels with no value inside the region: the
+  // extrusions that meet them are not safe either, counted as not computed.
+  const AreaSafetyGeometry blind =
+      compute_area_safety(sphere(4), path_safety_test(ps, false, 3.0, 10.0), o);
   EXPECT_EQ(blind.unknown_vertex_count, 0);
-  for (size_t v = 0; v < blind.base.size(); ++v) ASSERT_TRUE(blind.safe[v]);
+  EXPECT_GE(blind.uncomputed_vertex_count, toward);
+  for (size_t v = 0; v < blind.base.size(); ++v) {
+    if (blind.normals[v].z() > 0.7) ASSERT_FALSE(blind.safe[v]) << blind.normals[v].transpose();
+    if (blind.normals[v].z() < 0.45) ASSERT_TRUE(blind.safe[v]) << blind.normals[v].transpose();
+  }
+}
+
+TEST(AreaSafetyExtrusion, RegionOfInterestInsideTheTumorLeavesNoVertexSafe) {
+  // The region of interest (5 mm) lies inside the tumor (radius 10 mm): no extrusion starts on a
+  // computed voxel, so none reached its distance through known values. Every computed voxel is
+  // safe (0, unsafe above 3): only the rule, not the values, may refuse the vertices.
+  const ImageGeometry grid = centred_cube_grid(11, 1.0);
+  Volume<float> ps(grid, std::nanf(""));
+  for (int64_t k = 0; k < 11; ++k)
+    for (int64_t j = 0; j < 11; ++j)
+      for (int64_t i = 0; i < 11; ++i) {
+        if (ps.index_to_physical(i, j, k).norm() <= 5.0) ps(i, j, k) = 0.0f;
+      }
+  AreaSafetyOptions o;
+  o.spacing_mm = 1.0;
+  o.max_distance_mm = 5.0;
+  const AreaSafetyGeometry g = compute_area_safety(sphere(10), path_safety_test(ps, false, 3.0, 5.0), o);
+  ASSERT_GT(g.base.size(), 100u);
+  for (size_t v = 0; v < g.base.size(); ++v) {
+    ASSERT_FALSE(g.safe[v]) << v;
+    ASSERT_EQ(g.extrusion[v], 0.0f) << v;
+  }
+  EXPECT_TRUE(g.regions.empty());
+  EXPECT_EQ(g.uncomputed_vertex_count, int64_t(g.base.size()));
+  EXPECT_EQ(area_safety_json(g)["uncomputed_vertex_count"].get<int64_t>(), int64_t(g.base.size()));
+}
+
+TEST(AreaSafetyExtrusion, PreviewBeyondTheScanIsUnknown) {
+  // Blocking 0 everywhere on a grid reaching x, y, z in [-10.5, 10.5] mm (its extent).
+  Volume<float> blocking(centred_cube_grid(21, 1.0), 0.0f);
+  const SafetyTest test = blocking_safety_test(blocking, 0.5);
+  EXPECT_EQ(test(Eigen::Vector3d(10.4, 0.0, 0.0)), PointSafety::kSafe);
+  EXPECT_EQ(test(Eigen::Vector3d(10.6, 0.0, 0.0)), PointSafety::kUnknown);
+  AreaSafetyOptions o;
+  o.spacing_mm = 1.0;
+  o.max_distance_mm = 20.0;
+  // A tumor at the centre: every extrusion (4 + 20 mm) leaves the scan before its distance.
+  const AreaSafetyGeometry inside = compute_area_safety(sphere(4), test, o);
+  EXPECT_EQ(inside.unknown_vertex_count, int64_t(inside.base.size()));
+  EXPECT_TRUE(inside.regions.empty());
+  // A tumor 16 mm outside the scan: nothing known at all, nothing safe.
+  Ellipsoid away = sphere(4);
+  away.centre = Eigen::Vector3d(26.5, 0.0, 0.0);
+  const AreaSafetyGeometry outside = compute_area_safety(away, test, o);
+  for (size_t v = 0; v < outside.base.size(); ++v) ASSERT_FALSE(outside.safe[v]) << v;
+  EXPECT_TRUE(outside.regions.empty());
+  // With a distance that stays inside the scan the same tumor at the centre is safe all round.
+  o.max_distance_mm = 5.0;
+  const AreaSafetyGeometry short_reach = compute_area_safety(sphere(4), test, o);
+  EXPECT_EQ(short_reach.unknown_vertex_count, 0);
+  ASSERT_EQ(short_reach.regions.size(), 1u);
+  EXPECT_EQ(short_reach.regions[0].vertex_count, int(short_reach.base.size()));
 }
 
 // --- VTK file ----------------------------------------------------------------------------------
