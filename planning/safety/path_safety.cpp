@@ -1,6 +1,8 @@
 // Path safety volume: input checks, tumor surface, output grid, CPU backend and device dispatch.
 #include "planning/safety/path_safety.hpp"
 
+#include <fmt/format.h>
+
 #include <omp.h>
 #include <spdlog/spdlog.h>
 
@@ -266,6 +268,47 @@ double farthest_blocking_mm(const Volume<float>& blocking, const Eigen::Vector3d
   return std::sqrt(r2);
 }
 
+namespace {
+
+// A region of interest that holds nothing but tumor (a ball around a centre inside the tumor that
+// does not reach its surface) computes no voxel a path could start from: refused with the
+// numbers.
+void refuse_region_inside_tumor(const Volume<uint8_t>& tumor, const TumorSurface& surface,
+                                const Eigen::Vector3d& centre, double radius_mm) {
+  const Index3 c = tumor.geometry().nearest_index(centre);
+  if (!tumor.geometry().contains(c[0], c[1], c[2]) || !tumor(c[0], c[1], c[2])) return;
+  double nearest = std::numeric_limits<double>::infinity(), farthest = 0.0;
+  for (const auto& p : surface.points) {
+    const double d = (Eigen::Vector3d(p.position.x, p.position.y, p.position.z) - centre).norm();
+    nearest = std::min(nearest, d);
+    farthest = std::max(farthest, d);
+  }
+  if (radius_mm < nearest) {
+    throw Error(fmt::format(
+        "region of interest: a radius of {:.1f} mm lies inside the tumor (its surface is {:.1f} "
+        "to {:.1f} mm from the region's centre), so no point around the tumor would be computed; "
+        "give a radius larger than {:.0f} mm (the needle's reach, e.g. 120 mm), or none to reach "
+        "the farthest vulnerable structure",
+        radius_mm, nearest, farthest, std::ceil(nearest)));
+  }
+}
+
+}  // namespace
+
+void refuse_implausible_tumor(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
+                              const TumorSurface& surface, const std::string& tumor_source) {
+  constexpr double kMostOfScan = 0.25;
+  const double tumor_ml = double(surface.tumor_voxels) * tumor.geometry().voxel_volume_mm3() / 1e3;
+  const double scan_ml = double(blocking.voxel_count()) * blocking.geometry().voxel_volume_mm3() / 1e3;
+  if (tumor_ml > kMostOfScan * scan_ml) {
+    throw Error(fmt::format(
+        "{}: the tumor is {:.0f} mL, {:.0f} % of the scan ({:.0f} mL); a tumor mask marks the "
+        "lesion only (at most {:.0f} % of the scan): check that the tumor file or label is the "
+        "lesion's, not the label map or an inverted mask",
+        tumor_source, tumor_ml, 100.0 * tumor_ml / scan_ml, scan_ml, 100.0 * kMostOfScan));
+  }
+}
+
 OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                             const TumorSurface& surface, const PathSafetyOptions& options) {
   const auto& bg = blocking.geometry();
@@ -290,6 +333,7 @@ OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>
     }
   }
   out.radius_mm = r;
+  refuse_region_inside_tumor(tumor, surface, out.centre, r);
   const int64_t half = int64_t(std::ceil(r / h - 1e-9));
   const int64_t n = 2 * half + 1;
   if (n > 4097) {
@@ -1263,6 +1307,7 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   PhaseClock clock;
   validate_blocking(blocking, blocking_source);
   const TumorSurface mask_surface = extract_tumor_surface(tumor, tumor_source);
+  refuse_implausible_tumor(blocking, tumor, mask_surface, tumor_source);
   check_tumor_inside_blocking(blocking, tumor, mask_surface, blocking_source, tumor_source);
   const OutputGrid grid = make_output_grid(blocking, tumor, mask_surface, options);
   check_memory(grid, options);

@@ -163,7 +163,8 @@ struct TumorSurface {
 TumorSurface extract_tumor_surface(const Volume<uint8_t>& tumor, const std::string& source);
 
 // Output grid Θ of DESIGN.md §4: isotropic spacing h, axes of the blocking volume, centre voxel on
-// the tumor centroid, 2 ceil(R/h) + 1 voxels per axis.
+// the tumor centroid, 2 ceil(R/h) + 1 voxels per axis. Throws Error when the region of interest
+// lies inside the tumor (a ball around a centre in the tumor that does not reach its surface).
 struct OutputGrid {
   ImageGeometry geometry;
   Eigen::Vector3d centre = Eigen::Vector3d::Zero();
@@ -192,6 +193,11 @@ struct OutputGrid {
     return di * di + dj * dj + dk * dk <= max_sq;
   }
 };
+// Throws Error naming `tumor_source` when the tumor takes more than a quarter of the scan (the
+// blocking volume's grid): a label map or an inverted mask given as the tumor, not a lesion.
+void refuse_implausible_tumor(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
+                              const TumorSurface& surface, const std::string& tumor_source);
+
 OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                             const TumorSurface& surface, const PathSafetyOptions& options);
 // The default region of interest radius: the distance from `centre` (LPS mm) to the farthest voxel

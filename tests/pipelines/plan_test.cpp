@@ -94,6 +94,47 @@ TEST_F(PlanTest, CtThatDoesNotOverlapTheLabelMapIsRefused) {
   EXPECT_FALSE(fs::exists(dir_ / "plan"));
 }
 
+// The label map given as the tumor (every voxel > 0.5) planned for minutes into one all-safe
+// region; it is refused with its share of the scan, and nothing is written.
+TEST_F(PlanTest, TumorFillingTheScanIsRefusedWithItsShare) {
+  PlanRequest r = request("plan");
+  r.tumor = labels_;
+  expect_error_containing([&] { run_plan(r); },
+                          {"labels.nii.gz", "the tumor is 111 mL, 100 % of the scan (111 mL)",
+                           "not the label map or an inverted mask"});
+  // 24^3 voxels of 2 mm: 110.6 mL. A lesion of 30 % of it (the first 7 of 24 slices, whole) too.
+  Volume<uint8_t> slab(inputs_.grid, 0);
+  for (int64_t k = 0; k < 7; ++k)
+    for (int64_t j = 0; j < 24; ++j)
+      for (int64_t i = 0; i < 24; ++i) slab(i, j, k) = 1;
+  write_volume(slab, (dir_ / "slab.nii.gz").string());
+  r.tumor = (dir_ / "slab.nii.gz").string();
+  expect_error_containing([&] { run_plan(r); }, {"slab.nii.gz", "29 % of the scan"});
+  EXPECT_FALSE(fs::exists(dir_ / "plan"));
+}
+
+// A region of interest of 5 mm around the centre of a tumor 10 mm in radius computed only tumor
+// voxels, and area safety called every vertex safe; it is refused with the distances.
+TEST_F(PlanTest, RegionOfInterestInsideTheTumorIsRefused) {
+  Volume<uint8_t> ball(inputs_.grid, 0);
+  const Eigen::Vector3d c = inputs_.grid.index_to_physical(Eigen::Vector3d(11.5, 11.5, 11.5));
+  for (int64_t k = 0; k < 24; ++k)
+    for (int64_t j = 0; j < 24; ++j)
+      for (int64_t i = 0; i < 24; ++i) ball(i, j, k) = (ball.index_to_physical(i, j, k) - c).norm() <= 10.0;
+  write_volume(ball, (dir_ / "ball.nii.gz").string());
+  PlanRequest r = request("plan");
+  r.tumor = (dir_ / "ball.nii.gz").string();
+  r.path_safety.radius_mm = 5.0;
+  expect_error_containing([&] { run_plan(r); },
+                          {"region of interest: a radius of 5.0 mm lies inside the tumor",
+                           "give a radius larger than"});
+  EXPECT_FALSE(fs::exists(dir_ / "plan"));
+  // Reaching beyond its surface, the same tumor plans.
+  r.path_safety.radius_mm = 16.0;
+  r.path_safety.values = kernels::kSvv;
+  EXPECT_NO_THROW(run_plan(r));
+}
+
 TEST_F(PlanTest, WritesEveryValueOnTheOutputGridWithNanOutsideTheBall) {
   const nlohmann::json plan = run_plan(request("plan"));
   for (const char* f : {"blocking.nii.gz", "roi.nii.gz", "path_safety_svv.nii.gz", "path_safety_isbv.nii.gz",
