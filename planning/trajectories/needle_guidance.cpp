@@ -127,11 +127,15 @@ bool leaves_scan_in_body(const PlanData& plan, const NeedleState& s) {
   return e.outside_scan_mm > air_mm + e.structure_step_mm;
 }
 
+// The one rule set of the needle's class (NeedleState::safety), which the panel, overlay.csv,
+// OpenIGTLink and the targeting view all show.
 NeedleSafety overall_safety(const PlanData& plan, const NeedleState& s) {
-  return !s.clear || s.tip_class == "dangerous" ? NeedleSafety::kDangerous
-         : leaves_scan_in_body(plan, s)         ? NeedleSafety::kUnknown
-         : s.tip_class == "medium"              ? NeedleSafety::kMedium
-                                                : NeedleSafety::kSafe;
+  if (!s.clear || s.tip_class == "dangerous") return NeedleSafety::kDangerous;
+  // No line to the tumor (pointing away, or the tip beyond the tumor's centre); a line that
+  // leaves the scan inside the body; a tip with no extension where nothing was computed.
+  const bool evaluated = s.along_axis_mm > 1e-6 || s.tip_class == "safe" || s.tip_class == "medium";
+  if (s.points_away || !evaluated || leaves_scan_in_body(plan, s)) return NeedleSafety::kUnknown;
+  return s.tip_class == "medium" ? NeedleSafety::kMedium : NeedleSafety::kSafe;
 }
 
 // Nearest safe direction: max dot product of the outward needle direction over the precomputed
@@ -213,7 +217,6 @@ NeedleSafety NeedleGuide::line_safety(const Eigen::Vector3d& tip,
                                       const Eigen::Vector3d& axis) const {
   const PlanData& plan = *plan_;
   NeedleState s = needle_line(Eigen::Isometry3d::Identity(), tip, axis, plan.tumor_centre);
-  if (s.points_away) return NeedleSafety::kUnknown;
   s.eps = eps_;
   start_line_at_body_entry(plan, s);
   evaluate_extension(plan, *evaluator_, eps_, s, true);

@@ -50,8 +50,12 @@ struct NeedleState {
   // Path safety class at line_start for the plan's first value ("safe", "medium", "dangerous",
   // "outside" beyond the region of interest, "" when the plan has no path safety volume).
   std::string tip_class;
-  // Overall: dangerous when not clear or the tip's class is dangerous; medium when clear and the
-  // tip's class is medium; safe otherwise (clear, and the tip safe or outside the computed region).
+  // Overall, by one rule set: dangerous when not clear or the tip's class is dangerous; else
+  // unknown when the needle points away from the tumor (its centre behind the tip: pointing away
+  // or the tip beyond it), when its line leaves the scan inside the body, or when there is no
+  // extension and no path safety value at the tip; else medium when the tip's class is medium;
+  // safe otherwise (clear, and the tip safe or outside the computed region). Never safe without
+  // a line to the tumor inside the scan.
   NeedleSafety safety = NeedleSafety::kSafe;
 
   // Nearest safe direction: the smallest angle between the needle's outward direction (-axis,
@@ -79,7 +83,7 @@ class NeedleGuide {
                        const Eigen::Vector3d& axis_in_needle) const;
 
   // The safety evaluate() gives a needle whose tip is at `tip` (CT) pointing along `axis` (CT,
-  // need not be unit), or kUnknown when that needle points away from the tumor; only what the
+  // need not be unit), by the same rule set; only what the
   // class depends on is computed (no structures, ranks or area safety; the line integral up to
   // where it exceeds eps), so it costs a fraction of evaluate(). For many lines at once, e.g. the
   // targeting view's polar map. Throws Error as evaluate() does.
