@@ -57,6 +57,8 @@ bool plausible(const Eigen::Isometry3d& T) {
 }  // namespace
 
 PoseReceiver::PoseReceiver(const std::string& uri) : uri_(uri) {
+  // The library's own "Debug: ... Failed to connect" lines to stderr are replaced by ours.
+  igtl::Object::SetGlobalWarningDisplay(false);
   const std::string client_prefix = "igtl://", server_prefix = "igtl-server:";
   if (uri.rfind(client_prefix, 0) == 0) {
     const std::string rest = uri.substr(client_prefix.size());
@@ -118,6 +120,22 @@ void PoseReceiver::run() {
       c.socket = igtl::ClientSocket::New();
       if (c.socket->ConnectToServer(host_.c_str(), port_) != 0) {
         close_socket(*c.socket);
+        // Said in our words when it starts and every 10 s while it lasts: without poses nothing
+        // is tracked, and the library itself says so only in debug lines.
+        const auto now = Clock::now();
+        int64_t failed;
+        {
+          std::lock_guard<std::mutex> lock(mutex_);
+          failed = ++stats_.failed_connects;
+          stats_.last_problem = "cannot reach the tracking server";
+        }
+        if (failed == 1 || now - last_unreachable_warning_ >= std::chrono::seconds(10)) {
+          last_unreachable_warning_ = now;
+          spdlog::warn(
+              "OpenIGTLink poses: cannot reach the tracking server at {}:{} ({} attempt(s)); is "
+              "it running and is the address right? Retrying; no pose arrives until it answers",
+              host_, port_, failed);
+        }
         const auto until = Clock::now() + std::chrono::duration<double>(backoff_s);
         while (!stop_ && Clock::now() < until) std::this_thread::sleep_for(std::chrono::milliseconds(10));
         backoff_s = std::min(2.0, backoff_s * 2);

@@ -40,6 +40,7 @@ class PoseReceiver {
     int64_t poses = 0;        // poses taken from them
     int64_t skipped = 0;      // messages of types not read (skipped by their body size)
     int64_t dropped = 0;      // connections dropped for a malformed message
+    int64_t failed_connects = 0;  // attempts to reach the tracking server that failed
     std::string last_problem;
   };
 
@@ -64,6 +65,7 @@ class PoseReceiver {
 
   std::string uri_, host_;
   int port_ = 0;
+  std::chrono::steady_clock::time_point last_unreachable_warning_{};  // receiver thread only
   bool server_ = false;
   struct Listener;
   std::unique_ptr<Listener> listener_;

@@ -134,6 +134,7 @@ class GuideOutputs {
   // The recording, the video, the snapshots due at this frame (given frames, every N-th of the
   // `shown` frames so far) and the log row of one frame.
   void add(const tracking::Frame& frame, const GuideFrameResult& r, int64_t shown) {
+    last_frame_ = frame.index;
     if (!request_.record.empty()) {
       if (!recorder_) {
         recorder_ = std::make_unique<tracking::FrameRecorder>(
@@ -174,6 +175,14 @@ class GuideOutputs {
     }
     if (log_) log_->commit();
     summary.snapshots_written = snapshots_written_;
+    // Snapshots asked for beyond the frames shown are said, not passed over.
+    for (const auto& [frame, name] : pending_snapshots_) {
+      const std::string why =
+          last_frame_ < 0 ? "no frame was shown"
+                          : fmt::format("the frames shown ended at frame {}", last_frame_);
+      spdlog::warn("guide: snapshot {} at frame {} not taken: {}", name, frame, why);
+      summary.snapshots_not_taken.push_back(fmt::format("{} (frame {})", name, frame));
+    }
   }
 
  private:
@@ -186,6 +195,7 @@ class GuideOutputs {
   std::unique_ptr<tracking::FrameRecorder> recorder_;
   tracking::RecordOptions record_options_;
   std::vector<std::string> snapshots_written_;
+  int64_t last_frame_ = -1;
 };
 
 // Window keys: 1-7 toggle layers, C palette, S snapshot, Q or Esc quit. Returns true to quit.

@@ -78,6 +78,7 @@ struct GuideSummary {
   double igtl_latency_median_ms = 0, igtl_latency_p95_ms = 0;
   std::vector<overlay::GuidanceFrameInfo> frame_infos;  // one per frame shown
   std::vector<std::string> snapshots_written;
+  std::vector<std::string> snapshots_not_taken;  // "NAME (frame N)": asked for beyond the frames
   std::string video;  // the video written, if any
 };
 

@@ -13,6 +13,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <optional>
 #include <nlohmann/json.hpp>
 
 #include "foundation/error.hpp"
@@ -47,6 +48,39 @@ std::string choose_value(const SlicesRequest& req) {
   }
   if (values.empty()) throw Error(json_path + ": parameters.values is empty");
   return std::find(values.begin(), values.end(), "svv") != values.end() ? "svv" : values[0];
+}
+
+// The scan the plan was made from (its label map, else its CT) when its grid is known, and a
+// warning when the CT given lies on another grid: it may be another patient's or another day's
+// scan, whose anatomy the plan's colours would be drawn over. "" when they agree or nothing is
+// known to compare with.
+std::string other_scan_warning(const PlanData& plan, const ImageGeometry& ct,
+                               const std::string& ct_path) {
+  std::optional<ImageGeometry> planned;
+  std::string planned_from;
+  if (!plan.labels.empty()) {
+    planned = plan.labels.geometry();
+    planned_from = "the plan's label map " + plan.labels_path;
+  } else if (plan.json.contains("inputs") && plan.json["inputs"].is_object() &&
+             plan.json["inputs"].contains("ct") && plan.json["inputs"]["ct"].is_object() &&
+             plan.json["inputs"]["ct"].contains("path")) {
+    const std::string path = plan.json["inputs"]["ct"]["path"].get<std::string>();
+    std::error_code ec;
+    if (!fs::exists(path, ec) || fs::equivalent(path, ct_path, ec)) return {};
+    planned = read_volume_geometry(path);
+    planned_from = "the plan's CT " + path;
+  }
+  if (!planned || ct.same_grid(*planned, 1e-3)) return {};
+  const auto grid_text = [](const ImageGeometry& g) {
+    return fmt::format("{} x {} x {} voxels of {:.3g} x {:.3g} x {:.3g} mm from ({:.1f}, {:.1f}, "
+                       "{:.1f})",
+                       g.dims[0], g.dims[1], g.dims[2], g.spacing[0], g.spacing[1], g.spacing[2],
+                       g.origin[0], g.origin[1], g.origin[2]);
+  };
+  return fmt::format(
+      "{}: the CT is not on the grid of {} ({} against {}): it may be another scan; the plan is "
+      "drawn over it where they overlap in LPS, check that it is the scan planned on",
+      ct_path, planned_from, grid_text(ct), grid_text(*planned));
 }
 
 // Where the planes pass and which way the oblique one runs.
@@ -147,6 +181,8 @@ nlohmann::json run_slices(const SlicesRequest& req) {
   spdlog::info("reading CT {}", req.ct);
   const Volume<float> ct = read_volume<float>(req.ct);
   require_overlap_with_plan(ct.geometry(), plan.grid, req.ct, "the CT");
+  const std::string other_scan = other_scan_warning(plan, ct.geometry(), req.ct);
+  if (!other_scan.empty()) spdlog::warn("slices: {}", other_scan);
   const Placement place = place_planes(req, plan);
 
   SliceScene scene;
@@ -198,6 +234,7 @@ nlohmann::json run_slices(const SlicesRequest& req) {
        "pixel (x, y) shows pixel_0_0 + x pixel_mm right + y pixel_mm down; the "
        "view occupies columns [0, view_width), the legend the rest"},
       {"views", views}};
+  if (!other_scan.empty()) j["warnings"] = {other_scan};
   j["changed_inputs"] = nlohmann::json::array();
   for (const auto& c : plan.changed_inputs) j["changed_inputs"].push_back(c.message);
   write_text_file(out.file("slices.json"), j.dump(2) + "\n");

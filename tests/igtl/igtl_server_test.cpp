@@ -27,6 +27,8 @@
 #include <thread>
 
 #include <igtl_util.h>
+#include <spdlog/sinks/ostream_sink.h>
+#include <spdlog/spdlog.h>
 
 #include "igtl/messages.hpp"
 #include "igtl/pose_receiver.hpp"
@@ -306,6 +308,27 @@ TEST(IgtlPoses, TheLibrarysTrackerServerExampleDrivesOurReceiver) {
     EXPECT_LT((R.transpose() * R - Eigen::Matrix3d::Identity()).cwiseAbs().maxCoeff(), 1e-4);
     EXPECT_EQ(receiver.stats().dropped, 0);
   }
+}
+
+TEST(IgtlPoses, AnUnreachableTrackingServerIsSaidInOurWords) {
+  // Nothing listens on a free port: every attempt to connect fails, and is counted and said.
+  const int port = test::free_loopback_port();
+  std::ostringstream log;
+  auto sink = std::make_shared<spdlog::sinks::ostream_sink_mt>(log, true);
+  spdlog::default_logger()->sinks().push_back(sink);
+  {
+    PoseReceiver receiver("igtl://127.0.0.1:" + std::to_string(port));
+    ASSERT_TRUE(wait_until([&] { return receiver.stats().failed_connects >= 2; }));
+    EXPECT_EQ(receiver.stats().connections, 0);
+    EXPECT_EQ(receiver.stats().last_problem, "cannot reach the tracking server");
+  }
+  spdlog::default_logger()->sinks().pop_back();
+  const std::string said = log.str();
+  EXPECT_NE(said.find("cannot reach the tracking server at 127.0.0.1:" + std::to_string(port)),
+            std::string::npos)
+      << said;
+  // Said once at first, not once per attempt.
+  EXPECT_EQ(said.find("cannot reach", said.find("cannot reach") + 1), std::string::npos) << said;
 }
 
 // A hostile or broken sender: our fake tracking server speaks raw bytes.

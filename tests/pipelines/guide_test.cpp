@@ -227,7 +227,8 @@ TEST_F(GuideTest, CommandLineTakesSeveralSnapshotFrames) {
           " --registration " + (d / "setup/registration.yaml").string() + " --needle " +
           (d / "setup/needle.yaml").string() + " --source recording:" +
           (d / "recording").string() + " --headless --max-frames 6 --rays 500 --snapshots " +
-          out.path().string() + " --snapshot-at 2:first.png --snapshot-at 5:second.png",
+          out.path().string() +
+          " --snapshot-at 2:first.png --snapshot-at 5:second.png --snapshot-at 40:late.png",
       &output);
   ASSERT_EQ(code, 0) << output;
   for (const char* name : {"first.png", "second.png"}) {
@@ -235,6 +236,11 @@ TEST_F(GuideTest, CommandLineTakesSeveralSnapshotFrames) {
     ASSERT_FALSE(picture.empty()) << name << "\n" << output;
     EXPECT_EQ(picture.cols, request(out.path().string()).setup.camera.width) << name;
   }
+  // A frame beyond the six shown is said, not passed over in silence.
+  EXPECT_FALSE(fs::exists(out.path() / "late.png"));
+  EXPECT_NE(output.find("snapshot late.png at frame 40 not taken: the frames shown ended at frame 5"),
+            std::string::npos)
+      << output;
 }
 
 TEST_F(GuideTest, FaultsNeverDrawFromAPoseThatIsNotCurrent) {

@@ -380,6 +380,27 @@ TEST(SlicesTest, CommandWritesOneImagePerPlaneAndRefusesBadInput) {
   bool vessel = false;
   for (const auto& s : j["views"][0]["structures"]) vessel |= s == "vessel";
   EXPECT_TRUE(vessel) << j["views"][0].dump();
+  EXPECT_FALSE(j.contains("warnings")) << j.dump();
+  // A CT of another scan (another grid, overlapping the plan) is drawn, with a warning in the log
+  // and in slices.json naming both grids.
+  {
+    planning::ImageGeometry other = centred_cube_grid(20, 2.5, Eigen::Vector3d(13, -4, 5));
+    write_volume(Volume<float>(other, 40.0f), (dir / "other_ct.nii.gz").string());
+    std::string said;
+    ASSERT_EQ(run_cli("slices --plan " + (dir / "plan").string() + " --ct " +
+                          (dir / "other_ct.nii.gz").string() + " --out " + (dir / "o").string(),
+                      &said),
+              0)
+        << said;
+    EXPECT_NE(said.find("other_ct.nii.gz: the CT is not on the grid of the plan's label map"),
+              std::string::npos)
+        << said;
+    EXPECT_NE(said.find("20 x 20 x 20 voxels of 2.5"), std::string::npos) << said;
+    nlohmann::json o;
+    std::ifstream(dir / "o" / "slices.json") >> o;
+    ASSERT_TRUE(o.contains("warnings")) << o.dump();
+    EXPECT_NE(o["warnings"][0].get<std::string>().find("it may be another scan"), std::string::npos);
+  }
 
   // Bad input leaves no output folder: an unknown plane, and oblique without area safety.
   EXPECT_NE(run_cli(base + " --planes axial,transverse --out " + (dir / "bad").string()), 0);
