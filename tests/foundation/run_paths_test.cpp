@@ -66,7 +66,7 @@ TEST(RunPaths, RefusesOutputsThatReplaceInputsEachOtherOrAnotherCommandsFolder) 
        {"guide", {{"--plan", plan}}, {{"--snapshots", tmp.string(), K::kFilesInFolder}}},
        {}},
       {"snapshots into an input folder",
-       {"guide", {{"--plan", plan}}, {{"--snapshots", plan, K::kFilesInFolder}}},
+       {"guide", {{"--plan", plan}}, {{"--snapshots", plan + "/shots", K::kFilesInFolder}}},
        {"--snapshots", "lies inside the input --plan"}},
       {"two outputs at one path",
        {"guide", {}, {{"--out", tmp.file("v.mp4")}, {"--log", tmp.file("v.mp4")}}},
