@@ -127,13 +127,13 @@ TEST_F(OutputSafetyTest, GuideOutputsMustDiffer) {
   plan_folder(plan);
   const std::string video = folder_->file("overlay.mp4");
   std::string err;
-  EXPECT_EQ(run_cli("guide --plan " + plan.string() + " --poses igtl-server:0 --headless --out " +
+  EXPECT_EQ(run_cli("guide --plan " + plan.string() + " --registration r.yaml --needle n.yaml --poses igtl-server:0 --headless --out " +
                         video + " --log " + video,
                     &err, test::Capture::kStderr),
             1);
   EXPECT_EQ(err.rfind("error: --out " + video + ": is also --log", 0), 0u) << err;
   EXPECT_FALSE(fs::exists(video));
-  EXPECT_EQ(run_cli("guide --plan " + plan.string() + " --poses igtl-server:0 --headless --out " +
+  EXPECT_EQ(run_cli("guide --plan " + plan.string() + " --registration r.yaml --needle n.yaml --poses igtl-server:0 --headless --out " +
                         plan.string() + "/overlay.mp4",
                     &err, test::Capture::kStderr),
             1);
@@ -147,7 +147,7 @@ TEST_F(OutputSafetyTest, FileSizeLimitEndsWithAnErrorAndLeavesNothing) {
   fs::create_directories(root);
   std::string out;
   const int code = test::run_command(
-      "bash -c 'ulimit -f 200; exec " + std::string(CREPUSCULAR_BINARY) +
+      "bash -c 'ulimit -f 20; exec " + std::string(CREPUSCULAR_BINARY) +
           " phantom --spacing 6 --out " + (root / "p").string() + "' 2>&1",
       &out);
   EXPECT_NE(code, 0) << out;
