@@ -89,7 +89,19 @@ void add_area_command(CLI::App& app) {
                   "Output folder for area_safety.vtk and area.json (replaced only when complete; "
                   "never a plan folder)")
       ->required();
-  cmd->callback([req] { pipelines::run_area(*req); });
+  auto overwrite = std::make_shared<bool>(false);
+  add_overwrite_flag(cmd, *overwrite);
+  cmd->callback([req, overwrite] {
+    claim_run_paths({"area",
+                     {{"--plan", req->plan_dir},
+                      {"--tumor", req->tumor},
+                      {"--labels", req->labels},
+                      {"--vulnerability", req->vulnerability},
+                      {"--blocking", req->blocking}},
+                     {{"--out", req->out_dir, OutputKind::kFolder}},
+                     *overwrite});
+    pipelines::run_area(*req);
+  });
 }
 
 }  // namespace crepuscular::apps

@@ -45,7 +45,12 @@ void add_calibrate_command(CLI::App& app) {
                    "AprilTag quad detection on an image decimated by this factor")
       ->capture_default_str()
       ->check(in_range(1.0, 4.0));
-  camera->callback([c] { pipelines::run_camera_calibration(*c); });
+  camera->callback([c] {
+    claim_run_paths({"calibrate camera",
+                     {{"--images", c->images}, {"--recording", c->recording}, {"--board", c->board}},
+                     {{"--out", c->out}}});
+    pipelines::run_camera_calibration(*c);
+  });
 
   auto p = std::make_shared<pipelines::PivotCalibrationRequest>();
   CLI::App* pivot = cmd->add_subcommand(
@@ -71,7 +76,17 @@ void add_calibrate_command(CLI::App& app) {
                    "Refuse when the needle turned less than this")
       ->capture_default_str();
   pivot->add_option("--out", p->out, "Needle file to write (YAML)")->capture_default_str();
-  pivot->callback([p] { pipelines::run_pivot_calibration(*p); });
+  pivot->callback([p] {
+    claim_run_paths({"calibrate pivot",
+                     {{"--poses", p->poses},
+                      {"--recording", p->recording},
+                      {"--boards", p->boards},
+                      {"--camera", p->camera},
+                      {"--spin-poses", p->spin_poses},
+                      {"--spin-recording", p->spin_recording}},
+                     {{"--out", p->out}}});
+    pipelines::run_pivot_calibration(*p);
+  });
 }
 
 }  // namespace crepuscular::apps

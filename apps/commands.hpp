@@ -13,6 +13,8 @@
 #include <string>
 #include <vector>
 
+#include "foundation/run_paths.hpp"
+
 namespace crepuscular::apps {
 
 void add_phantom_command(CLI::App& app);
@@ -27,6 +29,28 @@ void add_calibrate_command(CLI::App& app);
 void add_register_command(CLI::App& app);
 void add_guide_command(CLI::App& app);
 void add_demo_command(CLI::App& app);
+
+// --overwrite, on every command that replaces an output folder (foundation/run_paths.hpp).
+inline CLI::Option* add_overwrite_flag(CLI::App* cmd, bool& overwrite) {
+  return cmd->add_flag(
+      "--overwrite", overwrite,
+      "Replace an output folder that another crepuscular command made (its .crepuscular-output "
+      "names the command; folders from before it named one count as another command's). "
+      "Without it only the command's own folders are replaced. Never replaces the run's "
+      "inputs, a folder of files crepuscular did not write, or a running process's output");
+}
+
+// The file or folder a frame source URI reads ("recording:DIR", "synthetic:SCENE.json"), as an
+// input of the run; "" for cameras and the built-in scene.
+inline std::string source_path(const std::string& uri) {
+  for (const std::string prefix : {"recording:", "synthetic:"}) {
+    if (uri.rfind(prefix, 0) == 0 && uri != "synthetic:builtin") {
+      const std::string where = uri.substr(prefix.size());
+      return where.substr(0, where.find('?'));
+    }
+  }
+  return "";
+}
 
 // A flag that SIGINT and SIGTERM (Ctrl-C) set from now on, cleared here: for jobs that end
 // cleanly when asked to (guidance, recording).

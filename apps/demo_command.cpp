@@ -44,7 +44,10 @@ void add_demo_command(CLI::App& app) {
       ->check(in_range(0, planning::kMaxBreathingAmplitudeMm));
   cmd->add_flag("!--no-guidance", a->guidance,
                 "Stop after the plan and the slice views (no recording, no overlay)");
-  cmd->callback([a, mode_option] {
+  auto overwrite = std::make_shared<bool>(false);
+  add_overwrite_flag(cmd, *overwrite);
+  cmd->callback([a, mode_option, overwrite] {
+    claim_run_paths({"demo", {}, {{"--out", a->out_dir, OutputKind::kFolder}}, *overwrite});
     if (a->breathing_phases > 0 && mode_option->count() == 0) a->mode = planning::Mode::kFast;
     pipelines::run_demo(*a);
   });

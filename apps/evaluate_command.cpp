@@ -54,6 +54,13 @@ void add_evaluate_command(CLI::App& app) {
     if (a->entry.empty() && a->req.markup.empty() && a->req.batch.empty()) {
       throw Error("evaluate: give --entry and --target, --trajectory or --batch");
     }
+    const pipelines::EvaluateRequest& r = a->req;
+    claim_run_paths({"evaluate",
+                     {{"--plan", r.plan_dir},
+                      {"--trajectory", r.markup},
+                      {"--batch", r.batch},
+                      {"--labels", r.labels}},
+                     {{"--out", r.out}}});
     if (!a->entry.empty()) {
       planning::Trajectory t;
       t.name = "trajectory";

@@ -26,14 +26,25 @@ void run(GuideArgs& a) {
                 "tracking server's poses over OpenIGTLink, drawn from a virtual camera) or both");
   }
   if (!req.source.empty() && a.camera.empty()) throw Error("guide: --camera is required with --source");
+  if (req.log.empty() && !req.video.empty()) {
+    req.log = std::filesystem::path(req.video).replace_extension(".csv").string();
+  }
+  claim_run_paths({"guide",
+                   {{"--plan", a.plan},
+                    {"--camera", a.camera},
+                    {"--registration", a.registration},
+                    {"--needle", a.needle},
+                    {"--boards", a.boards},
+                    {"--source", source_path(req.source)}},
+                   {{"--out", req.video},
+                    {"--log", req.log},
+                    {"--snapshots", req.snapshot_dir, OutputKind::kFilesInFolder},
+                    {"--record", req.record, OutputKind::kFolder}}});
   req.setup = pipelines::read_guidance_setup(a.camera, a.registration, a.needle);
   if (!req.source.empty() || !a.boards.empty()) {
     req.boards = tracking::read_boards(pipelines::session_boards_file(a.boards, req.source, "guide"));
   }
   req.window = !a.headless;
-  if (req.log.empty() && !req.video.empty()) {
-    req.log = std::filesystem::path(req.video).replace_extension(".csv").string();
-  }
   // parse_hidden_classes takes the classes to hide; the option names those to show.
   const auto shown = planning::parse_hidden_classes(a.volume_classes);
   for (size_t c = 0; c < 3; ++c) req.options.volume_classes[c] = shown[c];

@@ -3,7 +3,9 @@
 
 #include <CLI/CLI.hpp>
 #include <csignal>
+#include <cerrno>
 #include <cstdio>
+#include <cstring>
 #include <exception>
 
 #include "apps/commands.hpp"
@@ -17,7 +19,8 @@ const std::atomic<bool>* stop_on_signals() { return stop_flag_on_interruption();
 }  // namespace crepuscular::apps
 
 int main(int argc, char** argv) {
-  // Ctrl-C and SIGTERM remove the output in progress (foundation/interruptions.hpp).
+  // Ctrl-C, SIGTERM and SIGHUP remove the output in progress; a write past the file size limit or
+  // into a closed pipe fails as an error (foundation/interruptions.hpp).
   crepuscular::watch_interruptions();
   CLI::App app{
       "Crepuscular: how safe are the straight needle paths from every point around a tumor?\n"
@@ -59,6 +62,12 @@ int main(int argc, char** argv) {
     return 1;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "error: %s\n", e.what());
+    return 1;
+  }
+  // Results printed to standard output (evaluate) may have met a closed pipe (EPIPE; SIGPIPE is
+  // ignored) or a full disk: said, never a silent success.
+  if (std::fflush(stdout) != 0 || std::ferror(stdout)) {
+    std::fprintf(stderr, "error: standard output: write failed (%s)\n", std::strerror(errno));
     return 1;
   }
   return 0;

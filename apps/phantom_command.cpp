@@ -63,7 +63,10 @@ void add_phantom_command(CLI::App& app) {
   cmd->add_flag("--four-d", *four_d,
                 "Breathing: also write the phases as 4D NIfTI files (ct_4d, labels_4d, tumor_4d)")
       ->needs("--phases");
-  cmd->callback([out, options, phases, four_d] {
+  auto overwrite = std::make_shared<bool>(false);
+  add_overwrite_flag(cmd, *overwrite);
+  cmd->callback([out, options, phases, four_d, overwrite] {
+    claim_run_paths({"phantom", {}, {{"--out", *out, OutputKind::kFolder}}, *overwrite});
     if (*phases > 0) {
       pipelines::run_breathing_phantom(*options, *phases, *out, *four_d);
     } else {

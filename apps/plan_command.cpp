@@ -168,7 +168,21 @@ void add_plan_command(CLI::App& app) {
                 "instead of marking it unknown");
   cmd->add_option("--out", req->out_dir, "Output plan folder (replaced only when complete)")
       ->required();
-  cmd->callback([req, values, lesion_at] {
+  auto overwrite = std::make_shared<bool>(false);
+  add_overwrite_flag(cmd, *overwrite);
+  cmd->callback([req, values, lesion_at, overwrite] {
+    RunPaths paths{"plan",
+                   {{"--tumor", pipelines::tumor_file(req->tumor)},
+                    {"--vulnerability", req->vulnerability},
+                    {"--ct", req->ct},
+                    {"--blocking", req->blocking},
+                    {"--phases", req->phases}},
+                   {{"--out", req->out_dir, OutputKind::kFolder}},
+                   *overwrite};
+    for (const std::string& file : pipelines::label_files(req->labels)) {
+      paths.inputs.push_back({"--labels", file});
+    }
+    claim_run_paths(paths);
     req->path_safety.values = planning::parse_value_set(*values);
     if (!lesion_at->empty()) req->lesion_at = planning::parse_point(*lesion_at, "--lesion-at");
     pipelines::run_plan(*req);

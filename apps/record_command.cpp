@@ -49,6 +49,12 @@ void add_record_command(CLI::App& app) {
       ->check(CLI::ExistingFile);
   cmd->add_option("--plan", args->plan, "Plan folder this session belongs to (default: none)");
   cmd->callback([args] {
+    claim_run_paths({"record",
+                     {{"--source", source_path(args->source)},
+                      {"--boards", args->boards},
+                      {"--camera", args->camera},
+                      {"--plan", args->plan}},
+                     {{"--out", args->out, OutputKind::kFolder}}});
     args->stop = stop_on_signals();
     pipelines::run_record(*args);
   });

@@ -64,6 +64,16 @@ void add_register_command(CLI::App& app) {
   cmd->add_option("--out", a->out, "Registration file to write (YAML)")->capture_default_str();
   cmd->callback([a, target] {
     if (!target->empty()) a->target = Eigen::Vector3d((*target)[0], (*target)[1], (*target)[2]);
+    claim_run_paths({"register",
+                     {{"--ct", a->ct},
+                      {"--boards", a->boards},
+                      {"--ct-fiducials", a->ct_fiducials},
+                      {"--points", a->points},
+                      {"--recording", a->recording},
+                      {"--needle", a->needle},
+                      {"--camera", a->camera},
+                      {"--tumor", a->tumor}},
+                     {{"--out", a->out}, {"--save-ct-fiducials", a->save_ct_fiducials}}});
     pipelines::run_registration(*a);
   });
 }

@@ -65,7 +65,13 @@ void add_slices_command(CLI::App& app) {
                   "Opacity of the path safety colours over the CT, 0..1")
       ->capture_default_str();
   cmd->add_option("--out", req->out_dir, "Output folder (replaced only when complete)")->required();
-  cmd->callback([req, at, at_opt, hide] {
+  auto overwrite = std::make_shared<bool>(false);
+  add_overwrite_flag(cmd, *overwrite);
+  cmd->callback([req, at, at_opt, hide, overwrite] {
+    claim_run_paths({"slices",
+                     {{"--plan", req->plan_dir}, {"--ct", req->ct}, {"--labels", req->labels}},
+                     {{"--out", req->out_dir, OutputKind::kFolder}},
+                     *overwrite});
     if (at_opt->count() > 0) {
       req->have_at = true;
       req->at = planning::parse_point(*at, "--at");

@@ -48,7 +48,10 @@ void add_synth_command(CLI::App& app) {
   cmd->add_option("--frames", args->frames,
                   "Render at most this many frames (default: all frames of the scene)")
       ->check(in_range(1, 1e7, true));
-  cmd->callback([args] { pipelines::run_synth(*args); });
+  cmd->callback([args] {
+    claim_run_paths({"synth", {{"--scene", args->scene}}, {{"--out", args->out, OutputKind::kFolder}}});
+    pipelines::run_synth(*args);
+  });
 }
 
 }  // namespace crepuscular::apps

@@ -44,7 +44,14 @@ void add_track_command(CLI::App& app) {
   cmd->add_option("--family", a->family, "AprilTag family of the boards")->capture_default_str();
   cmd->add_flag("!--no-smoothing", a->smoothing,
                 "Report each frame's measured pose without the temporal filter");
-  cmd->callback([a] { pipelines::run_track(*a); });
+  cmd->callback([a] {
+    claim_run_paths({"track",
+                     {{"--source", source_path(a->source)},
+                      {"--boards", a->boards},
+                      {"--camera", a->camera}},
+                     {{"--out", a->out}}});
+    pipelines::run_track(*a);
+  });
 }
 
 }  // namespace crepuscular::apps

@@ -7,6 +7,7 @@
 #include <opencv2/core.hpp>
 
 #include "foundation/error.hpp"
+#include "foundation/output_files.hpp"
 #include "foundation/text.hpp"
 
 namespace crepuscular::calibration {
@@ -15,7 +16,7 @@ namespace {
 void write_strings(cv::FileStorage& out, const std::string& key,
                    const std::vector<std::string>& values) {
   out << key << "[";
-  for (const auto& v : values) out << v;
+  for (const auto& v : values) out << final_path_of(v);  // never a staging folder's path
   out << "]";
 }
 

@@ -1,11 +1,12 @@
 // Signal watcher: a thread in sigwait, so that the cleanup runs as ordinary code, not inside a
-// signal handler.
+// signal handler. SIGXFSZ and SIGPIPE are ignored: the write that meets them fails instead.
 #include "foundation/interruptions.hpp"
 
 #include <pthread.h>
 #include <signal.h>
 #include <unistd.h>
 
+#include <csignal>
 #include <cstdio>
 #include <filesystem>
 #include <mutex>
@@ -33,8 +34,9 @@ std::atomic<bool> g_graceful{false};
       std::filesystem::remove_all(path, ec);
     }
   }
-  std::fprintf(stderr, "\ninterrupted (%s): partial output removed\n",
-               signal == SIGINT ? "SIGINT" : "SIGTERM");
+  const char* name = signal == SIGINT ? "SIGINT" : signal == SIGTERM ? "SIGTERM" : "SIGHUP";
+  std::fprintf(stderr, "\nerror: interrupted (%s%s): partial output removed\n", name,
+               signal == SIGHUP ? ", the terminal closed" : "");
   std::fflush(stderr);
   ::_exit(128 + signal);
 }
@@ -42,10 +44,15 @@ std::atomic<bool> g_graceful{false};
 }  // namespace
 
 void watch_interruptions() {
+  // A write past the file size limit, or into a closed pipe or socket, fails (EFBIG, EPIPE) and
+  // the writer reports it as an error, instead of the process dying with its files half written.
+  std::signal(SIGXFSZ, SIG_IGN);
+  std::signal(SIGPIPE, SIG_IGN);
   sigset_t set;
   sigemptyset(&set);
   sigaddset(&set, SIGINT);
   sigaddset(&set, SIGTERM);
+  sigaddset(&set, SIGHUP);
   if (pthread_sigmask(SIG_BLOCK, &set, nullptr) != 0) return;
   std::thread([set] {
     for (;;) {

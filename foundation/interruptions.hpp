@@ -1,8 +1,10 @@
-// What an interrupted run (Ctrl-C, SIGTERM) leaves behind: nothing. Output in progress (staged
-// folders, temporary files) registers itself here; on SIGINT or SIGTERM a watcher thread removes
-// it and ends the process (exit status 130 or 143), unless a job asked to be told instead
-// (graceful stop: guidance and recording finish their files), in which case a second signal ends
-// it the hard way.
+// What an interrupted run (Ctrl-C, SIGTERM, SIGHUP) leaves behind: nothing. Output in progress
+// (staged folders, temporary files) registers itself here; on SIGINT, SIGTERM or SIGHUP a watcher
+// thread removes it, prints an `error:` line and ends the process (exit status 128 + the signal),
+// unless a job asked to be told instead (graceful stop: guidance and recording finish their
+// files), in which case a second signal ends it the hard way. SIGXFSZ (file size limit) and
+// SIGPIPE are ignored, so that the write fails (EFBIG, EPIPE) and the writer's error path reports
+// it and removes its output (output_files.hpp).
 #pragma once
 
 #include <atomic>
@@ -10,8 +12,9 @@
 
 namespace crepuscular {
 
-// Call first thing in main, before any thread starts: blocks SIGINT and SIGTERM in every thread
-// and starts the watcher. Without it, signals keep their default action.
+// Call first thing in main, before any thread starts: blocks SIGINT, SIGTERM and SIGHUP in every
+// thread, ignores SIGXFSZ and SIGPIPE, and starts the watcher. Without it, signals keep their
+// default action.
 void watch_interruptions();
 
 // Paths removed (recursively) when the process is interrupted; unregister when they are
@@ -19,7 +22,7 @@ void watch_interruptions();
 void register_partial_output(const std::string& path);
 void unregister_partial_output(const std::string& path);
 
-// From now on, a first SIGINT or SIGTERM sets the returned flag (cleared here) instead of ending
+// From now on, a first SIGINT, SIGTERM or SIGHUP sets the returned flag (cleared here) instead of ending
 // the process.
 const std::atomic<bool>* stop_flag_on_interruption();
 

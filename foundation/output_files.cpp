@@ -2,14 +2,19 @@
 #include "foundation/output_files.hpp"
 
 #include <signal.h>
+#include <sys/resource.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
 #include <cerrno>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <map>
+#include <mutex>
+#include <optional>
 #include <set>
 #include <string>
 #include <system_error>
@@ -32,6 +37,16 @@ void remove_quietly(const std::string& path) {
 }
 
 }  // namespace
+
+void check_file_size_limit(const std::string& temporary, const std::string& path) {
+  rlimit limit{};
+  if (::getrlimit(RLIMIT_FSIZE, &limit) != 0 || limit.rlim_cur == RLIM_INFINITY) return;
+  std::error_code ec;
+  const auto size = fs::file_size(temporary, ec);
+  if (ec || size < limit.rlim_cur) return;
+  throw Error(path + ": cannot write: file size limit reached (ulimit -f: " +
+              std::to_string(limit.rlim_cur) + " bytes); nothing was written");
+}
 
 std::string temporary_sibling(const std::string& path) {
   const fs::path p(path);
@@ -74,6 +89,7 @@ PendingFile::~PendingFile() {
 
 void PendingFile::commit() {
   if (committed_) return;
+  check_file_size_limit(temporary_, path_);
   commit_file(temporary_, path_);
   committed_ = true;
   unregister_partial_output(temporary_);
@@ -82,7 +98,12 @@ void PendingFile::commit() {
 void write_file_atomically(const std::string& path,
                            const std::function<void(const std::string& temporary)>& write) {
   PendingFile file(path);
-  write(file.temporary());
+  try {
+    write(file.temporary());
+  } catch (...) {
+    check_file_size_limit(file.temporary(), path);  // the writer's own message may not say why
+    throw;
+  }
   file.commit();
 }
 
@@ -91,7 +112,9 @@ void write_binary_file(const std::string& path, const void* data, std::size_t si
     std::FILE* f = std::fopen(temporary.c_str(), "wb");
     if (!f) throw Error(path + ": cannot open for writing");
     const bool written = size == 0 || std::fwrite(data, 1, size, f) == size;
-    if (std::fclose(f) != 0 || !written) throw Error(path + ": write failed (disk full?)");
+    if (std::fclose(f) != 0 || !written) {
+      throw Error(path + ": write failed (" + std::strerror(errno) + ")");
+    }
   });
 }
 
@@ -104,6 +127,56 @@ void write_text_file(const std::string& path, std::string_view text) {
 namespace {
 
 constexpr const char* kMarkerFirstLine = "crepuscular output folder";
+constexpr const char* kMarkerMadeBy = "// made by crepuscular ";
+
+std::string g_output_command;  // set before the work, on the main thread
+
+// Staging folders of this process (absolute) -> their final paths.
+std::mutex g_staging_mutex;
+std::map<fs::path, fs::path>& staging_to_final() {
+  static std::map<fs::path, fs::path> paths;
+  return paths;
+}
+
+fs::path absolute_normal(const fs::path& p) {
+  std::error_code ec;
+  const fs::path a = fs::absolute(p, ec);
+  return (ec ? p : a).lexically_normal();
+}
+
+// `path` relative to `folder` when it lies in it (or is it: "."), else nullopt.
+std::optional<fs::path> relative_within(const fs::path& path, const fs::path& folder) {
+  auto f = folder.begin();
+  auto p = path.begin();
+  for (; f != folder.end(); ++f, ++p) {
+    if (f->empty()) continue;  // a trailing separator
+    if (p == path.end() || *p != *f) return std::nullopt;
+  }
+  fs::path rest;
+  for (; p != path.end(); ++p) rest /= *p;
+  return rest.empty() ? fs::path(".") : rest;
+}
+
+// The process id in a name of a killed run's leftovers, ".tmp-PID-N-NAME" or
+// ".NAME.partial-PID[.old]"; 0 when `name` is neither.
+pid_t leftover_pid(const std::string& name) {
+  const auto digits = [](const std::string& t) {
+    return !t.empty() && t.size() <= 9 && t.find_first_not_of("0123456789") == std::string::npos;
+  };
+  if (name.rfind(".tmp-", 0) == 0) {
+    const size_t a = name.find('-', 5);
+    const size_t b = a == std::string::npos ? a : name.find('-', a + 1);
+    if (b == std::string::npos || b + 1 >= name.size()) return 0;
+    const std::string pid = name.substr(5, a - 5);
+    if (!digits(pid) || !digits(name.substr(a + 1, b - a - 1))) return 0;
+    return pid_t(std::stol(pid));
+  }
+  const size_t at = name.rfind(".partial-");
+  if (name.size() < 2 || name[0] != '.' || at == std::string::npos || at < 2) return 0;
+  std::string pid = name.substr(at + 9);
+  if (pid.size() > 4 && pid.compare(pid.size() - 4, 4, ".old") == 0) pid.resize(pid.size() - 4);
+  return digits(pid) ? pid_t(std::stol(pid)) : 0;
+}
 
 // The entries of `dir` (names), empty when it cannot be read.
 std::vector<std::string> entries_of(const fs::path& dir) {
@@ -128,7 +201,9 @@ std::string why_not_replaceable(const fs::path& dir) {
            "); it is left as it is: choose a new folder, or empty or remove this one yourself";
   }
   std::set<std::string> made = {kOutputMarker};
-  while (std::getline(marker, line)) made.insert(line);
+  while (std::getline(marker, line)) {
+    if (line.rfind("//", 0) != 0) made.insert(line);
+  }
   std::vector<std::string> others;
   for (const std::string& name : present) {
     if (!made.count(name)) others.push_back(name);
@@ -141,31 +216,77 @@ std::string why_not_replaceable(const fs::path& dir) {
          "); it is left as it is: choose a new folder, or move those files away";
 }
 
-// Staging folders ".NAME.partial-PID" beside `final_path` whose process no longer runs (a killed
-// run's): removed, since nothing else ever will.
-void remove_stale_staging(const fs::path& parent, const std::string& name) {
-  const std::string prefix = "." + name + ".partial-";
+}  // namespace
+
+void set_output_command(const std::string& command) { g_output_command = command; }
+const std::string& output_command() { return g_output_command; }
+
+OutputCommandScope::OutputCommandScope(const std::string& command)
+    : previous_(g_output_command) {
+  g_output_command = command;
+}
+OutputCommandScope::~OutputCommandScope() { g_output_command = previous_; }
+
+std::optional<std::string> output_folder_maker(const std::string& dir) {
+  std::ifstream marker(fs::path(dir) / kOutputMarker);
+  std::string line;
+  if (!marker || !std::getline(marker, line) || line != kMarkerFirstLine) return std::nullopt;
+  const std::string made_by = kMarkerMadeBy;
+  while (std::getline(marker, line)) {
+    if (line.rfind(made_by, 0) == 0) return line.substr(made_by.size());
+  }
+  return std::string();
+}
+
+void remove_stale_outputs(const std::string& dir) {
   std::error_code ec;
-  for (fs::directory_iterator it(parent, ec), end; !ec && it != end; it.increment(ec)) {
-    const std::string entry = it->path().filename().string();
-    if (entry.rfind(prefix, 0) != 0) continue;
-    std::string pid_text = entry.substr(prefix.size());
-    if (pid_text.size() > 4 && pid_text.compare(pid_text.size() - 4, 4, ".old") == 0) {
-      pid_text.resize(pid_text.size() - 4);
-    }
-    if (pid_text.empty() ||
-        pid_text.find_first_not_of("0123456789") != std::string::npos || pid_text.size() > 9) {
-      continue;
-    }
-    const pid_t pid = pid_t(std::stol(pid_text));
-    if (pid == ::getpid()) continue;
+  for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
+    const pid_t pid = leftover_pid(it->path().filename().string());
+    if (pid <= 0 || pid == ::getpid()) continue;
     if (::kill(pid, 0) == 0 || errno != ESRCH) continue;  // alive, or not ours to judge
     std::error_code rm;
     fs::remove_all(it->path(), rm);
   }
 }
 
+namespace {
+
+// `path` moved from staging to final paths (`to_final`) or back, nested folders included.
+std::string mapped_path(const std::string& path, bool to_final) {
+  fs::path p = absolute_normal(path);
+  bool mapped = false;
+  {
+    std::lock_guard<std::mutex> lock(g_staging_mutex);
+    for (int levels = 0, again = 1; again && levels < 16; ++levels) {
+      again = 0;
+      // Backwards: a folder staged inside another comes before it.
+      for (auto it = staging_to_final().rbegin(); it != staging_to_final().rend(); ++it) {
+        const fs::path& from = to_final ? it->first : it->second;
+        const fs::path& to = to_final ? it->second : it->first;
+        if (const auto rest = relative_within(p, from)) {
+          p = *rest == "." ? to : (to / *rest).lexically_normal();
+          mapped = true;
+          again = 1;
+          break;
+        }
+      }
+    }
+  }
+  if (!mapped) return path;
+  if (fs::path(path).is_relative()) {
+    std::error_code ec;
+    const fs::path relative = p.lexically_relative(fs::current_path(ec));
+    if (!ec && !relative.empty()) return relative.string();
+  }
+  std::string text = p.string();
+  while (text.size() > 1 && text.back() == '/') text.pop_back();
+  return text;
+}
+
 }  // namespace
+
+std::string final_path_of(const std::string& path) { return mapped_path(path, true); }
+std::string staged_path_of(const std::string& path) { return mapped_path(path, false); }
 
 StagedDirectory::StagedDirectory(std::string final_path, OnFailure on_failure)
     : final_(std::move(final_path)), on_failure_(on_failure) {
@@ -187,7 +308,7 @@ StagedDirectory::StagedDirectory(std::string final_path, OnFailure on_failure)
       const std::string why = why_not_replaceable(fp);
       if (!why.empty()) throw Error(final_ + ": " + why);
     }
-    remove_stale_staging(parent, fp.filename().string());
+    remove_stale_outputs(parent.string());
     staging_ = (parent / ("." + fp.filename().string() + ".partial-" + std::to_string(::getpid())))
                    .string();
   }
@@ -197,6 +318,8 @@ StagedDirectory::StagedDirectory(std::string final_path, OnFailure on_failure)
   fs::create_directory(staging_, ec);
   if (ec) throw Error(staging_ + ": cannot create folder (" + ec.message() + ")");
   if (on_failure_ == OnFailure::kRemove) register_partial_output(staging_);
+  std::lock_guard<std::mutex> lock(g_staging_mutex);
+  staging_to_final()[absolute_normal(staging_)] = absolute_normal(final_);
 }
 
 StagedDirectory::~StagedDirectory() {
@@ -205,6 +328,8 @@ StagedDirectory::~StagedDirectory() {
     fs::remove_all(staging_, ec);
   }
   unregister_partial_output(staging_);
+  std::lock_guard<std::mutex> lock(g_staging_mutex);
+  staging_to_final().erase(absolute_normal(staging_));
 }
 
 void StagedDirectory::commit() {
@@ -223,6 +348,7 @@ void StagedDirectory::commit() {
   {
     std::ofstream marker(fs::path(staging_) / kOutputMarker, std::ios::trunc);
     marker << kMarkerFirstLine << "\n";
+    if (!g_output_command.empty()) marker << kMarkerMadeBy << g_output_command << "\n";
     for (const std::string& name : entries_of(staging_)) {
       if (name != kOutputMarker) marker << name << "\n";
     }

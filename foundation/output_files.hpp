@@ -5,6 +5,7 @@
 
 #include <cstddef>
 #include <functional>
+#include <optional>
 #include <string>
 #include <string_view>
 
@@ -17,6 +18,12 @@ std::string temporary_sibling(const std::string& path);
 // Renames `temporary` onto `path` (atomic within one file system); on failure removes
 // `temporary` and throws Error naming `path`.
 void commit_file(const std::string& temporary, const std::string& path);
+
+// Throws Error naming `path` when `temporary`, its file in progress, has reached the file size
+// limit (RLIMIT_FSIZE, `ulimit -f`; SIGXFSZ is ignored, foundation/interruptions.hpp): the write
+// stopped there, whether or not the writer noticed. A file of exactly the limit counts as cut.
+// write_file_atomically and PendingFile::commit check it.
+void check_file_size_limit(const std::string& temporary, const std::string& path);
 
 // Writes `path` through a temporary sibling: `write(temporary)` creates the file at the path it
 // is given (a temporary_sibling of `path`, same extension), which then takes the name `path`.
@@ -55,8 +62,44 @@ class PendingFile {
 };
 
 // The file a staged folder gets on commit (kRemove): it names what the tool wrote there. Only an
-// empty folder, or one whose entries are all named by its marker, is ever replaced.
+// empty folder, or one whose entries are all named by its marker, is ever replaced. Its lines:
+// "crepuscular output folder", then "// made by crepuscular COMMAND" (a line no file name can be:
+// readers before it take it for one more name), then one line per entry written.
 constexpr const char* kOutputMarker = ".crepuscular-output";
+
+// The command whose folders this process makes ("plan"), named in the marker of every folder it
+// commits; "" (the start) names none. Set once before the work (apps/run_paths).
+void set_output_command(const std::string& command);
+const std::string& output_command();
+
+// While it lives, committed folders name `command` instead (the demo's phantom/, plan/ and
+// slices/ are those commands' folders); the earlier name comes back after.
+class OutputCommandScope {
+ public:
+  explicit OutputCommandScope(const std::string& command);
+  ~OutputCommandScope();
+  OutputCommandScope(const OutputCommandScope&) = delete;
+  OutputCommandScope& operator=(const OutputCommandScope&) = delete;
+
+ private:
+  std::string previous_;
+};
+
+// What the marker of `dir` says made it: nullopt when `dir` has no marker (not crepuscular's),
+// "" when the marker names no command (written before markers named one), else the command.
+std::optional<std::string> output_folder_maker(const std::string& dir);
+
+// Removes from `dir` what killed runs left there: temporary siblings ".tmp-PID-N-NAME" and
+// staging folders ".NAME.partial-PID" (and their ".old") of processes that no longer run. Files of
+// a live process, and names not of these forms, stay.
+void remove_stale_outputs(const std::string& dir);
+
+// The path `path` will have once the staged folders of this process that hold it are committed
+// (for paths a file records: a registration's inputs, a session's plan); other paths unchanged.
+std::string final_path_of(const std::string& path);
+// The reverse, for reading back a recorded path during the run: where a final path of a folder
+// this process still stages is now (its staging); other paths unchanged.
+std::string staged_path_of(const std::string& path);
 
 // A folder written in full before it takes its final name.
 class StagedDirectory {

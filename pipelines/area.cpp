@@ -99,7 +99,7 @@ void setup_preview(const AreaRequest& r, Setup& s) {
     margin.fwhm_mm = r.margin_fwhm_mm;
     s.blocking = blocking_from_labels(read_label_map(r.labels), table.table, margin, r.labels);
     if (std::isnan(s.threshold)) s.threshold = default_blocking_threshold(table);
-    s.info["labels"] = fs::absolute(r.labels).string();
+    s.info["labels"] = fs::absolute(final_path_of(r.labels)).string();
     s.info["vulnerability"] = table.source;
     s.info["margin_fwhm_mm"] = r.margin_fwhm_mm;
   } else {
@@ -111,7 +111,7 @@ void setup_preview(const AreaRequest& r, Setup& s) {
           "area: a ready blocking volume has no vulnerability table to take the default "
           "threshold from; give the blocking threshold (risk per mm)");
     }
-    s.info["blocking"] = fs::absolute(r.blocking).string();
+    s.info["blocking"] = fs::absolute(final_path_of(r.blocking)).string();
   }
   if (!(s.threshold > 0) || !std::isfinite(s.threshold)) {
     throw Error("area: the blocking threshold must be > 0 per mm (got " + number(s.threshold) +
@@ -178,7 +178,7 @@ void setup_from_plan(const AreaRequest& r, Setup& s) {
     if (r.spacing_mm <= 0)
       s.options.spacing_mm = plan.at("parameters").at("spacing_mm").get<double>();
     s.info["mode"] = "path safety";
-    s.info["plan"] = fs::absolute(r.plan_dir).string();
+    s.info["plan"] = fs::absolute(final_path_of(r.plan_dir)).string();
     s.info["value"] = value;
     s.info["unsafe_class"] = r.unsafe_class;
   } catch (const nlohmann::json::exception& e) {
@@ -214,7 +214,7 @@ nlohmann::json run_area(const AreaRequest& r) {
     s.options.spacing_mm =
         std::min(s.blocking.geometry().spacing.minCoeff(), tumor.geometry().spacing.minCoeff());
   }
-  s.info["tumor"] = fs::absolute(s.tumor_path).string();
+  s.info["tumor"] = fs::absolute(final_path_of(s.tumor_path)).string();
   s.options.angular_step_deg = r.angular_step_deg;
 
   const Ellipsoid e = fit_tumor_ellipsoid(tumor, s.tumor_path);

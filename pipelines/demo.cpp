@@ -9,6 +9,7 @@
 #include <cmath>
 #include <filesystem>
 #include <nlohmann/json.hpp>
+#include <optional>
 
 #include "foundation/output_files.hpp"
 #include "pipelines/demo_report.hpp"
@@ -175,6 +176,9 @@ void run_demo(const DemoRequest& a) {
   nlohmann::json times;
 
   auto t = Clock::now();
+  // The demo's phantom/, plan/ and slices/ are those commands' folders: each may replace its own.
+  std::optional<OutputCommandScope> made_by;
+  made_by.emplace("phantom");
   planning::PhantomOptions po;
   po.spacing_mm = a.spacing_mm;
   po.amplitude_mm = a.breathing_amplitude_mm;
@@ -189,12 +193,15 @@ void run_demo(const DemoRequest& a) {
   times["phantom_s"] = seconds_since(t);
 
   t = Clock::now();
+  made_by.emplace("plan");
   make_plan(a, dir);
   times["plan_s"] = seconds_since(t);
 
   t = Clock::now();
+  made_by.emplace("slices");
   make_slices(a, dir);
   times["slices_s"] = seconds_since(t);
+  made_by.reset();
 
   const planning::PlanData plan = planning::load_plan(dir + "/plan");
   std::string report = demo_plan_report(plan, a.spacing_mm, planning::mode_name(a.mode),

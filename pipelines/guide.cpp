@@ -7,7 +7,9 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cerrno>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <memory>
 #include <opencv2/imgcodecs.hpp>
@@ -98,7 +100,13 @@ class LogOutput {
   }
   void write(const std::string& row) { std::fprintf(out_.get(), "%s\n", row.c_str()); }
   void commit() {
-    out_.reset();
+    const bool failed = std::ferror(out_.get()) != 0;
+    const int error = errno;
+    if (std::fclose(out_.release()) != 0 || failed) {
+      check_file_size_limit(file_.temporary(), file_.path());
+      throw Error(file_.path() + ": cannot write the log (" +
+                  std::strerror(failed ? error : errno) + ")");
+    }
     file_.commit();
   }
 

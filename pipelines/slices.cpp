@@ -224,8 +224,8 @@ nlohmann::json run_slices(const SlicesRequest& req) {
     views.push_back(view_json(file, kind, plane, view));
   }
   nlohmann::json j = {
-      {"plan", fs::absolute(req.plan_dir).string()},
-      {"ct", fs::absolute(req.ct).string()},
+      {"plan", fs::absolute(final_path_of(req.plan_dir)).string()},
+      {"ct", fs::absolute(final_path_of(req.ct)).string()},
       {"value", value},
       {"palette", req.options.palette == Palette::kColorblind ? "colorblind" : "default"},
       {"window_hu", {{"width", req.options.window_width}, {"level", req.options.window_level}}},

@@ -170,8 +170,13 @@ void RecordingWriter::write_session(bool complete) {
   s["format"] = "crepuscular-recording";
   s["version"] = 1;
   s["created"] = created_;
-  s["source"] = session_.source;
-  s["plan"] = session_.plan;
+  // Final paths, never those of a folder still staged (the demo's plan and scene).
+  const size_t colon = session_.source.find(':');
+  s["source"] = colon == std::string::npos
+                    ? session_.source
+                    : session_.source.substr(0, colon + 1) +
+                          final_path_of(session_.source.substr(colon + 1));
+  s["plan"] = session_.plan.empty() ? session_.plan : final_path_of(session_.plan);
   s["boards"] = session_.boards.is_null() ? nlohmann::json::array()
                                           : session_.boards.value("boards", nlohmann::json::array());
   s["frames"] = {{"file", "frames.csv"}, {"image_format", format_}};

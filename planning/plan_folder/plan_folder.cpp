@@ -1,6 +1,8 @@
 // The plan folder's format: plan.json's pieces as the plan pipeline writes them, and load_plan.
 #include "planning/plan_folder/plan_folder.hpp"
 
+#include "foundation/output_files.hpp"
+
 #include <itksys/MD5.h>
 #include <spdlog/spdlog.h>
 
@@ -40,10 +42,11 @@ nlohmann::json geometry_json(const ImageGeometry& g) {
 
 nlohmann::json input_json(const std::string& path, const std::string& plan_dir) {
   if (path.empty()) return nullptr;
-  const fs::path absolute = fs::absolute(path);
+  // Final paths: a plan staged inside another output (the demo's) names where its inputs will be.
+  const fs::path absolute = fs::absolute(final_path_of(path));
   return {
       {"path", absolute.string()},
-      {"relative_path", fs::absolute(absolute).lexically_relative(fs::absolute(plan_dir)).string()},
+      {"relative_path", absolute.lexically_relative(fs::absolute(final_path_of(plan_dir))).string()},
       {"md5", file_checksum(path)}};
 }
 
@@ -183,7 +186,8 @@ std::string input_path(const nlohmann::json& plan, const char* key, const std::s
   const auto& in = plan["inputs"];
   if (!in.contains(key) || !in[key].is_object() || !in[key].contains("path")) return {};
   const JsonPath at = root.key("inputs").key(key);
-  const std::string path = required_string(in[key], "path", at);
+  // Read back during the run that stages it (the demo): where the input is now.
+  const std::string path = staged_path_of(required_string(in[key], "path", at));
   const std::string relative = optional_string(in[key], "relative_path", at, "");
   std::error_code ec;
   if (!fs::exists(path, ec) && !relative.empty()) {
@@ -403,7 +407,7 @@ void check_inputs(PlanData& plan, const PlanLoadOptions& options, const std::str
   for (const auto& [role, entry] : recorded) {
     if (!entry->contains("md5") || !(*entry)["md5"].is_string() || !entry->contains("path")) continue;
     const JsonPath at = root.key("inputs").key(role);
-    std::string path = required_string(*entry, "path", at);
+    std::string path = staged_path_of(required_string(*entry, "path", at));
     const std::string relative = optional_string(*entry, "relative_path", at, "");
     if (!fs::exists(path, ec) && !relative.empty()) path = (fs::path(plan.dir) / relative).string();
     if (!fs::exists(path, ec)) continue;  // moved away: the readers say so where they need it

@@ -8,11 +8,13 @@
 #include <filesystem>
 #include <fstream>
 #include <initializer_list>
+#include <iterator>
 #include <string>
 
 #include <opencv2/core.hpp>
 
 #include "foundation/error.hpp"
+#include "foundation/output_files.hpp"
 #include "foundation/text.hpp"
 #include "tests/support/errors.hpp"
 #include "tests/support/temporary_folder.hpp"
@@ -185,6 +187,28 @@ TEST_F(CalibrationFiles, CameraMatrixOfIntegersOrNanIsRefused) {
                           {"nan.yaml", "camera_matrix", "finite"});
   std::ofstream(path("good.yaml")) << camera_yaml("d", "800.");
   EXPECT_DOUBLE_EQ(CameraModel::read_yaml(path("good.yaml")).fx, 800.0);
+}
+
+// A registration written inside a staged folder (the demo's setup/) names its inputs where they
+// will be, never under the staging folder ".NAME.partial-PID".
+TEST_F(CalibrationFiles, RegistrationInAStagedFolderNamesFinalPaths) {
+  StagedDirectory demo(path("demo"));
+  fs::create_directories(demo.file("setup"));
+  RegistrationRecord rec;
+  rec.date = "2026-11-23T10:00:00Z";
+  rec.inputs = {demo.file("phantom/ct.nii.gz"), demo.file("recording_scene/boards.json")};
+  rec.board = "patient";
+  rec.board_fiducials = {{0, 0, 0}, {100, 0, 0}, {0, 80, 10}};
+  rec.ct_fiducials = rec.board_fiducials;
+  rec.fre_mm = {0, 0, 0};
+  rec.fiducials_in_board = rec.fiducials_in_ct = 3;
+  write_registration(demo.file("setup/registration.yaml"), rec);
+  demo.commit();
+  std::ifstream in(path("demo/setup/registration.yaml"));
+  const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  EXPECT_EQ(text.find(".partial-"), std::string::npos) << text;
+  EXPECT_EQ(read_registration(path("demo/setup/registration.yaml")).inputs.at(0),
+            path("demo/phantom/ct.nii.gz"));
 }
 
 }  // namespace

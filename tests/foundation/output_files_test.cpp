@@ -5,12 +5,15 @@
 
 #include <gtest/gtest.h>
 #include <signal.h>
+#include <sys/resource.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <filesystem>
+#include <cstdio>
 #include <fstream>
+#include <optional>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -225,11 +228,128 @@ TEST(OutputFiles, StagingOfADeadProcessIsRemovedByTheNextRun) {
   EXPECT_TRUE(fs::exists(alive));
 }
 
-// Ctrl-C or SIGTERM during a run removes its staged folder and temporary files and ends it with
+// A process id that no longer runs: a child that has exited and been waited for.
+pid_t dead_pid() {
+  const pid_t child = fork();
+  if (child == 0) _exit(0);
+  int status = 0;
+  waitpid(child, &status, 0);
+  return child;
+}
+
+// What killed runs left (temporary siblings, staging folders) goes; a live process's and the
+// user's files that merely look alike stay.
+TEST(OutputFiles, LeftoversOfDeadRunsAreRemovedAndNothingElse) {
+  const fs::path root = temp_dir("leftovers");
+  const std::string dead = std::to_string(dead_pid());
+  const std::string alive = std::to_string(getppid());
+  const std::vector<std::string> gone = {".tmp-" + dead + "-3-overlay.mp4",
+                                         ".tmp-" + dead + "-1-log.csv"};
+  const std::vector<std::string> kept = {".tmp-" + alive + "-3-overlay.mp4",
+                                         ".tmp-notes.txt",
+                                         ".tmp-" + dead + "-x-log.csv",
+                                         "tmp-" + dead + "-1-log.csv",
+                                         ".plan.partial-" + alive,
+                                         "plan.partial-" + dead,
+                                         "rec.partial"};
+  for (const auto& n : gone) write_text_file((root / n).string(), "x");
+  for (const auto& n : kept) write_text_file((root / n).string(), "x");
+  fs::create_directories(root / (".plan.partial-" + dead));
+  fs::create_directories(root / (".plan.partial-" + dead + ".old"));
+  remove_stale_outputs(root.string());
+  std::vector<std::string> expected = kept;
+  std::sort(expected.begin(), expected.end());
+  EXPECT_EQ(entries(root), expected);
+}
+
+// The marker names the command that made the folder; markers without it still count as ours.
+TEST(OutputFiles, MarkerNamesTheCommand) {
+  const fs::path root = temp_dir("maker");
+  EXPECT_EQ(output_folder_maker(root.string()), std::nullopt);
+  {
+    const OutputCommandScope as_plan("plan");
+    StagedDirectory out((root / "plan").string());
+    write_text_file(out.file("plan.json"), "{}");
+    out.commit();
+  }
+  EXPECT_EQ(output_folder_maker((root / "plan").string()), std::optional<std::string>("plan"));
+  EXPECT_EQ(output_command(), "");
+  fs::create_directories(root / "old");
+  write_text_file((root / "old" / kOutputMarker).string(), "crepuscular output folder\na.txt\n");
+  write_text_file((root / "old" / "a.txt").string(), "a");
+  EXPECT_EQ(output_folder_maker((root / "old").string()), std::optional<std::string>(""));
+  StagedDirectory again((root / "old").string());  // still replaceable: all of it is ours
+  again.commit();
+}
+
+// Paths recorded while a folder is staged (nested, as the demo's plan inside the demo) name the
+// final place; read back during the run they lead to the staging.
+TEST(OutputFiles, RecordedPathsNameFinalFolders) {
+  const fs::path root = temp_dir("final");
+  StagedDirectory demo((root / "demo").string());
+  StagedDirectory plan(demo.file("plan"));
+  const std::string labels = demo.file("phantom/labels.nii.gz");
+  EXPECT_EQ(final_path_of(labels), (root / "demo/phantom/labels.nii.gz").string());
+  EXPECT_EQ(final_path_of(plan.file("plan.json")), (root / "demo/plan/plan.json").string());
+  EXPECT_EQ(final_path_of(plan.path()), (root / "demo/plan").string());
+  EXPECT_EQ(final_path_of("elsewhere/x.nii"), "elsewhere/x.nii");
+  EXPECT_EQ(fs::path(staged_path_of((root / "demo/plan/plan.json").string())),
+            fs::path(plan.file("plan.json")).lexically_normal());
+  EXPECT_EQ(final_path_of(labels).find(".partial-"), std::string::npos);
+}
+
+// A write that meets the file size limit (ulimit -f) fails with an error that says so, and leaves
+// nothing (SIGXFSZ ignored, as watch_interruptions does).
+TEST(OutputFiles, FileSizeLimitIsAnErrorThatLeavesNothing) {
+  const fs::path root = temp_dir("fsize");
+  int report[2];
+  ASSERT_EQ(pipe(report), 0);
+  const pid_t child = fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    signal(SIGXFSZ, SIG_IGN);
+    const rlimit limit{4096, 4096};
+    setrlimit(RLIMIT_FSIZE, &limit);
+    std::string message = "no error";
+    try {
+      StagedDirectory out((root / "plan").string());
+      write_text_file(out.file("big.nii"), std::string(10000, 'x'));
+      out.commit();
+    } catch (const Error& e) {
+      message = e.what();
+    }
+    try {
+      PendingFile log((root / "log.csv").string());
+      std::FILE* f = std::fopen(log.temporary().c_str(), "w");
+      for (int i = 0; i < 1000; ++i) std::fputs("a row of the log\n", f);
+      std::fclose(f);
+      log.commit();
+      message += " | no error";
+    } catch (const Error& e) {
+      message += std::string(" | ") + e.what();
+    }
+    if (::write(report[1], message.data(), message.size()) < 0) _exit(2);
+    _exit(0);
+  }
+  close(report[1]);
+  int status = 0;
+  waitpid(child, &status, 0);
+  char buffer[2048] = {};
+  const std::string message(buffer, std::max<ssize_t>(0, ::read(report[0], buffer, sizeof buffer)));
+  close(report[0]);
+  EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0);
+  EXPECT_NE(message.find("big.nii: cannot write: file size limit reached"), std::string::npos)
+      << message;
+  EXPECT_NE(message.find("log.csv: cannot write: file size limit reached"), std::string::npos)
+      << message;
+  EXPECT_TRUE(entries(root).empty()) << entries(root).front();
+}
+
+// Ctrl-C, SIGTERM or SIGHUP during a run removes its staged folder and temporary files and ends it with
 // 128 + the signal; the earlier output stays as it was.
 TEST(OutputFiles, InterruptedRunRemovesItsPartialOutput) {
-  for (const int sig : {SIGTERM, SIGINT}) {
-    const fs::path root = temp_dir(sig == SIGTERM ? "term" : "int");
+  for (const int sig : {SIGTERM, SIGINT, SIGHUP}) {
+    const fs::path root = temp_dir(sig == SIGTERM ? "term" : sig == SIGINT ? "int" : "hup");
     int ready[2];
     ASSERT_EQ(pipe(ready), 0);
     const pid_t child = fork();

@@ -281,7 +281,7 @@ TEST_F(PlanTest, CommandLineReportsBadInputAndWritesNothing) {
                     &err, test::Capture::kStderr),
             1);
   EXPECT_EQ(err.rfind("error: ", 0), 0u) << err;
-  EXPECT_NE(err.find("not written by crepuscular"), std::string::npos) << err;
+  EXPECT_NE(err.find("holds the input --"), std::string::npos) << err;
   EXPECT_EQ(std::distance(fs::directory_iterator(dir_), fs::directory_iterator()), before);
   EXPECT_TRUE(fs::exists(labels_));
   EXPECT_TRUE(fs::exists(tumor_));

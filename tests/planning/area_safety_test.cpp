@@ -819,7 +819,7 @@ TEST_F(AreaSafetyFiles, PlanWritesAreaSafetyAndTheAreaCommandRuns) {
   EXPECT_EQ(
       run_cli("area --plan " + req.out_dir + " --out " + req.out_dir, &err, test::Capture::kStderr),
       1);
-  EXPECT_NE(err.find("plan folder"), std::string::npos) << err;
+  EXPECT_NE(err.find("is the input --plan"), std::string::npos) << err;
   EXPECT_TRUE(fs::exists(dir_ / "plan" / "path_safety_svv.nii.gz"));
   EXPECT_NE(
       run_cli("area --plan " + (dir_ / "nowhere").string() + " --out " + (dir_ / "x").string(),
