@@ -52,6 +52,7 @@ void add_area_command(CLI::App& app) {
                   "Preview: ready blocking volume (risk per mm) instead of --labels; needs "
                   "--threshold")
       ->check(CLI::ExistingPath);
+  add_series_option(cmd, req->series);
   cmd->add_option("--margin", req->margin_fwhm_mm,
                   "Preview: safety margin around each labelled structure, FWHM in mm (0: none), "
                   "as in `crepuscular plan`")

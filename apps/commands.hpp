@@ -66,6 +66,19 @@ CLI::Validator enum_names(const std::map<std::string, T>& names) {
       .description("{" + list + "}");
 }
 
+// --series UID, repeatable, into `series` (planning::VolumeReadOptions::dicom_series), for every
+// command that reads a scan which may be a DICOM folder.
+inline CLI::Option* add_series_option(CLI::App* cmd, std::vector<std::string>& series) {
+  return cmd->add_option(
+      "--series", series,
+      "DICOM series to read, by its SeriesInstanceUID (0020,000E), where a DICOM folder given as "
+      "a scan holds several series (a scout beside the CT, a second reconstruction, another "
+      "phase). Such a folder is refused, its series listed with their slice counts and "
+      "descriptions, until one is chosen here. Repeatable: one UID per such folder (UIDs are "
+      "unique, so each folder takes the one of its own). Files and folders of one series need "
+      "none");
+}
+
 // A number option that must be finite (CLI11 reads "nan" and "inf" as numbers); `positive`: > 0.
 inline CLI::Validator finite_number(bool positive = false) {
   return CLI::Validator(

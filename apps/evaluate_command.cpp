@@ -46,6 +46,7 @@ void add_evaluate_command(CLI::App& app) {
   cmd->add_option("--labels", r.labels,
                   "Label map for the structures (default: the plan's label map)")
       ->check(CLI::ExistingPath);
+  add_series_option(cmd, r.series);
   cmd->add_flag("--json", r.json, "Print JSON instead of text (batch: a JSON array)");
   cmd->add_option("--out", r.out,
                   "Write the result to this file (written whole or not at all) instead of "

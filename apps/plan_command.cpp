@@ -42,6 +42,7 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
                   "Ready blocking volume (risk per mm, >= 0), used as is; the tumor mask may lie "
                   "on another grid")
       ->check(CLI::ExistingPath);
+  add_series_option(cmd, req->series);
   cmd->add_option("--phases", req->phases,
                   "Breathing: phases.json listing one label map, tumor (and CT) per phase of the "
                   "respiratory cycle (crepuscular phantom --phases writes one). Path safety is "

@@ -17,6 +17,7 @@ void add_register_command(CLI::App& app) {
       "configurations are refused.");
   cmd->add_option("--ct", a->ct, "The CT (NIfTI, NRRD, MetaImage or a DICOM folder), LPS mm")
       ->required();
+  add_series_option(cmd, a->series);
   cmd->add_option("--boards", a->boards,
                   "Marker boards (boards.json) with the patient board's fiducials; default: the "
                   "recording's boards.json");

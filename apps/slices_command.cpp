@@ -31,6 +31,7 @@ void add_slices_command(CLI::App& app) {
   cmd->add_option("--labels", req->labels,
                   "Label map whose structures are outlined (default: the plan's label map)")
       ->check(CLI::ExistingPath);
+  add_series_option(cmd, req->series);
   cmd->add_option("--value", req->value,
                   "Path safety value shown: svv, isbv, ivbv or bvv (default: svv when the plan "
                   "has it, else its first value)");

@@ -97,14 +97,14 @@ void setup_preview(const AreaRequest& r, Setup& s) {
     spdlog::info("reading label map {}", r.labels);
     MarginOptions margin;
     margin.fwhm_mm = r.margin_fwhm_mm;
-    s.blocking = blocking_from_labels(read_label_map(r.labels), table.table, margin, r.labels);
+    s.blocking = blocking_from_labels(read_label_map(r.labels, {r.series}), table.table, margin, r.labels);
     if (std::isnan(s.threshold)) s.threshold = default_blocking_threshold(table);
     s.info["labels"] = fs::absolute(final_path_of(r.labels)).string();
     s.info["vulnerability"] = table.source;
     s.info["margin_fwhm_mm"] = r.margin_fwhm_mm;
   } else {
     require_input(r.blocking, "the blocking volume");
-    s.blocking = read_volume<float>(r.blocking);
+    s.blocking = read_volume<float>(r.blocking, {r.series});
     validate_blocking(s.blocking, r.blocking);
     if (std::isnan(s.threshold)) {
       throw Error(
@@ -207,7 +207,7 @@ nlohmann::json run_area(const AreaRequest& r) {
     setup_from_plan(r, s);
   }
   spdlog::info("reading tumor mask {}", s.tumor_path);
-  const Volume<uint8_t> tumor = read_mask(s.tumor_path);
+  const Volume<uint8_t> tumor = read_mask(s.tumor_path, {r.series});
   if (r.spacing_mm > 0) {
     s.options.spacing_mm = r.spacing_mm;
   } else if (s.options.spacing_mm <= 0) {

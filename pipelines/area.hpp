@@ -6,6 +6,7 @@
 #include <limits>
 #include <nlohmann/json_fwd.hpp>
 #include <string>
+#include <vector>
 
 namespace crepuscular::pipelines {
 
@@ -26,6 +27,9 @@ struct AreaRequest {
   double spacing_mm = 0;  // 0: the plan's h (path safety) or the smallest input spacing
   double angular_step_deg = 1.0;  // planning::AreaSafetyOptions::angular_step_deg
   std::string out_dir;
+  // SeriesInstanceUIDs chosen for DICOM folders of several series (--series; see
+  // planning::VolumeReadOptions::dicom_series).
+  std::vector<std::string> series;
 };
 
 // Runs the job and writes OUT/area_safety.vtk and OUT/area.json (staged: complete or nothing;

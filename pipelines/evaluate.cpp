@@ -29,6 +29,7 @@ std::string run_evaluate(const EvaluateRequest& r) {
   }
   planning::PlanLoadOptions load;
   load.labels_override = r.labels;
+  load.series = r.series;
   const planning::PlanData plan = planning::load_plan(r.plan_dir, load);
   const planning::TrajectoryEvaluator evaluator(plan);
   const std::vector<planning::Trajectory> trajectories = trajectories_of(r, plan);

@@ -4,6 +4,7 @@
 
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "planning/trajectories/evaluate.hpp"
 
@@ -12,6 +13,9 @@ namespace crepuscular::pipelines {
 struct EvaluateRequest {
   std::string plan_dir;
   std::string labels;  // label map for the structures ("": the plan's)
+  // SeriesInstanceUIDs chosen for DICOM folders of several series (--series; see
+  // planning::VolumeReadOptions::dicom_series).
+  std::vector<std::string> series;
   // The trajectories: one given by its points, a Slicer line markup, or a batch CSV.
   std::optional<planning::Trajectory> trajectory;
   std::string markup;

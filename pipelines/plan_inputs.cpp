@@ -92,7 +92,7 @@ void add_label_spec(const std::string& text, const PlanInputOptions& o, LabelSou
     return;
   }
   spdlog::info("reading label map {}", spec.path);
-  s.maps.push_back(read_label_map(spec.path));
+  s.maps.push_back(read_label_map(spec.path, {o.series}));
   s.tables.push_back(table.table);
   const std::optional<std::string> part = tumor_part_of(spec.path, o);
   if (const std::optional<int> tumor_label = part ? parse_label_value(*part) : std::nullopt) {
@@ -144,7 +144,7 @@ void blocking_from_label_specs(const PlanInputOptions& o, PlanInputs& in) {
 void make_blocking(const PlanInputOptions& o, PlanInputs& in) {
   if (!o.blocking.empty()) {
     spdlog::info("reading blocking volume {}", o.blocking);
-    in.blocking = read_volume<float>(o.blocking);
+    in.blocking = read_volume<float>(o.blocking, {o.series});
     in.blocking_source = o.blocking;
     in.preprocessing = {{"mode", "ready blocking volume"}};
     in.coverage.add(in.blocking.geometry(), o.blocking);
@@ -152,7 +152,7 @@ void make_blocking(const PlanInputOptions& o, PlanInputs& in) {
     blocking_from_label_specs(o, in);
   } else {
     spdlog::info("reading CT {} for thresholding", o.ct);
-    const Volume<float> ct = read_volume<float>(o.ct);
+    const Volume<float> ct = read_volume<float>(o.ct, {o.series});
     in.blocking = blocking_from_ct(ct, o.ct_thresholds, o.margin);
     in.blocking_source = o.ct;
     in.preprocessing = {{"mode", "ct thresholds"},
@@ -164,7 +164,7 @@ void make_blocking(const PlanInputOptions& o, PlanInputs& in) {
   // A CT given beside labels or a blocking volume describes the anatomy too: part of the scan.
   // Only its grid is used: its header is read, not its voxels (a 513^3 CT took a second).
   if (!o.ct.empty() && (!o.labels.empty() || !o.blocking.empty())) {
-    in.coverage.add(read_volume_geometry(o.ct), o.ct);
+    in.coverage.add(read_volume_geometry(o.ct, {o.series}), o.ct);
   }
   validate_blocking(in.blocking, in.blocking_source);
 }
@@ -177,10 +177,10 @@ void read_tumor(const PlanInputOptions& o, PlanInputs& in) {
   in.tumor_source = {{"file", spec.path}};
   if (!spec.qualifier) {
     spdlog::info("reading tumor mask {}", spec.path);
-    mask = read_mask(spec.path);
+    mask = read_mask(spec.path, {o.series});
   } else if (const std::optional<int> value = parse_label_value(*spec.qualifier)) {
     spdlog::info("reading tumor label {} of {}", *value, spec.path);
-    mask = label_mask(read_label_map(spec.path), *value, spec.path);
+    mask = label_mask(read_label_map(spec.path, {o.series}), *value, spec.path);
     what = spec.path + " label " + std::to_string(*value);
     in.tumor_source["label"] = *value;
   } else {

@@ -32,6 +32,9 @@ struct PlanInputOptions {
   std::string tumor;
   int lesion = 0;                                // K-th largest lesion (1 = largest); 0: the only one
   std::optional<Eigen::Vector3d> lesion_at;      // the lesion at (or nearest to) this point, LPS mm
+  // SeriesInstanceUIDs chosen for DICOM folders of several series (--series; see
+  // planning::VolumeReadOptions::dicom_series).
+  std::vector<std::string> series;
 };
 
 struct PlanInputs {

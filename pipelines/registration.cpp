@@ -71,7 +71,7 @@ std::vector<planning::Fiducial> ct_fiducials(const RegistrationRequest& a,
     inputs.push_back(a.ct_fiducials);
   } else {
     spdlog::info("register: reading {}", a.ct);
-    const planning::Volume<float> ct = planning::read_volume<float>(a.ct);
+    const planning::Volume<float> ct = planning::read_volume<float>(a.ct, {a.series});
     planning::FiducialDetectionOptions o;
     o.threshold = a.threshold_hu;
     found = planning::detect_fiducials(ct, o);
@@ -127,8 +127,8 @@ void record_pairs(const calibration::RegistrationResult& r,
   }
 }
 
-Eigen::Vector3d mask_centroid(const std::string& path) {
-  const planning::Volume<uint8_t> mask = planning::read_mask(path);
+Eigen::Vector3d mask_centroid(const std::string& path, const std::vector<std::string>& series) {
+  const planning::Volume<uint8_t> mask = planning::read_mask(path, {series});
   Eigen::Vector3d sum = Eigen::Vector3d::Zero();
   int64_t count = 0;
   for (int64_t o = 0; o < mask.voxel_count(); ++o) {
@@ -147,7 +147,7 @@ void expected_tre(const RegistrationRequest& a, const calibration::RegistrationR
   if (a.target) {
     rec.target_ct = *a.target;
   } else if (!a.tumor.empty()) {
-    rec.target_ct = mask_centroid(a.tumor);
+    rec.target_ct = mask_centroid(a.tumor, a.series);
     rec.inputs.push_back(a.tumor);
   }
   if (!rec.target_ct) {

@@ -16,6 +16,9 @@ namespace crepuscular::pipelines {
 
 struct RegistrationRequest {
   std::string ct;            // the CT (LPS mm); beads are found in it unless ct_fiducials
+  // SeriesInstanceUIDs chosen for DICOM folders of several series (--series; see
+  // planning::VolumeReadOptions::dicom_series).
+  std::vector<std::string> series;
   std::string boards;        // boards.json ("": the recording's own)
   std::string board_name;    // the patient board ("": "patient", else the first with fiducials)
   std::string ct_fiducials;  // Slicer .mrk.json of the CT fiducials

@@ -176,10 +176,11 @@ nlohmann::json run_slices(const SlicesRequest& req) {
   load.blocking = false;
   load.only_value = value;
   load.labels_override = req.labels;
+  load.series = req.series;
   spdlog::info("reading plan {}", req.plan_dir);
   const PlanData plan = load_plan(req.plan_dir, load);
   spdlog::info("reading CT {}", req.ct);
-  const Volume<float> ct = read_volume<float>(req.ct);
+  const Volume<float> ct = read_volume<float>(req.ct, {req.series});
   require_overlap_with_plan(ct.geometry(), plan.grid, req.ct, "the CT");
   const std::string other_scan = other_scan_warning(plan, ct.geometry(), req.ct);
   if (!other_scan.empty()) spdlog::warn("slices: {}", other_scan);

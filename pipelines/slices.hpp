@@ -15,6 +15,9 @@ struct SlicesRequest {
   std::string plan_dir;
   std::string ct;
   std::string labels;  // overrides the plan's label map
+  // SeriesInstanceUIDs chosen for DICOM folders of several series (--series; see
+  // planning::VolumeReadOptions::dicom_series).
+  std::vector<std::string> series;
   std::string value;   // path safety value; empty: svv when computed, else the first
   bool have_at = false;
   Eigen::Vector3d at = Eigen::Vector3d::Zero();

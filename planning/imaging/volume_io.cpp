@@ -2,6 +2,7 @@
 // back. ITK is LPS like Volume, so the geometry is copied as is; every ITK error becomes an Error.
 #include "planning/imaging/volume_io.hpp"
 #include "planning/imaging/itk_image.hpp"
+#include "planning/imaging/dicom_series.hpp"
 
 #include <spdlog/spdlog.h>
 
@@ -13,6 +14,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <future>
 #include <limits>
 #include <map>
 #include <memory>
@@ -34,7 +36,6 @@
 // Eigen in this translation unit.
 #include <itkGDCMImageIO.h>
 #include <itkGDCMImageIOFactory.h>
-#include <itkGDCMSeriesFileNames.h>
 #include <itkImage.h>
 #include <itkImageFileReader.h>
 #include <itkImageFileWriter.h>
@@ -208,14 +209,23 @@ int64_t nifti_datatype_bytes(int datatype) {
   }
 }
 
-std::string nifti_length_problem(const std::string& path) {
-  NiftiHeader header;
-  const std::string unreadable = header.open(path);
-  if (!unreadable.empty()) return unreadable;
+// Where a single-file NIfTI stores its voxels, from its header.
+struct NiftiLayout {
+  uint64_t vox_offset = 0;
+  uint64_t data_bytes = 0;     // dims x bytes per voxel
+  int datatype = 0;            // nifti1.h code: 16 float32, 64 float64, ...
+  std::array<int64_t, 8> dim{};
+  uint64_t needed() const { return vox_offset + data_bytes; }
+};
+
+// Fills `layout` from an opened header. Returns "" when it is filled, kNotChecked for header and
+// data in separate files (.hdr/.img) or Analyze, else why the header cannot describe a volume.
+constexpr const char* kNotChecked = "-";
+std::string nifti_layout(const NiftiHeader& header, const std::string& path, NiftiLayout& layout) {
   const int32_t sizeof_hdr = header.field<int32_t>(0);
   double vox_offset = 0.0;
   int64_t bitpix = 0;
-  std::array<int64_t, 8> dim{};
+  std::array<int64_t, 8>& dim = layout.dim;
   if (header.nifti1()) {
     vox_offset = header.field<float>(108);
     bitpix = header.field<int16_t>(72);
@@ -229,11 +239,12 @@ std::string nifti_length_problem(const std::string& path) {
     // trusts its sizes (12 GB for a 364-byte file).
     return "not a NIfTI file: its header lacks the magic \"n+1\" or \"n+2\"";
   } else {
-    return {};  // header and data in separate files (.hdr/.img), or Analyze: not checked here
+    return kNotChecked;
   }
   // niftilib sizes the data by the datatype code and ignores bitpix: go by the larger of the two.
-  const int datatype = header.nifti2() ? header.field<int16_t>(12) : header.field<int16_t>(70);
-  uint64_t data_bytes = uint64_t(std::max<int64_t>({bitpix / 8, nifti_datatype_bytes(datatype), 0}));
+  layout.datatype = header.nifti2() ? header.field<int16_t>(12) : header.field<int16_t>(70);
+  uint64_t data_bytes =
+      uint64_t(std::max<int64_t>({bitpix / 8, nifti_datatype_bytes(layout.datatype), 0}));
   for (int d = 1; d <= std::clamp<int64_t>(dim[0], 0, 7); ++d) {
     data_bytes *= uint64_t(std::max<int64_t>(dim[d], 1));
   }
@@ -241,7 +252,20 @@ std::string nifti_length_problem(const std::string& path) {
     return "NIfTI vox_offset is " + value_text(vox_offset) + ", expected at least " +
            std::to_string(sizeof_hdr);
   }
-  const uint64_t needed = uint64_t(vox_offset) + data_bytes;
+  layout.vox_offset = uint64_t(vox_offset);
+  layout.data_bytes = data_bytes;
+  return {};
+}
+
+std::string nifti_length_problem(const std::string& path) {
+  NiftiHeader header;
+  const std::string unreadable = header.open(path);
+  if (!unreadable.empty()) return unreadable;
+  NiftiLayout layout;
+  const std::string bad_layout = nifti_layout(header, path, layout);
+  if (bad_layout == kNotChecked) return {};
+  if (!bad_layout.empty()) return bad_layout;
+  const uint64_t needed = layout.needed();
 
   std::ifstream raw(path, std::ios::binary);
   unsigned char magic[2] = {0, 0};
@@ -273,6 +297,73 @@ std::string nifti_length_problem(const std::string& path) {
            std::to_string(needed);
   }
   return {};
+}
+
+// niftilib (nifti_read_buffer) sets NaN and infinite float voxels to 0 as it reads them ("bad
+// floats were set to 0"), so a label map or CT with NaN voxels would plan as if they were 0. This
+// reads the stored float32 or float64 values of a .nii or .nii.gz itself, in the file's byte
+// order: "" when every voxel is finite (or the data are of an integer type, or shorter than the
+// header says: nifti_length_problem reports that), else the first bad voxel, "[phase T, ]voxel
+// (I, J, K) has value nan (expected a finite number)". One pass over the (decompressed) data.
+std::string nifti_value_problem(const std::string& path) {
+  NiftiHeader header;
+  if (!header.open(path).empty()) return {};
+  NiftiLayout layout;
+  if (!nifti_layout(header, path, layout).empty()) return {};
+  if (layout.datatype != 16 && layout.datatype != 64) return {};
+  const size_t bytes = layout.datatype == 16 ? 4 : 8;
+  const uint64_t count = layout.data_bytes / bytes;
+  std::vector<unsigned char> buffer(1 << 20);
+  size_t have = 0;
+  const uint64_t already = uint64_t(header.read);
+  if (layout.vox_offset < already) {
+    have = size_t(already - layout.vox_offset);
+    std::memcpy(buffer.data(), header.bytes + layout.vox_offset, have);
+  } else {
+    for (uint64_t skip = layout.vox_offset - already; skip > 0;) {
+      const int got = gzread(header.file.get(), buffer.data(),
+                             unsigned(std::min<uint64_t>(skip, buffer.size())));
+      if (got <= 0) return {};
+      skip -= uint64_t(got);
+    }
+  }
+  const auto value_at = [&](size_t at) {
+    unsigned char b[8];
+    std::memcpy(b, buffer.data() + at, bytes);
+    if (header.swapped) std::reverse(b, b + bytes);
+    if (bytes == 4) {
+      float f;
+      std::memcpy(&f, b, 4);
+      return double(f);
+    }
+    double d;
+    std::memcpy(&d, b, 8);
+    return d;
+  };
+  uint64_t index = 0;
+  for (;;) {
+    const int got = gzread(header.file.get(), buffer.data() + have, unsigned(buffer.size() - have));
+    if (got > 0) have += size_t(got);
+    const size_t whole = have / bytes * bytes;
+    for (size_t at = 0; at < whole && index < count; at += bytes, ++index) {
+      const double v = value_at(at);
+      if (std::isfinite(v)) continue;
+      const auto& dim = layout.dim;
+      const auto extent = [&](int d) { return d <= dim[0] ? std::max<int64_t>(dim[d], 1) : 1; };
+      const uint64_t per_volume = uint64_t(extent(1) * extent(2) * extent(3));
+      const uint64_t in_volume = index % per_volume;
+      std::ostringstream s;
+      if (count > per_volume) s << "phase " << index / per_volume << ", ";
+      s << "voxel (" << in_volume % uint64_t(extent(1)) << ", "
+        << in_volume / uint64_t(extent(1)) % uint64_t(extent(2)) << ", "
+        << in_volume / uint64_t(extent(1) * extent(2)) << ") has value " << value_text(v)
+        << " (expected a finite number)";
+      return s.str();
+    }
+    if (index >= count || got <= 0) return {};
+    std::memmove(buffer.data(), buffer.data() + whole, have - whole);
+    have -= whole;
+  }
 }
 
 std::string trimmed(const std::string& text) {
@@ -617,6 +708,21 @@ std::string length_problem(const std::string& path, const char* io_class) {
   return {};
 }
 
+// The check of the stored values that the format's library would change in silence (NIfTI
+// floats, see nifti_value_problem), started on its own thread to run beside ITK's read of the
+// same voxels; no check (an invalid future) for other formats. The voxels ITK read are used only
+// once require_stored_values_fine has found nothing.
+std::future<std::string> check_stored_values_aside(const std::string& path, const char* io_class) {
+  if (std::strcmp(io_class, "NiftiImageIO") != 0) return {};
+  return std::async(std::launch::async, nifti_value_problem, path);
+}
+
+void require_stored_values_fine(std::future<std::string>& check, const std::string& path) {
+  if (!check.valid()) return;
+  const std::string problem = check.get();
+  if (!problem.empty()) throw Error(path + ": " + problem);
+}
+
 // The grid of the first three axes (a 4D image's frames share it).
 template <unsigned N>
 ImageGeometry geometry_of_image(const itk::ImageBase<N>& image) {
@@ -763,7 +869,7 @@ itk::ImageIOBase::Pointer image_io_of(const std::string& path) {
 // Opens `path` (file or DICOM folder), reads its voxels in their stored type S and returns
 // convert(Volume<S>&&). Every failure is an Error naming `path`.
 template <typename Convert>
-auto read_native(const std::string& path, Convert&& convert) {
+auto read_native(const std::string& path, const VolumeReadOptions& options, Convert&& convert) {
   register_io_factories();
   std::error_code ec;
   const fs::file_status status = fs::status(path, ec);
@@ -772,18 +878,8 @@ auto read_native(const std::string& path, Convert&& convert) {
   }
   try {
     if (fs::is_directory(status)) {
+      const std::vector<std::string> files = dicom_series_slices(path, options.dicom_series);
       std::unique_lock<std::recursive_mutex> one_reader(image_read_mutex());
-      auto names = itk::GDCMSeriesFileNames::New();
-      names->SetUseSeriesDetails(true);
-      names->SetDirectory(path);
-      std::vector<std::string> files;
-      for (const std::string& uid : names->GetSeriesUIDs()) {
-        std::vector<std::string> series = names->GetFileNames(uid);
-        if (series.size() > files.size()) files = std::move(series);
-      }
-      if (files.empty()) {
-        throw Error(path + ": cannot read (folder holds no DICOM series)");
-      }
       auto io = itk::GDCMImageIO::New();
       io->SetFileName(files.front());
       io->ReadImageInformation();
@@ -805,9 +901,12 @@ auto read_native(const std::string& path, Convert&& convert) {
     spdlog::debug("{}: reading {} x {} x {} voxels ({})", path, geometry.dims[0], geometry.dims[1],
                   geometry.dims[2],
                   itk::ImageIOBase::GetComponentTypeAsString(io->GetComponentType()));
+    std::future<std::string> values = check_stored_values_aside(path, io->GetNameOfClass());
     return with_component_type(io->GetComponentType(), path, [&](auto tag) {
       using S = typename decltype(tag)::type;
-      return convert(read_file_pixels<S>(path, io.GetPointer(), geometry));
+      Volume<S> native = read_file_pixels<S>(path, io.GetPointer(), geometry);
+      require_stored_values_fine(values, path);
+      return convert(std::move(native));
     });
   } catch (const Error&) {
     throw;
@@ -880,14 +979,14 @@ bool ends_with(const std::string& text, const std::string& suffix) {
 }  // namespace
 
 template <typename T>
-Volume<T> read_volume(const std::string& path) {
-  return read_native(path, [&](auto&& native) {
+Volume<T> read_volume(const std::string& path, const VolumeReadOptions& options) {
+  return read_native(path, options, [&](auto&& native) {
     return convert_values<T>(std::forward<decltype(native)>(native), path);
   });
 }
 
-Volume<int32_t> read_label_map(const std::string& path) {
-  return read_native(path, [&](auto&& native) {
+Volume<int32_t> read_label_map(const std::string& path, const VolumeReadOptions& options) {
+  return read_native(path, options, [&](auto&& native) {
     const int64_t n = native.voxel_count();
     const auto label = [&](int64_t i) {
       const double v = double(native[i]);
@@ -907,8 +1006,8 @@ Volume<int32_t> read_label_map(const std::string& path) {
   });
 }
 
-Volume<uint8_t> read_mask(const std::string& path) {
-  return read_native(path, [&](auto&& native) {
+Volume<uint8_t> read_mask(const std::string& path, const VolumeReadOptions& options) {
+  return read_native(path, options, [&](auto&& native) {
     Volume<uint8_t> mask(native.geometry());
     const int64_t n = native.voxel_count();
     for (int64_t i = 0; i < n; ++i) {
@@ -923,10 +1022,10 @@ Volume<uint8_t> read_mask(const std::string& path) {
   });
 }
 
-ImageGeometry read_volume_geometry(const std::string& path) {
+ImageGeometry read_volume_geometry(const std::string& path, const VolumeReadOptions& options) {
   try {
     const itk::ImageIOBase::Pointer io = image_io_of(path);
-    if (!io) return read_volume<float>(path).geometry();  // a DICOM series: its slices place it
+    if (!io) return read_volume<float>(path, options).geometry();  // a DICOM series: its slices place it
     return geometry_of_file(*io, path);
   } catch (const Error&) {
     throw;
@@ -969,10 +1068,12 @@ void split_volume_frames(const std::string& path, const std::vector<std::string>
     }
     const std::string short_data = length_problem(path, io->GetNameOfClass());
     if (!short_data.empty()) throw Error(path + ": cannot read (" + short_data + ")");
+    std::future<std::string> values = check_stored_values_aside(path, io->GetNameOfClass());
     auto reader = itk::ImageFileReader<Image4>::New();
     reader->SetImageIO(io);
     reader->SetFileName(path);
     update_in_turn(*reader);
+    require_stored_values_fine(values, path);
     const Image4& image = *reader->GetOutput();
     const ImageGeometry g = geometry_of_image(image);
     check_geometry(g, path);
@@ -1116,11 +1217,11 @@ void write_volume(const Volume<T>& volume, const std::string& path) {
                 type_name<T>());
 }
 
-template Volume<uint8_t> read_volume<uint8_t>(const std::string&);
-template Volume<int16_t> read_volume<int16_t>(const std::string&);
-template Volume<int32_t> read_volume<int32_t>(const std::string&);
-template Volume<float> read_volume<float>(const std::string&);
-template Volume<double> read_volume<double>(const std::string&);
+template Volume<uint8_t> read_volume<uint8_t>(const std::string&, const VolumeReadOptions&);
+template Volume<int16_t> read_volume<int16_t>(const std::string&, const VolumeReadOptions&);
+template Volume<int32_t> read_volume<int32_t>(const std::string&, const VolumeReadOptions&);
+template Volume<float> read_volume<float>(const std::string&, const VolumeReadOptions&);
+template Volume<double> read_volume<double>(const std::string&, const VolumeReadOptions&);
 
 template void write_volume<uint8_t>(const Volume<uint8_t>&, const std::string&);
 template void write_volume<int16_t>(const Volume<int16_t>&, const std::string&);

@@ -19,23 +19,33 @@ namespace crepuscular::planning {
 // Recursive: one read may open its header under it and then read its voxels.
 std::recursive_mutex& image_read_mutex();
 
+// How a volume is read where its source leaves a choice; files ignore it.
+struct VolumeReadOptions {
+  // SeriesInstanceUIDs (0020,000E) a user chose (`--series`): a DICOM folder holding several
+  // series is read as the one of them listed here (one list serves every folder of a job: UIDs
+  // are unique). A folder of one series is read as that series; one of several, none listed, is
+  // refused with the list of its series.
+  std::vector<std::string> dicom_series;
+};
+
 // Reads a scalar volume and converts its values to T. `path` is a file, or a folder holding one
-// DICOM series (the series with the most slices is taken when there are several).
-// Throws Error naming the file when it is missing, unreadable, not 3D, not scalar, or has an
-// unusable geometry (zero or negative spacing, non-orthonormal direction).
+// DICOM series (or several, one of them chosen in `options`), its slices checked first
+// (dicom_series.hpp). Throws Error naming the file when it is missing, unreadable, not 3D, not
+// scalar, has an unusable geometry (zero or negative spacing, non-orthonormal direction), or
+// (NIfTI float32/float64) a NaN or infinite voxel, which niftilib would read as 0.
 // Supported T: uint8_t, int16_t, int32_t, float, double.
 template <typename T>
-Volume<T> read_volume(const std::string& path);
+Volume<T> read_volume(const std::string& path, const VolumeReadOptions& options = {});
 
 // Reads a label map: every value must be an integer in [0, 65535]; throws Error otherwise.
-Volume<int32_t> read_label_map(const std::string& path);
+Volume<int32_t> read_label_map(const std::string& path, const VolumeReadOptions& options = {});
 
 // Reads a binary mask: voxels > 0.5 are 1, all others 0.
-Volume<uint8_t> read_mask(const std::string& path);
+Volume<uint8_t> read_mask(const std::string& path, const VolumeReadOptions& options = {});
 
-// The grid of a volume from its header alone (a DICOM folder: from its series), checked as
-// read_volume checks it; its voxels are not read. Throws Error naming the file.
-ImageGeometry read_volume_geometry(const std::string& path);
+// The grid of a volume from its header alone (a DICOM folder: from its series, checked and read),
+// checked as read_volume checks it; a file's voxels are not read. Throws Error naming the file.
+ImageGeometry read_volume_geometry(const std::string& path, const VolumeReadOptions& options = {});
 
 // Frames along the 4th axis of a file: breathing phases of a 4D NIfTI (or NRRD, MetaImage); 1 for
 // a 3D volume or a folder. Throws Error naming the file when it cannot be read.
@@ -43,7 +53,8 @@ int volume_frames(const std::string& path);
 
 // Writes frame t of a 4D file as the 3D volume frame_paths[t] (values as float: exact for labels
 // and CT numbers) with the geometry of the first three axes. Throws Error naming the file when it
-// is not 4D with that many frames, is unreadable, or has an unusable geometry or value.
+// is not 4D with that many frames, is unreadable, or has an unusable geometry or a NaN or
+// infinite value (naming the phase and the voxel).
 void split_volume_frames(const std::string& path, const std::vector<std::string>& frame_paths);
 
 // Writes volumes of one grid as the frames of a 4D file (.nii.gz or .nii), e.g. the phases of a

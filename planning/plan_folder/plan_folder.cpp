@@ -357,7 +357,7 @@ void read_inputs(PlanData& plan, const PlanLoadOptions& options, const std::stri
       }
     }
     if (!path.empty()) {
-      plan.labels = read_label_map(path);
+      plan.labels = read_label_map(path, {options.series});
       require_overlap_with_plan(plan.labels.geometry(), plan.grid, path, "the label map");
       plan.labels_path = path;
     }
@@ -370,7 +370,7 @@ void read_inputs(PlanData& plan, const PlanLoadOptions& options, const std::stri
                                  ? in_plan(plan.dir, outputs["tumor"].get<std::string>())
                                  : input_path(j, "tumor", plan.dir, JsonPath(json_path));
     if (!path.empty() && fs::exists(path, ec)) {
-      plan.tumor = read_mask(path);
+      plan.tumor = read_mask(path, {options.series});
     } else if (!path.empty()) {
       spdlog::warn("{}: the plan's tumor mask {} no longer exists", json_path, path);
     }

@@ -47,6 +47,7 @@ struct PlanLoadOptions {
   std::string only_value;   // when set: load only this path safety value ("svv", ...)
   bool labels = true;       // the label map: labels_override, else plan.json inputs.labels
   std::string labels_override;
+  std::vector<std::string> series;  // DICOM series chosen (VolumeReadOptions::dicom_series)
   bool tumor = true;        // the tumor mask of plan.json inputs.tumor (skipped if missing)
   bool area_safety = true;  // PLAN_DIR/area_safety.vtk when present
   bool check_inputs = true; // compare every input still present with its checksum in plan.json

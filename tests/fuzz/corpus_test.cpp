@@ -51,10 +51,13 @@ TEST_P(FuzzCorpus, EveryCorpusFileAndFindingIsAcceptedOrRefusedWithAnError) {
     SCOPED_TRACE(file.string());
     const std::vector<uint8_t> bytes = file_bytes(file);
     const std::string refusal = run_fuzz_input(target, bytes.data(), bytes.size());
-    // Seeds named valid-* are real files of the format: the reader must accept them.
+    // Seeds named valid-* are real files of the format: the reader must accept them. Seeds
+    // named refused-* hold what a reader must not pass over (a NaN voxel, a missing slice).
     if (file.filename().string().rfind("valid-", 0) == 0) {
       ++valid;
       EXPECT_EQ(refusal, "") << file << " is a valid seed but was refused";
+    } else if (file.filename().string().rfind("refused-", 0) == 0) {
+      EXPECT_NE(refusal, "") << file << " must be refused but was accepted";
     }
   }
   EXPECT_GE(valid, 1) << "tests/fuzz/corpus/" << target.name << " needs a valid-* seed";

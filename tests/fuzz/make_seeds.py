@@ -1,19 +1,26 @@
 #!/usr/bin/python3
 """Writes the hand-made seeds of tests/fuzz/corpus/ (the others are copies of the demo's files).
 
-Small valid files of each format (named valid-*: the readers must accept them) and a few
-near-valid ones. Run from anywhere: python3 tests/fuzz/make_seeds.py
+Small valid files of each format (named valid-*: the readers must accept them), a few near-valid
+ones, and files named refused-* that the readers must refuse. Run from anywhere:
+python3 tests/fuzz/make_seeds.py [GROUP ...] (default: every group; the groups float_nifti and
+dicom_series need neither numpy nor nibabel).
 
 The igtl_stream seeds were packed by the OpenIGTLink library itself (TransformMessage,
 TrackingDataMessage, StringMessage; a version-2 header built by hand around a TRANSFORM body;
 one with a flipped body bit, the CRC no longer matching).
 """
+import gzip
 import json
 import os
 import struct
+import sys
 
-import nibabel as nib
-import numpy as np
+try:
+    import nibabel as nib
+    import numpy as np
+except ImportError:  # float_nifti and dicom_series are written without them
+    nib = np = None
 
 HERE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "corpus")
 
@@ -151,10 +158,97 @@ def small_variants():
                                               "frames": 2, "fps": 30}))
 
 
+def nifti1(dims, values, fmt, datatype, big_endian=False):
+    """A single-file NIfTI-1 of 1 mm voxels written field by field (no orientation codes)."""
+    e = ">" if big_endian else "<"
+    h = bytearray(352)
+    struct.pack_into(e + "i", h, 0, 348)
+    struct.pack_into(e + "8h", h, 40, *([len(dims)] + list(dims) + [1] * (7 - len(dims))))
+    struct.pack_into(e + "hh", h, 70, datatype, struct.calcsize(fmt) * 8)
+    struct.pack_into(e + "8f", h, 76, *([1.0] * 8))
+    struct.pack_into(e + "ff", h, 108, 352.0, 1.0)  # vox_offset, scl_slope
+    h[344:348] = b"n+1\0"
+    return bytes(h) + b"".join(struct.pack(e + fmt, v) for v in values)
+
+
+def float_nifti():
+    """Float voxels: niftilib reads NaN and Inf as 0, so the reader checks them itself."""
+    values = [float(i) for i in range(4 * 3 * 2)]
+    put("nifti", "valid-float64-big-endian.nii", nifti1((4, 3, 2), values, "d", 64, True))
+    nan = values[:]
+    nan[13] = float("nan")
+    put("nifti", "refused-nan-voxel.nii", nifti1((4, 3, 2), nan, "f", 16))
+    inf = values[:]
+    inf[23] = float("-inf")
+    put("nifti", "refused-inf-voxel-big-endian.nii", nifti1((4, 3, 2), inf, "f", 16, True))
+    put("nifti_gz", "valid-float32.nii.gz", gzip.compress(nifti1((4, 3, 2), values, "f", 16), 9, mtime=0))
+    put("nifti_gz", "valid-4d-float32.nii.gz",
+        gzip.compress(nifti1((2, 2, 1, 2), values[:8], "f", 16), 9, mtime=0))
+    put("nifti_gz", "refused-nan-voxel.nii.gz", gzip.compress(nifti1((4, 3, 2), nan, "f", 16), 9, mtime=0))
+    put("nifti_gz", "valid-int16.nii.gz",
+        gzip.compress(nifti1((4, 3, 2), [int(v) for v in values], "h", 4), 9, mtime=0))
+
+
+def dicom_element(group, element, vr, value):
+    if isinstance(value, str):
+        value = value.encode()
+        if len(value) % 2:
+            value += b"\0" if vr == "UI" else b" "
+    if vr in ("OB", "OW"):
+        return struct.pack("<HH", group, element) + vr.encode() + b"\0\0" + struct.pack("<I", len(value)) + value
+    return struct.pack("<HH", group, element) + vr.encode() + struct.pack("<H", len(value)) + value
+
+
+def dicom_slice(series_uid, k, z, rows=3, columns=4, description="Abdomen", cut=0):
+    """One CT slice (explicit VR little endian, int16) at height z mm, as the tests write them."""
+    sop_class, sop = "1.2.840.10008.5.1.4.1.1.2", "%s.%d" % (series_uid, k + 1)
+    us = lambda g, e, v: dicom_element(g, e, "US", struct.pack("<H", v))
+    meta = (dicom_element(2, 1, "OB", b"\0\1") + dicom_element(2, 2, "UI", sop_class) +
+            dicom_element(2, 3, "UI", sop) + dicom_element(2, 0x10, "UI", "1.2.840.10008.1.2.1"))
+    data = (dicom_element(8, 0x16, "UI", sop_class) + dicom_element(8, 0x18, "UI", sop) +
+            dicom_element(8, 0x60, "CS", "CT") + dicom_element(8, 0x103E, "LO", description) +
+            dicom_element(0x20, 0xE, "UI", series_uid) +
+            dicom_element(0x20, 0x32, "DS", "-10\\20\\%g" % z) +
+            dicom_element(0x20, 0x37, "DS", "1\\0\\0\\0\\1\\0") +
+            us(0x28, 2, 1) + dicom_element(0x28, 4, "CS", "MONOCHROME2") + us(0x28, 0x10, rows) +
+            us(0x28, 0x11, columns) + dicom_element(0x28, 0x30, "DS", "0.8\\0.7") +
+            us(0x28, 0x100, 16) + us(0x28, 0x101, 16) + us(0x28, 0x102, 15) + us(0x28, 0x103, 1) +
+            dicom_element(0x7FE0, 0x10, "OW", b"".join(struct.pack("<h", 100 * k + i)
+                                                       for i in range(rows * columns))))
+    out = (b"\0" * 128 + b"DICM" + b"\x02\x00\x00\x00UL\x04\x00" + struct.pack("<I", len(meta)) +
+           meta + data)
+    return out[:len(out) - cut]
+
+
+SLICE_MARK = b"#SLICE#\n"  # tests/fuzz/targets.cpp splits the input into slice files here
+
+
+def dicom_series():
+    """Folders of slices, the slices joined by SLICE_MARK (the dicom_series target's input)."""
+    uid = "2.25.99001"  # the series the target chooses where a folder holds several
+    put("dicom_series", "valid-three-slices.bin",
+        SLICE_MARK.join(dicom_slice(uid, k, 2.5 * k) for k in range(3)))
+    put("dicom_series", "valid-chosen-of-two-series.bin",
+        SLICE_MARK.join([dicom_slice(uid, k, 2.5 * k) for k in range(3)] +
+                        [dicom_slice("2.25.99002", 0, 0, description="Scout")]))
+    put("dicom_series", "refused-two-series-none-chosen.bin",
+        SLICE_MARK.join([dicom_slice("2.25.5", k, 2.5 * k) for k in range(2)] +
+                        [dicom_slice("2.25.6", 0, 0, description="Scout")]))
+    put("dicom_series", "refused-truncated-slice.bin",
+        SLICE_MARK.join(dicom_slice(uid, k, 2.5 * k, cut=6 if k == 1 else 0) for k in range(3)))
+    put("dicom_series", "refused-missing-slice.bin",
+        SLICE_MARK.join(dicom_slice(uid, k, 2.5 * k) for k in (0, 1, 3, 4)))
+    put("dicom_series", "refused-duplicate-slice.bin",
+        SLICE_MARK.join(dicom_slice(uid, k, 2.5 * k) for k in (0, 1, 1, 2)))
+    put("dicom_series", "refused-header-cut.bin",
+        SLICE_MARK.join([dicom_slice(uid, 0, 0), dicom_slice(uid, 1, 2.5)[:200]]))
+
+
+GROUPS = {"images": lambda: images(), "segmentation": lambda: segmentation(),
+          "markups": lambda: markups(), "csvs": lambda: csvs(), "area_mesh": lambda: area_mesh(),
+          "small_variants": lambda: small_variants(), "float_nifti": lambda: float_nifti(),
+          "dicom_series": lambda: dicom_series()}
+
 if __name__ == "__main__":
-    images()
-    segmentation()
-    markups()
-    csvs()
-    area_mesh()
-    small_variants()
+    for group in sys.argv[1:] or list(GROUPS):
+        GROUPS[group]()

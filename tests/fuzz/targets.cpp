@@ -39,6 +39,40 @@ namespace fs = std::filesystem;
 void read_float_volume(const std::string& path) { planning::read_volume<float>(path); }
 void read_label_map(const std::string& path) { planning::read_label_map(path); }
 
+// A volume or, for a 4D file, its phases split into 3D files beside it (at most 8).
+void read_volume_or_phases(const std::string& path) {
+  const int frames = planning::volume_frames(path);
+  if (frames == 1) {
+    planning::read_volume<float>(path);
+    return;
+  }
+  if (frames > 8) throw Error(path + ": more than 8 phases (not fuzzed)");
+  std::vector<std::string> phases;
+  for (int t = 0; t < frames; ++t) {
+    phases.push_back((fs::path(path).parent_path() / ("phase" + std::to_string(t) + ".nii")).string());
+  }
+  planning::split_volume_frames(path, phases);
+}
+
+// The input's parts between kSliceMark (tests/fuzz/make_seeds.py) become the slice files of a
+// DICOM folder beside it (at most 16), read with series 2.25.99001 chosen.
+void read_dicom_folder(const std::string& path) {
+  static const std::string kSliceMark = "#SLICE#\n";
+  std::ifstream in(path, std::ios::binary);
+  const std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const fs::path folder = fs::path(path).parent_path() / "series";
+  fs::create_directory(folder);
+  size_t start = 0;
+  for (int k = 0; k < 16; ++k) {
+    const size_t mark = bytes.find(kSliceMark, start);
+    std::ofstream out(folder / ("slice" + std::to_string(k) + ".dcm"), std::ios::binary);
+    out << bytes.substr(start, mark == std::string::npos ? std::string::npos : mark - start);
+    if (mark == std::string::npos) break;
+    start = mark + kSliceMark.size();
+  }
+  planning::read_volume<float>(folder.string(), {{"2.25.99001"}});
+}
+
 void read_recording(const std::string& path) {
   recordings::RecordingReader reader(fs::path(path).parent_path().string());
   const size_t n = std::min<size_t>(reader.entries().size(), 4);
@@ -111,6 +145,8 @@ const fs::path& scratch_folder() {
 const std::vector<FuzzTarget>& fuzz_targets() {
   static const std::vector<FuzzTarget> targets = {
       {"nifti", "image.nii", read_float_volume},
+      {"nifti_gz", "image.nii.gz", read_volume_or_phases},
+      {"dicom_series", "slices.bin", read_dicom_folder},
       {"nrrd", "image.nrrd", read_float_volume},
       {"metaimage", "image.mha", read_label_map},
       {"segmentation", "segmentation.seg.nrrd",

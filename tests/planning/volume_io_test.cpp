@@ -247,6 +247,155 @@ TEST_F(VolumeIoTest, MaskIsOneExactlyWhereTheValueExceedsOneHalf) {
   EXPECT_EQ(ones, 2);
 }
 
+// --- Non-finite voxels in NIfTI files -----------------------------------------------------------
+
+// The message of the Error `f` throws; "no error" when it returns.
+template <typename F>
+std::string error_of(F&& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "no error";
+}
+
+// A single-file NIfTI-1 (version 1) or NIfTI-2 (version 2) of float32 (datatype 16) or float64
+// (64) voxels, written byte by byte: 1 mm voxels, no orientation codes, in little or big endian.
+std::string hand_written_nifti(int version, bool big_endian, int datatype,
+                               const std::vector<int64_t>& dims, const std::vector<double>& values) {
+  const size_t header_size = version == 1 ? 348 : 540;
+  const size_t vox_offset = header_size + 4;  // and 4 bytes of (no) extensions
+  std::string bytes(vox_offset, '\0');
+  const auto put = [&](size_t at, auto value) {
+    char b[sizeof value];
+    std::memcpy(b, &value, sizeof value);
+    if (big_endian) std::reverse(b, b + sizeof value);
+    std::memcpy(&bytes[at], b, sizeof value);
+  };
+  const int16_t bitpix = datatype == 16 ? 32 : 64;
+  if (version == 1) {
+    put(0, int32_t(348));
+    put(40, int16_t(dims.size()));
+    for (size_t d = 0; d < dims.size(); ++d) put(42 + 2 * d, int16_t(dims[d]));
+    put(70, int16_t(datatype));
+    put(72, bitpix);
+    for (size_t d = 0; d < 8; ++d) put(76 + 4 * d, 1.0f);
+    put(108, float(vox_offset));
+    put(112, 1.0f);  // scl_slope
+    std::memcpy(&bytes[344], "n+1", 4);
+  } else {
+    put(0, int32_t(540));
+    std::memcpy(&bytes[4], "n+2\0\r\n\032\n", 8);
+    put(12, int16_t(datatype));
+    put(14, bitpix);
+    put(16, int64_t(dims.size()));
+    for (size_t d = 0; d < dims.size(); ++d) put(24 + 8 * d, int64_t(dims[d]));
+    for (size_t d = 0; d < 8; ++d) put(104 + 8 * d, 1.0);
+    put(168, int64_t(vox_offset));
+    put(176, 1.0);  // scl_slope
+  }
+  for (const double v : values) {
+    const size_t at = bytes.size();
+    bytes.resize(at + size_t(bitpix / 8));
+    if (datatype == 16) {
+      put(at, float(v));
+    } else {
+      put(at, v);
+    }
+  }
+  return bytes;
+}
+
+// niftilib sets NaN and infinite float voxels to 0 as it reads them: a label map, mask or CT with
+// NaN voxels would plan as if they held 0 (background, safe) unless the file's own bytes are
+// checked. The first bad voxel is named by its index, for every reader of a volume.
+TEST_F(VolumeIoTest, NanInAFloatNiftiIsRefusedNamingTheVoxelForEveryReader) {
+  Volume<float> v(oblique_geometry(), 1.0f);  // 7 x 5 x 4
+  v(5, 3, 2) = std::numeric_limits<float>::quiet_NaN();
+  v(6, 4, 3) = std::numeric_limits<float>::quiet_NaN();  // later in file order: not the first
+  for (const std::string name : {"labels.nii.gz", "labels.nii"}) {
+    SCOPED_TRACE(name);
+    write_volume(v, file(name));
+    const std::string expected = file(name) + ": voxel (5, 3, 2) has value nan (expected a finite number)";
+    EXPECT_EQ(error_of([&] { read_label_map(file(name)); }), expected);
+    EXPECT_EQ(error_of([&] { read_mask(file(name)); }), expected);
+    EXPECT_EQ(error_of([&] { read_volume<float>(file(name)); }), expected);
+    EXPECT_EQ(error_of([&] { read_volume<int16_t>(file(name)); }), expected);  // a CT
+  }
+}
+
+TEST_F(VolumeIoTest, InfiniteFloatNiftiVoxelsAreRefusedNamingTheVoxel) {
+  Volume<float> v(oblique_geometry(), 0.0f);
+  v(0, 0, 0) = 2.0f;
+  v(2, 1, 3) = -std::numeric_limits<float>::infinity();
+  write_volume(v, file("blocking.nii.gz"));
+  EXPECT_EQ(error_of([&] { read_volume<float>(file("blocking.nii.gz")); }),
+            file("blocking.nii.gz") + ": voxel (2, 1, 3) has value -inf (expected a finite number)");
+}
+
+// Both byte orders, float32 and float64: voxel (1, 2, 0) of a 3 x 4 x 2 grid is the 7th value in
+// file order (x fastest). NIfTI-2 files are refused whole by ITK 5.2's reader (nifti1_io), with
+// or without bad voxels.
+TEST_F(VolumeIoTest, NonFiniteVoxelsAreFoundInBigEndianAndFloat64NiftiFiles) {
+  std::vector<double> values(24);
+  for (size_t i = 0; i < values.size(); ++i) values[i] = double(i);
+  write_bytes("v2.nii", hand_written_nifti(2, false, 16, {3, 4, 2}, values));
+  expect_error_containing([&] { read_volume<float>(file("v2.nii")); }, {"v2.nii", "cannot read"});
+  for (const int version : {1}) {
+    for (const bool big_endian : {false, true}) {
+      for (const int datatype : {16, 64}) {
+        const std::string name = "v" + std::to_string(version) + (big_endian ? "be" : "le") +
+                                 std::to_string(datatype) + ".nii";
+        SCOPED_TRACE(name);
+        write_bytes(name, hand_written_nifti(version, big_endian, datatype, {3, 4, 2}, values));
+        const Volume<float> fine = read_volume<float>(file(name));  // all finite: read as stored
+        ASSERT_EQ(fine.dims(), (Index3{3, 4, 2}));
+        EXPECT_EQ(fine(1, 2, 0), 7.0f);
+        EXPECT_EQ(fine(2, 3, 1), 23.0f);
+        std::vector<double> bad = values;
+        bad[7] = std::numeric_limits<double>::infinity();
+        bad[20] = std::nan("");
+        write_bytes(name, hand_written_nifti(version, big_endian, datatype, {3, 4, 2}, bad));
+        EXPECT_EQ(error_of([&] { read_label_map(file(name)); }),
+                  file(name) + ": voxel (1, 2, 0) has value inf (expected a finite number)");
+      }
+    }
+  }
+}
+
+// A 4D file's phases are split through ITK as well: the phase and the voxel are named.
+TEST_F(VolumeIoTest, NanInAPhaseOfA4DNiftiIsRefusedNamingThePhaseAndVoxel) {
+  std::vector<Volume<float>> phases(3, Volume<float>(oblique_geometry(), 4.0f));
+  phases[2](3, 0, 1) = std::numeric_limits<float>::quiet_NaN();
+  for (const std::string name : {"ct4d.nii.gz", "ct4d.nii"}) {
+    SCOPED_TRACE(name);
+    write_volume_frames(phases, file(name));
+    const std::vector<std::string> out = {file("p0.nii.gz"), file("p1.nii.gz"), file("p2.nii.gz")};
+    EXPECT_EQ(error_of([&] { split_volume_frames(file(name), out); }),
+              file(name) + ": phase 2, voxel (3, 0, 1) has value nan (expected a finite number)");
+  }
+  // A big-endian 4D file with one Inf in its second phase (2 x 2 x 1 x 2).
+  write_bytes("be.nii", hand_written_nifti(1, true, 16, {2, 2, 1, 2},
+                                           {0, 1, 2, 3, 4, 5, 6, HUGE_VAL}));
+  EXPECT_EQ(error_of([&] { split_volume_frames(file("be.nii"), {file("a.nii"), file("b.nii")}); }),
+            file("be.nii") + ": phase 1, voxel (1, 1, 0) has value inf (expected a finite number)");
+}
+
+// Integer data keep their fast path (no value check), and finite floats read as stored.
+TEST_F(VolumeIoTest, IntegerAndFiniteFloatNiftiFilesReadAsStored) {
+  Volume<int16_t> labels(oblique_geometry(), 0);
+  labels(5, 3, 2) = -32768;  // the bit pattern of no float matters for integers
+  labels(1, 1, 1) = 12;
+  write_volume(labels, file("labels.nii.gz"));
+  const Volume<int16_t> read = read_volume<int16_t>(file("labels.nii.gz"));
+  EXPECT_EQ(read.values(), labels.values());
+  Volume<float> ct(oblique_geometry(), -1000.0f);
+  ct(5, 3, 2) = std::numeric_limits<float>::max();
+  write_volume(ct, file("ct.nii.gz"));
+  EXPECT_EQ(read_volume<float>(file("ct.nii.gz")).values(), ct.values());
+}
+
 // --- DICOM series -------------------------------------------------------------------------------
 
 // Minimal DICOM Part 10 writer for the tests: CT Image Storage slices, explicit VR little endian,
@@ -310,13 +459,14 @@ std::string ds(std::initializer_list<double> values) {
 // reader has to sort by position. The index axes must be (row direction, column direction,
 // row x column), as DICOM readers derive the slice axis from the orientation.
 void write_dicom_series(const Volume<int16_t>& volume, const fs::path& folder,
-                        const std::string& series_uid, int series_number) {
+                        const std::string& series_uid, int series_number,
+                        const std::string& description = "", int first_instance = 1) {
   const ImageGeometry& g = volume.geometry();
   const Eigen::Vector3d row = g.direction.col(0);
   const Eigen::Vector3d col = g.direction.col(1);
   const std::string sop_class = "1.2.840.10008.5.1.4.1.1.2";  // CT Image Storage
   for (int64_t k = 0; k < g.dims[2]; ++k) {
-    const std::string sop_instance = series_uid + "." + std::to_string(k + 1);
+    const std::string sop_instance = series_uid + "." + std::to_string(k + first_instance);
     const Eigen::Vector3d position = g.index_to_physical(0, 0, k);
     std::string pixels;
     for (int64_t j = 0; j < g.dims[1]; ++j) {
@@ -336,6 +486,7 @@ void write_dicom_series(const Volume<int16_t>& volume, const fs::path& folder,
     data.string_element(0x0008, 0x0016, "UI", sop_class);
     data.string_element(0x0008, 0x0018, "UI", sop_instance);
     data.string_element(0x0008, 0x0060, "CS", "CT");
+    if (!description.empty()) data.string_element(0x0008, 0x103E, "LO", description);
     data.string_element(0x0010, 0x0010, "PN", "Phantom^Test");
     data.string_element(0x0010, 0x0020, "LO", "TEST-1");
     data.string_element(0x0018, 0x0050, "DS", ds({g.spacing[2]}));
@@ -376,21 +527,96 @@ void write_dicom_series(const Volume<int16_t>& volume, const fs::path& folder,
   }
 }
 
-TEST_F(VolumeIoTest, DicomFolderReadsTheLargestSeriesWithItsGeometry) {
+// A folder of two series (a scout beside the CT) is refused with both listed; a chosen UID reads
+// that series, with its own grid and values.
+TEST_F(VolumeIoTest, DicomFolderWithTwoSeriesIsRefusedUntilOneIsChosen) {
   const ImageGeometry g = oblique_geometry();  // a proper rotation: slice axis = row x column
   ASSERT_LT((g.direction.col(0).cross(g.direction.col(1)) - g.direction.col(2)).norm(), 1e-12);
   const Volume<int16_t> ct = sample_volume<int16_t>(g);
-  write_dicom_series(ct, dir_, "2.25.99001", 1);
-  // A smaller series (2 slices, other values) in the same folder must not be chosen.
+  write_dicom_series(ct, dir_, "2.25.99001", 1, "Abdomen");
   ImageGeometry small = g;
   small.dims[2] = 2;
-  write_dicom_series(Volume<int16_t>(small, 123), dir_, "2.25.99002", 2);
+  write_dicom_series(Volume<int16_t>(small, 123), dir_, "2.25.99002", 2, "Scout");
 
-  const Volume<int16_t> read = read_volume<int16_t>(dir_.string());
+  const std::string listed = dir_.string() +
+                             " holds 2 DICOM series: 2.25.99001 (4 slices, CT 'Abdomen'), "
+                             "2.25.99002 (2 slices, CT 'Scout'); choose one with --series UID";
+  EXPECT_EQ(error_of([&] { read_volume<int16_t>(dir_.string()); }), listed);
+  EXPECT_EQ(error_of([&] { read_volume_geometry(dir_.string()); }), listed);
+  EXPECT_EQ(error_of([&] { read_label_map(dir_.string(), {{"2.25.123"}}); }), listed);
+
+  const Volume<int16_t> read = read_volume<int16_t>(dir_.string(), {{"2.25.99001"}});
   // DICOM geometry passes through 10-digit decimal strings and the slice spacing is derived from
   // slice positions: 1e-3 mm is far above that rounding and far below any real error.
   expect_geometry_near(read.geometry(), g, 1e-3);
   EXPECT_EQ(read.values(), ct.values());
+  // Another folder's UID listed beside it does not matter: UIDs are unique.
+  const Volume<int32_t> scout = read_label_map(dir_.string(), {{"1.2.3", "2.25.99002"}});
+  EXPECT_EQ(scout.dims(), (Index3{7, 5, 2}));
+  EXPECT_TRUE(std::all_of(scout.values().begin(), scout.values().end(),
+                          [](int32_t v) { return v == 123; }));
+  expect_geometry_near(read_volume_geometry(dir_.string(), {{"2.25.99002"}}), small, 1e-3);
+}
+
+// The files of one CT series, 7 x 5 pixels, 2.1 mm apart: s1-100.dcm (k = 0) to s1-96.dcm.
+class DicomSeriesTest : public VolumeIoTest {
+ protected:
+  void SetUp() override {
+    ImageGeometry g = oblique_geometry();
+    g.dims[2] = 5;
+    write_dicom_series(sample_volume<int16_t>(g), dir_, "2.25.99001", 1);
+    ASSERT_NO_THROW(read_volume<int16_t>(dir_.string()));
+  }
+  std::string folder() const { return dir_.string(); }
+};
+
+// ITK's series reader fills the missing end of a slice with zeros.
+TEST_F(DicomSeriesTest, TruncatedSliceIsRefusedNamingIt) {
+  fs::resize_file(dir_ / "s1-98.dcm", fs::file_size(dir_ / "s1-98.dcm") - 10);
+  EXPECT_EQ(error_of([&] { read_volume<int16_t>(folder()); }),
+            folder() + ": slice s1-98.dcm is truncated: its pixel data hold 60 bytes, expected 70 "
+                       "(5 rows x 7 columns x 16 bits x 1 samples)");
+}
+
+// ITK bridges a missing slice as if the spacing were even (only a warning printed).
+TEST_F(DicomSeriesTest, MissingSliceIsRefusedNamingTheGap) {
+  fs::remove(dir_ / "s1-98.dcm");
+  EXPECT_EQ(error_of([&] { read_volume<float>(folder()); }),
+            folder() + ": slices s1-99.dcm and s1-97.dcm are 4.2 mm apart along the slice normal, "
+                       "expected 2.1 mm (the series' usual spacing, within 0.021 mm): a missing "
+                       "slice");
+}
+
+TEST_F(DicomSeriesTest, DuplicateSliceIsRefusedNamingBothFiles) {
+  fs::copy_file(dir_ / "s1-98.dcm", dir_ / "copy.dcm");
+  EXPECT_EQ(error_of([&] { read_mask(folder()); }),
+            folder() + ": slices copy.dcm and s1-98.dcm are the same slice (SOPInstanceUID "
+                       "2.25.99001.3): a duplicate");
+  fs::remove(dir_ / "copy.dcm");
+  // The same position under another SOPInstanceUID (exported twice).
+  ImageGeometry g = oblique_geometry();
+  g.dims[2] = 5;
+  fs::create_directory(dir_ / "again");
+  write_dicom_series(sample_volume<int16_t>(g), dir_ / "again", "2.25.99001", 2, "", 101);
+  fs::copy_file(dir_ / "again" / "s2-98.dcm", dir_ / "s2-98.dcm");
+  EXPECT_EQ(error_of([&] { read_volume<int16_t>(folder()); }),
+            folder() + ": slices s1-98.dcm and s2-98.dcm lie at the same position (0 mm apart "
+                       "along the slice normal): a duplicate slice");
+}
+
+TEST_F(DicomSeriesTest, UnreadableSliceIsRefusedNamingItNotACrash) {
+  write_bytes("notes.txt", "no images here\n");
+  EXPECT_EQ(error_of([&] { read_volume<int16_t>(folder()); }),
+            folder() + ": slice notes.txt is not a readable DICOM file (not a DICOM Part 10 file "
+                       "(no \"DICM\" at byte 128))");
+  fs::remove(dir_ / "notes.txt");
+  // Cut inside its header: GDCM itself would abort on an assertion here.
+  fs::resize_file(dir_ / "s1-98.dcm", 200);
+  expect_error_containing([&] { read_volume<int16_t>(folder()); },
+                          {folder() + ": slice s1-98.dcm is not a readable DICOM file"});
+  fs::resize_file(dir_ / "s1-98.dcm", 420);
+  expect_error_containing([&] { read_volume_geometry(folder()); },
+                          {folder() + ": slice s1-98.dcm is not a readable DICOM file"});
 }
 
 TEST_F(VolumeIoTest, FolderWithoutDicomFilesThrowsNamingTheFolder) {
