@@ -305,7 +305,7 @@ std::string nifti_length_problem(const std::string& path) {
 // order: "" when every voxel is finite (or the data are of an integer type, or shorter than the
 // header says: nifti_length_problem reports that), else the first bad voxel, "[phase T, ]voxel
 // (I, J, K) has value nan (expected a finite number)". One pass over the (decompressed) data.
-std::string nifti_value_problem(const std::string& path) {
+std::string nifti_value_problem(const std::string& path, bool nan_allowed) {
   NiftiHeader header;
   if (!header.open(path).empty()) return {};
   NiftiLayout layout;
@@ -347,7 +347,7 @@ std::string nifti_value_problem(const std::string& path) {
     const size_t whole = have / bytes * bytes;
     for (size_t at = 0; at < whole && index < count; at += bytes, ++index) {
       const double v = value_at(at);
-      if (std::isfinite(v)) continue;
+      if (std::isfinite(v) || (nan_allowed && std::isnan(v))) continue;
       const auto& dim = layout.dim;
       const auto extent = [&](int d) { return d <= dim[0] ? std::max<int64_t>(dim[d], 1) : 1; };
       const uint64_t per_volume = uint64_t(extent(1) * extent(2) * extent(3));
@@ -712,9 +712,10 @@ std::string length_problem(const std::string& path, const char* io_class) {
 // floats, see nifti_value_problem), started on its own thread to run beside ITK's read of the
 // same voxels; no check (an invalid future) for other formats. The voxels ITK read are used only
 // once require_stored_values_fine has found nothing.
-std::future<std::string> check_stored_values_aside(const std::string& path, const char* io_class) {
+std::future<std::string> check_stored_values_aside(const std::string& path, const char* io_class,
+                                                   bool nan_allowed = false) {
   if (std::strcmp(io_class, "NiftiImageIO") != 0) return {};
-  return std::async(std::launch::async, nifti_value_problem, path);
+  return std::async(std::launch::async, nifti_value_problem, path, nan_allowed);
 }
 
 void require_stored_values_fine(std::future<std::string>& check, const std::string& path) {
@@ -901,7 +902,8 @@ auto read_native(const std::string& path, const VolumeReadOptions& options, Conv
     spdlog::debug("{}: reading {} x {} x {} voxels ({})", path, geometry.dims[0], geometry.dims[1],
                   geometry.dims[2],
                   itk::ImageIOBase::GetComponentTypeAsString(io->GetComponentType()));
-    std::future<std::string> values = check_stored_values_aside(path, io->GetNameOfClass());
+    std::future<std::string> values =
+        check_stored_values_aside(path, io->GetNameOfClass(), options.nan_means_no_value);
     return with_component_type(io->GetComponentType(), path, [&](auto tag) {
       using S = typename decltype(tag)::type;
       Volume<S> native = read_file_pixels<S>(path, io.GetPointer(), geometry);

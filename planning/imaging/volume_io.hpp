@@ -26,6 +26,11 @@ struct VolumeReadOptions {
   // are unique). A folder of one series is read as that series; one of several, none listed, is
   // refused with the list of its series.
   std::vector<std::string> dicom_series;
+  // NaN marks voxels without a value, as the plan writes its path safety volumes (outside the
+  // region of interest, unknown): allowed, and read as niftilib reads it (0, to be masked by the
+  // plan's voxel states). Infinite voxels are refused all the same. False for every input of a
+  // plan: a NaN there is a file that says nothing, never a value.
+  bool nan_means_no_value = false;
 };
 
 // Reads a scalar volume and converts its values to T. `path` is a file, or a folder holding one
