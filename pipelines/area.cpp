@@ -162,7 +162,7 @@ void setup_from_plan(const AreaRequest& r, Setup& s) {
     if (s.tumor_path.empty())
       s.tumor_path = plan.at("inputs").at("tumor").at("path").get<std::string>();
     spdlog::info("reading path safety volume {}", file);
-    s.path_safety = read_volume<float>(file, VolumeReadOptions{{}, true});  // NaN: no value
+    s.path_safety = read_volume<float>(file, VolumeReadOptions::path_safety_file());
     if (outputs.contains("roi")) {
       s.region = mark_outside_roi(s.path_safety,
                        (fs::path(r.plan_dir) / outputs.at("roi").get<std::string>()).string(),

@@ -31,6 +31,13 @@ struct VolumeReadOptions {
   // plan's voxel states). Infinite voxels are refused all the same. False for every input of a
   // plan: a NaN there is a file that says nothing, never a value.
   bool nan_means_no_value = false;
+
+  // The options of a plan's own path safety volumes (NaN: no value).
+  static VolumeReadOptions path_safety_file() {
+    VolumeReadOptions o;
+    o.nan_means_no_value = true;
+    return o;
+  }
 };
 
 // Reads a scalar volume and converts its values to T. `path` is a file, or a folder holding one

@@ -276,9 +276,6 @@ void mark_outside_roi(PlanData& plan, const nlohmann::json& outputs) {
   plan.region = std::move(roi);
 }
 
-// A path safety volume's NaN voxels have no value (outside the region of interest, unknown).
-const VolumeReadOptions kPathSafetyFile{{}, true};
-
 // Breathing plans: the phases' names and, when written, their path safety volumes (only where the
 // combined plan has a computed value).
 void read_phase_volumes(PlanData& plan, const PlanLoadOptions& options,
@@ -299,7 +296,7 @@ void read_phase_volumes(PlanData& plan, const PlanLoadOptions& options,
       if (!phases[k].contains("outputs") || !phases[k]["outputs"].contains(value)) break;
       const std::string path =
           in_plan(plan.dir, required_string(phases[k]["outputs"], value, pk.key("outputs")));
-      Volume<float> v = read_volume<float>(path, kPathSafetyFile);
+      Volume<float> v = read_volume<float>(path, VolumeReadOptions::path_safety_file());
       if (!v.geometry().same_grid(plan.grid, 1e-4)) {
         throw Error(path + ": not on the plan's grid (plan.json \"grid\")");
       }
@@ -332,7 +329,7 @@ void read_volumes(PlanData& plan, const PlanLoadOptions& options, const std::str
     if (!options.path_safety) continue;
     if (!options.only_value.empty() && v != options.only_value) continue;
     const std::string name = required_string(outputs, v, outputs_at);
-    plan.path_safety[v] = read_volume<float>(in_plan(plan.dir, name), kPathSafetyFile);
+    plan.path_safety[v] = read_volume<float>(in_plan(plan.dir, name), VolumeReadOptions::path_safety_file());
   }
   if (!plan.path_safety.empty()) mark_outside_roi(plan, outputs);
   read_phase_volumes(plan, options, json_path);

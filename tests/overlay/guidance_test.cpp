@@ -728,7 +728,9 @@ TEST_F(GuidanceTest, SlightlyMovedBoardShowsPlacedPicturesThenThoseDrawnAhead) {
   const double stale_off = (centroid(first) - centroid(truth)).norm();
   EXPECT_GT(stale_off, 0.2);
   EXPECT_LT(placed_off, 0.25 * stale_off) << placed_off << " px vs " << stale_off << " px";
-  EXPECT_LT(placed_off, 0.1);
+  // The warp is taken only when its largest error at the anatomy's points is within a quarter
+  // pixel (ARCHITECTURE.md §6): the centroid of the placed pictures lies within that of the truth.
+  EXPECT_LT(placed_off, 0.25);
   std::printf("anatomy centroid off by %.3f px placed, %.3f px stale\n", placed_off, stale_off);
 
   // The next frame shows the pictures drawn for this pose meanwhile: exactly the fresh ones.

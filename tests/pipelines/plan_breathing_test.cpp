@@ -103,8 +103,8 @@ TEST(PlanBreathing, IdenticalPhasesGiveExactlyTheSinglePhasePlan) {
   const nlohmann::json cycle = run_plan(phases_request(list, dir.file("cycle")));
   EXPECT_EQ(cycle["grid"], single["grid"]);
   for (const char* v : kValues) {
-    expect_identical(read_volume<float>(dir.file("single/path_safety_") + v + ".nii.gz"),
-                     read_volume<float>(dir.file("cycle/path_safety_") + v + ".nii.gz"), v);
+    expect_identical(read_volume<float>(dir.file("single/path_safety_") + v + ".nii.gz", VolumeReadOptions::path_safety_file()),
+                     read_volume<float>(dir.file("cycle/path_safety_") + v + ".nii.gz", VolumeReadOptions::path_safety_file()), v);
     EXPECT_EQ(cycle["classes"][v], single["classes"][v]) << v;
     EXPECT_EQ(cycle["breathing"]["class_change_share"][v].get<double>(), 0.0) << v;
   }
@@ -126,7 +126,7 @@ class MovingVessel : public ::testing::Test {
         write_phase_list(dir_.path(), {{a, in_.tumor}, {b, in_.tumor}}), dir_.file("plan")));
   }
   Volume<float> volume(const std::string& name) const {
-    return read_volume<float>(dir_.file("plan/" + name + ".nii.gz"));
+    return read_volume<float>(dir_.file("plan/" + name + ".nii.gz"), VolumeReadOptions::path_safety_file());
   }
   test::TemporaryFolder dir_;
   test::MiniPlanInputs in_;
@@ -183,10 +183,10 @@ TEST(PlanBreathing, PhasesFinishedBesideTheNextAreEachPhasesOwnAndCombineInOrder
     const std::string value = v;
     const auto phase = [&](const std::string& plan, int k) {
       return read_volume<float>(dir.file(plan + "/path_safety_" + value + "_phase0" +
-                                         std::to_string(k) + ".nii.gz"));
+                                         std::to_string(k) + ".nii.gz"), VolumeReadOptions::path_safety_file());
     };
     const Volume<float> combined =
-        read_volume<float>(dir.file("cycle/path_safety_" + value + ".nii.gz"));
+        read_volume<float>(dir.file("cycle/path_safety_" + value + ".nii.gz"), VolumeReadOptions::path_safety_file());
     const Volume<float> p0 = phase("cycle", 0), p1 = phase("cycle", 1);
     expect_identical(phase("cycle", 2), p0, value + ": phase 2 against phase 0");
     expect_identical(phase("cycle", 3), p1, value + ": phase 3 against phase 1");
@@ -294,8 +294,8 @@ TEST(PlanBreathing, RigidShiftOfTheSceneShiftsEachPhasesVolumeByTheSameVector) {
   const Volume<uint8_t> roi = read_volume<uint8_t>(dir.file("plan/roi.nii.gz"));
   for (const char* v : kValues) {
     const std::string value = v;
-    const Volume<float> pa = read_volume<float>(dir.file("plan/path_safety_" + value + "_phase00.nii.gz"));
-    const Volume<float> pb = read_volume<float>(dir.file("plan/path_safety_" + value + "_phase01.nii.gz"));
+    const Volume<float> pa = read_volume<float>(dir.file("plan/path_safety_" + value + "_phase00.nii.gz"), VolumeReadOptions::path_safety_file());
+    const Volume<float> pb = read_volume<float>(dir.file("plan/path_safety_" + value + "_phase01.nii.gz"), VolumeReadOptions::path_safety_file());
     const auto& d = pa.dims();
     int64_t compared = 0;
     double worst = 0.0, largest = 0.0;
@@ -430,7 +430,7 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
     const std::string value = v;
     SCOPED_TRACE(value);
     const auto volume = [&](const std::string& plan) {
-      return read_volume<float>(dir.file(plan + "/path_safety_" + value + ".nii.gz"));
+      return read_volume<float>(dir.file(plan + "/path_safety_" + value + ".nii.gz"), VolumeReadOptions::path_safety_file());
     };
     const Volume<float> l = volume("left"), e = volume("every"), x = volume("exact"),
                         t = volume("two"), three_default = volume("three");
@@ -502,14 +502,14 @@ TEST(PlanBreathing, PhasesReadSideBySidePlanAsReadOneByOne) {
   run_plan(phases_request(list, dir.file("side_by_side")));
   EXPECT_EQ(omp_get_max_threads(), 8);  // the plan's own steps had every thread again
   for (const char* v : kValues) {
-    expect_identical(read_volume<float>(dir.file("one_by_one/path_safety_") + v + ".nii.gz"),
-                     read_volume<float>(dir.file("side_by_side/path_safety_") + v + ".nii.gz"),
+    expect_identical(read_volume<float>(dir.file("one_by_one/path_safety_") + v + ".nii.gz", VolumeReadOptions::path_safety_file()),
+                     read_volume<float>(dir.file("side_by_side/path_safety_") + v + ".nii.gz", VolumeReadOptions::path_safety_file()),
                      v);
     for (int k = 0; k < 3; ++k) {
       const std::string phase = "_phase0" + std::to_string(k) + ".nii.gz";
       expect_identical(
-          read_volume<float>(dir.file("one_by_one/path_safety_") + v + phase),
-          read_volume<float>(dir.file("side_by_side/path_safety_") + v + phase), v + phase);
+          read_volume<float>(dir.file("one_by_one/path_safety_") + v + phase, VolumeReadOptions::path_safety_file()),
+          read_volume<float>(dir.file("side_by_side/path_safety_") + v + phase, VolumeReadOptions::path_safety_file()), v + phase);
     }
   }
   // Files that exist but are no label maps: met while reading, not before.
@@ -551,12 +551,12 @@ TEST(PlanBreathing, BlockingVolumesReadBesideTheComputationPlanAsReadFirst) {
   const nlohmann::json beside = run_plan(request(list, "beside", true, 2));
   EXPECT_EQ(first["grid"], beside["grid"]);
   for (const char* v : kValues) {
-    expect_identical(read_volume<float>(dir.file("first/path_safety_") + v + ".nii.gz"),
-                     read_volume<float>(dir.file("beside/path_safety_") + v + ".nii.gz"), v);
+    expect_identical(read_volume<float>(dir.file("first/path_safety_") + v + ".nii.gz", VolumeReadOptions::path_safety_file()),
+                     read_volume<float>(dir.file("beside/path_safety_") + v + ".nii.gz", VolumeReadOptions::path_safety_file()), v);
     for (int k = 0; k < 3; ++k) {
       const std::string phase = "_phase0" + std::to_string(k) + ".nii.gz";
-      expect_identical(read_volume<float>(dir.file("first/path_safety_") + v + phase),
-                       read_volume<float>(dir.file("beside/path_safety_") + v + phase),
+      expect_identical(read_volume<float>(dir.file("first/path_safety_") + v + phase, VolumeReadOptions::path_safety_file()),
+                       read_volume<float>(dir.file("beside/path_safety_") + v + phase, VolumeReadOptions::path_safety_file()),
                        v + phase);
     }
   }
@@ -591,7 +591,7 @@ TEST(PlanBreathing, FourDInputsPlanExactlyLikeThePhaseListOfTheirFrames) {
   run_plan(phases_request(write_phase_list(dir.path(), {{a, in.tumor}, {b, in.tumor}}),
                           dir.file("listed")));
   const std::string four_d = dir.file("labels_4d.nii.gz");
-  write_volume_frames({read_volume<float>(a), read_volume<float>(b)}, four_d);
+  write_volume_frames({read_volume<float>(a, VolumeReadOptions::path_safety_file()), read_volume<float>(b, VolumeReadOptions::path_safety_file())}, four_d);
   ASSERT_EQ(volume_frames(four_d), 2);
   ASSERT_EQ(volume_frames(a), 1);
 
@@ -603,8 +603,8 @@ TEST(PlanBreathing, FourDInputsPlanExactlyLikeThePhaseListOfTheirFrames) {
   for (const char* v : kValues) {
     const std::string value = v;
     for (const std::string suffix : {"", "_phase00", "_phase01"}) {
-      expect_identical(read_volume<float>(dir.file("listed/path_safety_" + value + suffix + ".nii.gz")),
-                       read_volume<float>(dir.file("four_d/path_safety_" + value + suffix + ".nii.gz")),
+      expect_identical(read_volume<float>(dir.file("listed/path_safety_" + value + suffix + ".nii.gz"), VolumeReadOptions::path_safety_file()),
+                       read_volume<float>(dir.file("four_d/path_safety_" + value + suffix + ".nii.gz"), VolumeReadOptions::path_safety_file()),
                        value + suffix);
     }
   }
@@ -623,8 +623,8 @@ TEST(PlanBreathing, FourDInputsPlanExactlyLikeThePhaseListOfTheirFrames) {
 TEST(PlanBreathing, FourDInputsOfDifferentPhaseCountsAreRefusedNamingBoth) {
   const test::TemporaryFolder dir;
   const test::MiniPlanInputs in = test::write_mini_plan_inputs(dir.path());
-  const Volume<float> labels = read_volume<float>(in.labels);
-  const Volume<float> tumor = read_volume<float>(in.tumor);
+  const Volume<float> labels = read_volume<float>(in.labels, VolumeReadOptions::path_safety_file());
+  const Volume<float> tumor = read_volume<float>(in.tumor, VolumeReadOptions::path_safety_file());
   write_volume_frames({labels, labels}, dir.file("labels_4d.nii.gz"));
   write_volume_frames({tumor, tumor, tumor}, dir.file("tumor_4d.nii.gz"));
   PlanRequest r = phases_request("", dir.file("plan"));

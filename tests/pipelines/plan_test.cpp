@@ -141,7 +141,7 @@ TEST_F(PlanTest, WritesEveryValueOnTheOutputGridWithNanOutsideTheBall) {
                         "path_safety_ivbv.nii.gz", "path_safety_bvv.nii.gz", "plan.json"}) {
     EXPECT_TRUE(fs::exists(dir_ / "plan" / f)) << f;
   }
-  const Volume<float> svv = read_volume<float>((dir_ / "plan/path_safety_svv.nii.gz").string());
+  const Volume<float> svv = read_volume<float>((dir_ / "plan/path_safety_svv.nii.gz").string(), VolumeReadOptions::path_safety_file());
   const auto& g = svv.geometry();
   // 2 ceil(R/h) + 1 = 2 * 8 + 1 voxels at h = 2 mm, axes of the label map.
   EXPECT_EQ(g.dims, (Index3{17, 17, 17}));
