@@ -226,6 +226,7 @@ struct Slice {
   long rows = 0, columns = 0, bits_allocated = 0, samples = 1, frames = 1;
   bool pixel_data = false, encapsulated = false;
   uint64_t pixel_bytes = 0;  // stored bytes of uncompressed pixel data
+  uint64_t pixel_bytes_declared = 0;  // the length its pixel data element declares
   double along_normal = 0.0;
 };
 
@@ -279,7 +280,9 @@ Slice read_slice(const fs::path& path, const std::string& folder) {
   reader.SetStream(stream);
   bool read = false;
   try {
-    read = reader.Read();
+    // The header only: pixel data are measured by the walk, and GDCM would reserve their
+    // declared length (gigabytes in a damaged file) before it finds them missing.
+    read = reader.ReadUpToTag(gdcm::Tag(0x7FE0, 0x0010));
   } catch (const std::exception& e) {
     throw unreadable(e.what());
   }
@@ -306,6 +309,7 @@ Slice read_slice(const fs::path& path, const std::string& folder) {
   s.pixel_data = walk.pixel_data();
   s.encapsulated = walk.encapsulated();
   s.pixel_bytes = walk.pixel_bytes_stored();
+  s.pixel_bytes_declared = walk.pixel_bytes_declared();
   return s;
 }
 
@@ -349,6 +353,11 @@ std::vector<const Slice*> checked_series(std::vector<const Slice*> slices, const
                     " columns x " + std::to_string(s->bits_allocated) + " bits x " +
                     std::to_string(s->samples) + " samples" +
                     (s->frames > 1 ? " x " + std::to_string(s->frames) + " frames" : "") + ")");
+      }
+      if (s->pixel_bytes < s->pixel_bytes_declared) {
+        throw Error(at + " is truncated: its pixel data element declares " +
+                    std::to_string(s->pixel_bytes_declared) + " bytes, the file holds " +
+                    std::to_string(s->pixel_bytes));
       }
     }
     if (s->rows != first.rows || s->columns != first.columns) {
