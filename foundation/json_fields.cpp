@@ -1,5 +1,6 @@
 // Typed JSON field access with messages that name the source and the field.
 #include "foundation/json_fields.hpp"
+#include "foundation/output_files.hpp"
 #include "foundation/text.hpp"
 
 #include <cerrno>
@@ -196,6 +197,14 @@ json read_json_file(const std::string& path, const std::string& what) {
   text << in.rdbuf();
   check_nesting_depth(path, text.str());
   return parse_json_text(text.str(), path);
+}
+
+void record_final_paths(nlohmann::json& doc) {
+  if (doc.is_string()) {
+    doc = final_path_of(doc.get<std::string>());
+  } else if (doc.is_structured()) {
+    for (auto& item : doc) record_final_paths(item);
+  }
 }
 
 }  // namespace crepuscular

@@ -84,4 +84,9 @@ std::vector<std::string> unknown_fields(const nlohmann::json& object,
 nlohmann::json parse_json_text(const std::string& text, const std::string& source);
 nlohmann::json read_json_file(const std::string& path, const std::string& what);
 
+// Every string of `doc` that names a path inside a folder this process still stages, replaced by
+// the path it will have once committed (output_files.hpp final_path_of): what a file records is
+// where its reader will find it. Other strings are left as they are.
+void record_final_paths(nlohmann::json& doc);
+
 }  // namespace crepuscular

@@ -22,6 +22,7 @@
 #include <nlohmann/json.hpp>
 
 #include "foundation/error.hpp"
+#include "foundation/json_fields.hpp"
 #include "foundation/output_files.hpp"
 #include "foundation/text.hpp"
 #include "foundation/trace.hpp"
@@ -1066,6 +1067,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   plan["breathing"] = breathing;
   plan["outputs"] = written.outputs;
   plan["timings"] = timings;
+  record_final_paths(plan);
   write_text_file(out.file("plan.json"), plan.dump(2) + "\n");
   trace::event("plan_json", 0, -1);
   out.commit();
@@ -1248,6 +1250,7 @@ nlohmann::json run_plan(const PlanRequest& request) {
   if (!area_safety.is_null()) plan["area_safety"] = area_safety;
   plan["outputs"] = written.outputs;
   plan["timings"] = timings;
+  record_final_paths(plan);
   write_text_file(out.file("plan.json"), plan.dump(2) + "\n");
   out.commit();
   spdlog::info("plan written to {} ({:.1f} s)", req.out_dir, seconds_since(t_start));

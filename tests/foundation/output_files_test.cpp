@@ -1,9 +1,11 @@
 // Tests of foundation/output_files: a file or folder appears complete or not at all, and a failed
 // write leaves nothing behind.
 #include "foundation/output_files.hpp"
+#include "foundation/json_fields.hpp"
 #include "foundation/interruptions.hpp"
 
 #include <gtest/gtest.h>
+#include <nlohmann/json.hpp>
 #include <signal.h>
 #include <sys/resource.h>
 #include <sys/wait.h>
@@ -296,6 +298,18 @@ TEST(OutputFiles, RecordedPathsNameFinalFolders) {
   EXPECT_EQ(fs::path(staged_path_of((root / "demo/plan/plan.json").string())),
             fs::path(plan.file("plan.json")).lexically_normal());
   EXPECT_EQ(final_path_of(labels).find(".partial-"), std::string::npos);
+  // A document written into the staged plan (plan.json's preprocessing, tumor source, scan
+  // grids) records the final paths wherever they are nested; other strings stay.
+  nlohmann::json doc = {{"file", labels},
+                        {"grids", {labels, "a label map"}},
+                        {"tumor", {{"file", demo.file("phantom/tumor.nii.gz")}, {"voxels", 12}}}};
+  record_final_paths(doc);
+  EXPECT_EQ(doc["file"], (root / "demo/phantom/labels.nii.gz").string());
+  EXPECT_EQ(doc["grids"][0], (root / "demo/phantom/labels.nii.gz").string());
+  EXPECT_EQ(doc["grids"][1], "a label map");
+  EXPECT_EQ(doc["tumor"]["file"], (root / "demo/phantom/tumor.nii.gz").string());
+  EXPECT_EQ(doc["tumor"]["voxels"], 12);
+  EXPECT_EQ(doc.dump().find(".partial-"), std::string::npos) << doc.dump();
 }
 
 // A write that meets the file size limit (ulimit -f) fails with an error that says so, and leaves
