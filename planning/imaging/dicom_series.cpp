@@ -29,6 +29,7 @@
 #include <gdcmReader.h>
 #include <gdcmStringFilter.h>
 #include <gdcmTag.h>
+#include <gdcmVR.h>
 
 namespace fs = std::filesystem;
 
@@ -63,6 +64,14 @@ class StructureWalk {
       uint32_t length = 0;
       std::string problem = element_header(at, b_.size(), value, length);
       if (!problem.empty()) return "file meta information: " + problem;
+      // The meta information's elements have these value representations only (PS3.10 7.1);
+      // GDCM asserts on any other.
+      static const std::set<std::string> kMetaVr = {"AE", "OB", "SH", "UI", "UL"};
+      if (!kMetaVr.count(b_.substr(at + 4, 2))) {
+        return "file meta information: element " + tag_text(0x0002, u16(at + 2)) +
+               " has the value representation " + b_.substr(at + 4, 2) +
+               ", expected AE, OB, SH, UI or UL";
+      }
       if (length == kUndefined || length > b_.size() - value) {
         return "file meta information: element " + tag_text(0x0002, u16(at + 2)) +
                " runs past the end of the file";
@@ -76,6 +85,10 @@ class StructureWalk {
       }
       at = value + length;
     }
+    if (transfer_syntax_.empty() ||
+        transfer_syntax_.find_first_not_of("0123456789.") != std::string::npos) {
+      return "file meta information: the transfer syntax (0002,0010) is not a UID";
+    }
     if (transfer_syntax_ == "1.2.840.10008.1.2.1.99") {
       return "deflated transfer syntax (not supported for slices)";
     }
@@ -88,6 +101,9 @@ class StructureWalk {
   bool encapsulated() const { return encapsulated_; }
   uint64_t pixel_bytes_stored() const { return pixel_stored_; }
   uint64_t pixel_bytes_declared() const { return pixel_declared_; }
+  // Where the top-level pixel data element starts (the file's size when it has none): the
+  // header ends there.
+  size_t header_end() const { return pixel_data_ ? pixel_element_at_ : b_.size(); }
 
  private:
   uint16_t u16(size_t at) const {
@@ -105,9 +121,14 @@ class StructureWalk {
     const bool meta = u16(at) == 0x0002;
     if ((explicit_vr_ || meta) && u16(at) != 0xFFFE) {
       const char v0 = b_[at + 4], v1 = b_[at + 5];
-      if (!std::isupper(static_cast<unsigned char>(v0)) ||
-          !std::isupper(static_cast<unsigned char>(v1))) {
-        return "element " + tag_text(u16(at), u16(at + 2)) + " has no value representation";
+      // GDCM reads a value representation it does not know with a 4-byte length: only the
+      // standard's (PS3.5 6.2), so that both read the same lengths.
+      static const std::set<std::string> kKnown = {
+          "AE", "AS", "AT", "CS", "DA", "DS", "DT", "FD", "FL", "IS", "LO", "LT", "OB", "OD", "OF",
+          "OL", "OV", "OW", "PN", "SH", "SL", "SQ", "SS", "ST", "SV", "TM", "UC", "UI", "UL", "UN",
+          "UR", "US", "UT", "UV"};
+      if (!kKnown.count(std::string{v0, v1})) {
+        return "element " + tag_text(u16(at), u16(at + 2)) + " has no known value representation";
       }
       static const std::set<std::string> kLong = {"OB", "OD", "OF", "OL", "OV", "OW", "SQ",
                                                   "SV", "UC", "UN", "UR", "UT", "UV"};
@@ -128,6 +149,9 @@ class StructureWalk {
 
   // Elements from `at` up to `end`; with `in_item`, up to the item delimiter (consumed).
   std::string elements(size_t& at, size_t end, bool in_item, int depth) {
+    // Tags ascend within a data set (PS3.5 7.1); GDCM reads one that does not as another
+    // encoding, with other lengths than those checked here.
+    uint32_t last_tag = 0;
     while (at < end) {
       if (end - at < 8) return "the file ends inside an element's header";
       const uint16_t group = u16(at), element = u16(at + 2);
@@ -135,12 +159,19 @@ class StructureWalk {
         at += 8;
         return {};
       }
+      const uint32_t tag = uint32_t(group) << 16 | element;
+      if (group != 0xFFFE && tag <= last_tag) {
+        return "element " + tag_text(group, element) + " out of order (after " +
+               tag_text(uint16_t(last_tag >> 16), uint16_t(last_tag & 0xFFFF)) + ")";
+      }
+      last_tag = tag;
       size_t value = 0;
       uint32_t length = 0;
       std::string problem = element_header(at, end, value, length);
       if (!problem.empty()) return problem;
       if (group == 0xFFFE) return "misplaced item tag " + tag_text(group, element);
       const bool pixels = depth == 0 && group == 0x7FE0 && element == 0x0010;
+      if (pixels) pixel_element_at_ = at;
       if (length == kUndefined) {  // a sequence of items (or encapsulated pixel data)
         if (depth >= kMaxDepth) return "sequences nested too deep";
         at = value;
@@ -215,6 +246,7 @@ class StructureWalk {
   bool encapsulated_ = false;
   uint64_t pixel_declared_ = 0;
   uint64_t pixel_stored_ = 0;
+  size_t pixel_element_at_ = 0;
 };
 
 // One file of the folder, as far as the checks need it.
@@ -275,18 +307,43 @@ Slice read_slice(const fs::path& path, const std::string& folder) {
   StructureWalk walk(bytes);
   const std::string problem = walk.walk();
   if (!problem.empty()) throw unreadable(problem);
-  std::istringstream stream(bytes);
+  if (!walk.pixel_data()) {
+    throw Error(folder + ": slice " + s.name + " holds no pixel data (7FE0,0010): not an image slice");
+  }
+  // GDCM reads the header alone: the pixel data are measured by the walk, and GDCM would reserve
+  // their declared length (gigabytes in a damaged file) before finding them missing.
+  std::istringstream stream(bytes.substr(0, walk.header_end()));
   gdcm::Reader reader;
   reader.SetStream(stream);
   bool read = false;
   try {
-    // The header only: pixel data are measured by the walk, and GDCM would reserve their
-    // declared length (gigabytes in a damaged file) before it finds them missing.
-    read = reader.ReadUpToTag(gdcm::Tag(0x7FE0, 0x0010));
+    read = reader.Read();
   } catch (const std::exception& e) {
     throw unreadable(e.what());
   }
   if (!read) throw unreadable("GDCM cannot read its header");
+  // GDCM's image reader asserts (ends the process) on an attribute of the image pixel module
+  // stored with another value representation than the standard's: refused here first.
+  static const std::vector<std::pair<gdcm::Tag, gdcm::VR::VRType>> kImageAttributes = {
+      {{0x0028, 0x0002}, gdcm::VR::US}, {{0x0028, 0x0004}, gdcm::VR::CS},
+      {{0x0028, 0x0006}, gdcm::VR::US}, {{0x0028, 0x0008}, gdcm::VR::IS},
+      {{0x0028, 0x0010}, gdcm::VR::US}, {{0x0028, 0x0011}, gdcm::VR::US},
+      {{0x0028, 0x0030}, gdcm::VR::DS}, {{0x0028, 0x0100}, gdcm::VR::US},
+      {{0x0028, 0x0101}, gdcm::VR::US}, {{0x0028, 0x0102}, gdcm::VR::US},
+      {{0x0028, 0x0103}, gdcm::VR::US}, {{0x0028, 0x1050}, gdcm::VR::DS},
+      {{0x0028, 0x1051}, gdcm::VR::DS}, {{0x0028, 0x1052}, gdcm::VR::DS},
+      {{0x0028, 0x1053}, gdcm::VR::DS}, {{0x0020, 0x0032}, gdcm::VR::DS},
+      {{0x0020, 0x0037}, gdcm::VR::DS}, {{0x0018, 0x0050}, gdcm::VR::DS}};
+  const gdcm::DataSet& data = reader.GetFile().GetDataSet();
+  for (const auto& [attribute, expected] : kImageAttributes) {
+    if (!data.FindDataElement(attribute)) continue;
+    const gdcm::VR vr = data.GetDataElement(attribute).GetVR();
+    if (vr != gdcm::VR::INVALID && vr != gdcm::VR::UN && vr != expected) {
+      throw unreadable("element " + tag_text(attribute.GetGroup(), attribute.GetElement()) +
+                       " is stored as " + gdcm::VR::GetVRString(vr) + ", expected " +
+                       gdcm::VR::GetVRString(expected));
+    }
+  }
   gdcm::StringFilter text;
   text.SetFile(reader.GetFile());
   const auto tag = [&](uint16_t group, uint16_t element) {
@@ -343,9 +400,19 @@ std::vector<const Slice*> checked_series(std::vector<const Slice*> slices, const
                   std::to_string(s->bits_allocated) + ", samples per pixel " +
                   std::to_string(s->samples) + " (expected numbers > 0)");
     }
+    const uint64_t needed = (uint64_t(s->rows) * uint64_t(s->columns) * uint64_t(s->samples) *
+                                 uint64_t(s->frames) * uint64_t(s->bits_allocated) + 7) / 8;
+    // Compressed pixel data are decoded by GDCM into a buffer of the size the header declares,
+    // reserved first: a header that declares far more than any compression of the fragments
+    // gives (a damaged file) is refused before that.
+    constexpr uint64_t kMostCompression = 1000, kAnySlice = uint64_t(1) << 20;
+    if (s->encapsulated && needed > kAnySlice && needed / kMostCompression > s->pixel_bytes) {
+      throw Error(at + " declares " + std::to_string(needed) + " bytes of pixels (" +
+                  std::to_string(s->rows) + " rows x " + std::to_string(s->columns) +
+                  " columns) compressed into " + std::to_string(s->pixel_bytes) +
+                  " bytes: more than any compression gives, a damaged header");
+    }
     if (!s->encapsulated) {
-      const uint64_t needed = (uint64_t(s->rows) * uint64_t(s->columns) * uint64_t(s->samples) *
-                                   uint64_t(s->frames) * uint64_t(s->bits_allocated) + 7) / 8;
       if (s->pixel_bytes < needed) {
         throw Error(at + " is truncated: its pixel data hold " + std::to_string(s->pixel_bytes) +
                     " bytes, expected " + std::to_string(needed) + " (" +
