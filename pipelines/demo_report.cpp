@@ -123,8 +123,8 @@ std::string demo_guidance_report(const GuidanceScenario& scenario, const GuideSu
          << " fps, 1280x720) of the patient board on the skin and a tracked needle, guided "
             "headless with the calibration files in setup/.\n\n";
   report << approach_text(scenario.safe) << approach_text(scenario.dangerous) << "\n";
-  report << "| approach | time | frames safe | medium | dangerous | unknown (outside the scan) | "
-            "needle not tracked |\n"
+  report << "| approach | time | frames safe | medium | dangerous | "
+            "unknown (no line to the tumor inside the scan) | needle not tracked |\n"
          << "|---|---|---|---|---|---|---|\n";
   for (const Phase& p : phases) {
     report << fmt::format("| {} | {:.1f}-{:.1f} s | {} | {} | {} | {} | {} |\n", p.approach->name,
