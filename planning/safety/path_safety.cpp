@@ -287,9 +287,9 @@ void refuse_region_inside_tumor(const Volume<uint8_t>& tumor, const TumorSurface
     throw Error(fmt::format(
         "region of interest: a radius of {:.1f} mm lies inside the tumor (its surface is {:.1f} "
         "to {:.1f} mm from the region's centre), so no point around the tumor would be computed; "
-        "give a radius larger than {:.0f} mm (the needle's reach, e.g. 120 mm), or none to reach "
-        "the farthest vulnerable structure",
-        radius_mm, nearest, farthest, std::ceil(nearest)));
+        "give a radius larger than {:.0f} mm, which reaches around the whole tumor (the needle's "
+        "reach, e.g. 120 mm), or none to reach the farthest vulnerable structure",
+        radius_mm, nearest, farthest, std::ceil(farthest)));
   }
 }
 
