@@ -293,8 +293,8 @@ void refuse_region_inside_tumor(const Volume<uint8_t>& tumor, const TumorSurface
   }
 }
 
-}  // namespace
-
+// Throws Error naming `tumor_source` when the tumor takes more than a quarter of the scan (the
+// blocking volume's grid): a label map or an inverted mask given as the tumor, not a lesion.
 void refuse_implausible_tumor(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                               const TumorSurface& surface, const std::string& tumor_source) {
   constexpr double kMostOfScan = 0.25;
@@ -308,6 +308,8 @@ void refuse_implausible_tumor(const Volume<float>& blocking, const Volume<uint8_
         tumor_source, tumor_ml, 100.0 * tumor_ml / scan_ml, scan_ml, 100.0 * kMostOfScan));
   }
 }
+
+}  // namespace
 
 OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                             const TumorSurface& surface, const PathSafetyOptions& options) {

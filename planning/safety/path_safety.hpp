@@ -193,11 +193,6 @@ struct OutputGrid {
     return di * di + dj * dj + dk * dk <= max_sq;
   }
 };
-// Throws Error naming `tumor_source` when the tumor takes more than a quarter of the scan (the
-// blocking volume's grid): a label map or an inverted mask given as the tumor, not a lesion.
-void refuse_implausible_tumor(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
-                              const TumorSurface& surface, const std::string& tumor_source);
-
 OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                             const TumorSurface& surface, const PathSafetyOptions& options);
 // The default region of interest radius: the distance from `centre` (LPS mm) to the farthest voxel
