@@ -40,11 +40,7 @@ void add_calibrate_command(CLI::App& app) {
       ->check(in_range(3, 100, true));
   camera->add_flag("--fix-k3", c->fix_k3,
                    "Keep k3 at 0 (narrow lenses, or few views near the image corners)");
-  camera
-      ->add_option("--decimate", c->decimate,
-                   "AprilTag quad detection on an image decimated by this factor")
-      ->capture_default_str()
-      ->check(in_range(1.0, 4.0));
+  add_detector_options(camera, c->detector);
   camera->callback([c] {
     claim_run_paths({"calibrate camera",
                      {{"--images", c->images}, {"--recording", c->recording}, {"--board", c->board}},

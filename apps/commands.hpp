@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "foundation/run_paths.hpp"
+#include "tracking/detector.hpp"
 
 namespace crepuscular::apps {
 
@@ -117,5 +118,10 @@ inline CLI::Validator in_range(double lo, double hi, bool integer = false) {
       },
       (integer ? "INT in " : "NUMBER in ") + range);
 }
+
+// The tag detector's settings (--decimate, --refine-edges, --sharpening, --blur, --max-hamming,
+// --detector-threads) into `o`, on every command that finds marker boards in images. The family is
+// each board's own (boards.json "family").
+void add_detector_options(CLI::App* cmd, tracking::DetectorOptions& o);
 
 }  // namespace crepuscular::apps

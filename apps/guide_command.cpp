@@ -156,6 +156,7 @@ void add_guide_command(CLI::App& app) {
                   "A marker pose older than this is lost: nothing is drawn from it")
       ->capture_default_str()
       ->check(in_range(1, 10000));
+  add_detector_options(cmd, r.tracker.detector);
   cmd->add_option("--max-frames", r.max_frames,
                   "Stop after this many frames (-1: the whole source)")
       ->capture_default_str();

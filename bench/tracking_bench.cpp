@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
+#include <numeric>
 #include <ctime>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgproc.hpp>
@@ -101,9 +102,10 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
   std::vector<Board> boards;
   for (const SceneBoard& b : scene.boards) boards.push_back(b.board);
 
-  // libapriltag alone, whole frame, on the grey image (no colour conversion counted).
+  // libapriltag alone, whole frame, on the grey image (no colour conversion counted), and its
+  // corners against the projection of the true corners.
   TagDetector detector(det);
-  std::vector<double> full_ms, full_cpu;
+  std::vector<double> full_ms, full_cpu, corner_px;
   std::vector<size_t> full_count(frames);
   for (int r = 0; r < repeats; ++r) {
     const auto t0 = Clock::now();
@@ -111,6 +113,19 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
     for (int i = 0; i < frames; ++i) full_count[i] = detector.detect(grey[i]).size();
     full_ms.push_back(ms_since(t0) / frames);
     full_cpu.push_back((cpu_ms() - c0) / frames);
+  }
+  for (int i = 0; i < frames; ++i) {
+    for (const Detection& d : detector.detect(grey[i])) {
+      for (size_t b = 0; b < boards.size(); ++b) {
+        const BoardTag* tag = boards[b].find(d.id);
+        if (!tag) continue;
+        for (int k = 0; k < 4; ++k) {
+          const Eigen::Vector2d truth =
+              scene.camera.project(seq[size_t(i)].truth[b].T_cam_board * tag->corners[size_t(k)]);
+          corner_px.push_back((d.corners[size_t(k)] - truth).norm());
+        }
+      }
+    }
   }
 
   // Tracking (colour frames in: conversion, detection, poses, filter), and full-frame tracking.
@@ -194,6 +209,9 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
   j["detections_tracking"] = det_roi;
   j["frames_with_fewer_detections_than_full_frame"] = fewer;
   j["median_translation_error_mm"] = roi_err;
+  j["refine_edges"] = det.refine_edges;
+  j["corner_error_mean_px"] = corner_px.empty() ? 0.0 : std::accumulate(corner_px.begin(), corner_px.end(), 0.0) / double(corner_px.size());
+  j["corner_error_max_px"] = corner_px.empty() ? 0.0 : *std::max_element(corner_px.begin(), corner_px.end());
   return j;
 }
 
@@ -202,21 +220,22 @@ nlohmann::json run(int width, int height, int frames, int repeats, const Detecto
 int main(int argc, char** argv) {
   CLI::App app{"Tracking benchmark: detection + board poses per frame vs libapriltag full frame"};
   int frames = 60, repeats = 3, threads = 2, full_every = 15;
-  double decimate = 2.0;
+  DetectorOptions det;
   bool needle = false;
   std::vector<std::string> sizes = {"1280x720", "1920x1080"};
   app.add_option("--frames", frames, "Frames per resolution")->capture_default_str();
   app.add_option("--repeats", repeats, "Timed passes (median reported)")->capture_default_str();
   app.add_option("--threads", threads, "libapriltag threads")->capture_default_str();
-  app.add_option("--decimate", decimate, "libapriltag quad decimation")->capture_default_str();
+  app.add_option("--decimate", det.decimate, "libapriltag quad decimation")->capture_default_str();
+  app.add_option("--refine-edges", det.refine_edges, "libapriltag edge refinement (0 or 1)")
+      ->capture_default_str();
+  app.add_option("--blur", det.blur_sigma, "libapriltag quad_sigma")->capture_default_str();
   app.add_option("--full-search-every", full_every, "Tracker's full-frame search interval")
       ->capture_default_str();
   app.add_option("--sizes", sizes, "Resolutions WxH")->capture_default_str();
   app.add_flag("--needle", needle, "Add the needle board (4 more tags)");
   CLI11_PARSE(app, argc, argv);
-  DetectorOptions det;
   det.threads = threads;
-  det.decimate = decimate;
   for (const std::string& s : sizes) {
     int w = 0, h = 0;
     if (std::sscanf(s.c_str(), "%dx%d", &w, &h) != 2 || w <= 0 || h <= 0) {

@@ -69,9 +69,8 @@ class TargetFinder {
       return;
     }
     board_ = choose_board(a.board, a.board_name);
-    tracking::DetectorOptions o;
+    tracking::DetectorOptions o = a.detector;
     o.family = board_.family;
-    o.decimate = a.decimate;
     detector_ = std::make_unique<tracking::TagDetector>(o);
     description_ =
         a.board + " (board " + board_.name + ", " + std::to_string(board_.tags.size()) + " tags)";

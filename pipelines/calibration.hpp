@@ -7,6 +7,7 @@
 
 #include "calibration/calibration_files.hpp"
 #include "calibration/intrinsics.hpp"
+#include "tracking/detector.hpp"
 
 namespace crepuscular::pipelines {
 
@@ -20,7 +21,7 @@ struct CameraCalibrationRequest {
   int max_views = 40;  // views kept from a recording (picked for coverage)
   int min_views = 4;   // fewer usable views are refused
   bool fix_k3 = false;
-  double decimate = 1.0;  // AprilTag quad detection on an image decimated by this factor
+  tracking::DetectorOptions detector;  // tag detection settings (the family is the board's)
 };
 
 // Finds the target in every image (a recording: in up to 6 frames per wanted view, spread over

@@ -50,7 +50,14 @@ struct GuideRequest {
   std::string poses_patient = "ReferenceToTracker";  // "": the tracker's frame is the patient's
   double poses_fps = 30;
   overlay::GuidanceOptions options;
-  tracking::TrackerOptions tracker;
+  // Tag outlines found at half resolution: 5x less CPU per 720p frame than full resolution
+  // (bench/RESULTS.md), for boards whose tags are 25 px or more across, as in the operating room;
+  // --decimate 1 finds smaller ones.
+  tracking::TrackerOptions tracker = [] {
+    tracking::TrackerOptions o;
+    o.detector.decimate = 2.0;
+    return o;
+  }();
   // Where full-frame tag searches run (tracker.full_search_mode is not used): unset, on a worker
   // that no frame waits for when the source is live (a camera, a realtime replay), and on the
   // worker with the next frame waiting for it when frames are replayed as fast as they come (the

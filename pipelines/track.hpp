@@ -7,6 +7,8 @@
 #include <map>
 #include <string>
 
+#include "tracking/detector.hpp"
+
 namespace crepuscular::pipelines {
 
 struct TrackRequest {
@@ -14,12 +16,11 @@ struct TrackRequest {
   std::string boards;  // boards.json ("": the recording's own)
   std::string camera;  // camera.yaml ("": the source's own)
   std::string out = "poses.csv";
+  std::string details;  // tracking details CSV (tracking/details_csv.hpp); "": none
   double max_age_ms = 100.0;
-  double decimate = 2.0;
-  int threads = 2;
+  tracking::DetectorOptions detector;  // settings; each board is searched in its own family
   int full_search_interval = 15;
   bool smoothing = true;
-  std::string family = "tag36h11";
 };
 
 struct TrackSummary {
@@ -27,6 +28,7 @@ struct TrackSummary {
   double seconds = 0;                                // wall time
   double tracking_ms = 0;                            // mean tracking time per frame
   std::map<std::string, int64_t> tracked, measured;  // frames per board
+  std::map<std::string, std::string> last_problem;   // per board: why it was last not measured
   // Against the ground truth (synthetic sources): median errors per board.
   std::map<std::string, double> median_error_mm, median_error_deg;
 };

@@ -27,6 +27,22 @@ struct TagDetector::Impl {
   }
 };
 
+void DetectorOptions::check() const {
+  const auto range = [](const char* name, double value, double lo, double hi) {
+    if (!(value >= lo && value <= hi)) {
+      std::ostringstream msg;
+      msg << "tag detector: " << name << " " << value << " is out of range; expected " << lo
+          << " to " << hi;
+      throw Error(msg.str());
+    }
+  };
+  range("decimate", decimate, 1.0, 8.0);
+  range("threads", threads, 1, 64);
+  range("blur", blur_sigma, -5.0, 5.0);
+  range("sharpening", sharpening, 0.0, 2.0);
+  range("max_hamming", max_hamming, 0, 2);
+}
+
 TagDetector::TagDetector(const DetectorOptions& options)
     : options_(options), impl_(std::make_unique<Impl>()) {
   try {
@@ -34,18 +50,7 @@ TagDetector::TagDetector(const DetectorOptions& options)
   } catch (const Error& e) {
     throw Error(std::string("tag detector: ") + e.what());
   }
-  if (!(options.decimate >= 1.0 && options.decimate <= 8.0)) {
-    throw Error("tag detector: decimate " + std::to_string(options.decimate) +
-                " is out of range; expected 1 to 8");
-  }
-  if (options.threads < 1 || options.threads > 64) {
-    throw Error("tag detector: threads " + std::to_string(options.threads) +
-                " is out of range; expected 1 to 64");
-  }
-  if (options.max_hamming < 0 || options.max_hamming > 2) {
-    throw Error("tag detector: max_hamming " + std::to_string(options.max_hamming) +
-                " is out of range; expected 0 to 2");
-  }
+  options.check();
   impl_->detector = apriltag_detector_create();
   apriltag_detector_add_family_bits(impl_->detector, impl_->family.get(), options.max_hamming);
   impl_->detector->quad_decimate = static_cast<float>(options.decimate);
@@ -70,6 +75,7 @@ std::vector<Detection> TagDetector::detect_grey(const cv::Mat& grey, const cv::P
     apriltag_detection_t* det = nullptr;
     zarray_get(found, i, &det);
     Detection d;
+    d.family = options_.family;
     d.id = det->id;
     d.hamming = det->hamming;
     d.decision_margin = det->decision_margin;
@@ -146,6 +152,82 @@ std::vector<Detection> TagDetector::detect(const cv::Mat& image, std::vector<cv:
     }
     out.insert(out.end(), found.begin(), found.end());
   }
+  return out;
+}
+
+FamilyDetector::FamilyDetector(const DetectorOptions& options, std::vector<std::string> families)
+    : families_(std::move(families)) {
+  std::sort(families_.begin(), families_.end());
+  families_.erase(std::unique(families_.begin(), families_.end()), families_.end());
+  if (families_.empty()) throw Error("tag detector: no tag family to detect");
+  for (const std::string& family : families_) {
+    DetectorOptions o = options;
+    o.family = family;
+    detectors_.push_back(std::make_unique<TagDetector>(o));
+  }
+}
+
+std::vector<Detection> FamilyDetector::detect(const cv::Mat& image) {
+  std::vector<Detection> out = detectors_.front()->detect(image);
+  for (size_t i = 1; i < detectors_.size(); ++i) {
+    std::vector<Detection> more = detectors_[i]->detect(image);
+    out.insert(out.end(), more.begin(), more.end());
+  }
+  return out;
+}
+
+std::vector<Detection> FamilyDetector::detect(const cv::Mat& image,
+                                              const std::vector<cv::Rect>& regions) {
+  std::vector<Detection> out = detectors_.front()->detect(image, regions);
+  for (size_t i = 1; i < detectors_.size(); ++i) {
+    std::vector<Detection> more = detectors_[i]->detect(image, regions);
+    out.insert(out.end(), more.begin(), more.end());
+  }
+  return out;
+}
+
+std::vector<Detection> detect_families(const cv::Mat& image,
+                                       const std::vector<std::string>& families) {
+  std::vector<Detection> out;
+  if (image.empty()) return out;
+  cv::Mat grey = image;
+  if (image.type() == CV_8UC3) cv::cvtColor(image, grey, cv::COLOR_BGR2GRAY);
+  if (image.type() == CV_8UC4) cv::cvtColor(image, grey, cv::COLOR_BGRA2GRAY);
+  if (grey.type() != CV_8UC1 || grey.cols < 8 || grey.rows < 8) return out;
+  std::vector<std::pair<std::string, TagFamilyPtr>> opened;
+  for (const std::string& name : families) {
+    try {
+      opened.emplace_back(name, open_tag_family(name));
+    } catch (const Error&) {
+    }
+  }
+  if (opened.empty()) return out;
+  apriltag_detector_t* detector = apriltag_detector_create();
+  for (auto& [name, family] : opened) apriltag_detector_add_family_bits(detector, family.get(), 0);
+  detector->quad_decimate = 2.0f;
+  detector->nthreads = 2;
+  image_u8_t im{grey.cols, grey.rows, static_cast<int32_t>(grey.step[0]),
+                const_cast<uint8_t*>(grey.ptr<uint8_t>(0))};
+  zarray_t* found = apriltag_detector_detect(detector, &im);
+  for (int i = 0; i < zarray_size(found); ++i) {
+    apriltag_detection_t* det = nullptr;
+    zarray_get(found, i, &det);
+    Detection d;
+    for (auto& [name, family] : opened) {
+      if (family.get() == det->family) d.family = name;
+    }
+    d.id = det->id;
+    d.hamming = det->hamming;
+    d.decision_margin = det->decision_margin;
+    for (int k = 0; k < 4; ++k) {
+      d.corners[k] = Eigen::Vector2d(det->p[k][0] - kApriltagPixelCentre,
+                                     det->p[k][1] - kApriltagPixelCentre);
+    }
+    d.center = Eigen::Vector2d(det->c[0] - kApriltagPixelCentre, det->c[1] - kApriltagPixelCentre);
+    out.push_back(d);
+  }
+  apriltag_detections_destroy(found);
+  apriltag_detector_destroy(detector);  // before the families it refers to
   return out;
 }
 

@@ -13,21 +13,32 @@
 
 namespace crepuscular::tracking {
 
+// The detector's settings: libapriltag's "user-configurable parameters". The defaults were
+// measured on apriltag's own test photos and on rendered boards (bench/RESULTS.md, "Real cameras
+// and real trackers").
 struct DetectorOptions {
-  std::string family = "tag36h11";  // tag36h11, tag25h9, tag16h5, tagStandard41h12, ...
-  double decimate = 2.0;            // quad detection on an image decimated by this factor
-  int threads = 2;                  // worker threads of libapriltag
-  double blur_sigma = 0.0;          // Gaussian blur before quad detection (px); 0 = none
-  double sharpening = 0.25;         // decode sharpening of libapriltag
-  bool refine_edges = true;         // snap quad edges to strong gradients at full resolution
-  int max_hamming = 2;              // bits libapriltag may correct per tag (0..2); fewer: fewer
-                                    // false detections, more missed damaged tags
+  std::string family = "tag36h11";  // tag36h11, tag36h11b2 (Kalibr), tag25h9, tag16h5, ...
+  // Quad detection on an image decimated by this factor: 2 is about 3x faster than 1 but misses
+  // tags smaller than about 25 px and moves corners by tenths of a pixel.
+  double decimate = 1.0;
+  int threads = 2;           // worker threads of libapriltag
+  double blur_sigma = 0.0;   // Gaussian blur before quad detection (px); 0 = none; < 0 sharpens
+  double sharpening = 0.25;  // decode sharpening of libapriltag (0 = none)
+  // Snap quad edges to the strongest gradient near them: corners nearer the truth at every
+  // decimation (rendered tags of 20 to 80 px: mean 0.07-0.17 px instead of 0.14-0.24 px).
+  bool refine_edges = true;
+  int max_hamming = 2;  // bits libapriltag may correct per tag (0..2); fewer: fewer false
+                        // detections, more missed damaged tags
+
+  // Throws Error naming the setting, its value and its range when one is out of range.
+  void check() const;
 };
 
 // One detected tag. corners are in libapriltag's order (apriltag_detection_t::p: counter-clockwise
 // in the image as seen by the camera, starting bottom-left of the upright tag), the order in which
 // tracking::BoardTag stores its corners.
 struct Detection {
+  std::string family;  // the family the tag was decoded in
   int id = 0;
   std::array<Eigen::Vector2d, 4> corners;  // pixels
   Eigen::Vector2d center = Eigen::Vector2d::Zero();
@@ -62,6 +73,29 @@ class TagDetector {
   DetectorOptions options_;
   std::unique_ptr<Impl> impl_;
 };
+
+// The tags of several families at once (those of a set of boards): one TagDetector per family,
+// each detection naming its family. Throws Error as TagDetector does, or for no family.
+class FamilyDetector {
+ public:
+  FamilyDetector(const DetectorOptions& options, std::vector<std::string> families);
+
+  const std::vector<std::string>& families() const { return families_; }
+
+  // As TagDetector::detect, the detections of every family in the order of families().
+  std::vector<Detection> detect(const cv::Mat& image);
+  std::vector<Detection> detect(const cv::Mat& image, const std::vector<cv::Rect>& regions);
+
+ private:
+  std::vector<std::string> families_;
+  std::vector<std::unique_ptr<TagDetector>> detectors_;
+};
+
+// Tags of any of `families` in one pass of libapriltag over the image (no bit correction, quads
+// found at half resolution): to tell which family a board that was not found is printed in.
+// Unknown family names are skipped.
+std::vector<Detection> detect_families(const cv::Mat& image,
+                                       const std::vector<std::string>& families);
 
 // The family names TagDetector accepts.
 std::vector<std::string> tag_family_names();

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cmath>
 #include <map>
+#include <sstream>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core/eigen.hpp>
 
@@ -136,7 +137,7 @@ bool is_planar(const std::vector<Eigen::Vector3d>& pts) {
 BoardCorners match_board_corners(const Board& board, const std::vector<Detection>& detections) {
   std::map<int, const Detection*> best;
   for (const Detection& d : detections) {
-    if (!board.find(d.id)) continue;
+    if ((!d.family.empty() && d.family != board.family) || !board.find(d.id)) continue;
     auto it = best.find(d.id);
     if (it == best.end() || it->second->decision_margin < d.decision_margin) best[d.id] = &d;
   }
@@ -216,8 +217,12 @@ BoardPose estimate_board_pose(const calibration::CameraModel& cam, const BoardCo
   }
   const Refined& best = cands[pick];
   if (!std::isfinite(best.rms) || best.rms > o.max_rms_px) {
-    out.problem = "reprojection RMS " + std::to_string(best.rms) + " px exceeds " +
-                  std::to_string(o.max_rms_px) + " px";
+    std::ostringstream msg;
+    msg.precision(3);
+    msg << "the " << out.tags << " tag(s) seen do not fit the board's layout (reprojection RMS "
+        << best.rms << " px, at most " << o.max_rms_px
+        << " px): check the board's tag ids, numbering and sizes in its description";
+    out.problem = msg.str();
     return out;
   }
   out.valid = true;

@@ -31,8 +31,9 @@ struct BoardCorners {
   std::vector<int> tag_ids;               // the tag of each group of four corners
 };
 
-// The corners of `board`'s tags among `detections` (tags of other boards are ignored; a tag
-// detected twice keeps the detection with the larger decision margin).
+// The corners of `board`'s tags among `detections` (tags of other boards, and detections naming
+// another family than the board's, are ignored; a tag detected twice keeps the detection with the
+// larger decision margin).
 BoardCorners match_board_corners(const Board& board, const std::vector<Detection>& detections);
 
 struct BoardPose {

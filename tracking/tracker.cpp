@@ -8,6 +8,7 @@
 #include <condition_variable>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <thread>
 
 #include <opencv2/imgproc.hpp>
@@ -99,8 +100,8 @@ class Tracker::FullSearchWorker {
     std::vector<Detection> detections;
   };
 
-  explicit FullSearchWorker(const DetectorOptions& options)
-      : detector_(options), thread_([this] { run(); }) {}
+  FullSearchWorker(const DetectorOptions& options, const std::vector<std::string>& families)
+      : detector_(options, families), thread_([this] { run(); }) {}
   ~FullSearchWorker() {
     {
       std::lock_guard<std::mutex> lock(mutex_);
@@ -176,7 +177,7 @@ class Tracker::FullSearchWorker {
     }
   }
 
-  TagDetector detector_;  // the worker's own: libapriltag detectors are not shared
+  FamilyDetector detector_;  // the worker's own: libapriltag detectors are not shared
   std::mutex mutex_;
   std::condition_variable wake_, done_;
   State state_ = State::kIdle;
@@ -191,15 +192,48 @@ class Tracker::FullSearchWorker {
 // ---------------------------------------------------------------------------------------------
 // Tracker
 
+namespace {
+
+// Why none of `board`'s tags is among `detections`: none of its family at all, or only tags
+// of its family whose ids are not on the board (a board described with other ids or another
+// numbering than the one printed).
+std::string no_tag_problem(const Board& board, const std::vector<Detection>& detections) {
+  std::set<int> ids;
+  for (const Detection& d : detections) {
+    if (d.family == board.family) ids.insert(d.id);
+  }
+  if (ids.empty()) return "no tag of the board's family " + board.family + " found";
+  std::string list;
+  int shown = 0;
+  for (int id : ids) {
+    if (shown++ == 8) {
+      list += " ...";
+      break;
+    }
+    list += (list.empty() ? "" : " ") + std::to_string(id);
+  }
+  return "tags of " + board.family + " seen (ids " + list +
+         ") but none of the board's: check the board's ids in its description";
+}
+
+}  // namespace
+
+std::vector<std::string> Tracker::families_of(const std::vector<Board>& boards,
+                                              const std::string& fallback) {
+  std::vector<std::string> families;
+  for (const Board& b : boards) families.push_back(b.family);
+  if (families.empty()) families.push_back(fallback);
+  return families;
+}
+
 Tracker::Tracker(const calibration::CameraModel& camera, std::vector<Board> boards,
                  const TrackerOptions& options)
-    : camera_(camera), boards_(std::move(boards)), options_(options), detector_(options.detector) {
+    : camera_(camera),
+      boards_(std::move(boards)),
+      options_(options),
+      detector_(options.detector, families_of(boards_, options.detector.family)) {
   if (boards_.empty()) throw Error("tracker: no marker boards given");
   for (const Board& b : boards_) {
-    if (b.family != options.detector.family) {
-      throw Error("tracker: board '" + b.name + "' uses family " + b.family +
-                  " but the detector searches " + options.detector.family);
-    }
     if (b.tags.empty()) throw Error("tracker: board '" + b.name + "' has no tags");
   }
   if (!(camera.fx > 0 && camera.fy > 0) || camera.width <= 0 || camera.height <= 0) {
@@ -209,7 +243,7 @@ Tracker::Tracker(const calibration::CameraModel& camera, std::vector<Board> boar
   tracks_.resize(boards_.size());
   for (Track& t : tracks_) t.filter = PoseFilter(options.filter);
   if (options.full_search_mode != FullSearchMode::kInFrame) {
-    worker_ = std::make_unique<FullSearchWorker>(options.detector);
+    worker_ = std::make_unique<FullSearchWorker>(options.detector, detector_.families());
   }
 }
 
@@ -292,7 +326,7 @@ bool Tracker::measure(size_t b, const std::vector<Detection>& detections, int64_
   st->tags = int(corners.tag_ids.size());
   st->corners = int(corners.board_mm.size());
   if (corners.tag_ids.empty()) {
-    st->problem = "no tag of the board found";
+    st->problem = no_tag_problem(boards_[b], detections);
     return false;
   }
   const double max_age_ns = options_.max_age_ms * 1e6;

@@ -123,8 +123,9 @@ struct TrackResult {
 
 class Tracker {
  public:
-  // Throws Error for an empty board list, boards of a family other than the detector's, or a
-  // camera without a focal length.
+  // Searches the tags of every family the boards use (each board's own), with the settings of
+  // options.detector (its family is not used). Throws Error for an empty board list, a board
+  // without tags, an unknown family or a camera without a focal length.
   Tracker(const calibration::CameraModel& camera, std::vector<Board> boards,
           const TrackerOptions& options = {});
   ~Tracker();
@@ -163,7 +164,10 @@ class Tracker {
   calibration::CameraModel camera_;
   std::vector<Board> boards_;
   TrackerOptions options_;
-  TagDetector detector_;
+  static std::vector<std::string> families_of(const std::vector<Board>& boards,
+                                              const std::string& fallback);
+
+  FamilyDetector detector_;
   std::vector<Track> tracks_;
   int64_t last_index_ = -1;
   int64_t last_timestamp_ns_ = 0;

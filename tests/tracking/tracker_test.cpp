@@ -17,6 +17,8 @@
 #include "tests/support/errors.hpp"
 #include "tests/support/temporary_folder.hpp"
 #include "tests/tracking/tag_scene.hpp"
+#include "foundation/csv.hpp"
+#include "tracking/details_csv.hpp"
 #include "tracking/poses_csv.hpp"
 #include "tracking/synthetic.hpp"
 
@@ -584,6 +586,103 @@ TEST(TrackCommand, TracksASynthRecordingWithACorruptFrame) {
   EXPECT_NE(text.find("frame 5:"), std::string::npos) << text;  // the problem is reported
 }
 
+// `track --details`: per frame and board the tags seen, with corners at the projection of the true
+// corners; and boards described wrongly say why they are lost, in the CSV and in the log: one in
+// the wrong family (the family it is printed in is named), one with ids not on the print.
+TEST(TrackCommand, DetailsShowTheTagsSeenAndWhyABoardIsLost) {
+  const test::TemporaryFolder dir;
+  const std::string rec = (dir / "rec").string();
+  const std::string bin = CREPUSCULAR_BINARY;
+  ASSERT_EQ(std::system((bin + " synth --frames 4 --out " + rec + " > " +
+                         (dir / "synth.log").string() + " 2>&1").c_str()),
+            0);
+  const auto read_rows = [](const std::string& path) {
+    std::ifstream in(path);
+    std::string line;
+    std::getline(in, line);
+    EXPECT_EQ(line, kDetailsCsvHeader);
+    std::vector<std::vector<std::string>> rows;
+    while (std::getline(in, line)) rows.push_back(split_csv_line(line));
+    return rows;
+  };
+  // Right boards: every board measured in every frame, each tag's corners on the truth.
+  const std::string details = (dir / "details.csv").string();
+  ASSERT_EQ(std::system((bin + " track --source recording:" + rec + " --out " +
+                         (dir / "poses.csv").string() + " --details " + details + " > " +
+                         (dir / "track.log").string() + " 2>&1").c_str()),
+            0);
+  const calibration::CameraModel cam = calibration::CameraModel::read_yaml(rec + "/camera.yaml");
+  const std::vector<Board> boards = read_boards(rec + "/boards.json");
+  const std::vector<PoseRecord> truth = read_poses_csv(rec + "/ground_truth.csv");
+  double worst_px = 0;
+  int tag_rows = 0;
+  for (const auto& row : read_rows(details)) {
+    ASSERT_EQ(row.size(), 19u);
+    EXPECT_EQ(row[3], "measured") << row[2] << " in frame " << row[0];
+    EXPECT_LT(std::stod(row[5]), 0.5) << "reprojection RMS";
+    const auto board = std::find_if(boards.begin(), boards.end(),
+                                    [&](const Board& b) { return b.name == row[2]; });
+    ASSERT_NE(board, boards.end());
+    const auto pose = std::find_if(truth.begin(), truth.end(), [&](const PoseRecord& t) {
+      return std::to_string(t.frame) == row[0] && t.board == row[2];
+    });
+    ASSERT_NE(pose, truth.end());
+    const BoardTag* tag = board->find(std::stoi(row[8]));
+    ASSERT_NE(tag, nullptr);
+    for (int k = 0; k < 4; ++k) {
+      const Eigen::Vector2d seen(std::stod(row[size_t(11 + 2 * k)]),
+                                 std::stod(row[size_t(12 + 2 * k)]));
+      worst_px = std::max(worst_px,
+                          (seen - cam.project(pose->T_cam_board * tag->corners[size_t(k)])).norm());
+    }
+    ++tag_rows;
+  }
+  EXPECT_EQ(tag_rows, 4 * 10);  // 4 frames, 6 patient tags and 4 needle tags
+  EXPECT_LT(worst_px, 0.5);
+
+  // Wrong descriptions: the patient board in another family, the needle's ids shifted.
+  std::vector<Board> wrong = boards;
+  for (Board& b : wrong) {
+    if (b.name == "patient") b.family = "tag25h9";
+    if (b.name == "needle") {
+      for (BoardTag& t : b.tags) t.id += 100;
+    }
+  }
+  const std::string wrong_boards = (dir / "wrong.json").string();
+  write_boards(wrong_boards, wrong);
+  const std::string details2 = (dir / "details2.csv").string(), log2 = (dir / "track2.log").string();
+  ASSERT_EQ(std::system((bin + " track --source recording:" + rec + " --boards " + wrong_boards +
+                         " --out " + (dir / "poses2.csv").string() + " --details " + details2 +
+                         " > " + log2 + " 2>&1").c_str()),
+            0);
+  int lost = 0, unassigned = 0;
+  for (const auto& row : read_rows(details2)) {
+    ASSERT_EQ(row.size(), 19u);
+    if (row[2] == "patient") {
+      EXPECT_EQ(row[3], "lost");
+      EXPECT_NE(row[6].find("no tag of the board's family tag25h9 found; tags of family "
+                            "tag36h11 seen"),
+                std::string::npos)
+          << row[6];
+      ++lost;
+    } else if (row[2] == "needle") {
+      EXPECT_EQ(row[3], "lost");
+      EXPECT_NE(row[6].find("but none of the board's"), std::string::npos) << row[6];
+      ++lost;
+    } else {
+      EXPECT_EQ(row[6], "not on any board");
+      ++unassigned;
+    }
+  }
+  EXPECT_EQ(lost, 2 * 4);
+  EXPECT_EQ(unassigned, 10 * 4);
+  std::ifstream in(log2);
+  const std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  EXPECT_NE(text.find("patient: not measured: no tag of the board's family tag25h9"),
+            std::string::npos)
+      << text;
+}
+
 TEST(PosesCsv, MalformedRowsAreErrorsNamingTheLine) {
   const test::TemporaryFolder dir;
   const std::string path = dir.file("poses_bad.csv");
@@ -608,12 +707,68 @@ TEST(PosesCsv, MalformedRowsAreErrorsNamingTheLine) {
 TEST(Tracker, BadSetupIsAnError) {
   Rig& r = rig();
   EXPECT_THROW(Tracker(r.cam, {}), Error);
-  Board other = r.patient;
-  other.family = "tag25h9";
-  EXPECT_THROW(Tracker(r.cam, {other}), Error);
+  Board unknown = r.patient;
+  unknown.family = "tag99h1";
+  EXPECT_THROW(Tracker(r.cam, {unknown}), Error);
+  Board empty = r.patient;
+  empty.tags.clear();
+  EXPECT_THROW(Tracker(r.cam, {empty}), Error);
   // A frame of the wrong size is a frame problem, not an error (FrameOfAnotherSizeIsSkipped...).
   Tracker t(r.cam, {r.patient});
   EXPECT_FALSE(t.process(make_frame(0, cv::Mat(480, 640, CV_8UC3, cv::Scalar::all(0)))).problem.empty());
+}
+
+// Each board is searched in its own family (boards.json's "family"): a tag36h11 patient board and a
+// tag25h9 needle board whose ids overlap are both measured, each from its own tags, and their
+// poses match the rendering truth.
+TEST(Tracker, BoardsOfTwoFamiliesAreEachFoundInTheirOwn) {
+  SyntheticScene scene;
+  scene.frame_count = 1;
+  scene.noise_sigma = 2.0;
+  SceneBoard patient, needle;
+  patient.board = make_grid_board("patient", 2, 3, 40.0, 10.0, 0);
+  needle.board = make_grid_board("needle", 2, 2, 30.0, 8.0, 0);
+  needle.board.family = "tag25h9";
+  patient.keyframes = {{0.0, look_at_board(-70, 20, 520, 15, -10, 5)}};
+  needle.keyframes = {{0.0, look_at_board(120, -40, 480, -20, 10, -15)}};
+  scene.boards = {patient, needle};
+  SyntheticRenderer renderer(scene);
+  std::vector<TruePose> truth;
+  const cv::Mat image = renderer.render(0, &truth);
+  Tracker tracker(scene.camera, {patient.board, needle.board});
+  const TrackResult res = tracker.process(make_frame(0, image));
+  ASSERT_EQ(res.boards.size(), 2u);
+  for (size_t b = 0; b < 2; ++b) {
+    const BoardStatus& s = res.boards[b];
+    ASSERT_TRUE(s.measured) << s.board << ": " << s.problem;
+    EXPECT_EQ(s.tags, b == 0 ? 6 : 4) << s.board;
+    EXPECT_LT(distance_mm(s.T_cam_board, truth[b].T_cam_board), 1.0) << s.board;
+    EXPECT_LT(angle_deg(s.T_cam_board, truth[b].T_cam_board), 0.5) << s.board;
+  }
+  int tag25 = 0;
+  for (const Detection& d : res.detections) tag25 += d.family == "tag25h9";
+  EXPECT_EQ(tag25, 4);
+}
+
+// A board lost says why: tags of its family whose ids are not on it are named.
+TEST(Tracker, LostBoardSaysWhichTagsWereSeenInstead) {
+  Rig& r = rig();
+  Board renumbered = r.patient;
+  for (BoardTag& t : renumbered.tags) t.id += 100;
+  Tracker tracker(r.cam, {renumbered});
+  const TrackResult res = tracker.process(
+      make_frame(0, r.renderer.render({{&r.patient, look_at_board(0, 0, 500, 10, 5, 0)}})));
+  ASSERT_FALSE(res.boards[0].measured);
+  EXPECT_NE(res.boards[0].problem.find("ids 0 1 2 3 4 5"), std::string::npos)
+      << res.boards[0].problem;
+  Tracker other_family(r.cam, {[&] {
+                         Board b = r.patient;
+                         b.family = "tag25h9";
+                         return b;
+                       }()});
+  const TrackResult res2 = other_family.process(
+      make_frame(0, r.renderer.render({{&r.patient, look_at_board(0, 0, 500, 10, 5, 0)}})));
+  EXPECT_EQ(res2.boards[0].problem, "no tag of the board's family tag25h9 found");
 }
 
 }  // namespace
