@@ -77,8 +77,8 @@ void add_calibrate_command(CLI::App& app) {
       ->capture_default_str();
   pivot
       ->add_option("--max-tip-stddev-mm", p->max_tip_stddev_mm,
-                   "Refuse a tip whose 3D standard deviation from the fit (the RMS tip error to\n"
-                   "expect, from the residuals and the motion) is larger")
+                   "Refuse a tip whose 3D standard deviation from the fit (square root of the\n"
+                   "trace of its covariance: the RMS tip error to expect) is larger")
       ->capture_default_str();
   pivot
       ->add_option("--warn-rms-mm", p->warn_rms_mm,
