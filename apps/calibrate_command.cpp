@@ -71,6 +71,16 @@ void add_calibrate_command(CLI::App& app) {
       ->add_option("--min-rotation-deg", p->min_rotation_deg,
                    "Refuse when the needle turned less than this")
       ->capture_default_str();
+  pivot
+      ->add_option("--max-tip-stddev-mm", p->max_tip_stddev_mm,
+                   "Refuse a tip whose 3D standard deviation from the fit (square root of the\n"
+                   "trace of its covariance: the RMS tip error to expect) is larger")
+      ->capture_default_str();
+  pivot
+      ->add_option("--warn-rms-mm", p->warn_rms_mm,
+                   "Warn (not refuse) when the residual RMS of the poses is larger: a noisy\n"
+                   "recording is usable when the tip's standard deviation passes")
+      ->capture_default_str();
   pivot->add_option("--out", p->out, "Needle file to write (YAML)")->capture_default_str();
   pivot->callback([p] {
     claim_run_paths({"calibrate pivot",

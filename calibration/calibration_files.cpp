@@ -2,8 +2,10 @@
 // calibration_files.hpp).
 #include "calibration/calibration_files.hpp"
 
-#include <cmath>
+#include <fmt/format.h>
 
+#include <cmath>
+#include <cstdint>
 #include <opencv2/core.hpp>
 
 #include "foundation/error.hpp"
@@ -70,6 +72,26 @@ class Reader {
     const cv::FileNode n = node(key, false);
     if (n.isSeq()) {
       for (const auto& item : n) out.push_back(std::string(item));
+    }
+    return out;
+  }
+  // A sequence of frame numbers (whole numbers from 0 to 2^53); empty when the field is missing.
+  std::vector<int64_t> frame_numbers(const std::string& key) const {
+    std::vector<int64_t> out;
+    if (!has(key)) return out;
+    const cv::FileNode n = node(key);
+    if (!n.isSeq())
+      throw Error(path_ + ": field '" + key + "' must be a sequence of frame numbers");
+    for (const auto& item : n) {
+      const bool numeric = item.isInt() || item.isReal();
+      const double v = numeric ? double(item) : -1.0;
+      if (!(v >= 0 && v <= 9007199254740992.0) || v != std::floor(v)) {
+        throw Error(
+            path_ + ": field '" + key + "' holds " +
+            (numeric ? fmt::format("{}", v) : std::string("an entry that is not a number")) +
+            " (frame numbers are whole numbers from 0)");
+      }
+      out.push_back(int64_t(v));
     }
     return out;
   }
@@ -155,10 +177,27 @@ void write_needle_calibration(const std::string& path, const NeedleCalibration& 
     write_strings(out, "inputs", n.inputs);
     out << "tip_needle" << to_mat(n.tip_needle);
     out << "tip_stddev_mm" << to_mat(n.tip_stddev_mm);
+    out << "tip_stddev_3d_mm" << n.tip_stddev_3d_mm;
+    out << "pivot_cam" << to_mat(n.pivot_cam);
     out << "pivot_rms_mm" << n.pivot_rms_mm;
+    out << "pivot_rms_axis_mm" << to_mat(n.pivot_rms_axis_mm);
+    out << "pivot_rms_all_mm" << n.pivot_rms_all_mm;
     out << "poses_used" << n.poses_used;
     out << "poses_total" << n.poses_total;
     out << "rotation_spread_deg" << n.rotation_spread_deg;
+    out << "least_axis_tilt_deg" << n.least_axis_tilt_deg;
+    out << "outliers" << int(n.outlier_frames.size());
+    out << "outlier_frames"
+        << "[:";
+    for (int64_t f : n.outlier_frames) {
+      // FileStorage has no 64-bit integers; frame numbers beyond 2^31 are written as doubles.
+      if (f >= 0 && f <= INT32_MAX) {
+        out << int(f);
+      } else {
+        out << double(f);
+      }
+    }
+    out << "]";
     if (n.axis_needle) {
       out << "axis_needle" << to_mat(*n.axis_needle);
       out << "axis_rms_deg" << n.axis_rms_deg;
@@ -179,6 +218,19 @@ NeedleCalibration read_needle_calibration(const std::string& path) {
   n.poses_used = in.count("poses_used");
   n.poses_total = in.count("poses_total");
   n.rotation_spread_deg = in.has("rotation_spread_deg") ? in.number("rotation_spread_deg") : 0.0;
+  // Files written before the tip's 3D uncertainty, the pivot point and the outliers were recorded
+  // read with those fields zero and empty.
+  n.tip_stddev_3d_mm = in.has("tip_stddev_3d_mm") ? in.number("tip_stddev_3d_mm") : 0.0;
+  if (in.has("pivot_cam")) n.pivot_cam = in.vector3("pivot_cam");
+  if (in.has("pivot_rms_axis_mm")) n.pivot_rms_axis_mm = in.vector3("pivot_rms_axis_mm");
+  n.pivot_rms_all_mm = in.has("pivot_rms_all_mm") ? in.number("pivot_rms_all_mm") : 0.0;
+  n.least_axis_tilt_deg = in.has("least_axis_tilt_deg") ? in.number("least_axis_tilt_deg") : 0.0;
+  n.outlier_frames = in.frame_numbers("outlier_frames");
+  if (in.has("outliers") && in.count("outliers") != int(n.outlier_frames.size())) {
+    throw Error(path + ": field 'outliers' is " + std::to_string(in.count("outliers")) +
+                " but 'outlier_frames' lists " + std::to_string(n.outlier_frames.size()) +
+                " frames; they must agree (run `crepuscular calibrate pivot` again)");
+  }
   if (in.has("axis_needle")) {
     const Eigen::Vector3d a = in.vector3("axis_needle");
     if (std::abs(a.norm() - 1.0) > 1e-3) {

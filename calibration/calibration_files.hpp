@@ -6,6 +6,7 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <cstdint>
 #include <optional>
 #include <string>
 #include <vector>
@@ -24,15 +25,23 @@ void write_camera_calibration(const std::string& path, const IntrinsicsResult& r
                               const std::string& board, const std::vector<std::string>& inputs);
 
 struct NeedleCalibration {
-  std::string date;                     // ISO 8601 UTC
-  std::vector<std::string> inputs;      // files the calibration was computed from
-  std::string board;                    // needle board name
-  Eigen::Vector3d tip_needle = Eigen::Vector3d::Zero();     // mm, needle frame
+  std::string date;                                      // ISO 8601 UTC
+  std::vector<std::string> inputs;                       // files the calibration was computed from
+  std::string board;                                     // needle board name
+  Eigen::Vector3d tip_needle = Eigen::Vector3d::Zero();  // mm, needle frame
   Eigen::Vector3d tip_stddev_mm = Eigen::Vector3d::Zero();  // per axis
-  double pivot_rms_mm = 0;
+  double tip_stddev_3d_mm = 0;  // sqrt of the trace of the tip's covariance (0: not recorded)
+  Eigen::Vector3d pivot_cam = Eigen::Vector3d::Zero();          // pivot point, camera frame (mm)
+  double pivot_rms_mm = 0;                                      // inlier residual RMS, 3D
+  Eigen::Vector3d pivot_rms_axis_mm = Eigen::Vector3d::Zero();  // the same per camera axis
+  double pivot_rms_all_mm = 0;                                  // 3D RMS over all poses
   int poses_used = 0;
   int poses_total = 0;
-  double rotation_spread_deg = 0;
+  double rotation_spread_deg = 0;  // largest angle between two poses
+  double least_axis_tilt_deg = 0;  // tilt about the least moved rotation axis
+  // Frame numbers of the input (poses CSV frame column, recording frame index) of the poses left
+  // out as outliers; their count is written as `outliers`.
+  std::vector<int64_t> outlier_frames;
   // From spin calibration, when it was done: unit axis direction (needle frame), its fit quality.
   std::optional<Eigen::Vector3d> axis_needle;
   double axis_rms_deg = 0;

@@ -202,19 +202,27 @@ void log_intrinsics(const calibration::IntrinsicsResult& r, const std::string& o
                r.rms_px, r.views_used, out);
 }
 
+// The needle board's measured poses and their frame numbers.
+struct NeedlePoses {
+  std::vector<Eigen::Isometry3d> T_cam_needle;
+  std::vector<int64_t> frames;
+};
+
 // The needle board's measured poses from a poses CSV (tracked rows only).
-std::vector<Eigen::Isometry3d> poses_from_csv(const std::string& path, const std::string& board) {
-  std::vector<Eigen::Isometry3d> out;
+NeedlePoses poses_from_csv(const std::string& path, const std::string& board) {
+  NeedlePoses out;
   for (const auto& r : tracking::read_poses_csv(path)) {
-    if (r.board == board && r.tracked) out.push_back(r.T_cam_board);
+    if (r.board == board && r.tracked) {
+      out.T_cam_needle.push_back(r.T_cam_board);
+      out.frames.push_back(r.frame);
+    }
   }
-  if (out.empty()) throw Error(path + ": no tracked rows for board \"" + board + "\"");
+  if (out.T_cam_needle.empty()) throw Error(path + ": no tracked rows for board \"" + board + "\"");
   return out;
 }
 
 // The board's pose measured in every frame of a recording (no smoothing, no prediction).
-std::vector<Eigen::Isometry3d> poses_from_recording(const std::string& dir,
-                                                    const PivotCalibrationRequest& a) {
+NeedlePoses poses_from_recording(const std::string& dir, const PivotCalibrationRequest& a) {
   const std::string uri = "recording:" + dir;
   std::unique_ptr<tracking::FrameSource> source = tracking::open_frame_source(uri);
   const std::string boards_path = session_boards_file(a.boards, uri, "calibrate pivot");
@@ -228,24 +236,27 @@ std::vector<Eigen::Isometry3d> poses_from_recording(const std::string& dir,
   o.detector.family = boards.front().family;
   o.smoothing = false;
   tracking::Tracker tracker(camera, boards, o);
-  std::vector<Eigen::Isometry3d> out;
+  NeedlePoses out;
   int64_t frames = 0;
   while (auto frame = source->next()) {
     const tracking::TrackResult r = tracker.process(*frame);
     for (const auto& s : r.boards) {
-      if (s.measured) out.push_back(s.T_measured);
+      if (s.measured) {
+        out.T_cam_needle.push_back(s.T_measured);
+        out.frames.push_back(r.frame);
+      }
     }
     if (++frames % 100 == 0) {
-      spdlog::info("{}: {} frames, board measured in {}", dir, frames, out.size());
+      spdlog::info("{}: {} frames, board measured in {}", dir, frames, out.T_cam_needle.size());
     }
   }
-  spdlog::info("{}: board \"{}\" measured in {} of {} frames", dir, a.board_name, out.size(),
-               frames);
+  spdlog::info("{}: board \"{}\" measured in {} of {} frames", dir, a.board_name,
+               out.T_cam_needle.size(), frames);
   return out;
 }
 
-std::vector<Eigen::Isometry3d> needle_poses(const std::string& csv, const std::string& recording,
-                                            const PivotCalibrationRequest& a) {
+NeedlePoses needle_poses(const std::string& csv, const std::string& recording,
+                         const PivotCalibrationRequest& a) {
   return !csv.empty() ? poses_from_csv(csv, a.board_name) : poses_from_recording(recording, a);
 }
 
@@ -277,23 +288,40 @@ calibration::NeedleCalibration run_pivot_calibration(const PivotCalibrationReque
   if (!a.spin_poses.empty() && !a.spin_recording.empty()) {
     throw Error("calibrate pivot: give at most one spin capture (poses CSV or recording)");
   }
-  const std::vector<Eigen::Isometry3d> poses = needle_poses(a.poses, a.recording, a);
+  const NeedlePoses poses = needle_poses(a.poses, a.recording, a);
   calibration::PivotOptions po;
   po.min_rotation_spread_deg = a.min_rotation_deg;
-  const calibration::PivotResult p = calibration::calibrate_pivot(poses, po);
+  po.max_tip_stddev_mm = a.max_tip_stddev_mm;
+  po.warn_rms_mm = a.warn_rms_mm;
+  const calibration::PivotResult p = calibration::calibrate_pivot(poses.T_cam_needle, po);
   calibration::NeedleCalibration n;
   n.date = calibration::utc_timestamp();
   n.inputs.push_back(!a.poses.empty() ? a.poses : a.recording);
   n.board = a.board_name;
   n.tip_needle = p.tip_needle;
   n.tip_stddev_mm = p.tip_stddev_mm;
+  n.tip_stddev_3d_mm = p.tip_stddev_3d_mm;
+  n.pivot_cam = p.pivot_cam;
   n.pivot_rms_mm = p.rms_mm;
+  n.pivot_rms_axis_mm = p.rms_axis_mm;
+  n.pivot_rms_all_mm = p.rms_all_mm;
   n.poses_used = p.inliers;
-  n.poses_total = int(poses.size());
+  n.poses_total = int(poses.T_cam_needle.size());
   n.rotation_spread_deg = p.rotation_spread_deg;
+  n.least_axis_tilt_deg = p.axis_spread_deg;
+  for (int i : p.outlier_indices) n.outlier_frames.push_back(poses.frames[size_t(i)]);
+  if (!n.outlier_frames.empty()) {
+    std::string list;
+    for (size_t k = 0; k < n.outlier_frames.size() && k < 50; ++k) {
+      list += (k ? ", " : "") + std::to_string(n.outlier_frames[k]);
+    }
+    if (n.outlier_frames.size() > 50) list += ", ...";
+    spdlog::info("calibrate pivot: {} outlier poses left out, frames {}", n.outlier_frames.size(),
+                 list);
+  }
   if (!a.spin_poses.empty() || !a.spin_recording.empty()) {
-    const calibration::SpinResult s =
-        calibration::calibrate_spin(needle_poses(a.spin_poses, a.spin_recording, a), p.tip_needle);
+    const calibration::SpinResult s = calibration::calibrate_spin(
+        needle_poses(a.spin_poses, a.spin_recording, a).T_cam_needle, p.tip_needle);
     n.inputs.push_back(!a.spin_poses.empty() ? a.spin_poses : a.spin_recording);
     n.axis_needle = s.axis_needle;
     n.axis_rms_deg = s.axis_rms_deg;
@@ -303,10 +331,10 @@ calibration::NeedleCalibration run_pivot_calibration(const PivotCalibrationReque
   }
   calibration::write_needle_calibration(a.out, n);
   spdlog::info(
-      "calibrate pivot: tip ({:.3f}, {:.3f}, {:.3f}) mm +- ({:.3f}, {:.3f}, {:.3f}) in the "
-      "needle frame; RMS {:.3f} mm over {} of {} poses; {} written",
-      p.tip_needle.x(), p.tip_needle.y(), p.tip_needle.z(), p.tip_stddev_mm.x(),
-      p.tip_stddev_mm.y(), p.tip_stddev_mm.z(), p.rms_mm, p.inliers, poses.size(), a.out);
+      "calibrate pivot: tip ({:.3f}, {:.3f}, {:.3f}) mm +- {:.3f} mm (3D) in the needle frame; "
+      "RMS {:.3f} mm over {} of {} poses; {} written",
+      p.tip_needle.x(), p.tip_needle.y(), p.tip_needle.z(), p.tip_stddev_3d_mm, p.rms_mm, p.inliers,
+      poses.T_cam_needle.size(), a.out);
   return n;
 }
 

@@ -39,10 +39,13 @@ struct PivotCalibrationRequest {
   std::string spin_recording;  // ... or recording (at most one of the two)
   std::string out = "needle.yaml";
   double min_rotation_deg = 15.0;
+  double max_tip_stddev_mm = 0.5;  // refuse a tip whose 3D standard deviation is larger
+  double warn_rms_mm = 2.0;        // warn when the inlier residual RMS is larger
 };
 
-// Tip from the pivoting (and axis from the spin capture), written to `out`. Throws Error naming
-// the input when a capture has no poses of the needle board or too little rotation.
+// Tip from the pivoting (and axis from the spin capture), written to `out` with its standard
+// deviation, the residuals, the motion and the outlier frames. Throws Error naming the input when
+// a capture has no poses of the needle board, too little rotation, or a tip too uncertain.
 calibration::NeedleCalibration run_pivot_calibration(const PivotCalibrationRequest& request);
 
 }  // namespace crepuscular::pipelines

@@ -48,6 +48,12 @@ TEST_F(CalibrationFiles, NeedleRoundTrip) {
   n.poses_used = 95;
   n.poses_total = 100;
   n.rotation_spread_deg = 61.5;
+  n.tip_stddev_3d_mm = 0.25;
+  n.pivot_cam = Eigen::Vector3d(30.5, -20.25, 500.125);
+  n.pivot_rms_axis_mm = Eigen::Vector3d(0.25, 0.2, 0.27);
+  n.pivot_rms_all_mm = 4.5;
+  n.least_axis_tilt_deg = 21.5;
+  n.outlier_frames = {17, 503, 3000000000LL};
   n.axis_needle = Eigen::Vector3d(0.01, -0.02, 1.0).normalized();
   n.axis_rms_deg = 0.3;
   n.tip_to_axis_mm = 0.2;
@@ -62,12 +68,81 @@ TEST_F(CalibrationFiles, NeedleRoundTrip) {
   EXPECT_DOUBLE_EQ(r.pivot_rms_mm, 0.42);
   EXPECT_EQ(r.poses_used, 95);
   EXPECT_EQ(r.poses_total, 100);
+  EXPECT_DOUBLE_EQ(r.tip_stddev_3d_mm, 0.25);
+  EXPECT_LT((r.pivot_cam - n.pivot_cam).norm(), 1e-12);
+  EXPECT_LT((r.pivot_rms_axis_mm - n.pivot_rms_axis_mm).norm(), 1e-12);
+  EXPECT_DOUBLE_EQ(r.pivot_rms_all_mm, 4.5);
+  EXPECT_DOUBLE_EQ(r.least_axis_tilt_deg, 21.5);
+  EXPECT_EQ(r.outlier_frames, n.outlier_frames);
   ASSERT_TRUE(r.axis_needle.has_value());
   EXPECT_LT((*r.axis_needle - *n.axis_needle).norm(), 1e-12);
   // Without spin calibration there is no axis.
   n.axis_needle.reset();
   write_needle_calibration(path("needle2.yaml"), n);
   EXPECT_FALSE(read_needle_calibration(path("needle2.yaml")).axis_needle.has_value());
+}
+
+// needle.yaml as written before the tip's 3D uncertainty, the pivot point, the per-axis residuals
+// and the outliers were recorded: still read, those fields zero and empty. A count of outliers
+// that disagrees with the frames listed is refused by name.
+TEST_F(CalibrationFiles, NeedleFileWithoutTheNewFieldsStillReads) {
+  std::ofstream(path("old.yaml")) << R"(%YAML:1.0
+---
+calibration_date: "2026-11-24T07:48:33Z"
+board: needle
+inputs:
+   - pivot.csv
+tip_needle: !!opencv-matrix
+   rows: 3
+   cols: 1
+   dt: d
+   data: [ 1.5, -2., 150.25 ]
+tip_stddev_mm: !!opencv-matrix
+   rows: 3
+   cols: 1
+   dt: d
+   data: [ 0.1, 0.2, 0.3 ]
+pivot_rms_mm: 0.5
+poses_used: 90
+poses_total: 100
+rotation_spread_deg: 60.
+)";
+  const NeedleCalibration r = read_needle_calibration(path("old.yaml"));
+  EXPECT_LT((r.tip_needle - Eigen::Vector3d(1.5, -2.0, 150.25)).norm(), 1e-12);
+  EXPECT_LT((r.tip_stddev_mm - Eigen::Vector3d(0.1, 0.2, 0.3)).norm(), 1e-12);
+  EXPECT_DOUBLE_EQ(r.pivot_rms_mm, 0.5);
+  EXPECT_EQ(r.poses_used, 90);
+  EXPECT_EQ(r.tip_stddev_3d_mm, 0.0);
+  EXPECT_EQ(r.pivot_cam, Eigen::Vector3d::Zero());
+  EXPECT_EQ(r.pivot_rms_axis_mm, Eigen::Vector3d::Zero());
+  EXPECT_EQ(r.pivot_rms_all_mm, 0.0);
+  EXPECT_EQ(r.least_axis_tilt_deg, 0.0);
+  EXPECT_TRUE(r.outlier_frames.empty());
+  EXPECT_FALSE(r.axis_needle.has_value());
+
+  std::ofstream(path("mismatch.yaml")) << R"(%YAML:1.0
+---
+tip_needle: !!opencv-matrix
+   rows: 3
+   cols: 1
+   dt: d
+   data: [ 0., 0., 150. ]
+outliers: 3
+outlier_frames: [ 4, 9 ]
+)";
+  expect_error_containing([&] { read_needle_calibration(path("mismatch.yaml")); },
+                          {"mismatch.yaml", "'outliers' is 3", "lists 2"});
+  std::ofstream(path("negative.yaml")) << R"(%YAML:1.0
+---
+tip_needle: !!opencv-matrix
+   rows: 3
+   cols: 1
+   dt: d
+   data: [ 0., 0., 150. ]
+outlier_frames: [ 4, -9 ]
+)";
+  expect_error_containing([&] { read_needle_calibration(path("negative.yaml")); },
+                          {"negative.yaml", "'outlier_frames' holds -9", "whole numbers"});
 }
 
 TEST_F(CalibrationFiles, RegistrationRoundTrip) {
