@@ -1,4 +1,5 @@
-// AprilTag detection: the one wrapper around libapriltag (nobody else includes its C header).
+// Tag detection: the one wrapper around libapriltag (nobody else includes its C header), and
+// OpenCV's ArUco dictionaries through cv::aruco with the same corner order.
 // Pixels follow OpenCV's convention, as calibration::CameraModel does: (0,0) is the centre of the
 // top-left pixel.
 #pragma once
@@ -6,15 +7,15 @@
 #include <Eigen/Core>
 #include <array>
 #include <memory>
+#include <opencv2/core.hpp>
 #include <string>
 #include <vector>
-
-#include <opencv2/core.hpp>
 
 namespace crepuscular::tracking {
 
 struct DetectorOptions {
-  std::string family = "tag36h11";  // tag36h11, tag25h9, tag16h5, tagStandard41h12, ...
+  std::string family = "tag36h11";  // tag36h11, tag25h9, tag16h5, tagStandard41h12, ..., or an
+                                    // OpenCV dictionary (DICT_6X6_250, ...) found by cv::aruco
   double decimate = 2.0;            // quad detection on an image decimated by this factor
   int threads = 2;                  // worker threads of libapriltag
   double blur_sigma = 0.0;          // Gaussian blur before quad detection (px); 0 = none
@@ -31,8 +32,9 @@ struct Detection {
   int id = 0;
   std::array<Eigen::Vector2d, 4> corners;  // pixels
   Eigen::Vector2d center = Eigen::Vector2d::Zero();
-  double decision_margin = 0;  // average distance of the data bits from the threshold (grey levels)
-  int hamming = 0;             // bits corrected
+  double decision_margin = 0;  // average distance of the data bits from the threshold (grey
+                               // levels); 0 for OpenCV dictionaries (cv::aruco reports none)
+  int hamming = 0;  // bits corrected
 };
 
 class TagDetector {
@@ -63,7 +65,7 @@ class TagDetector {
   std::unique_ptr<Impl> impl_;
 };
 
-// The family names TagDetector accepts.
+// The family names TagDetector accepts (libapriltag's families, then OpenCV's dictionaries).
 std::vector<std::string> tag_family_names();
 
 }  // namespace crepuscular::tracking
