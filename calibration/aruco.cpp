@@ -1,6 +1,7 @@
 // OpenCV's ArUco dictionaries by name, and detection of ChArUco calibration targets.
 #include "calibration/aruco.hpp"
 
+#include <algorithm>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
@@ -138,6 +139,21 @@ std::optional<CalibrationView> detect_charuco(const cv::Mat& image, const Charuc
   std::vector<int> ids;
   cv::aruco::interpolateCornersCharuco(marker_corners, marker_ids, grey, board, corners, ids);
   if (ids.size() < 6) return std::nullopt;
+  // OpenCV 4.6 returns the corners that cornerSubPix found shifted by +0.5 px in x and y
+  // (opencv/opencv#25539, fixed upstream by opencv/opencv#28380): measured +0.51, +0.44 px on
+  // rendered boards (tests/calibration/charuco_test.cpp). Refined again here, in OpenCV's pixel
+  // convention, with a window that stays clear of the nearest marker corner.
+  for (cv::Point2f& c : corners) {
+    double nearest = 1e9;
+    for (const auto& marker : marker_corners) {
+      for (const cv::Point2f& m : marker) nearest = std::min(nearest, double(cv::norm(m - c)));
+    }
+    const int half = std::clamp(int(0.5 * nearest), 2, 5);
+    std::vector<cv::Point2f> one = {c};
+    cv::cornerSubPix(grey, one, cv::Size(half, half), cv::Size(-1, -1),
+                     cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 40, 0.001));
+    c = one[0];
+  }
   CalibrationView view;
   view.name = name;
   for (size_t k = 0; k < ids.size(); ++k) {

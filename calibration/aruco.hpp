@@ -40,7 +40,8 @@ void check_charuco_spec(const CharucoSpec& spec, const std::string& what);
 cv::Ptr<cv::aruco::CharucoBoard> make_charuco_board(const CharucoSpec& spec);
 
 // The chessboard corners of a ChArUco board (cv::aruco::detectMarkers, then
-// cv::aruco::interpolateCornersCharuco, which refines them with cornerSubPix): object points in
+// cv::aruco::interpolateCornersCharuco, refined again with cornerSubPix to undo OpenCV 4.6's
+// half-pixel shift of its refined corners): object points in
 // OpenCV's board frame, pixels in OpenCV's convention. Returns nullopt when fewer than 6 corners
 // are found.
 std::optional<CalibrationView> detect_charuco(const cv::Mat& image, const CharucoSpec& spec,
