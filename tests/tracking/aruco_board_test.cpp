@@ -6,15 +6,19 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <fstream>
 #include <opencv2/aruco/charuco.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include "foundation/error.hpp"
 #include "tests/support/charuco_scene.hpp"
+#include "tests/support/cli.hpp"
 #include "tests/support/errors.hpp"
+#include "tests/support/temporary_folder.hpp"
 #include "tracking/board.hpp"
 #include "tracking/detector.hpp"
 #include "tracking/pose.hpp"
+#include "tracking/poses_csv.hpp"
 #include "tracking/synthetic.hpp"
 #include "tracking/tracker.hpp"
 
@@ -303,7 +307,8 @@ TEST(ArucoBoards, CornerOrderIsBottomLeftCounterClockwise) {
 }
 
 // A ChArUco board (CharucoBoard::draw seen through a distorted camera, blur and noise) tracked by
-// its markers: pose near the truth, near cv::aruco::estimatePoseCharucoBoard (chessboard corners)
+// its markers: pose near the truth, near cv::aruco::estimatePoseCharucoBoard (on the chessboard
+// corners of calibration::detect_charuco)
 // and cv::aruco::estimatePoseBoard (markers) on the same image; the Tracker measures it too.
 TEST(ArucoBoards, CharucoBoardPoseMatchesTruthAndOpenCv) {
   const calibration::CameraModel cam = small_camera();
@@ -334,10 +339,17 @@ TEST(ArucoBoards, CharucoBoardPoseMatchesTruthAndOpenCv) {
   cv::Vec3d rvec, tvec;
   ASSERT_EQ(cv::aruco::estimatePoseBoard(corners, ids, cv_board, K, dist, rvec, tvec), 17);
   const Eigen::Isometry3d markers = from_rvec_tvec(rvec, tvec);
+  // Chessboard corners of calibration::detect_charuco (OpenCV's, free of its half-pixel shift).
+  const auto view = calibration::detect_charuco(grey, spec, "view");
+  ASSERT_TRUE(view.has_value());
+  EXPECT_EQ(view->object_points.size(), 24u);
   std::vector<cv::Point2f> chess;
   std::vector<int> chess_ids;
-  cv::aruco::interpolateCornersCharuco(corners, ids, grey, cv_board, chess, chess_ids, K, dist);
-  EXPECT_EQ(chess_ids.size(), 24u);
+  for (size_t k = 0; k < view->object_points.size(); ++k) {
+    chess.emplace_back(float(view->image_points[k].x()), float(view->image_points[k].y()));
+    chess_ids.push_back(int(std::lround(view->object_points[k].y() / 40.0 - 1)) * 4 +
+                        int(std::lround(view->object_points[k].x() / 40.0 - 1)));
+  }
   ASSERT_TRUE(cv::aruco::estimatePoseCharucoBoard(chess, chess_ids, cv_board, K, dist, rvec, tvec));
   const Eigen::Isometry3d charuco = from_rvec_tvec(rvec, tvec);
   std::printf(
@@ -371,6 +383,51 @@ TEST(ArucoBoards, CharucoBoardPoseMatchesTruthAndOpenCv) {
   EXPECT_EQ(r.boards[0].tags, 17);
   EXPECT_LT(angle_deg(r.boards[0].T_measured, T), 0.3);
   EXPECT_LT((r.boards[0].T_measured.translation() - T.translation()).norm(), 1.0);
+}
+
+// `crepuscular track` on a synthetic scene of an ArUco grid board and a ChArUco board's markers
+// (boards.json "aruco_grid" and "charuco", one dictionary): both tracked in every frame at the
+// scene's poses.
+TEST(ArucoBoards, TrackCommandTracksArucoBoards) {
+  const test::TemporaryFolder dir;
+  {
+    std::ofstream b(dir / "boards.json");
+    b << R"({"boards": [
+      {"name": "grid", "aruco_grid": {"markers_x": 4, "markers_y": 3, "marker_mm": 35,
+       "separation_mm": 8, "dictionary": "DICT_6X6_250", "first_id": 3}},
+      {"name": "calib", "charuco": {"squares_x": 5, "squares_y": 7, "square_mm": 40,
+       "marker_mm": 30, "dictionary": "DICT_6X6_250", "first_id": 20}}]})";
+    std::ofstream s(dir / "scene.json");
+    s << R"({"boards": "boards.json", "frames": 4, "noise_sigma": 2,
+      "poses": {"grid": [{"t": 0, "translation_mm": [-250, -100, 600], "rotvec_deg": [15, -10, 5]}],
+                "calib": [{"t": 0, "translation_mm": [20, -150, 650], "rotvec_deg": [-10, 20, -4]}]}})";
+  }
+  const std::string out = (dir / "poses.csv").string();
+  std::string log;
+  ASSERT_EQ(
+      test::run_cli("track --source synthetic:" + (dir / "scene.json").string() + " --boards " +
+                        (dir / "boards.json").string() + " --family DICT_6X6_250 --out " + out,
+                    &log),
+      0)
+      << log;
+  const auto rotvec = [](double x, double y, double z, const Eigen::Vector3d& t) {
+    const Eigen::Vector3d w = Eigen::Vector3d(x, y, z) / kRadToDeg;
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() = Eigen::AngleAxisd(w.norm(), w.normalized()).toRotationMatrix();
+    T.translation() = t;
+    return T;
+  };
+  const Eigen::Isometry3d truth_grid = rotvec(15, -10, 5, Eigen::Vector3d(-250, -100, 600));
+  const Eigen::Isometry3d truth_calib = rotvec(-10, 20, -4, Eigen::Vector3d(20, -150, 650));
+  const std::vector<PoseRecord> rows = read_poses_csv(out);
+  ASSERT_EQ(rows.size(), 8u);
+  for (const PoseRecord& r : rows) {
+    ASSERT_TRUE(r.tracked) << r.board << " frame " << r.frame;
+    const Eigen::Isometry3d& truth = r.board == "grid" ? truth_grid : truth_calib;
+    EXPECT_LT(angle_deg(r.T_cam_board, truth), 0.3) << r.board << " frame " << r.frame;
+    EXPECT_LT((r.T_cam_board.translation() - truth.translation()).norm(), 1.5)
+        << r.board << " frame " << r.frame;
+  }
 }
 
 }  // namespace
