@@ -1,5 +1,5 @@
-// `crepuscular calibrate camera` (intrinsics from images or a recording of a chessboard or an
-// AprilTag grid board) and `crepuscular calibrate pivot` (needle tip and axis from needle poses).
+// `crepuscular calibrate camera` (intrinsics from images or a recording of a chessboard, a ChArUco
+// board or a marker board) and `crepuscular calibrate pivot` (needle tip and axis from needle poses).
 #include "apps/commands.hpp"
 #include "pipelines/calibration.hpp"
 
@@ -49,10 +49,9 @@ void add_calibrate_command(CLI::App& app) {
       ->capture_default_str()
       ->check(in_range(1.0, 4.0));
   camera->callback([c] {
-    claim_run_paths(
-        {"calibrate camera",
-         {{"--images", c->images}, {"--recording", c->recording}, {"--board", c->board}},
-         {{"--out", c->out}}});
+    claim_run_paths({"calibrate camera",
+                     {{"--images", c->images}, {"--recording", c->recording}, {"--board", c->board}},
+                     {{"--out", c->out}}});
     pipelines::run_camera_calibration(*c);
   });
 

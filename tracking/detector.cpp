@@ -125,8 +125,7 @@ std::vector<Detection> TagDetector::detect_grey(const cv::Mat& grey, const cv::P
     // 0..1); OpenCV and CameraModel place them at integers. The shift was measured against
     // cv::projectPoints and cv::aruco in tests/tracking/detector_test.cpp.
     const double ox = offset.x - kApriltagPixelCentre, oy = offset.y - kApriltagPixelCentre;
-    for (int k = 0; k < 4; ++k)
-      d.corners[k] = Eigen::Vector2d(det->p[k][0] + ox, det->p[k][1] + oy);
+    for (int k = 0; k < 4; ++k) d.corners[k] = Eigen::Vector2d(det->p[k][0] + ox, det->p[k][1] + oy);
     d.center = Eigen::Vector2d(det->c[0] + ox, det->c[1] + oy);
     out.push_back(d);
   }

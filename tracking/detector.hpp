@@ -7,9 +7,10 @@
 #include <Eigen/Core>
 #include <array>
 #include <memory>
-#include <opencv2/core.hpp>
 #include <string>
 #include <vector>
+
+#include <opencv2/core.hpp>
 
 namespace crepuscular::tracking {
 
@@ -32,9 +33,9 @@ struct Detection {
   int id = 0;
   std::array<Eigen::Vector2d, 4> corners;  // pixels
   Eigen::Vector2d center = Eigen::Vector2d::Zero();
-  double decision_margin = 0;  // average distance of the data bits from the threshold (grey
-                               // levels); 0 for OpenCV dictionaries (cv::aruco reports none)
-  int hamming = 0;  // bits corrected
+  double decision_margin = 0;  // average distance of the data bits from the threshold (grey levels)
+                               // (0 for OpenCV dictionaries: cv::aruco reports none)
+  int hamming = 0;             // bits corrected
 };
 
 class TagDetector {

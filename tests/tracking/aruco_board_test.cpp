@@ -307,9 +307,9 @@ TEST(ArucoBoards, CornerOrderIsBottomLeftCounterClockwise) {
 }
 
 // A ChArUco board (CharucoBoard::draw seen through a distorted camera, blur and noise) tracked by
-// its markers: pose near the truth, near cv::aruco::estimatePoseCharucoBoard (on the chessboard
-// corners of calibration::detect_charuco)
-// and cv::aruco::estimatePoseBoard (markers) on the same image; the Tracker measures it too.
+// its markers: pose near the truth, near cv::aruco::estimatePoseBoard (markers) and
+// cv::aruco::estimatePoseCharucoBoard (on the chessboard corners of calibration::detect_charuco)
+// on the same image; the Tracker measures it too.
 TEST(ArucoBoards, CharucoBoardPoseMatchesTruthAndOpenCv) {
   const calibration::CameraModel cam = small_camera();
   calibration::CharucoSpec spec{5, 7, 40.0, 30.0, "DICT_6X6_250", 0};
