@@ -1,5 +1,5 @@
-// `crepuscular calibrate camera` (intrinsics from images or a recording of a chessboard or an
-// AprilTag grid board) and `crepuscular calibrate pivot` (needle tip and axis from needle poses).
+// `crepuscular calibrate camera` (intrinsics from images or a recording of a chessboard, a ChArUco
+// board or a marker board) and `crepuscular calibrate pivot` (needle tip and axis from needle poses).
 #include "apps/commands.hpp"
 #include "pipelines/calibration.hpp"
 
@@ -25,9 +25,12 @@ void add_calibrate_command(CLI::App& app) {
                      "A recording folder; frames are picked for coverage of the image");
   camera
       ->add_option("--board", c->board,
-                   "The target: boards.json of an AprilTag grid board, or "
+                   "The target: boards.json of a marker board (AprilTag or ArUco markers), "
                    "chessboard:COLSxROWS:SQUARE_MM counting inner corners as OpenCV does "
-                   "(chessboard:9x6:25 for a board of 10 x 7 squares of 25 mm)")
+                   "(chessboard:9x6:25 for a board of 10 x 7 squares of 25 mm), or "
+                   "charuco:SQUARES_XxSQUARES_Y:SQUARE_MM:MARKER_MM:DICT counting squares as "
+                   "cv::aruco::CharucoBoard does, markers from id 0 "
+                   "(charuco:5x7:40:30:DICT_6X6_250); its chessboard corners are used")
       ->required();
   camera->add_option("--board-name", c->board_name,
                      "Which board of boards.json (default: the one with the most tags)");

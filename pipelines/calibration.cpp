@@ -13,6 +13,7 @@
 #include <optional>
 #include <vector>
 
+#include "calibration/aruco.hpp"
 #include "calibration/pivot.hpp"
 #include "foundation/error.hpp"
 #include "pipelines/session_inputs.hpp"
@@ -59,12 +60,13 @@ std::vector<std::string> list_images(const std::string& spec) {
   return files;
 }
 
-// Finds the target in one image: a chessboard, or the tags of an AprilTag board.
+// Finds the target in one image: a chessboard, a ChArUco board, or the tags of a marker board.
 class TargetFinder {
  public:
   explicit TargetFinder(const CameraCalibrationRequest& a) {
     chessboard_ = calibration::parse_chessboard_spec(a.board);
-    if (chessboard_) {
+    charuco_ = calibration::parse_charuco_spec(a.board);
+    if (chessboard_ || charuco_) {
       description_ = a.board;
       return;
     }
@@ -78,6 +80,7 @@ class TargetFinder {
 
   std::optional<calibration::CalibrationView> find(const cv::Mat& image, const std::string& name) {
     if (chessboard_) return calibration::detect_chessboard(image, *chessboard_, name);
+    if (charuco_) return calibration::detect_charuco(image, *charuco_, name);
     const auto corners = tracking::match_board_corners(board_, detector_->detect(image));
     if (corners.board_mm.size() < 8) return std::nullopt;  // at least two tags
     calibration::CalibrationView v;
@@ -112,6 +115,7 @@ class TargetFinder {
   }
 
   std::optional<calibration::ChessboardSpec> chessboard_;
+  std::optional<calibration::CharucoSpec> charuco_;
   tracking::Board board_;
   std::unique_ptr<tracking::TagDetector> detector_;
   std::string description_;

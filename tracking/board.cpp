@@ -11,6 +11,7 @@
 #include <nlohmann/json.hpp>
 #include <set>
 
+#include "calibration/aruco.hpp"
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
 #include "foundation/output_files.hpp"
@@ -82,6 +83,75 @@ void parse_grid(const json& g, const JsonPath& at, Board& b) {
   b.tags.insert(b.tags.end(), grid.tags.begin(), grid.tags.end());
 }
 
+// The markers of OpenCV's board in apriltag_detection_t::p order (cv::aruco lists a marker's
+// corners from its top-left, clockwise as printed; p runs the other way from the bottom-left).
+void add_opencv_markers(const cv::aruco::Board& board, Board& b) {
+  for (size_t m = 0; m < board.ids.size(); ++m) {
+    BoardTag t;
+    t.id = board.ids[m];
+    for (int k = 0; k < 4; ++k) {
+      const cv::Point3f& p = board.objPoints[m][size_t(3 - k)];
+      t.corners[k] = Eigen::Vector3d(p.x, p.y, p.z);
+    }
+    b.tags.push_back(t);
+  }
+}
+
+// A "charuco" board's markers, expanded into b.tags; returns its dictionary.
+std::string parse_charuco(const json& g, const JsonPath& at, Board& b) {
+  as_object(g, at);
+  for (const char* key : {"squares_x", "squares_y", "square_mm", "marker_mm", "dictionary"}) {
+    if (!g.contains(key)) {
+      at.key(key).fail(
+          "is missing (charuco needs squares_x, squares_y, square_mm, marker_mm, dictionary; "
+          "first_id optional)");
+    }
+  }
+  calibration::CharucoSpec spec;
+  spec.squares_x = int(required_integer(g, "squares_x", at, 2, 100));
+  spec.squares_y = int(required_integer(g, "squares_y", at, 2, 100));
+  spec.square_mm = required_number(g, "square_mm", at);
+  spec.marker_mm = required_number(g, "marker_mm", at);
+  spec.dictionary = optional_string(g, "dictionary", at, "");
+  spec.first_id = int(optional_integer(g, "first_id", at, 0, 0, INT32_MAX));
+  try {
+    add_opencv_markers(*calibration::make_charuco_board(spec), b);
+  } catch (const Error& e) {
+    at.fail(std::string("is not a ChArUco board OpenCV can make: ") + e.what());
+  }
+  return spec.dictionary;
+}
+
+// An "aruco_grid" board's markers, expanded into b.tags; returns its dictionary.
+std::string parse_aruco_grid(const json& g, const JsonPath& at, Board& b) {
+  as_object(g, at);
+  for (const char* key : {"markers_x", "markers_y", "marker_mm", "separation_mm", "dictionary"}) {
+    if (!g.contains(key)) {
+      at.key(key).fail(
+          "is missing (aruco_grid needs markers_x, markers_y, marker_mm, separation_mm, "
+          "dictionary; first_id optional)");
+    }
+  }
+  const int mx = int(required_integer(g, "markers_x", at, 1, 1000));
+  const int my = int(required_integer(g, "markers_y", at, 1, 1000));
+  const double marker = required_number(g, "marker_mm", at);
+  const double separation = required_number(g, "separation_mm", at);
+  const std::string dictionary = optional_string(g, "dictionary", at, "");
+  const int first = int(optional_integer(g, "first_id", at, 0, 0, INT32_MAX));
+  if (!(marker > 0) || !(separation >= 0)) {
+    at.fail("needs marker_mm > 0 and separation_mm >= 0 (found " + std::to_string(marker) +
+            " and " + std::to_string(separation) + ")");
+  }
+  try {
+    calibration::aruco_dictionary(dictionary);
+  } catch (const Error& e) {
+    at.key("dictionary").fail(std::string("names no dictionary: ") + e.what());
+  }
+  const Board grid = make_aruco_grid_board(b.name, mx, my, marker, separation, dictionary, first);
+  b.tags.insert(b.tags.end(), grid.tags.begin(), grid.tags.end());
+  return dictionary;
+}
+
 Board parse_board(const json& j, const JsonPath& at) {
   as_object(j, at);
   Board b;
@@ -90,6 +160,20 @@ Board parse_board(const json& j, const JsonPath& at) {
   }
   b.name = j["name"].get<std::string>();
   b.family = optional_string(j, "family", at, b.family);
+  for (const char* key : {"charuco", "aruco_grid"}) {
+    if (!j.contains(key)) continue;
+    if (j.contains("grid") || j.contains("charuco") + j.contains("aruco_grid") > 1) {
+      at.key(key).fail("comes with another of grid, charuco, aruco_grid; expected one per board");
+    }
+    const std::string dictionary = key == std::string("charuco")
+                                       ? parse_charuco(j[key], at.key(key), b)
+                                       : parse_aruco_grid(j[key], at.key(key), b);
+    if (j.contains("family") && b.family != dictionary) {
+      at.key("family").fail("is " + b.family + " but " + key + " uses " + dictionary +
+                            "; expected the same (or no family)");
+    }
+    b.family = dictionary;
+  }
   const int codes = [&] {
     try {
       return tag_family_code_count(b.family);
@@ -213,11 +297,57 @@ void write_boards(const std::string& path, const std::vector<Board>& boards) {
   write_text_file(path, boards_json_text(boards));
 }
 
+Board make_charuco_board(const std::string& name, const calibration::CharucoSpec& spec) {
+  Board b;
+  b.name = name;
+  b.family = spec.dictionary;
+  add_opencv_markers(*calibration::make_charuco_board(spec), b);
+  return b;
+}
+
+Board make_aruco_grid_board(const std::string& name, int markers_x, int markers_y, double marker_mm,
+                            double separation_mm, const std::string& dictionary, int first_id) {
+  const cv::Ptr<cv::aruco::GridBoard> grid =
+      cv::aruco::GridBoard::create(markers_x, markers_y, float(marker_mm), float(separation_mm),
+                                   calibration::aruco_dictionary(dictionary), first_id);
+  Board b;
+  b.name = name;
+  b.family = dictionary;
+  add_opencv_markers(*grid, b);
+  return b;
+}
+
 int tag_family_code_count(const std::string& family) {
+  if (calibration::is_aruco_dictionary(family)) {
+    return calibration::aruco_dictionary(family)->bytesList.rows;
+  }
   return int(open_tag_family(family)->ncodes);
 }
 
+namespace {
+
+// An OpenCV dictionary's marker (cv::aruco::drawMarker, one black border cell) in a white ring of
+// one cell.
+TagPattern aruco_pattern(const std::string& dictionary, int id) {
+  const cv::Ptr<cv::aruco::Dictionary> dict = calibration::aruco_dictionary(dictionary);
+  if (id < 0 || id >= dict->bytesList.rows) {
+    throw Error("tag id " + std::to_string(id) + " is outside dictionary " + dictionary +
+                " (0 to " + std::to_string(dict->bytesList.rows - 1) + ")");
+  }
+  TagPattern p;
+  p.width_at_border = dict->markerSize + 2;
+  p.total_width = dict->markerSize + 4;
+  p.cells = cv::Mat(p.total_width, p.total_width, CV_8U, cv::Scalar(255));
+  cv::Mat marker;
+  cv::aruco::drawMarker(dict, id, p.width_at_border, marker, 1);
+  marker.copyTo(p.cells(cv::Rect(1, 1, p.width_at_border, p.width_at_border)));
+  return p;
+}
+
+}  // namespace
+
 TagPattern tag_pattern(const std::string& family, int id) {
+  if (calibration::is_aruco_dictionary(family)) return aruco_pattern(family, id);
   const TagFamilyPtr fam = open_tag_family(family);
   if (id < 0 || uint32_t(id) >= fam->ncodes) {
     throw Error("tag id " + std::to_string(id) + " is outside family " + family + " (0 to " +

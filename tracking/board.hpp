@@ -1,4 +1,5 @@
-// Marker boards: rigid sets of AprilTags with known corner positions (board frame, mm).
+// Marker boards: rigid sets of AprilTags (or OpenCV ArUco markers) with known corner positions
+// (board frame, mm).
 //
 // A tag's corners are the corners of the square that libapriltag detects: the outer edge of the
 // black border for tag36h11 (8 of its 10 cells; the white ring of one cell lies outside). Its
@@ -19,6 +20,8 @@
 
 #include <nlohmann/json_fwd.hpp>
 #include <opencv2/core.hpp>
+
+#include "calibration/aruco.hpp"
 
 namespace crepuscular::tracking {
 
@@ -49,6 +52,15 @@ struct Board {
 Board make_grid_board(const std::string& name, int rows, int cols, double tag_size_mm,
                       double gap_mm, int first_id);
 
+// The markers of OpenCV's boards (cv::aruco::CharucoBoard::create, cv::aruco::GridBoard::create
+// of OpenCV 4.6), in OpenCV's own board frame: origin at the board's top-left corner as printed,
+// x right, y down, z into the board (the convention above), so that poses equal those of
+// cv::aruco::estimatePoseCharucoBoard and cv::aruco::estimatePoseBoard. family = the dictionary.
+// Throw Error for sizes out of range, an unknown dictionary or ids outside it.
+Board make_charuco_board(const std::string& name, const calibration::CharucoSpec& spec);
+Board make_aruco_grid_board(const std::string& name, int markers_x, int markers_y, double marker_mm,
+                            double separation_mm, const std::string& dictionary, int first_id);
+
 // The four corners of an upright square tag of side size_mm centred at `center` (z = 0 plane).
 std::array<Eigen::Vector3d, 4> square_tag_corners(const Eigen::Vector2d& center, double size_mm);
 
@@ -57,7 +69,13 @@ std::array<Eigen::Vector3d, 4> square_tag_corners(const Eigen::Vector2d& center,
 //           "tags": [{"id": 0, "corners": [[x,y,z] x 4]}, ...],
 //           "grid": {"rows": 2, "cols": 3, "tag_size_mm": 40, "gap_mm": 10, "first_id": 0,
 //                    "origin_mm": [0, 0, 0] (optional offset of the grid centre)},
+//           "charuco": {"squares_x": 5, "squares_y": 7, "square_mm": 40, "marker_mm": 30,
+//                       "dictionary": "DICT_6X6_250", "first_id": 0 (optional)},
+//           "aruco_grid": {"markers_x": 4, "markers_y": 3, "marker_mm": 40, "separation_mm": 10,
+//                          "dictionary": "DICT_6X6_250", "first_id": 0 (optional)},
 //           "fiducials": [[x,y,z], ...]}
+// "charuco" and "aruco_grid" (one of grid, charuco, aruco_grid per board) give the markers of
+// make_charuco_board / make_aruco_grid_board and set family to their dictionary.
 // "grid" is expanded into tags on reading (after any explicit "tags"); at least one tag; ids
 // unique within a family across all boards and within the family's code count.
 std::vector<Board> read_boards(const std::string& path);
@@ -72,7 +90,8 @@ void write_boards(const std::string& path, const std::vector<Board>& boards);
 // A tag's printed pattern from libapriltag's family definition (codes, bit_x/bit_y,
 // width_at_border, total_width, reversed_border): total_width x total_width cells, CV_8U, 0 black,
 // 255 white, row 0 at the top. The detected square spans cells [border_start, border_start +
-// width_at_border) in both directions.
+// width_at_border) in both directions. An OpenCV dictionary's marker comes from
+// cv::aruco::drawMarker (one black border cell) in a white ring of one cell.
 struct TagPattern {
   cv::Mat cells;
   int width_at_border = 0;

@@ -1,4 +1,5 @@
-// AprilTag detection: the one wrapper around libapriltag (nobody else includes its C header).
+// Tag detection: the one wrapper around libapriltag (nobody else includes its C header), and
+// OpenCV's ArUco dictionaries through cv::aruco with the same corner order.
 // Pixels follow OpenCV's convention, as calibration::CameraModel does: (0,0) is the centre of the
 // top-left pixel.
 #pragma once
@@ -17,7 +18,9 @@ namespace crepuscular::tracking {
 // measured on apriltag's own test photos and on rendered boards (bench/RESULTS.md, "Real cameras
 // and real trackers").
 struct DetectorOptions {
-  std::string family = "tag36h11";  // tag36h11, tag36h11b2 (Kalibr), tag25h9, tag16h5, ...
+  // tag36h11, tag36h11b2 (Kalibr), tag25h9, tag16h5, ..., or an OpenCV dictionary
+  // (DICT_6X6_250, ...) found by cv::aruco
+  std::string family = "tag36h11";
   // Quad detection on an image decimated by this factor: 2 is about 3x faster than 1 but misses
   // tags smaller than about 25 px and moves corners by tenths of a pixel.
   double decimate = 1.0;
@@ -43,6 +46,7 @@ struct Detection {
   std::array<Eigen::Vector2d, 4> corners;  // pixels
   Eigen::Vector2d center = Eigen::Vector2d::Zero();
   double decision_margin = 0;  // average distance of the data bits from the threshold (grey levels)
+                               // (0 for OpenCV dictionaries: cv::aruco reports none)
   int hamming = 0;             // bits corrected
 };
 
@@ -97,7 +101,7 @@ class FamilyDetector {
 std::vector<Detection> detect_families(const cv::Mat& image,
                                        const std::vector<std::string>& families);
 
-// The family names TagDetector accepts.
+// The family names TagDetector accepts (libapriltag's families, then OpenCV's dictionaries).
 std::vector<std::string> tag_family_names();
 
 }  // namespace crepuscular::tracking

@@ -13,6 +13,7 @@
 
 #include <vector>
 
+#include "calibration/aruco.hpp"
 #include "foundation/error.hpp"
 #include "tracking/detector.hpp"
 
@@ -58,6 +59,7 @@ constexpr FamilyEntry kFamilies[] = {
 std::vector<std::string> tag_family_names() {
   std::vector<std::string> names;
   for (const FamilyEntry& f : kFamilies) names.emplace_back(f.name);
+  for (const std::string& d : calibration::aruco_dictionary_names()) names.push_back(d);
   return names;
 }
 
@@ -66,7 +68,7 @@ TagFamilyPtr open_tag_family(const std::string& name) {
     if (name == f.name) return TagFamilyPtr(f.create(), f.destroy);
   }
   std::string names;
-  for (const FamilyEntry& f : kFamilies) names += std::string(" ") + f.name;
+  for (const std::string& f : tag_family_names()) names += " " + f;
   throw Error("tag family '" + name + "' is unknown; expected one of" + names);
 }
 

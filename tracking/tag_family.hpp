@@ -12,7 +12,8 @@ namespace crepuscular::tracking {
 // A libapriltag family, destroyed with its own function.
 using TagFamilyPtr = std::unique_ptr<apriltag_family_t, void (*)(apriltag_family_t*)>;
 
-// Throws crepuscular::Error naming the known families when `name` is not one of them.
+// Throws crepuscular::Error naming the known families and ArUco dictionaries when `name` is not
+// a libapriltag family (ArUco dictionaries go through calibration/aruco.hpp).
 TagFamilyPtr open_tag_family(const std::string& name);
 
 }  // namespace crepuscular::tracking
