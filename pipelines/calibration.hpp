@@ -20,6 +20,7 @@ struct CameraCalibrationRequest {
   int max_views = 40;  // views kept from a recording (picked for coverage)
   int min_views = 4;   // fewer usable views are refused
   bool fix_k3 = false;
+  bool fisheye = false;  // calibrate the equidistant fisheye model instead of Brown-Conrady
   double decimate = 1.0;  // AprilTag quad detection on an image decimated by this factor
 };
 
