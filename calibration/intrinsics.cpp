@@ -13,10 +13,9 @@
 #include <limits>
 #include <memory>
 #include <numeric>
-#include <sstream>
-
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
+#include <sstream>
 
 #include "foundation/error.hpp"
 
@@ -82,9 +81,7 @@ Eigen::Isometry3d pose_to_isometry(const double* pose) {
   return T;
 }
 
-Eigen::Vector3d target_normal(const double* pose) {
-  return pose_to_isometry(pose).linear().col(2);
-}
+Eigen::Vector3d target_normal(const double* pose) { return pose_to_isometry(pose).linear().col(2); }
 
 double angle_deg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
   // Normals of a plane: n and -n are the same orientation.
@@ -121,7 +118,8 @@ bool collinear(const std::vector<Eigen::Vector3d>& points) {
   for (const auto& p : points) mean += p;
   mean /= double(points.size());
   Eigen::MatrixXd A(points.size(), 3);
-  for (size_t i = 0; i < points.size(); ++i) A.row(Eigen::Index(i)) = (points[i] - mean).transpose();
+  for (size_t i = 0; i < points.size(); ++i)
+    A.row(Eigen::Index(i)) = (points[i] - mean).transpose();
   Eigen::JacobiSVD<Eigen::MatrixXd> svd(A);
   const auto s = svd.singularValues();
   return s(0) <= 0 || s(1) < 1e-3 * s(0);
@@ -240,8 +238,8 @@ void check_view_count(int n_usable, size_t n_views, const IntrinsicsOptions& opt
   if (n_usable >= options.min_views) return;
   std::ostringstream msg;
   msg << "camera calibration: only " << n_usable << " usable view(s) of the target out of "
-      << n_views << " (at least " << options.min_views
-      << " needed, 15-25 recommended). Capture " << (options.min_views - n_usable)
+      << n_views << " (at least " << options.min_views << " needed, 15-25 recommended). Capture "
+      << (options.min_views - n_usable)
       << " or more further views with the whole target visible, tilted by 20-45 degrees in "
          "different directions and placed near every corner of the image.";
   throw Error(msg.str());
@@ -300,8 +298,8 @@ OpenCvViews opencv_views(const std::vector<CalibrationView>& views) {
 double initial_focal_length(const OpenCvViews& cv_views, int width, int height) {
   double f0 = std::max(width, height);
   try {
-    const cv::Mat K = cv::initCameraMatrix2D(cv_views.object, cv_views.image,
-                                             cv::Size(width, height), 1.0);
+    const cv::Mat K =
+        cv::initCameraMatrix2D(cv_views.object, cv_views.image, cv::Size(width, height), 1.0);
     const double f = K.at<double>(0, 0);
     if (std::isfinite(f) && f > 0.1 * f0 && f < 20.0 * f0) f0 = f;
   } catch (const cv::Exception& e) {
@@ -475,8 +473,7 @@ Adjustment bundle_adjust(const std::vector<CalibrationView>& used_views, double*
     ceres::Solve(solver_options, out.problem.get(), &out.summary);
     spdlog::debug("camera calibration, round {}: {}", round + 1, out.summary.BriefReport());
     if (!out.summary.IsSolutionUsable()) {
-      throw Error("camera calibration: the bundle adjustment failed (" +
-                  out.summary.BriefReport() +
+      throw Error("camera calibration: the bundle adjustment failed (" + out.summary.BriefReport() +
                   "). Capture more views with the target tilted in different directions.");
     }
     std::vector<double> rms;
@@ -486,7 +483,8 @@ Adjustment bundle_adjust(const std::vector<CalibrationView>& used_views, double*
     std::vector<double> sorted = rms;
     std::nth_element(sorted.begin(), sorted.begin() + long(sorted.size() / 2), sorted.end());
     const double median = sorted[sorted.size() / 2];
-    const double limit = std::max(options.outlier_view_factor * median, options.outlier_view_min_px);
+    const double limit =
+        std::max(options.outlier_view_factor * median, options.outlier_view_min_px);
     std::vector<size_t> keep;
     for (size_t a = 0; a < out.active.size(); ++a) {
       if (rms[a] > limit) {
@@ -562,6 +560,12 @@ IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views,
     throw Error("camera calibration: image size " + std::to_string(width) + " x " +
                 std::to_string(height) + " is not positive");
   }
+  if (options.fix_k3 && options.model == DistortionModel::equidistant) {
+    throw Error(
+        "camera calibration: fix_k3 (--fix-k3) keeps the Brown-Conrady k3 at 0; a fisheye "
+        "(equidistant) lens has k1..k4 and no k3 to keep. Leave out --fix-k3 or calibrate "
+        "with --lens pinhole.");
+  }
   IntrinsicsResult result;
   const std::vector<size_t> usable = usable_views(views, options, &result);
   check_view_count(int(usable.size()), views.size(), options);
@@ -626,10 +630,11 @@ IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views,
     report.tilt_deg = angle_deg(report.T_cam_target.linear().col(2), Eigen::Vector3d::UnitZ());
   }
   check_focal_lengths(result, intr);
-  spdlog::info("camera calibration: RMS {:.3f} px over {} views ({} points), fx {:.2f} +- {:.2f}, "
-               "fy {:.2f} +- {:.2f}",
-               result.rms_px, result.views_used, n_points, intr[0], result.stddev[0], intr[1],
-               result.stddev[1]);
+  spdlog::info(
+      "camera calibration: RMS {:.3f} px over {} views ({} points), fx {:.2f} +- {:.2f}, "
+      "fy {:.2f} +- {:.2f}",
+      result.rms_px, result.views_used, n_points, intr[0], result.stddev[0], intr[1],
+      result.stddev[1]);
   return result;
 }
 

@@ -327,12 +327,114 @@ TEST(Intrinsics, FisheyeAgreesWithOpenCvFisheyeCalibrate) {
   }
   EXPECT_LT(worst, 0.3);
   EXPECT_LT(seconds, 20.0);
+  // k3 of Brown-Conrady cannot be kept at 0 on a fisheye.
+  options.fix_k3 = true;
+  expect_error_containing([&] { calibrate_intrinsics(views, 512, 512, options); },
+                          {"fix-k3", "fisheye", "--lens pinhole"});
   std::printf(
       "fisheye Ceres fx %.3f fy %.3f cx %.3f cy %.3f (sigma fx %.3f) | OpenCV fx %.3f fy "
       "%.3f cx %.3f cy %.3f | truth fx %.3f | rms %.4f vs %.4f px | max pixel difference "
       "%.3f | %.2f s\n",
       r.camera.fx, r.camera.fy, r.camera.cx, r.camera.cy, r.stddev[0], K(0, 0), K(1, 1), K(0, 2),
       K(1, 2), truth.fx, r.rms_px, cv_rms, worst, seconds);
+}
+
+// End to end through the command line: `synth` renders a fisheye recording of an AprilTag grid,
+// `calibrate camera --lens fisheye` finds the camera and writes an equidistant camera.yaml.
+TEST(Intrinsics, CalibrateCameraCommandWithFisheyeLens) {
+  namespace fs = std::filesystem;
+  const test::TemporaryFolder dir;
+  const TrueFisheye truth;
+  const tracking::Board grid = tracking::make_grid_board("calib", 4, 5, 30.0, 8.0, 0);
+  std::vector<cv::Point3d> corners;
+  for (const auto& t : grid.tags) {
+    for (const auto& c : t.corners) corners.emplace_back(c.x(), c.y(), c.z());
+  }
+  std::mt19937 rng(77);
+  std::uniform_real_distribution<double> uni(0.0, 1.0);
+  std::string poses;
+  int kept = 0, attempts = 0;
+  while (kept < 14 && attempts++ < 100000) {
+    const double off = uni(rng) * 50.0 * kPi / 180.0, az = (2 * uni(rng) - 1) * kPi;
+    const double depth = 170.0 + uni(rng) * 120.0;
+    const Eigen::Vector3d rotvec((2 * uni(rng) - 1) * 35.0, (2 * uni(rng) - 1) * 35.0,
+                                 (2 * uni(rng) - 1) * 30.0);
+    const Eigen::Matrix3d R =
+        Eigen::AngleAxisd(rotvec.norm() * kPi / 180.0, rotvec.normalized()).toRotationMatrix();
+    const Eigen::Vector3d t = depth * Eigen::Vector3d(std::sin(off) * std::cos(az),
+                                                      std::sin(off) * std::sin(az), std::cos(off)) -
+                              R * Eigen::Vector3d(95.0, 76.0, 0.0);
+    cv::Matx33d Rcv;
+    for (int i = 0; i < 9; ++i) Rcv(i / 3, i % 3) = R(i / 3, i % 3);
+    cv::Vec3d rvec;
+    cv::Rodrigues(Rcv, rvec);
+    std::vector<cv::Point2d> px;
+    cv::fisheye::projectPoints(corners, px, rvec, cv::Vec3d(t.x(), t.y(), t.z()), truth.K(),
+                               truth.k);
+    bool inside = true;
+    for (const auto& c : corners)
+      inside = inside && (R * Eigen::Vector3d(c.x, c.y, 0) + t).z() > 50;
+    for (const auto& p : px) inside = inside && p.x > 20 && p.y > 20 && p.x < 491 && p.y < 491;
+    if (!inside) continue;
+    char line[200];
+    std::snprintf(line, sizeof line,
+                  "%s{\"t\": %d, \"translation_mm\": [%.6f, %.6f, %.6f], \"rotvec_deg\": [%.6f, "
+                  "%.6f, %.6f]}",
+                  kept ? ", " : "", kept, t.x(), t.y(), t.z(), rotvec.x(), rotvec.y(), rotvec.z());
+    poses += line;
+    ++kept;
+  }
+  ASSERT_EQ(kept, 14);
+  char camera[400];
+  std::snprintf(camera, sizeof camera,
+                "{\"width\": 512, \"height\": 512, \"fx\": %.12g, \"fy\": %.12g, \"cx\": %.12g, "
+                "\"cy\": %.12g, \"distortion_model\": \"equidistant\", \"distortion\": [%.12g, "
+                "%.12g, %.12g, %.12g]}",
+                truth.fx, truth.fy, truth.cx, truth.cy, truth.k[0], truth.k[1], truth.k[2],
+                truth.k[3]);
+  tracking::write_boards((dir / "boards.json").string(), {grid});
+  std::ofstream(dir / "scene.json") << "{\"camera\": " << camera
+                                    << ", \"background\": \"plain\", \"boards\": \"boards.json\", "
+                                       "\"fps\": 1, \"frames\": 14, \"noise_sigma\": 2, "
+                                       "\"poses\": {\"calib\": ["
+                                    << poses << "]}}";
+  const std::string bin = CREPUSCULAR_BINARY;
+  const std::string log = (dir / "log.txt").string();
+  const std::string synth = bin + " synth --scene " + (dir / "scene.json").string() + " --out " +
+                            (dir / "rec").string() + " > " + log + " 2>&1";
+  ASSERT_EQ(std::system(synth.c_str()), 0) << synth;
+  const std::string out = (dir / "camera.yaml").string();
+  const std::string calibrate = bin + " calibrate camera --recording " + (dir / "rec").string() +
+                                " --board " + (dir / "boards.json").string() +
+                                " --lens fisheye --out " + out + " >> " + log + " 2>&1";
+  ASSERT_EQ(std::system(calibrate.c_str()), 0) << calibrate;
+  const CameraModel cam = CameraModel::read_yaml(out);
+  EXPECT_EQ(cam.model, DistortionModel::equidistant);
+  EXPECT_NEAR(cam.fx, truth.fx, 0.01 * truth.fx);
+  EXPECT_NEAR(cam.fy, truth.fy, 0.01 * truth.fy);
+  EXPECT_NEAR(cam.cx, truth.cx, 0.01 * truth.cx);
+  EXPECT_NEAR(cam.cy, truth.cy, 0.01 * truth.cy);
+  cv::FileStorage in(out, cv::FileStorage::READ);
+  EXPECT_EQ(std::string(in["distortion_model"]), "equidistant");
+  EXPECT_FALSE(in["parameter_stddev"]["k4"].empty());
+  std::printf(
+      "fisheye from a rendered recording: fx %.2f fy %.2f cx %.2f cy %.2f (truth %.2f "
+      "%.2f %.2f %.2f), RMS %.3f px\n",
+      cam.fx, cam.fy, cam.cx, cam.cy, truth.fx, truth.fy, truth.cx, truth.cy,
+      double(in["rms_reprojection_error_px"]));
+  // The lens flag is explained in --help and checked.
+  const std::string help = bin + " calibrate camera --help > " + log + " 2>&1";
+  ASSERT_EQ(std::system(help.c_str()), 0);
+  std::ifstream help_text(log);
+  const std::string text((std::istreambuf_iterator<char>(help_text)),
+                         std::istreambuf_iterator<char>());
+  EXPECT_NE(text.find("--lens"), std::string::npos) << text;
+  EXPECT_NE(text.find("fisheye"), std::string::npos) << text;
+  const std::string bad = bin + " calibrate camera --recording " + (dir / "rec").string() +
+                          " --board " + (dir / "boards.json").string() + " --lens wide --out " +
+                          (dir / "bad.yaml").string() + " > " + log + " 2>&1";
+  EXPECT_NE(std::system(bad.c_str()), 0);
+  EXPECT_FALSE(fs::exists(dir / "bad.yaml"));
 }
 
 TEST(Intrinsics, RejectsOutlierView) {
