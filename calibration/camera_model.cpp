@@ -78,8 +78,8 @@ Eigen::Vector2d equidistant_undistort(const std::array<double, 5>& k, const Eige
   const double limit = equidistant_theta_limit(k);
   if (!(theta_d < equidistant_theta_d(k, limit))) return Eigen::Vector2d::Constant(std::nan(""));
   // Newton's method kept inside the bracket [lo, hi] where theta_d(theta) is increasing.
-  double lo = 0, hi = limit, theta = std::min(theta_d, 0.5 * (lo + hi) + 0.5 * theta_d);
-  theta = std::min(theta, hi);
+  // Starts at theta = theta_d, as cv::fisheye::undistortPoints does.
+  double lo = 0, hi = limit, theta = theta_d < hi ? theta_d : 0.5 * hi;
   for (int i = 0; i < 100; ++i) {
     const double f = equidistant_theta_d(k, theta) - theta_d;
     (f > 0 ? hi : lo) = theta;
