@@ -16,7 +16,8 @@ void add_calibrate_command(CLI::App& app) {
   auto c = std::make_shared<pipelines::CameraCalibrationRequest>();
   CLI::App* camera = cmd->add_subcommand(
       "camera",
-      "Camera intrinsics (fx fy cx cy k1 k2 p1 p2 k3) from 10-25 views of a flat target,\n"
+      "Camera intrinsics (fx fy cx cy k1 k2 p1 p2 k3, or k1..k4 of a fisheye lens with\n"
+      "--lens fisheye) from 10-25 views of a flat target,\n"
       "tilted by 20-45 degrees in different directions and reaching every image corner.\n"
       "Refuses, saying what to capture next, when the views cannot determine the parameters.");
   camera->add_option("--images", c->images,
@@ -43,8 +44,17 @@ void add_calibrate_command(CLI::App& app) {
       ->check(in_range(3, 100, true));
   camera->add_flag("--fix-k3", c->fix_k3,
                    "Keep k3 at 0 (narrow lenses, or few views near the image corners)");
+  auto lens = std::make_shared<std::string>("pinhole");
+  camera
+      ->add_option("--lens", *lens,
+                   "Lens model: pinhole (Brown-Conrady k1 k2 p1 p2 k3, OpenCV's default) or "
+                   "fisheye (equidistant k1..k4, as cv::fisheye and Kalibr; wide-angle lenses "
+                   "of 120 degrees or more)")
+      ->capture_default_str()
+      ->check(CLI::IsMember({"pinhole", "fisheye"}));
   add_detector_options(camera, c->detector);
-  camera->callback([c] {
+  camera->callback([c, lens] {
+    c->fisheye = *lens == "fisheye";
     claim_run_paths({"calibrate camera",
                      {{"--images", c->images}, {"--recording", c->recording}, {"--board", c->board}},
                      {{"--out", c->out}}});

@@ -148,18 +148,17 @@ void write_camera_calibration(const std::string& path, const IntrinsicsResult& r
     write_strings(out, "inputs", inputs);
     out << "image_width" << cam.width;
     out << "image_height" << cam.height;
-    out << "camera_matrix" << (cv::Mat_<double>(3, 3) << cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
-    cv::Mat dist(1, 5, CV_64F);
-    for (int k = 0; k < 5; ++k) dist.at<double>(k) = cam.distortion[size_t(k)];
-    out << "distortion_coefficients" << dist;
-    out << "distortion_model" << "plumb_bob";
+    out << "camera_matrix" << cam.camera_matrix();
+    out << "distortion_coefficients" << cam.distortion_coefficients();
+    out << "distortion_model" << distortion_model_name(cam.model);
     out << "rms_reprojection_error_px" << result.rms_px;
     out << "views_used" << result.views_used;
     out << "points_used" << result.points_used;
     out << "corner_coverage" << result.coverage;
     out << "tilt_spread_deg" << result.tilt_spread_deg;
     out << "parameter_stddev" << "{";
-    for (size_t p = 0; p < 9; ++p) out << intrinsic_parameter_names()[p] << result.stddev[p];
+    const auto& names = intrinsic_parameter_names(cam.model);
+    for (size_t p = 0; p < names.size(); ++p) out << names[p] << result.stddev[p];
     out << "}";
     out << "views" << "[";
     for (const auto& v : result.views) {

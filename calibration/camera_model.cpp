@@ -1,21 +1,22 @@
-// Pinhole + Brown-Conrady camera model, OpenCV's definitions; OpenCV FileStorage YAML files.
+// Pinhole + Brown-Conrady or equidistant fisheye camera model, OpenCV's definitions; OpenCV
+// FileStorage YAML files.
 #include "calibration/camera_model.hpp"
 
-#include <Eigen/LU>  // 2x2 inverse
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <Eigen/LU>  // 2x2 inverse
 #include <chrono>
 #include <cmath>
-#include <thread>
 #include <cstdio>
 #include <filesystem>
 #include <sstream>
+#include <thread>
 
 #include "foundation/error.hpp"
-#include "foundation/text.hpp"
 #include "foundation/output_files.hpp"
+#include "foundation/text.hpp"
 
 namespace crepuscular::calibration {
 
@@ -36,6 +37,62 @@ Eigen::Matrix2d distortion_jacobian(const std::array<double, 5>& d, const Eigen:
   return j;
 }
 
+constexpr double kHalfPi = 1.57079632679489661923;
+
+// theta_d(theta) of the equidistant model and its derivative.
+double equidistant_theta_d(const std::array<double, 5>& k, double theta) {
+  const double t2 = theta * theta;
+  return theta * (1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))));
+}
+double equidistant_slope(const std::array<double, 5>& k, double theta) {
+  const double t2 = theta * theta;
+  return 1.0 + t2 * (3.0 * k[0] + t2 * (5.0 * k[1] + t2 * (7.0 * k[2] + t2 * 9.0 * k[3])));
+}
+
+// The largest angle up to which theta_d grows with theta (at most 90 degrees): the first zero of
+// the slope, found by a 256-step scan and bisection.
+double equidistant_theta_limit(const std::array<double, 5>& k) {
+  constexpr int kSteps = 256;
+  double lo = 0;
+  for (int i = 1; i <= kSteps; ++i) {
+    const double hi = kHalfPi * i / kSteps;
+    if (!(equidistant_slope(k, hi) > 0)) {
+      double a = lo, b = hi;
+      for (int j = 0; j < 60; ++j) {
+        const double m = 0.5 * (a + b);
+        (equidistant_slope(k, m) > 0 ? a : b) = m;
+      }
+      return a;
+    }
+    lo = hi;
+  }
+  return kHalfPi;
+}
+
+// Normalised distorted point (theta_d along the direction of the image point) -> undistorted
+// normalised point; NaN where the angle would reach the limit.
+Eigen::Vector2d equidistant_undistort(const std::array<double, 5>& k, const Eigen::Vector2d& d) {
+  const double theta_d = d.norm();
+  if (!std::isfinite(theta_d)) return Eigen::Vector2d::Constant(std::nan(""));
+  if (theta_d * theta_d <= 1e-16) return d;  // project()'s scale 1 on the axis
+  const double limit = equidistant_theta_limit(k);
+  if (!(theta_d < equidistant_theta_d(k, limit))) return Eigen::Vector2d::Constant(std::nan(""));
+  // Newton's method kept inside the bracket [lo, hi] where theta_d(theta) is increasing.
+  // Starts at theta = theta_d, as cv::fisheye::undistortPoints does.
+  double lo = 0, hi = limit, theta = theta_d < hi ? theta_d : 0.5 * hi;
+  for (int i = 0; i < 100; ++i) {
+    const double f = equidistant_theta_d(k, theta) - theta_d;
+    (f > 0 ? hi : lo) = theta;
+    double next = theta - f / equidistant_slope(k, theta);
+    if (!(next > lo && next < hi)) next = 0.5 * (lo + hi);
+    const double step = std::abs(next - theta);
+    theta = next;
+    if (step < 1e-16 * std::max(1.0, theta)) break;
+  }
+  if (!(theta < kHalfPi)) return Eigen::Vector2d::Constant(std::nan(""));
+  return d * (std::tan(theta) / theta_d);
+}
+
 std::string shape_of(const cv::Mat& m) {
   std::ostringstream s;
   s << m.rows << "x" << m.cols;
@@ -45,11 +102,25 @@ std::string shape_of(const cv::Mat& m) {
 
 }  // namespace
 
+const char* distortion_model_name(DistortionModel model) {
+  return model == DistortionModel::equidistant ? "equidistant" : "plumb_bob";
+}
+
+DistortionModel parse_distortion_model(const std::string& name, const std::string& what) {
+  if (name == "plumb_bob" || name == "brown_conrady" || name == "pinhole") {
+    return DistortionModel::brown_conrady;
+  }
+  if (name == "equidistant" || name == "fisheye") return DistortionModel::equidistant;
+  throw Error(what + ": distortion_model is \"" + name +
+              "\", expected \"plumb_bob\" (Brown-Conrady k1 k2 p1 p2 k3, the default) or "
+              "\"equidistant\" (fisheye k1 k2 k3 k4, OpenCV's cv::fisheye)");
+}
+
 Eigen::Vector2d CameraModel::distort(const Eigen::Vector2d& xy) const {
   const double intrinsics[4] = {1.0, 1.0, 0.0, 0.0};
   const double p[3] = {xy.x(), xy.y(), 1.0};
   Eigen::Vector2d out;
-  project_generic(intrinsics, distortion.data(), p, out.data());
+  project_generic(model, intrinsics, distortion.data(), p, out.data());
   return out;
 }
 
@@ -61,12 +132,13 @@ Eigen::Vector2d CameraModel::normalized_to_pixel(const Eigen::Vector2d& xy) cons
 Eigen::Vector2d CameraModel::project(const Eigen::Vector3d& p_cam) const {
   const double intrinsics[4] = {fx, fy, cx, cy};
   Eigen::Vector2d pixel;
-  project_generic(intrinsics, distortion.data(), p_cam.data(), pixel.data());
+  project_generic(model, intrinsics, distortion.data(), p_cam.data(), pixel.data());
   return pixel;
 }
 
 Eigen::Vector2d CameraModel::unproject(const Eigen::Vector2d& pixel) const {
   const Eigen::Vector2d target((pixel.x() - cx) / fx, (pixel.y() - cy) / fy);
+  if (model == DistortionModel::equidistant) return equidistant_undistort(distortion, target);
   const double k1 = distortion[0], k2 = distortion[1], p1 = distortion[2], p2 = distortion[3],
                k3 = distortion[4];
   if (k1 == 0 && k2 == 0 && p1 == 0 && p2 == 0 && k3 == 0) return target;
@@ -88,6 +160,7 @@ Eigen::Vector2d CameraModel::unproject(const Eigen::Vector2d& pixel) const {
 
 Eigen::Vector2d CameraModel::unproject(const Eigen::Vector2d& pixel,
                                        const Eigen::Vector2d& guess) const {
+  if (model == DistortionModel::equidistant) return unproject(pixel);
   const Eigen::Vector2d target((pixel.x() - cx) / fx, (pixel.y() - cy) / fy);
   Eigen::Vector2d xy = guess;
   // Newton's method on distort(xy) = target, which converges quadratically; stops when a step
@@ -108,13 +181,15 @@ cv::Mat CameraModel::camera_matrix() const {
 }
 
 cv::Mat CameraModel::distortion_coefficients() const {
-  cv::Mat d(1, 5, CV_64F);
-  for (int i = 0; i < 5; ++i) d.at<double>(0, i) = distortion[size_t(i)];
+  const int n = model == DistortionModel::equidistant ? 4 : 5;
+  cv::Mat d(1, n, CV_64F);
+  for (int i = 0; i < n; ++i) d.at<double>(0, i) = distortion[size_t(i)];
   return d;
 }
 
 CameraModel CameraModel::from_opencv(const cv::Mat& camera_matrix, const cv::Mat& distortion,
-                                     int width, int height, const std::string& what) {
+                                     int width, int height, const std::string& what,
+                                     DistortionModel model) {
   if (camera_matrix.rows != 3 || camera_matrix.cols != 3 || camera_matrix.channels() != 1) {
     throw Error(what + ": camera_matrix is " + shape_of(camera_matrix) + ", expected 3x3");
   }
@@ -128,6 +203,7 @@ CameraModel CameraModel::from_opencv(const cv::Mat& camera_matrix, const cv::Mat
     throw Error(what + ": camera_matrix needs finite values and focal lengths fx, fy > 0");
   }
   CameraModel m;
+  m.model = model;
   m.width = width;
   m.height = height;
   m.fx = k.at<double>(0, 0);
@@ -143,6 +219,10 @@ CameraModel CameraModel::from_opencv(const cv::Mat& camera_matrix, const cv::Mat
     distortion.reshape(1, 1).convertTo(d, CV_64F);
     if (!cv::checkRange(d)) throw Error(what + ": distortion_coefficients are not all finite");
     const int n = d.cols;
+    if (model == DistortionModel::equidistant && n != 4) {
+      throw Error(what + ": distortion_coefficients has " + std::to_string(n) +
+                  " entries, expected 4 (k1 k2 k3 k4) for distortion_model equidistant");
+    }
     if (n < 4) {
       throw Error(what + ": distortion_coefficients has " + std::to_string(n) +
                   " entries, expected 4 or 5 (k1 k2 p1 p2 k3)");
@@ -175,6 +255,11 @@ void CameraModel::validate(const std::string& what) const {
   }
   for (double d : distortion) {
     if (!std::isfinite(d)) throw Error(what + ": distortion_coefficients are not finite");
+  }
+  if (model == DistortionModel::equidistant && distortion[4] != 0.0) {
+    throw Error(what +
+                ": an equidistant (fisheye) lens has four coefficients k1..k4; the fifth is " +
+                std::to_string(distortion[4]) + ", expected 0");
   }
 }
 
@@ -215,7 +300,8 @@ std::string parse_in_child(const std::string& text, int flags) {
     }
     std::this_thread::sleep_for(std::chrono::microseconds(200));
   }
-  if (WIFSIGNALED(status)) return "the parser failed on it (signal " + std::to_string(WTERMSIG(status)) + ")";
+  if (WIFSIGNALED(status))
+    return "the parser failed on it (signal " + std::to_string(WTERMSIG(status)) + ")";
   if (WIFEXITED(status) && WEXITSTATUS(status) != 0) return "it cannot be parsed";
   return {};
 }
@@ -264,7 +350,8 @@ cv::Mat read_opencv_matrix(const cv::FileNode& node, const std::string& path,
                 std::to_string(int64_t(r) * c * channels));
   }
   for (const auto& value : data) {
-    if (!value.isInt() && !value.isReal()) throw Error(at + ": data holds a value that is not a number");
+    if (!value.isInt() && !value.isReal())
+      throw Error(at + ": data holds a value that is not a number");
   }
   cv::Mat m;
   try {
@@ -277,8 +364,9 @@ cv::Mat read_opencv_matrix(const cv::FileNode& node, const std::string& path,
 
 CameraModel CameraModel::read_yaml(const std::string& path) {
   if (!std::filesystem::exists(path)) {
-    throw Error(path + ": camera file not found (expected OpenCV FileStorage YAML with "
-                       "camera_matrix, distortion_coefficients, image_width, image_height)");
+    throw Error(path +
+                ": camera file not found (expected OpenCV FileStorage YAML with "
+                "camera_matrix, distortion_coefficients, image_width, image_height)");
   }
   cv::FileStorage fs;
   open_file_storage(fs, path);
@@ -288,11 +376,13 @@ CameraModel CameraModel::read_yaml(const std::string& path) {
       throw Error(path + ": field " + field + " is missing (expected an OpenCV matrix)");
     }
     const cv::Mat m = read_opencv_matrix(node, path, field);
-    if (m.empty()) throw Error(path + ": field " + field + " is not an OpenCV matrix (opencv-matrix)");
+    if (m.empty())
+      throw Error(path + ": field " + field + " is not an OpenCV matrix (opencv-matrix)");
     // OpenCV stores the data in the element type `dt` names and saturates them to it: with an
     // integer type an fx of 800 would be read as 255 (dt: u) or rounded. Only f or d are read.
     if (m.depth() != CV_32F && m.depth() != CV_64F) {
-      throw Error(path + ": field " + field + " has an integer element type (dt other than f or d), "
+      throw Error(path + ": field " + field +
+                  " has an integer element type (dt other than f or d), "
                   "which clips or rounds its values; write it with dt: d");
     }
     return m;
@@ -311,11 +401,21 @@ CameraModel CameraModel::read_yaml(const std::string& path) {
     }
     return v;
   };
+  DistortionModel model = DistortionModel::brown_conrady;
+  const cv::FileNode model_node = fs["distortion_model"];
+  if (!model_node.empty() && !model_node.isNone()) {
+    if (!model_node.isString()) {
+      throw Error(path +
+                  ": field distortion_model is not a string (expected \"plumb_bob\" or "
+                  "\"equidistant\")");
+    }
+    model = parse_distortion_model(std::string(model_node), path);
+  }
   const cv::Mat k = read_mat("camera_matrix");
   const cv::Mat d = read_mat("distortion_coefficients");
   const int width = read_int("image_width");
   const int height = read_int("image_height");
-  return from_opencv(k, d, width, height, path);
+  return from_opencv(k, d, width, height, path, model);
 }
 
 void CameraModel::write_yaml(const std::string& path) const {
@@ -325,6 +425,7 @@ void CameraModel::write_yaml(const std::string& path) const {
       [&](cv::FileStorage& out) {
         out << "image_width" << width;
         out << "image_height" << height;
+        out << "distortion_model" << distortion_model_name(model);
         out << "camera_matrix" << camera_matrix();
         out << "distortion_coefficients" << distortion_coefficients();
       },

@@ -10,12 +10,12 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <memory>
 #include <numeric>
-#include <sstream>
-
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
+#include <sstream>
 
 #include "foundation/error.hpp"
 
@@ -24,11 +24,13 @@ namespace {
 
 constexpr double kPi = 3.14159265358979323846;
 
-// Reprojection of one target corner (Brown-Conrady as OpenCV defines it). Parameters:
-// intrinsics fx fy cx cy k1 k2 p1 p2 k3; pose = angle-axis (3) + translation (3), T_cam_target.
+// Reprojection of one target corner through CameraModel::project_generic. Parameters:
+// intrinsics fx fy cx cy and the five distortion entries of `model`; pose = angle-axis (3) +
+// translation (3), T_cam_target.
 struct ReprojectionCost {
-  ReprojectionCost(const Eigen::Vector3d& object, const Eigen::Vector2d& observed)
-      : object_(object), observed_(observed) {}
+  ReprojectionCost(DistortionModel model, const Eigen::Vector3d& object,
+                   const Eigen::Vector2d& observed)
+      : model_(model), object_(object), observed_(observed) {}
 
   template <typename T>
   bool operator()(const T* intrinsics, const T* pose, T* residual) const {
@@ -38,43 +40,33 @@ struct ReprojectionCost {
     p[0] += pose[3];
     p[1] += pose[4];
     p[2] += pose[5];
-    const T x = p[0] / p[2];
-    const T y = p[1] / p[2];
-    const T& fx = intrinsics[0];
-    const T& fy = intrinsics[1];
-    const T& cx = intrinsics[2];
-    const T& cy = intrinsics[3];
-    const T& k1 = intrinsics[4];
-    const T& k2 = intrinsics[5];
-    const T& p1 = intrinsics[6];
-    const T& p2 = intrinsics[7];
-    const T& k3 = intrinsics[8];
-    const T r2 = x * x + y * y;
-    const T radial = T(1) + r2 * (k1 + r2 * (k2 + r2 * k3));
-    const T xd = x * radial + T(2) * p1 * x * y + p2 * (r2 + T(2) * x * x);
-    const T yd = y * radial + p1 * (r2 + T(2) * y * y) + T(2) * p2 * x * y;
-    residual[0] = fx * xd + cx - T(observed_.x());
-    residual[1] = fy * yd + cy - T(observed_.y());
+    if (!(p[2] > T(1e-9))) return false;  // behind the camera: reject the step
+    T pixel[2];
+    CameraModel::project_generic(model_, intrinsics, intrinsics + 4, p, pixel);
+    residual[0] = pixel[0] - T(observed_.x());
+    residual[1] = pixel[1] - T(observed_.y());
     return true;
   }
 
-  static ceres::CostFunction* Create(const Eigen::Vector3d& object,
+  static ceres::CostFunction* Create(DistortionModel model, const Eigen::Vector3d& object,
                                      const Eigen::Vector2d& observed) {
     return new ceres::AutoDiffCostFunction<ReprojectionCost, 2, 9, 6>(
-        new ReprojectionCost(object, observed));
+        new ReprojectionCost(model, object, observed));
   }
 
+  DistortionModel model_;
   Eigen::Vector3d object_;
   Eigen::Vector2d observed_;
 };
 
-double view_rms(const CalibrationView& view, const double* intrinsics, const double* pose) {
+double view_rms(DistortionModel model, const CalibrationView& view, const double* intrinsics,
+                const double* pose) {
   if (view.object_points.empty()) return 0.0;
   double sum = 0;
   for (size_t i = 0; i < view.object_points.size(); ++i) {
-    ReprojectionCost cost(view.object_points[i], view.image_points[i]);
+    ReprojectionCost cost(model, view.object_points[i], view.image_points[i]);
     double r[2];
-    cost(intrinsics, pose, r);
+    if (!cost(intrinsics, pose, r)) return std::numeric_limits<double>::infinity();
     sum += r[0] * r[0] + r[1] * r[1];
   }
   return std::sqrt(sum / double(view.object_points.size()));
@@ -89,9 +81,7 @@ Eigen::Isometry3d pose_to_isometry(const double* pose) {
   return T;
 }
 
-Eigen::Vector3d target_normal(const double* pose) {
-  return pose_to_isometry(pose).linear().col(2);
-}
+Eigen::Vector3d target_normal(const double* pose) { return pose_to_isometry(pose).linear().col(2); }
 
 double angle_deg(const Eigen::Vector3d& a, const Eigen::Vector3d& b) {
   // Normals of a plane: n and -n are the same orientation.
@@ -128,7 +118,8 @@ bool collinear(const std::vector<Eigen::Vector3d>& points) {
   for (const auto& p : points) mean += p;
   mean /= double(points.size());
   Eigen::MatrixXd A(points.size(), 3);
-  for (size_t i = 0; i < points.size(); ++i) A.row(Eigen::Index(i)) = (points[i] - mean).transpose();
+  for (size_t i = 0; i < points.size(); ++i)
+    A.row(Eigen::Index(i)) = (points[i] - mean).transpose();
   Eigen::JacobiSVD<Eigen::MatrixXd> svd(A);
   const auto s = svd.singularValues();
   return s(0) <= 0 || s(1) < 1e-3 * s(0);
@@ -136,10 +127,12 @@ bool collinear(const std::vector<Eigen::Vector3d>& points) {
 
 }  // namespace
 
-const std::array<const char*, 9>& intrinsic_parameter_names() {
-  static const std::array<const char*, 9> names = {"fx", "fy", "cx", "cy", "k1",
-                                                   "k2", "p1", "p2", "k3"};
-  return names;
+const std::vector<std::string>& intrinsic_parameter_names(DistortionModel model) {
+  static const std::vector<std::string> brown = {"fx", "fy", "cx", "cy", "k1",
+                                                 "k2", "p1", "p2", "k3"};
+  static const std::vector<std::string> equidistant = {"fx", "fy", "cx", "cy",
+                                                       "k1", "k2", "k3", "k4"};
+  return model == DistortionModel::equidistant ? equidistant : brown;
 }
 
 double corner_coverage(const std::vector<CalibrationView>& views, int width, int height,
@@ -245,8 +238,8 @@ void check_view_count(int n_usable, size_t n_views, const IntrinsicsOptions& opt
   if (n_usable >= options.min_views) return;
   std::ostringstream msg;
   msg << "camera calibration: only " << n_usable << " usable view(s) of the target out of "
-      << n_views << " (at least " << options.min_views
-      << " needed, 15-25 recommended). Capture " << (options.min_views - n_usable)
+      << n_views << " (at least " << options.min_views << " needed, 15-25 recommended). Capture "
+      << (options.min_views - n_usable)
       << " or more further views with the whole target visible, tilted by 20-45 degrees in "
          "different directions and placed near every corner of the image.";
   throw Error(msg.str());
@@ -305,8 +298,8 @@ OpenCvViews opencv_views(const std::vector<CalibrationView>& views) {
 double initial_focal_length(const OpenCvViews& cv_views, int width, int height) {
   double f0 = std::max(width, height);
   try {
-    const cv::Mat K = cv::initCameraMatrix2D(cv_views.object, cv_views.image,
-                                             cv::Size(width, height), 1.0);
+    const cv::Mat K =
+        cv::initCameraMatrix2D(cv_views.object, cv_views.image, cv::Size(width, height), 1.0);
     const double f = K.at<double>(0, 0);
     if (std::isfinite(f) && f > 0.1 * f0 && f < 20.0 * f0) f0 = f;
   } catch (const cv::Exception& e) {
@@ -335,6 +328,75 @@ std::vector<Pose> planar_poses(const OpenCvViews& cv_views, const cv::Matx33d& K
     poses[i] = {rvec[0], rvec[1], rvec[2], tvec[0], tvec[1], tvec[2]};
   }
   return poses;
+}
+
+// Every view's pose by planar PnP (IPPE) on its corners unprojected through `camera` (corners
+// that the camera cannot unproject are left out; a view with fewer than four left keeps a pose
+// 1 m straight ahead).
+std::vector<Pose> unprojected_poses(const std::vector<CalibrationView>& views,
+                                    const CameraModel& camera) {
+  std::vector<Pose> poses(views.size());
+  for (size_t i = 0; i < views.size(); ++i) {
+    std::vector<cv::Point3d> object;
+    std::vector<cv::Point2d> normalised;
+    for (size_t k = 0; k < views[i].object_points.size(); ++k) {
+      const Eigen::Vector2d xy = camera.unproject(views[i].image_points[k]);
+      if (!xy.allFinite()) continue;
+      object.emplace_back(views[i].object_points[k].x(), views[i].object_points[k].y(), 0.0);
+      normalised.emplace_back(xy.x(), xy.y());
+    }
+    cv::Vec3d rvec(0, 0, 0), tvec(0, 0, 1000.0);
+    if (object.size() >= 4) {
+      try {
+        cv::solvePnP(object, normalised, cv::Matx33d::eye(), cv::noArray(), rvec, tvec, false,
+                     cv::SOLVEPNP_IPPE);
+      } catch (const cv::Exception&) {
+        rvec = cv::Vec3d(0, 0, 0);
+        tvec = cv::Vec3d(0, 0, 1000.0);
+      }
+    }
+    poses[i] = {rvec[0], rvec[1], rvec[2], tvec[0], tvec[1], tvec[2]};
+  }
+  return poses;
+}
+
+// Equidistant start, as cv::fisheye::calibrate begins: k1..k4 = 0, the principal point at the
+// image centre; of the focal lengths from the homographies and max(width, height) / pi (a 180
+// degree lens filling the image), the one whose poses reproject the corners best.
+std::vector<Pose> equidistant_start(const std::vector<CalibrationView>& views,
+                                    const OpenCvViews& cv_views, int width, int height,
+                                    double* intr) {
+  const double zhang = initial_focal_length(cv_views, width, height);
+  const double fill = std::max(width, height) / kPi;
+  double best_cost = std::numeric_limits<double>::infinity();
+  std::vector<Pose> best_poses;
+  double best_f = fill;
+  for (double f : {zhang, fill, 0.5 * (zhang + fill), 1.5 * fill}) {
+    CameraModel cam;
+    cam.model = DistortionModel::equidistant;
+    cam.width = width;
+    cam.height = height;
+    cam.fx = cam.fy = f;
+    cam.cx = 0.5 * (width - 1);
+    cam.cy = 0.5 * (height - 1);
+    std::vector<Pose> poses = unprojected_poses(views, cam);
+    const double trial[9] = {f, f, cam.cx, cam.cy, 0, 0, 0, 0, 0};
+    std::vector<double> rms;
+    for (size_t i = 0; i < views.size(); ++i) {
+      rms.push_back(view_rms(DistortionModel::equidistant, views[i], trial, poses[i].data()));
+    }
+    std::nth_element(rms.begin(), rms.begin() + long(rms.size() / 2), rms.end());
+    const double cost = rms[rms.size() / 2];
+    spdlog::debug("camera calibration: fisheye start f = {:.1f} px: median view RMS {:.2f} px", f,
+                  cost);
+    if (cost < best_cost) {
+      best_cost = cost;
+      best_poses = std::move(poses);
+      best_f = f;
+    }
+  }
+  intr[0] = intr[1] = best_f;
+  return best_poses;
 }
 
 // Largest angle (degrees) between the target normals of two of the `active` views.
@@ -381,6 +443,7 @@ struct Adjustment {
 // median are dropped and the problem is solved again (at most 6 rounds).
 Adjustment bundle_adjust(const std::vector<CalibrationView>& used_views, double* intr,
                          std::vector<Pose>& poses, const IntrinsicsOptions& options) {
+  const DistortionModel model = options.model;
   Adjustment out;
   out.active.resize(used_views.size());
   std::iota(out.active.begin(), out.active.end(), 0);
@@ -393,11 +456,11 @@ Adjustment bundle_adjust(const std::vector<CalibrationView>& used_views, double*
       const auto& v = used_views[i];
       for (size_t k = 0; k < v.object_points.size(); ++k) {
         out.problem->AddResidualBlock(
-            ReprojectionCost::Create(v.object_points[k], v.image_points[k]),
+            ReprojectionCost::Create(model, v.object_points[k], v.image_points[k]),
             new ceres::HuberLoss(options.huber_px), intr, poses[i].data());
       }
     }
-    if (options.fix_k3) {
+    if (options.fix_k3 || model == DistortionModel::equidistant) {
       intr[8] = 0;
       out.problem->SetManifold(intr, new ceres::SubsetManifold(9, {8}));
     }
@@ -410,16 +473,18 @@ Adjustment bundle_adjust(const std::vector<CalibrationView>& used_views, double*
     ceres::Solve(solver_options, out.problem.get(), &out.summary);
     spdlog::debug("camera calibration, round {}: {}", round + 1, out.summary.BriefReport());
     if (!out.summary.IsSolutionUsable()) {
-      throw Error("camera calibration: the bundle adjustment failed (" +
-                  out.summary.BriefReport() +
+      throw Error("camera calibration: the bundle adjustment failed (" + out.summary.BriefReport() +
                   "). Capture more views with the target tilted in different directions.");
     }
     std::vector<double> rms;
-    for (size_t i : out.active) rms.push_back(view_rms(used_views[i], intr, poses[i].data()));
+    for (size_t i : out.active) {
+      rms.push_back(view_rms(model, used_views[i], intr, poses[i].data()));
+    }
     std::vector<double> sorted = rms;
     std::nth_element(sorted.begin(), sorted.begin() + long(sorted.size() / 2), sorted.end());
     const double median = sorted[sorted.size() / 2];
-    const double limit = std::max(options.outlier_view_factor * median, options.outlier_view_min_px);
+    const double limit =
+        std::max(options.outlier_view_factor * median, options.outlier_view_min_px);
     std::vector<size_t> keep;
     for (size_t a = 0; a < out.active.size(); ++a) {
       if (rms[a] > limit) {
@@ -444,9 +509,9 @@ Adjustment bundle_adjust(const std::vector<CalibrationView>& used_views, double*
 }
 
 // Standard deviations of the nine intrinsics: the covariance of the solved problem scaled by the
-// residual variance sigma2 (0 for a fixed k3).
+// residual variance sigma2 (0 for the fixed last entry: k3 kept at 0, or an equidistant lens).
 std::array<double, 9> intrinsic_stddev(ceres::Problem& problem, double* intr, double sigma2,
-                                       bool fix_k3) {
+                                       bool fix_last) {
   ceres::Covariance::Options cov_options;
   cov_options.algorithm_type = ceres::DENSE_SVD;
   cov_options.null_space_rank = 0;
@@ -462,8 +527,8 @@ std::array<double, 9> intrinsic_stddev(ceres::Problem& problem, double* intr, do
   }
   double cov[81];
   covariance.GetCovarianceBlockInTangentSpace(intr, intr, cov);
-  // In the tangent space of a SubsetManifold, the fixed k3 is left out.
-  const int dim = fix_k3 ? 8 : 9;
+  // In the tangent space of a SubsetManifold, the fixed last entry is left out.
+  const int dim = fix_last ? 8 : 9;
   std::array<double, 9> stddev{};
   for (int p = 0; p < 9; ++p) {
     stddev[size_t(p)] = p < dim ? std::sqrt(std::max(0.0, cov[p * dim + p] * sigma2)) : 0.0;
@@ -478,7 +543,7 @@ void check_focal_lengths(const IntrinsicsResult& result, const double* intr) {
     if (!(rel < 0.02)) {
       std::ostringstream msg;
       msg.precision(2);
-      msg << std::fixed << "camera calibration: " << intrinsic_parameter_names()[size_t(p)]
+      msg << std::fixed << "camera calibration: " << intrinsic_parameter_names()[size_t(p)].c_str()
           << " is poorly determined (standard deviation " << 100.0 * rel
           << "% of its value, at most 2% accepted). Capture more views with the target tilted "
              "by 20-45 degrees and filling more of the image.";
@@ -495,6 +560,12 @@ IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views,
     throw Error("camera calibration: image size " + std::to_string(width) + " x " +
                 std::to_string(height) + " is not positive");
   }
+  if (options.fix_k3 && options.model == DistortionModel::equidistant) {
+    throw Error(
+        "camera calibration: fix_k3 (--fix-k3) keeps the Brown-Conrady k3 at 0; a fisheye "
+        "(equidistant) lens has k1..k4 and no k3 to keep. Leave out --fix-k3 or calibrate "
+        "with --lens pinhole.");
+  }
   IntrinsicsResult result;
   const std::vector<size_t> usable = usable_views(views, options, &result);
   check_view_count(int(usable.size()), views.size(), options);
@@ -505,11 +576,21 @@ IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views,
 
   // Zhang start: focal length from the homographies, then every view's pose by planar PnP.
   const OpenCvViews cv_views = opencv_views(used_views);
-  const double f0 = initial_focal_length(cv_views, width, height);
-  double intr[9] = {f0, f0, 0.5 * (width - 1), 0.5 * (height - 1), 0, 0, 0, 0, 0};
-  std::vector<Pose> poses =
-      planar_poses(cv_views, cv::Matx33d(intr[0], 0, intr[2], 0, intr[1], intr[3], 0, 0, 1));
-  result.tilt_spread_deg = nominal_tilt_spread(cv_views, width, height, intr[2], intr[3]);
+  const DistortionModel model = options.model;
+  const bool fix_last = options.fix_k3 || model == DistortionModel::equidistant;
+  double intr[9] = {0, 0, 0.5 * (width - 1), 0.5 * (height - 1), 0, 0, 0, 0, 0};
+  std::vector<Pose> poses;
+  if (model == DistortionModel::equidistant) {
+    poses = equidistant_start(used_views, cv_views, width, height, intr);
+    // A fisheye's start poses come through its own (undistorting) start camera.
+    std::vector<size_t> all(poses.size());
+    std::iota(all.begin(), all.end(), 0);
+    result.tilt_spread_deg = tilt_spread(poses, all);
+  } else {
+    intr[0] = intr[1] = initial_focal_length(cv_views, width, height);
+    poses = planar_poses(cv_views, cv::Matx33d(intr[0], 0, intr[2], 0, intr[1], intr[3], 0, 0, 1));
+    result.tilt_spread_deg = nominal_tilt_spread(cv_views, width, height, intr[2], intr[3]);
+  }
   check_tilt_spread(result.tilt_spread_deg, used_views.size(), options);
 
   Adjustment adjusted = bundle_adjust(used_views, intr, poses, options);
@@ -519,15 +600,16 @@ IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views,
   double sum_sq = 0;
   int n_points = 0;
   for (size_t i : active) {
-    const double r = view_rms(used_views[i], intr, poses[i].data());
+    const double r = view_rms(model, used_views[i], intr, poses[i].data());
     sum_sq += r * r * double(used_views[i].object_points.size());
     n_points += int(used_views[i].object_points.size());
   }
-  const int n_params = (options.fix_k3 ? 8 : 9) + 6 * int(active.size());
+  const int n_params = (fix_last ? 8 : 9) + 6 * int(active.size());
   const int dof = 2 * n_points - n_params;
   const double sigma2 = dof > 0 ? sum_sq / double(dof) : 0.0;
-  result.stddev = intrinsic_stddev(*adjusted.problem, intr, sigma2, options.fix_k3);
+  result.stddev = intrinsic_stddev(*adjusted.problem, intr, sigma2, fix_last);
 
+  result.camera.model = model;
   result.camera.width = width;
   result.camera.height = height;
   result.camera.fx = intr[0];
@@ -542,16 +624,17 @@ IntrinsicsResult calibrate_intrinsics(const std::vector<CalibrationView>& views,
   result.solver_report = adjusted.summary.BriefReport();
   for (size_t u = 0; u < usable.size(); ++u) {
     ViewReport& report = result.views[usable[u]];
-    report.rms_px = view_rms(used_views[u], intr, poses[u].data());
+    report.rms_px = view_rms(model, used_views[u], intr, poses[u].data());
     report.rejected = adjusted.rejected[u] != 0;
     report.T_cam_target = pose_to_isometry(poses[u].data());
     report.tilt_deg = angle_deg(report.T_cam_target.linear().col(2), Eigen::Vector3d::UnitZ());
   }
   check_focal_lengths(result, intr);
-  spdlog::info("camera calibration: RMS {:.3f} px over {} views ({} points), fx {:.2f} +- {:.2f}, "
-               "fy {:.2f} +- {:.2f}",
-               result.rms_px, result.views_used, n_points, intr[0], result.stddev[0], intr[1],
-               result.stddev[1]);
+  spdlog::info(
+      "camera calibration: RMS {:.3f} px over {} views ({} points), fx {:.2f} +- {:.2f}, "
+      "fy {:.2f} +- {:.2f}",
+      result.rms_px, result.views_used, n_points, intr[0], result.stddev[0], intr[1],
+      result.stddev[1]);
   return result;
 }
 

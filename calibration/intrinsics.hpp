@@ -1,5 +1,6 @@
 // Camera intrinsic calibration from views of a planar target: Zhang's homography start, then a
-// Ceres bundle adjustment of fx fy cx cy k1 k2 p1 p2 k3 and every view's pose with a robust loss,
+// Ceres bundle adjustment of fx fy cx cy and the lens (k1 k2 p1 p2 k3, or k1..k4 of an
+// equidistant fisheye) and every view's pose with a robust loss,
 // outlier view rejection, per-parameter standard deviations, and a refusal (with advice on what to
 // capture next) when the views cannot determine the parameters.
 #pragma once
@@ -7,11 +8,10 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <array>
+#include <opencv2/core.hpp>
 #include <optional>
 #include <string>
 #include <vector>
-
-#include <opencv2/core.hpp>
 
 #include "calibration/camera_model.hpp"
 
@@ -33,7 +33,9 @@ struct IntrinsicsOptions {
   double huber_px = 1.0;              // robust loss: quadratic up to this residual
   double outlier_view_factor = 3.0;   // a view whose RMS exceeds factor x median RMS is dropped...
   double outlier_view_min_px = 0.5;   // ...unless its RMS is below this
-  bool fix_k3 = false;                // keep k3 at 0 (narrow lenses)
+  bool fix_k3 = false;                // keep k3 at 0 (narrow lenses; Brown-Conrady only)
+  // The lens model to calibrate: brown_conrady (pinhole lenses) or equidistant (fisheye).
+  DistortionModel model = DistortionModel::brown_conrady;
   int max_iterations = 200;
 };
 
@@ -48,20 +50,23 @@ struct ViewReport {
 
 struct IntrinsicsResult {
   CameraModel camera;
-  // Standard deviations of fx fy cx cy (px) and k1 k2 p1 p2 k3, from the Ceres covariance scaled
-  // by the residual variance (as OpenCV's stdDeviationsIntrinsics).
+  // Standard deviations of fx fy cx cy (px) and k1 k2 p1 p2 k3 (equidistant: k1 k2 k3 k4 and a
+  // last 0), from the Ceres covariance scaled by the residual variance (as OpenCV's
+  // stdDeviationsIntrinsics).
   std::array<double, 9> stddev{};
   double rms_px = 0;  // over all corners of the views kept
   int views_used = 0;
   int points_used = 0;
-  double coverage = 0;          // fraction of 4 x 4 image cells holding a corner
-  double tilt_spread_deg = 0;   // largest angle between two target normals
+  double coverage = 0;            // fraction of 4 x 4 image cells holding a corner
+  double tilt_spread_deg = 0;     // largest angle between two target normals
   std::vector<ViewReport> views;  // one per input view, in input order (skipped ones have 0 points)
   std::string solver_report;      // Ceres BriefReport of the last solve
 };
 
-// Names of the nine parameters in the order of IntrinsicsResult::stddev.
-const std::array<const char*, 9>& intrinsic_parameter_names();
+// Names of the model's parameters in the order of IntrinsicsResult::stddev (nine for
+// brown_conrady, eight for equidistant).
+const std::vector<std::string>& intrinsic_parameter_names(
+    DistortionModel model = DistortionModel::brown_conrady);
 
 // Calibrates a camera of width x height pixels. Throws Error with advice (what to capture next)
 // when the views cannot determine the parameters: too few views, all nearly parallel to each other
@@ -90,8 +95,8 @@ struct ChessboardSpec {
 std::optional<ChessboardSpec> parse_chessboard_spec(const std::string& text);
 
 // Finds the inner corners of a chessboard (cv::findChessboardCorners + cv::cornerSubPix). Returns
-// nullopt when the whole board is not found. Object points are in the board frame, z = 0, row by row
-// as OpenCV orders them.
+// nullopt when the whole board is not found. Object points are in the board frame, z = 0, row by
+// row as OpenCV orders them.
 std::optional<CalibrationView> detect_chessboard(const cv::Mat& image, const ChessboardSpec& spec,
                                                  const std::string& name);
 

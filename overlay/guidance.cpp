@@ -87,7 +87,7 @@ cv::Mat text_panel(const std::vector<TextLine>& lines, cv::Point at, bool anchor
 
 bool same_camera(const calibration::CameraModel& a, const calibration::CameraModel& b) {
   return a.width == b.width && a.height == b.height && a.fx == b.fx && a.fy == b.fy &&
-         a.cx == b.cx && a.cy == b.cy && a.distortion == b.distortion;
+         a.cx == b.cx && a.cy == b.cy && a.model == b.model && a.distortion == b.distortion;
 }
 
 // Whether going from pose `from` to pose `to` (T_cam_ct) moves no point of the box with these

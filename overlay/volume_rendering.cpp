@@ -110,7 +110,7 @@ void main() {
 
 bool same_camera(const calibration::CameraModel& a, const calibration::CameraModel& b) {
   return a.width == b.width && a.height == b.height && a.fx == b.fx && a.fy == b.fy &&
-         a.cx == b.cx && a.cy == b.cy && a.distortion == b.distortion;
+         a.cx == b.cx && a.cy == b.cy && a.model == b.model && a.distortion == b.distortion;
 }
 
 void validate_options(const VolumeRenderingOptions& o) {

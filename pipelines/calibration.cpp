@@ -190,11 +190,12 @@ Views views_from_recording(const std::string& dir, int max_views, TargetFinder& 
 }
 
 void log_intrinsics(const calibration::IntrinsicsResult& r, const std::string& out) {
-  const auto& names = calibration::intrinsic_parameter_names();
+  const auto& names = calibration::intrinsic_parameter_names(r.camera.model);
   const auto& d = r.camera.distortion;
   const std::array<double, 9> values = {r.camera.fx, r.camera.fy, r.camera.cx, r.camera.cy, d[0],
                                         d[1],        d[2],        d[3],        d[4]};
-  for (size_t p = 0; p < 9; ++p) {
+  spdlog::info("  lens model {}", calibration::distortion_model_name(r.camera.model));
+  for (size_t p = 0; p < names.size(); ++p) {
     spdlog::info("  {:>2} = {:>12.6f} +- {:.6f}", names[p], values[p], r.stddev[p]);
   }
   for (const auto& v : r.views) {
@@ -277,6 +278,8 @@ calibration::IntrinsicsResult run_camera_calibration(const CameraCalibrationRequ
   calibration::IntrinsicsOptions o;
   o.min_views = a.min_views;
   o.fix_k3 = a.fix_k3;
+  o.model = a.fisheye ? calibration::DistortionModel::equidistant
+                      : calibration::DistortionModel::brown_conrady;
   const calibration::IntrinsicsResult r =
       calibration::calibrate_intrinsics(found.views, found.width, found.height, o);
   calibration::write_camera_calibration(a.out, r, finder.description(),

@@ -21,6 +21,7 @@ struct CameraCalibrationRequest {
   int max_views = 40;  // views kept from a recording (picked for coverage)
   int min_views = 4;   // fewer usable views are refused
   bool fix_k3 = false;
+  bool fisheye = false;  // calibrate the equidistant fisheye model instead of Brown-Conrady
   tracking::DetectorOptions detector;  // tag detection settings (the family is the board's)
 };
 

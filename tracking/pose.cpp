@@ -169,12 +169,24 @@ BoardPose estimate_board_pose(const calibration::CameraModel& cam, const BoardCo
     obj.emplace_back(c.board_mm[i].x(), c.board_mm[i].y(), c.board_mm[i].z());
     px.emplace_back(c.pixels[i].x(), c.pixels[i].y());
   }
-  const cv::Mat K = (cv::Mat_<double>(3, 3) << cam.fx, 0, cam.cx, 0, cam.fy, cam.cy, 0, 0, 1);
-  const cv::Mat dist = (cv::Mat_<double>(1, 5) << cam.distortion[0], cam.distortion[1],
-                        cam.distortion[2], cam.distortion[3], cam.distortion[4]);
   std::vector<cv::Point2d> normalised;
-  cv::undistortPoints(px, normalised, K, dist, cv::noArray(), cv::noArray(),
-                      cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 1e-10));
+  if (cam.model == calibration::DistortionModel::equidistant) {
+    // The exact inverse of the fisheye lens; a corner it cannot unproject (90 degrees or more
+    // off axis) leaves no pose to start from.
+    for (const Eigen::Vector2d& p : c.pixels) {
+      const Eigen::Vector2d xy = cam.unproject(p);
+      if (!xy.allFinite()) {
+        out.problem = "a corner lies outside the fisheye lens's invertible field of view";
+        return out;
+      }
+      normalised.emplace_back(xy.x(), xy.y());
+    }
+  } else {
+    cv::undistortPoints(
+        px, normalised, cam.camera_matrix(), cam.distortion_coefficients(), cv::noArray(),
+        cv::noArray(),
+        cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 1e-10));
+  }
   std::vector<cv::Mat> rvecs, tvecs;
   const bool planar = is_planar(c.board_mm);
   try {

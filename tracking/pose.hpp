@@ -15,13 +15,13 @@
 namespace crepuscular::tracking {
 
 struct PoseOptions {
-  double huber_px = 1.0;         // Huber loss scale: residuals beyond this many pixels weigh less
-  int max_iterations = 30;       // Levenberg-Marquardt iterations
-  bool covariance = true;        // compute the 6x6 covariance (ceres::Covariance)
+  double huber_px = 1.0;    // Huber loss scale: residuals beyond this many pixels weigh less
+  int max_iterations = 30;  // Levenberg-Marquardt iterations
+  bool covariance = true;   // compute the 6x6 covariance (ceres::Covariance)
   // Two IPPE solutions whose refined RMS errors differ by less than this factor are ambiguous;
   // then the previous pose (when given) decides, else the lower error.
   double ambiguity_ratio = 3.0;
-  double max_rms_px = 3.0;       // a refined pose with a larger RMS error is rejected
+  double max_rms_px = 3.0;  // a refined pose with a larger RMS error is rejected
 };
 
 // Corners of one board matched to detections (same order in both vectors).
@@ -58,19 +58,11 @@ struct BoardPose {
 BoardPose estimate_board_pose(const calibration::CameraModel& camera, const BoardCorners& corners,
                               const Eigen::Isometry3d* previous, const PoseOptions& options = {});
 
-// Pixel of a board point through the camera model; templated so that Ceres differentiates it.
-// Same formula as calibration::CameraModel::project (OpenCV's Brown-Conrady model).
+// Pixel of a board point through the camera model (its lens model included); templated so that
+// Ceres differentiates it. calibration::CameraModel::project_generic's math.
 template <typename T>
 void project_with_distortion(const calibration::CameraModel& cam, const T p[3], T pixel[2]) {
-  const T x = p[0] / p[2], y = p[1] / p[2];
-  const T r2 = x * x + y * y;
-  const double k1 = cam.distortion[0], k2 = cam.distortion[1], p1 = cam.distortion[2],
-               p2 = cam.distortion[3], k3 = cam.distortion[4];
-  const T radial = T(1.0) + r2 * (T(k1) + r2 * (T(k2) + r2 * T(k3)));
-  const T xd = x * radial + T(2.0 * p1) * x * y + T(p2) * (r2 + T(2.0) * x * x);
-  const T yd = y * radial + T(p1) * (r2 + T(2.0) * y * y) + T(2.0 * p2) * x * y;
-  pixel[0] = T(cam.fx) * xd + T(cam.cx);
-  pixel[1] = T(cam.fy) * yd + T(cam.cy);
+  cam.project_point(p, pixel);
 }
 
 }  // namespace crepuscular::tracking

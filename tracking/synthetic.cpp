@@ -643,9 +643,13 @@ void read_scene_camera(const json& c, const JsonPath& at,
   s.camera.fy = optional_number(c, "fy", at, s.camera.fx);
   s.camera.cx = optional_number(c, "cx", at, (s.camera.width - 1) / 2.0);
   s.camera.cy = optional_number(c, "cy", at, (s.camera.height - 1) / 2.0);
+  s.camera.model = calibration::parse_distortion_model(
+      optional_string(c, "distortion_model", at, "plumb_bob"), at.describe());
+  const bool fisheye = s.camera.model == calibration::DistortionModel::equidistant;
   if (c.contains("distortion")) {
     const std::vector<double> d =
-        as_numbers(c["distortion"], at.key("distortion"), 4, 5, "[k1, k2, p1, p2, k3]");
+        fisheye ? as_numbers(c["distortion"], at.key("distortion"), 4, 4, "[k1, k2, k3, k4]")
+                : as_numbers(c["distortion"], at.key("distortion"), 4, 5, "[k1, k2, p1, p2, k3]");
     for (size_t i = 0; i < d.size(); ++i) s.camera.distortion[i] = d[i];
   }
 }

@@ -81,6 +81,7 @@ Eigen::Isometry3d pose_at(const SceneBoard& board, double time_s);
 // Scene JSON (all fields optional except boards and poses; units mm, degrees, seconds):
 // {"camera": {"width": 1280, "height": 720, "fx": 1000, "fy": 1000, "cx": 639.5, "cy": 359.5,
 //             "distortion": [k1, k2, p1, p2, k3]}   or "camera": "camera.yaml" (OpenCV YAML),
+//   ("distortion_model": "equidistant" with "distortion": [k1, k2, k3, k4] for a fisheye lens),
 //  "background": {"type": "gradient" | "plain" | "noise", "grey": 128, "contrast": 60},
 //  "boards": "boards.json"  or  [ board objects as in boards.json ],
 //  "poses": {"patient": [{"t": 0, "translation_mm": [x, y, z], "rotvec_deg": [rx, ry, rz]}

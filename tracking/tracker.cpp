@@ -292,9 +292,11 @@ std::vector<cv::Rect> Tracker::predicted_regions(int64_t timestamp_ns, bool* all
       bool ok = true;
       for (const Eigen::Vector3d& c : tag.corners) {
         const Eigen::Vector3d p = now * c, q = before * c;
-        // Outside about 60 degrees off axis the distortion polynomial is not to be trusted.
-        if (p.z() <= 1e-3 || std::abs(p.x()) > 2 * p.z() || std::abs(p.y()) > 2 * p.z() ||
-            q.z() <= 1e-3) {
+        // Outside about 60 degrees off axis the Brown-Conrady polynomial is not to be trusted;
+        // a fisheye lens is modelled to 80 degrees (tan 80 = 5.7).
+        const double reach = camera_.model == calibration::DistortionModel::equidistant ? 5.6 : 2.0;
+        if (p.z() <= 1e-3 || std::abs(p.x()) > reach * p.z() || std::abs(p.y()) > reach * p.z() ||
+            q.z() <= 1e-3 || std::abs(q.x()) > reach * q.z() || std::abs(q.y()) > reach * q.z()) {
           ok = false;
           break;
         }

@@ -8,20 +8,19 @@
 
 #include <Eigen/Geometry>
 #include <chrono>
+#include <cmath>
 #include <cstdlib>
 #include <filesystem>
-#include <cmath>
 #include <fstream>
 #include <initializer_list>
 #include <iterator>
-#include <random>
-#include <string>
-#include <vector>
-
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core/persistence.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
+#include <random>
+#include <string>
+#include <vector>
 
 #include "foundation/error.hpp"
 #include "tests/support/errors.hpp"
@@ -101,7 +100,8 @@ std::vector<CalibrationView> synthetic_views(const TrueCamera& cam, int count, d
                   Eigen::AngleAxisd(ay, Eigen::Vector3d::UnitY()) *
                   Eigen::AngleAxisd(az, Eigen::Vector3d::UnitZ()))
                      .toRotationMatrix();
-    const Eigen::Vector3d c_cam((u - cam.cx) / cam.fx * depth, (v - cam.cy) / cam.fy * depth, depth);
+    const Eigen::Vector3d c_cam((u - cam.cx) / cam.fx * depth, (v - cam.cy) / cam.fy * depth,
+                                depth);
     T.translation() = c_cam - T.linear() * centre;
     bool inside = true;
     for (const auto& p : target) inside = inside && (T * p).z() > 100.0;
@@ -114,7 +114,8 @@ std::vector<CalibrationView> synthetic_views(const TrueCamera& cam, int count, d
     CalibrationView view;
     view.name = "view" + std::to_string(views.size());
     view.object_points = target;
-    for (const auto& p : pixels) view.image_points.push_back(p + Eigen::Vector2d(noise(rng), noise(rng)));
+    for (const auto& p : pixels)
+      view.image_points.push_back(p + Eigen::Vector2d(noise(rng), noise(rng)));
     views.push_back(std::move(view));
   }
   return views;
@@ -151,10 +152,11 @@ TEST(Intrinsics, RecoversKnownCameraWithinReportedThreeSigma) {
   EXPECT_EQ(r.views_used, 20);
   for (const auto& v : r.views) EXPECT_FALSE(v.rejected) << v.name;
   EXPECT_LT(seconds, 20.0);
-  std::printf("fx %.3f +- %.3f  fy %.3f +- %.3f  cx %.3f +- %.3f  cy %.3f +- %.3f  rms %.3f px  "
-              "%.2f s\n",
-              r.camera.fx, r.stddev[0], r.camera.fy, r.stddev[1], r.camera.cx, r.stddev[2],
-              r.camera.cy, r.stddev[3], r.rms_px, seconds);
+  std::printf(
+      "fx %.3f +- %.3f  fy %.3f +- %.3f  cx %.3f +- %.3f  cy %.3f +- %.3f  rms %.3f px  "
+      "%.2f s\n",
+      r.camera.fx, r.stddev[0], r.camera.fy, r.stddev[1], r.camera.cx, r.stddev[2], r.camera.cy,
+      r.stddev[3], r.rms_px, seconds);
 }
 
 TEST(Intrinsics, AgreesWithOpenCvCalibrateCamera) {
@@ -174,11 +176,9 @@ TEST(Intrinsics, AgreesWithOpenCvCalibrateCamera) {
   }
   cv::Mat K, dist;
   std::vector<cv::Mat> rvecs, tvecs;
-  const double cv_rms = cv::calibrateCamera(obj, img, cv::Size(kWidth, kHeight), K, dist, rvecs,
-                                            tvecs, 0,
-                                            cv::TermCriteria(cv::TermCriteria::COUNT +
-                                                                 cv::TermCriteria::EPS,
-                                                             200, 1e-12));
+  const double cv_rms = cv::calibrateCamera(
+      obj, img, cv::Size(kWidth, kHeight), K, dist, rvecs, tvecs, 0,
+      cv::TermCriteria(cv::TermCriteria::COUNT + cv::TermCriteria::EPS, 200, 1e-12));
   EXPECT_NEAR(r.camera.fx, K.at<double>(0, 0), 0.005 * K.at<double>(0, 0));
   EXPECT_NEAR(r.camera.fy, K.at<double>(1, 1), 0.005 * K.at<double>(1, 1));
   EXPECT_NEAR(r.camera.cx, K.at<double>(0, 2), 0.005 * K.at<double>(0, 2));
@@ -199,10 +199,242 @@ TEST(Intrinsics, AgreesWithOpenCvCalibrateCamera) {
     }
   }
   EXPECT_LT(worst, 0.5) << "largest pixel difference between the two calibrations";
-  std::printf("Ceres fx %.3f fy %.3f cx %.3f cy %.3f | OpenCV fx %.3f fy %.3f cx %.3f cy %.3f | "
-              "max pixel difference %.3f\n",
-              r.camera.fx, r.camera.fy, r.camera.cx, r.camera.cy, K.at<double>(0, 0),
-              K.at<double>(1, 1), K.at<double>(0, 2), K.at<double>(1, 2), worst);
+  std::printf(
+      "Ceres fx %.3f fy %.3f cx %.3f cy %.3f | OpenCV fx %.3f fy %.3f cx %.3f cy %.3f | "
+      "max pixel difference %.3f\n",
+      r.camera.fx, r.camera.fy, r.camera.cx, r.camera.cy, K.at<double>(0, 0), K.at<double>(1, 1),
+      K.at<double>(0, 2), K.at<double>(1, 2), worst);
+}
+
+// A TUM VI-like fisheye (512 x 512, f 191 px, Kalibr's equidistant coefficients of its cam0).
+struct TrueFisheye {
+  double fx = 190.97847715128717, fy = 190.9733070521226, cx = 254.93170605935475,
+         cy = 256.8974428996504;
+  cv::Vec4d k{0.0034823894022493434, 0.0007150348452162257, -0.0020532361418706202,
+              0.00020293673591811182};
+  cv::Matx33d K() const { return {fx, 0, cx, 0, fy, cy, 0, 0, 1}; }
+};
+
+// `count` views of a 10 x 7 grid of 30 mm seen through the fisheye (cv::fisheye::projectPoints),
+// every corner inside the 512 x 512 image and under 80 degrees off axis, with Gaussian noise.
+std::vector<CalibrationView> fisheye_views(const TrueFisheye& cam, int count, double noise_px,
+                                           unsigned seed) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> uni(0.0, 1.0);
+  std::normal_distribution<double> noise(0.0, noise_px);
+  const auto target = grid_points(10, 7, 30.0);
+  const Eigen::Vector3d centre(135.0, 90.0, 0.0);
+  std::vector<CalibrationView> views;
+  int attempts = 0;
+  while (int(views.size()) < count && attempts++ < 100000) {
+    // Target centre 0-65 degrees off axis, 200-450 mm away, turned towards the camera +- 45.
+    const double off = uni(rng) * 65.0 * kPi / 180.0, az = (2 * uni(rng) - 1) * kPi;
+    const double depth = 200.0 + uni(rng) * 250.0;
+    const Eigen::Vector3d dir(std::sin(off) * std::cos(az), std::sin(off) * std::sin(az),
+                              std::cos(off));
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.linear() =
+        (Eigen::AngleAxisd((2 * uni(rng) - 1) * 45.0 * kPi / 180.0, Eigen::Vector3d::UnitX()) *
+         Eigen::AngleAxisd((2 * uni(rng) - 1) * 45.0 * kPi / 180.0, Eigen::Vector3d::UnitY()) *
+         Eigen::AngleAxisd((2 * uni(rng) - 1) * kPi, Eigen::Vector3d::UnitZ()))
+            .toRotationMatrix();
+    T.translation() = depth * dir - T.linear() * centre;
+    std::vector<cv::Point3d> in;
+    bool inside = true;
+    for (const auto& p : target) {
+      const Eigen::Vector3d q = T * p;
+      inside = inside && q.z() > 0 && std::atan2(q.head<2>().norm(), q.z()) < 80.0 * kPi / 180.0;
+      in.emplace_back(q.x(), q.y(), q.z());
+    }
+    if (!inside) continue;
+    std::vector<cv::Point2d> out;
+    cv::fisheye::projectPoints(in, out, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), cam.K(), cam.k);
+    for (const auto& p : out) inside = inside && p.x > 5 && p.y > 5 && p.x < 506 && p.y < 506;
+    if (!inside) continue;
+    CalibrationView view;
+    view.name = "fisheye" + std::to_string(views.size());
+    view.object_points = target;
+    for (const auto& p : out) view.image_points.emplace_back(p.x + noise(rng), p.y + noise(rng));
+    views.push_back(std::move(view));
+  }
+  return views;
+}
+
+// The equidistant calibration on synthetic fisheye corners agrees with cv::fisheye::calibrate on
+// the same corners (fx fy cx cy within 0.1 %), and both find the true camera.
+TEST(Intrinsics, FisheyeAgreesWithOpenCvFisheyeCalibrate) {
+  const TrueFisheye truth;
+  const auto views = fisheye_views(truth, 20, 0.2, 2024);
+  ASSERT_EQ(views.size(), 20u);
+  IntrinsicsOptions options;
+  options.model = DistortionModel::equidistant;
+  const auto t0 = std::chrono::steady_clock::now();
+  const IntrinsicsResult r = calibrate_intrinsics(views, 512, 512, options);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  EXPECT_EQ(r.camera.model, DistortionModel::equidistant);
+  EXPECT_EQ(r.camera.distortion[4], 0.0);
+  EXPECT_EQ(r.stddev[8], 0.0);
+  ASSERT_EQ(intrinsic_parameter_names(DistortionModel::equidistant).size(), 8u);
+
+  std::vector<std::vector<cv::Point3d>> obj;
+  std::vector<std::vector<cv::Point2d>> img;
+  for (const auto& v : views) {
+    obj.emplace_back();
+    img.emplace_back();
+    for (size_t k = 0; k < v.object_points.size(); ++k) {
+      obj.back().emplace_back(v.object_points[k].x(), v.object_points[k].y(), 0.0);
+      img.back().emplace_back(v.image_points[k].x(), v.image_points[k].y());
+    }
+  }
+  cv::Matx33d K;
+  cv::Vec4d D;
+  std::vector<cv::Vec3d> rvecs, tvecs;
+  const double cv_rms = cv::fisheye::calibrate(
+      obj, img, cv::Size(512, 512), K, D, rvecs, tvecs,
+      cv::fisheye::CALIB_RECOMPUTE_EXTRINSIC | cv::fisheye::CALIB_FIX_SKEW,
+      cv::TermCriteria(cv::TermCriteria::COUNT + cv::TermCriteria::EPS, 200, 1e-14));
+  const double ours[4] = {r.camera.fx, r.camera.fy, r.camera.cx, r.camera.cy};
+  const double opencv[4] = {K(0, 0), K(1, 1), K(0, 2), K(1, 2)};
+  const double want[4] = {truth.fx, truth.fy, truth.cx, truth.cy};
+  for (int p = 0; p < 4; ++p) {
+    EXPECT_NEAR(ours[p], opencv[p], 0.001 * opencv[p]) << intrinsic_parameter_names()[size_t(p)];
+    EXPECT_NEAR(ours[p], want[p], 0.005 * want[p]) << intrinsic_parameter_names()[size_t(p)];
+    EXPECT_NEAR(opencv[p], want[p], 0.005 * want[p]) << intrinsic_parameter_names()[size_t(p)];
+    EXPECT_NEAR(ours[p], want[p], 4.0 * r.stddev[size_t(p)])
+        << intrinsic_parameter_names()[size_t(p)];
+  }
+  for (int i = 0; i < 4; ++i) {
+    EXPECT_GT(r.stddev[size_t(4 + i)], 0.0);
+    EXPECT_NEAR(r.camera.distortion[size_t(i)], truth.k[i], 4.0 * r.stddev[size_t(4 + i)])
+        << "k" << i + 1;
+  }
+  // OpenCV's RMS is per coordinate pair too; 0.2 px per coordinate gives about 0.28 px.
+  EXPECT_NEAR(r.rms_px, cv_rms, 0.01);
+  EXPECT_GT(r.rms_px, 0.2);
+  EXPECT_LT(r.rms_px, 0.34);
+  // The two lenses image every ray out to 80 degrees at nearly the same pixel.
+  CameraModel theirs = CameraModel::from_opencv(cv::Mat(K), cv::Mat(D), 512, 512, "OpenCV",
+                                                DistortionModel::equidistant);
+  double worst = 0;
+  for (double t = 0; t <= 80.0; t += 5.0) {
+    for (double a = 0; a < 360.0; a += 30.0) {
+      const Eigen::Vector3d ray(std::sin(t * kPi / 180) * std::cos(a * kPi / 180),
+                                std::sin(t * kPi / 180) * std::sin(a * kPi / 180),
+                                std::cos(t * kPi / 180));
+      worst = std::max(worst, (r.camera.project(ray) - theirs.project(ray)).norm());
+    }
+  }
+  EXPECT_LT(worst, 0.3);
+  EXPECT_LT(seconds, 20.0);
+  // k3 of Brown-Conrady cannot be kept at 0 on a fisheye.
+  options.fix_k3 = true;
+  expect_error_containing([&] { calibrate_intrinsics(views, 512, 512, options); },
+                          {"fix-k3", "fisheye", "--lens pinhole"});
+  std::printf(
+      "fisheye Ceres fx %.3f fy %.3f cx %.3f cy %.3f (sigma fx %.3f) | OpenCV fx %.3f fy "
+      "%.3f cx %.3f cy %.3f | truth fx %.3f | rms %.4f vs %.4f px | max pixel difference "
+      "%.3f | %.2f s\n",
+      r.camera.fx, r.camera.fy, r.camera.cx, r.camera.cy, r.stddev[0], K(0, 0), K(1, 1), K(0, 2),
+      K(1, 2), truth.fx, r.rms_px, cv_rms, worst, seconds);
+}
+
+// End to end through the command line: `synth` renders a fisheye recording of an AprilTag grid,
+// `calibrate camera --lens fisheye` finds the camera and writes an equidistant camera.yaml.
+TEST(Intrinsics, CalibrateCameraCommandWithFisheyeLens) {
+  namespace fs = std::filesystem;
+  const test::TemporaryFolder dir;
+  const TrueFisheye truth;
+  const tracking::Board grid = tracking::make_grid_board("calib", 4, 5, 30.0, 8.0, 0);
+  std::vector<cv::Point3d> corners;
+  for (const auto& t : grid.tags) {
+    for (const auto& c : t.corners) corners.emplace_back(c.x(), c.y(), c.z());
+  }
+  std::mt19937 rng(77);
+  std::uniform_real_distribution<double> uni(0.0, 1.0);
+  std::string poses;
+  int kept = 0, attempts = 0;
+  while (kept < 14 && attempts++ < 100000) {
+    const double off = uni(rng) * 50.0 * kPi / 180.0, az = (2 * uni(rng) - 1) * kPi;
+    const double depth = 170.0 + uni(rng) * 120.0;
+    const Eigen::Vector3d rotvec((2 * uni(rng) - 1) * 35.0, (2 * uni(rng) - 1) * 35.0,
+                                 (2 * uni(rng) - 1) * 30.0);
+    const Eigen::Matrix3d R =
+        Eigen::AngleAxisd(rotvec.norm() * kPi / 180.0, rotvec.normalized()).toRotationMatrix();
+    const Eigen::Vector3d t = depth * Eigen::Vector3d(std::sin(off) * std::cos(az),
+                                                      std::sin(off) * std::sin(az), std::cos(off)) -
+                              R * Eigen::Vector3d(95.0, 76.0, 0.0);
+    cv::Matx33d Rcv;
+    for (int i = 0; i < 9; ++i) Rcv(i / 3, i % 3) = R(i / 3, i % 3);
+    cv::Vec3d rvec;
+    cv::Rodrigues(Rcv, rvec);
+    std::vector<cv::Point2d> px;
+    cv::fisheye::projectPoints(corners, px, rvec, cv::Vec3d(t.x(), t.y(), t.z()), truth.K(),
+                               truth.k);
+    bool inside = true;
+    for (const auto& c : corners)
+      inside = inside && (R * Eigen::Vector3d(c.x, c.y, 0) + t).z() > 50;
+    for (const auto& p : px) inside = inside && p.x > 20 && p.y > 20 && p.x < 491 && p.y < 491;
+    if (!inside) continue;
+    char line[200];
+    std::snprintf(line, sizeof line,
+                  "%s{\"t\": %d, \"translation_mm\": [%.6f, %.6f, %.6f], \"rotvec_deg\": [%.6f, "
+                  "%.6f, %.6f]}",
+                  kept ? ", " : "", kept, t.x(), t.y(), t.z(), rotvec.x(), rotvec.y(), rotvec.z());
+    poses += line;
+    ++kept;
+  }
+  ASSERT_EQ(kept, 14);
+  char camera[400];
+  std::snprintf(camera, sizeof camera,
+                "{\"width\": 512, \"height\": 512, \"fx\": %.12g, \"fy\": %.12g, \"cx\": %.12g, "
+                "\"cy\": %.12g, \"distortion_model\": \"equidistant\", \"distortion\": [%.12g, "
+                "%.12g, %.12g, %.12g]}",
+                truth.fx, truth.fy, truth.cx, truth.cy, truth.k[0], truth.k[1], truth.k[2],
+                truth.k[3]);
+  tracking::write_boards((dir / "boards.json").string(), {grid});
+  std::ofstream(dir / "scene.json") << "{\"camera\": " << camera
+                                    << ", \"background\": \"plain\", \"boards\": \"boards.json\", "
+                                       "\"fps\": 1, \"frames\": 14, \"noise_sigma\": 2, "
+                                       "\"poses\": {\"calib\": ["
+                                    << poses << "]}}";
+  const std::string bin = CREPUSCULAR_BINARY;
+  const std::string log = (dir / "log.txt").string();
+  const std::string synth = bin + " synth --scene " + (dir / "scene.json").string() + " --out " +
+                            (dir / "rec").string() + " > " + log + " 2>&1";
+  ASSERT_EQ(std::system(synth.c_str()), 0) << synth;
+  const std::string out = (dir / "camera.yaml").string();
+  const std::string calibrate = bin + " calibrate camera --recording " + (dir / "rec").string() +
+                                " --board " + (dir / "boards.json").string() +
+                                " --lens fisheye --out " + out + " >> " + log + " 2>&1";
+  ASSERT_EQ(std::system(calibrate.c_str()), 0) << calibrate;
+  const CameraModel cam = CameraModel::read_yaml(out);
+  EXPECT_EQ(cam.model, DistortionModel::equidistant);
+  EXPECT_NEAR(cam.fx, truth.fx, 0.01 * truth.fx);
+  EXPECT_NEAR(cam.fy, truth.fy, 0.01 * truth.fy);
+  EXPECT_NEAR(cam.cx, truth.cx, 0.01 * truth.cx);
+  EXPECT_NEAR(cam.cy, truth.cy, 0.01 * truth.cy);
+  cv::FileStorage in(out, cv::FileStorage::READ);
+  EXPECT_EQ(std::string(in["distortion_model"]), "equidistant");
+  EXPECT_FALSE(in["parameter_stddev"]["k4"].empty());
+  std::printf(
+      "fisheye from a rendered recording: fx %.2f fy %.2f cx %.2f cy %.2f (truth %.2f "
+      "%.2f %.2f %.2f), RMS %.3f px\n",
+      cam.fx, cam.fy, cam.cx, cam.cy, truth.fx, truth.fy, truth.cx, truth.cy,
+      double(in["rms_reprojection_error_px"]));
+  // The lens flag is explained in --help and checked.
+  const std::string help = bin + " calibrate camera --help > " + log + " 2>&1";
+  ASSERT_EQ(std::system(help.c_str()), 0);
+  std::ifstream help_text(log);
+  const std::string text((std::istreambuf_iterator<char>(help_text)),
+                         std::istreambuf_iterator<char>());
+  EXPECT_NE(text.find("--lens"), std::string::npos) << text;
+  EXPECT_NE(text.find("fisheye"), std::string::npos) << text;
+  const std::string bad = bin + " calibrate camera --recording " + (dir / "rec").string() +
+                          " --board " + (dir / "boards.json").string() + " --lens wide --out " +
+                          (dir / "bad.yaml").string() + " > " + log + " 2>&1";
+  EXPECT_NE(std::system(bad.c_str()), 0);
+  EXPECT_FALSE(fs::exists(dir / "bad.yaml"));
 }
 
 TEST(Intrinsics, RejectsOutlierView) {
@@ -290,7 +522,8 @@ cv::Mat render_chessboard(const ChessboardSpec& spec, const cv::Matx33d& K,
       double sum = 0;
       for (int a = 0; a < 4; ++a) {
         for (int b = 0; b < 4; ++b) {
-          const Eigen::Vector3d q = Hinv * Eigen::Vector3d(u - 0.375 + 0.25 * b, v - 0.375 + 0.25 * a, 1);
+          const Eigen::Vector3d q =
+              Hinv * Eigen::Vector3d(u - 0.375 + 0.25 * b, v - 0.375 + 0.25 * a, 1);
           const double x = q.x() / q.z(), y = q.y() / q.z();
           // Squares from -s to cols*s (one square beyond the outer inner corners), white margin.
           double value = 230;
@@ -322,7 +555,8 @@ TEST(Intrinsics, DetectsRenderedChessboardCornersToSubPixel) {
   double worst = 0, sum = 0;
   for (size_t k = 0; k < view->object_points.size(); ++k) {
     const Eigen::Vector3d p = T * view->object_points[k];
-    const Eigen::Vector2d truth(K(0, 0) * p.x() / p.z() + K(0, 2), K(1, 1) * p.y() / p.z() + K(1, 2));
+    const Eigen::Vector2d truth(K(0, 0) * p.x() / p.z() + K(0, 2),
+                                K(1, 1) * p.y() / p.z() + K(1, 2));
     worst = std::max(worst, (view->image_points[k] - truth).norm());
     sum += (view->image_points[k] - truth).norm();
   }
@@ -345,7 +579,7 @@ TEST(Intrinsics, CalibrateCameraCommandOnRenderedChessboards) {
   fs::create_directories(dir / "shots");
   const ChessboardSpec spec{9, 6, 25.0};
   const cv::Matx33d K(900, 0, 640, 0, 905, 360, 0, 0, 1);
-  const double tilts[][2] = {{0.45, 0.0}, {-0.45, 0.1}, {0.1, 0.5},   {0.0, -0.5},
+  const double tilts[][2] = {{0.45, 0.0},  {-0.45, 0.1},  {0.1, 0.5},  {0.0, -0.5},
                              {0.35, 0.35}, {-0.3, -0.35}, {0.3, -0.3}, {-0.35, 0.3}};
   const double shifts[][2] = {{-250, -150}, {30, -150}, {-250, 20}, {30, 20},
                               {-110, -60},  {-240, 10}, {20, -140}, {-100, -80}};
@@ -403,7 +637,8 @@ TEST(Intrinsics, CalibratesFromRenderedAprilTagGrid) {
   tracking::SceneBoard board;
   board.board = tracking::make_grid_board("calib", 5, 7, 30.0, 8.0, 0);
   std::vector<Eigen::Vector3d> corners;
-  for (const auto& t : board.board.tags) corners.insert(corners.end(), t.corners.begin(), t.corners.end());
+  for (const auto& t : board.board.tags)
+    corners.insert(corners.end(), t.corners.begin(), t.corners.end());
   std::mt19937 rng(31);
   std::uniform_real_distribution<double> uni(0.0, 1.0);
   int attempts = 0;
@@ -461,7 +696,8 @@ TEST(Intrinsics, SelectsViewsForCoverage) {
   std::vector<CalibrationView> chosen;
   for (size_t i : picked) chosen.push_back(views[i]);
   std::vector<CalibrationView> first(views.begin(), views.begin() + 8);
-  EXPECT_GE(corner_coverage(chosen, kWidth, kHeight, 10), corner_coverage(first, kWidth, kHeight, 10));
+  EXPECT_GE(corner_coverage(chosen, kWidth, kHeight, 10),
+            corner_coverage(first, kWidth, kHeight, 10));
   for (size_t k = 1; k < picked.size(); ++k) EXPECT_LT(picked[k - 1], picked[k]);
 }
 

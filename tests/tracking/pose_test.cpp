@@ -1,10 +1,13 @@
 // Tests of tracking/pose: exact corners from cv::projectPoints give the exact pose; noisy corners
 // agree with OpenCV's own Levenberg-Marquardt PnP; covariance against a Monte Carlo scatter;
-// single-tag ambiguity; robustness to an outlier corner.
+// single-tag ambiguity; robustness to an outlier corner; a board seen through a fisheye lens
+// (corners from cv::fisheye::projectPoints) out to 70 degrees off axis.
 #include "tracking/pose.hpp"
 
 #include <gtest/gtest.h>
 
+#include <cmath>
+#include <cstdio>
 #include <random>
 
 #include "tests/tracking/tag_scene.hpp"
@@ -127,8 +130,8 @@ TEST(BoardPose, NoisyCornersAgreeWithOpenCvIterativePnP) {
     cv::Mat R, rvec, tvec;
     cv::eigen2cv(Eigen::Matrix3d(T.linear()), R);
     cv::Rodrigues(R, rvec);
-    tvec = (cv::Mat_<double>(3, 1) << T.translation().x(), T.translation().y(),
-            T.translation().z());
+    tvec =
+        (cv::Mat_<double>(3, 1) << T.translation().x(), T.translation().y(), T.translation().z());
     cv::solvePnP(obj, px, camera_matrix(cam), distortion(cam), rvec, tvec, true,
                  cv::SOLVEPNP_ITERATIVE);
     cv::Mat Rcv;
@@ -224,6 +227,82 @@ TEST(BoardPose, HuberLossResistsAnOutlierCorner) {
   std::printf("outlier: translation error robust %.3f mm, least squares %.3f mm\n", er, ep);
   EXPECT_LT(er, 0.6 * ep);
   EXPECT_LT(er, 0.5);
+}
+
+// A TUM VI-like equidistant fisheye (512 x 512, f 191 px).
+calibration::CameraModel fisheye_camera() {
+  calibration::CameraModel cam;
+  cam.model = calibration::DistortionModel::equidistant;
+  cam.width = cam.height = 512;
+  cam.fx = 190.978;
+  cam.fy = 190.973;
+  cam.cx = 254.932;
+  cam.cy = 256.897;
+  cam.distortion = {0.0034824, 0.00071503, -0.0020532, 0.00020294, 0.0};
+  return cam;
+}
+
+// Corners of all tags through cv::fisheye::projectPoints (the independent truth), with noise.
+BoardCorners observe_fisheye(const calibration::CameraModel& cam, const Board& board,
+                             const Eigen::Isometry3d& T, double noise_px, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::normal_distribution<double> n(0.0, noise_px);
+  std::vector<Detection> dets;
+  for (const BoardTag& t : board.tags) {
+    std::vector<cv::Point3d> obj;
+    for (const Eigen::Vector3d& c : t.corners) {
+      const Eigen::Vector3d q = T * c;
+      obj.emplace_back(q.x(), q.y(), q.z());
+    }
+    std::vector<cv::Point2d> img;
+    cv::fisheye::projectPoints(obj, img, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0),
+                               cam.camera_matrix(), cam.distortion_coefficients());
+    Detection d;
+    d.id = t.id;
+    d.decision_margin = 100;
+    for (int k = 0; k < 4; ++k)
+      d.corners[k] = Eigen::Vector2d(img[k].x + n(rng), img[k].y + n(rng));
+    dets.push_back(d);
+  }
+  return match_board_corners(board, dets);
+}
+
+TEST(BoardPose, FisheyeBoardPoseMatchesTruth) {
+  const calibration::CameraModel cam = fisheye_camera();
+  const Board board = make_grid_board("patient", 2, 3, 40, 10, 0);
+  // The board's centre from on axis to about 70 degrees off it, tilted and turned.
+  for (int v = 0; v < 6; ++v) {
+    const double off_deg = 14.0 * v, az = 1.1 * v;
+    const double depth = 300.0;
+    const Eigen::Isometry3d T =
+        look_at_board(depth * std::tan(off_deg * M_PI / 180) * std::cos(az) - 60,
+                      depth * std::tan(off_deg * M_PI / 180) * std::sin(az) - 40, depth, 20 - 8 * v,
+                      -15 + 6 * v, 40 * v);
+    // Exact corners: the exact pose.
+    const BoardPose exact = estimate_board_pose(cam, observe_fisheye(cam, board, T, 0, 0), &T);
+    ASSERT_TRUE(exact.valid) << "view " << v << ": " << exact.problem;
+    EXPECT_LT((exact.T_cam_board.translation() - T.translation()).norm(), 1e-6) << v;
+    EXPECT_LT(angle_deg(exact.T_cam_board, T), 1e-6) << v;
+    EXPECT_LT(exact.rms_px, 1e-6) << v;
+    // 0.3 px noise: within four standard deviations of the truth (its own covariance).
+    PoseOptions o;
+    o.huber_px = 5.0;
+    const BoardPose noisy =
+        estimate_board_pose(cam, observe_fisheye(cam, board, T, 0.3, 40 + v), nullptr, o);
+    ASSERT_TRUE(noisy.valid) << "view " << v << ": " << noisy.problem;
+    ASSERT_TRUE(noisy.covariance_valid);
+    const Eigen::Vector3d dt = noisy.T_cam_board.translation() - T.translation();
+    for (int a = 0; a < 3; ++a) {
+      EXPECT_LT(std::abs(dt[a]), 4.0 * std::sqrt(noisy.covariance(3 + a, 3 + a)) + 1e-9)
+          << "view " << v << " axis " << a;
+    }
+    EXPECT_LT(noisy.rms_px, 0.6);
+    std::printf(
+        "fisheye view %d (%2.0f deg off axis): exact %.1e mm, noisy %.3f mm (sigma z "
+        "%.3f mm), %.3f deg\n",
+        v, off_deg, (exact.T_cam_board.translation() - T.translation()).norm(), dt.norm(),
+        std::sqrt(noisy.covariance(5, 5)), angle_deg(noisy.T_cam_board, T));
+  }
 }
 
 }  // namespace

@@ -4,14 +4,14 @@
 #include "tracking/synthetic.hpp"
 
 #include <apriltag.h>
-#include <tag36h11.h>
 #include <gtest/gtest.h>
+#include <tag36h11.h>
 
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <map>
-
+#include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include "foundation/error.hpp"
@@ -110,7 +110,8 @@ TEST(Synthetic, DetectedCornersMatchProjectedTrueCorners) {
   };
   double worst = 0;
   for (size_t c = 0; c < cases.size(); ++c) {
-    const SyntheticScene scene = single_tag_scene(cases[c].distortion, cases[c].size_mm, cases[c].T);
+    const SyntheticScene scene =
+        single_tag_scene(cases[c].distortion, cases[c].size_mm, cases[c].T);
     SyntheticRenderer renderer(scene);
     std::vector<TruePose> truth;
     const cv::Mat img = renderer.render(0, &truth);
@@ -132,6 +133,128 @@ TEST(Synthetic, DetectedCornersMatchProjectedTrueCorners) {
     std::printf("case %zu: worst corner error %.3f px\n", c, case_worst);
   }
   std::printf("worst corner error over %zu cases: %.3f px\n", cases.size(), worst);
+}
+
+// Through a strong fisheye (TUM VI-like, 512 x 512, f 191 px) every pixel shows what the ray that
+// cv::fisheye::undistortPoints gives for it meets: the tag's white outer ring, its black ring, or
+// the background (pixels within 0.3 cells of a boundary are not judged), out to 58 degrees off
+// axis; the image corners, more than 90 degrees off axis, see the background. libapriltag finds
+// the corners too, to within the bias of fitting straight lines to the edges a fisheye bends.
+TEST(Synthetic, FisheyeFramesShowWhatOpenCvFisheyeRaysMeet) {
+  const std::vector<Eigen::Isometry3d> poses = {pose({0, 0, 0}, {-30, -30, 250}),
+                                                pose({15, -20, 10}, {-180, 60, 230}),
+                                                pose({-10, 40, -30}, {200, 160, 170})};
+  double worst_corner = 0;
+  for (size_t c = 0; c < poses.size(); ++c) {
+    SyntheticScene scene = single_tag_scene({0, 0, 0, 0, 0}, 60, poses[c]);
+    calibration::CameraModel& cam = scene.camera;
+    cam.model = calibration::DistortionModel::equidistant;
+    cam.width = cam.height = 512;
+    cam.fx = 190.98;
+    cam.fy = 190.97;
+    cam.cx = 254.93;
+    cam.cy = 256.90;
+    cam.distortion = {0.0034824, 0.00071503, -0.0020532, 0.00020294, 0.0};
+    const cv::Mat img = SyntheticRenderer(scene).render(0);
+    EXPECT_NEAR(img.at<cv::Vec3b>(0, 0)[0], scene.background_grey, 1.0) << "case " << c;
+    EXPECT_NEAR(img.at<cv::Vec3b>(511, 511)[0], scene.background_grey, 1.0) << "case " << c;
+
+    // The tag in its board frame: u, v in cells of the black-bordered square from corner 3 (its
+    // top-left), which spans [0, 8]^2; the white ring is [-1, 9]^2 around it.
+    const std::array<Eigen::Vector3d, 4>& k = scene.boards[0].board.tags[0].corners;
+    const Eigen::Vector3d ex = (k[2] - k[3]) / 8.0, ey = (k[0] - k[3]) / 8.0;
+    const Eigen::Vector3d normal = poses[c].linear() * ex.cross(ey).normalized();
+    const Eigen::Vector3d origin = poses[c] * k[3];
+    std::vector<cv::Point2d> pixels, rays;
+    for (int y = 0; y < 512; ++y) {
+      for (int x = 0; x < 512; ++x) {
+        // Only pixels under 83 degrees off axis: OpenCV's inverse has no answer past 90.
+        if (std::hypot((x - cam.cx) / cam.fx, (y - cam.cy) / cam.fy) < 1.45) {
+          pixels.emplace_back(x, y);
+        }
+      }
+    }
+    cv::fisheye::undistortPoints(pixels, rays, cam.camera_matrix(), cam.distortion_coefficients());
+    const auto inside = [](double u, double v, double lo, double hi) {
+      return u > lo && u < hi && v > lo && v < hi;
+    };
+    constexpr double m = 0.3;  // cells (about 1.4 px) left unjudged on each side of a boundary
+    int judged[3] = {0, 0, 0}, wrong = 0;
+    for (size_t i = 0; i < pixels.size(); ++i) {
+      const Eigen::Vector3d d(rays[i].x, rays[i].y, 1.0);
+      const double lambda = normal.dot(origin) / normal.dot(d);
+      double u = 1e9, v = 1e9;
+      if (lambda > 0) {
+        const Eigen::Vector3d q = poses[c].inverse() * (lambda * d) - k[3];
+        u = q.dot(ex) / ex.squaredNorm();
+        v = q.dot(ey) / ey.squaredNorm();
+      }
+      int want = -1;
+      if (!inside(u, v, -1 - m, 9 + m)) want = 0;                             // background
+      if (inside(u, v, -1 + m, 9 - m) && !inside(u, v, -m, 8 + m)) want = 1;  // white ring
+      if (inside(u, v, m, 8 - m) && !inside(u, v, 1 - m, 7 + m)) want = 2;    // black ring
+      if (want < 0) continue;
+      const double level[3] = {scene.background_grey, scene.white, scene.black};
+      const double got = img.at<cv::Vec3b>(int(pixels[i].y), int(pixels[i].x))[0];
+      ++judged[want];
+      if (std::abs(got - level[want]) > 1.0) ++wrong;
+    }
+    EXPECT_EQ(wrong, 0) << "case " << c;
+    EXPECT_GT(judged[1], 100) << "case " << c;
+    EXPECT_GT(judged[2], 100) << "case " << c;
+
+    const std::vector<Detected> dets = detect(img);
+    ASSERT_EQ(dets.size(), 1u) << "case " << c;
+    std::vector<cv::Point3d> object;
+    for (const Eigen::Vector3d& corner : k) {
+      const Eigen::Vector3d q = poses[c] * corner;
+      object.emplace_back(q.x(), q.y(), q.z());
+    }
+    std::vector<cv::Point2d> expected;
+    cv::fisheye::projectPoints(object, expected, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0),
+                               cam.camera_matrix(), cam.distortion_coefficients());
+    double case_worst = 0;
+    for (size_t j = 0; j < 4; ++j) {
+      case_worst = std::max(case_worst,
+                            (dets[0].p[j] - Eigen::Vector2d(expected[j].x, expected[j].y)).norm());
+    }
+    EXPECT_LT(case_worst, 0.6) << "case " << c;
+    worst_corner = std::max(worst_corner, case_worst);
+    std::printf(
+        "fisheye case %zu (%.0f deg off axis): %d background, %d white, %d black pixels "
+        "judged, %d wrong; libapriltag corner error %.3f px\n",
+        c, std::atan2(std::hypot(object[0].x, object[0].y), object[0].z) / kDeg, judged[0],
+        judged[1], judged[2], wrong, case_worst);
+  }
+}
+
+TEST(Synthetic, SceneFileTakesAFisheyeCamera) {
+  const test::TemporaryFolder dir;
+  write_boards((dir / "boards.json").string(), {make_grid_board("patient", 2, 3, 40, 10, 0)});
+  const auto scene = [&](const std::string& camera) {
+    const std::string path = (dir / "scene.json").string();
+    std::ofstream(path) << R"({"camera": )" << camera << R"(, "boards": "boards.json",
+      "poses": {"patient": [{"t": 0, "translation_mm": [0, 0, 300]}]}})";
+    return path;
+  };
+  const SyntheticScene s = read_scene(scene(
+      R"({"width": 512, "height": 512, "fx": 190, "distortion_model": "equidistant",
+          "distortion": [0.003, 0.0007, -0.002, 0.0002]})"));
+  EXPECT_EQ(s.camera.model, calibration::DistortionModel::equidistant);
+  EXPECT_DOUBLE_EQ(s.camera.distortion[3], 0.0002);
+  EXPECT_DOUBLE_EQ(s.camera.distortion[4], 0.0);
+  // Five numbers are Brown-Conrady's, not a fisheye's; an unknown model is named.
+  EXPECT_THROW(read_scene(scene(R"({"distortion_model": "equidistant",
+                                     "distortion": [0, 0, 0, 0, 0]})")),
+               Error);
+  try {
+    read_scene(scene(R"({"distortion_model": "omnidirectional"})"));
+    ADD_FAILURE() << "expected Error";
+  } catch (const Error& e) {
+    for (const char* part : {"scene.json", "omnidirectional", "equidistant", "plumb_bob"}) {
+      EXPECT_NE(std::string(e.what()).find(part), std::string::npos) << e.what();
+    }
+  }
 }
 
 // An edge between black and white lands where the camera model puts it: along a row crossing the
@@ -178,7 +301,7 @@ TEST(Synthetic, LightingNoiseAndBlurHaveTheirStatedLevels) {
   s.gain = 1.2;
   s.offset = 10;
   const cv::Mat lit = SyntheticRenderer(s).render(0);
-  EXPECT_EQ(lit.at<cv::Vec3b>(10, 10)[1], 130);  // 1.2 * 100 + 10
+  EXPECT_EQ(lit.at<cv::Vec3b>(10, 10)[1], 130);                               // 1.2 * 100 + 10
   EXPECT_EQ(lit.at<cv::Vec3b>(360, 640)[2], lit.at<cv::Vec3b>(360, 640)[0]);  // grey in BGR
 
   s.gain = 1;
@@ -240,8 +363,8 @@ TEST(Synthetic, SourceDropsAndCorruptsFramesAndCarriesTruth) {
 
 TEST(Synthetic, SceneFileIsReadWithBoardsPosesAndOptions) {
   const test::TemporaryFolder dir;
-  write_boards((dir / "boards.json").string(),
-               {make_grid_board("patient", 2, 3, 40, 10, 0), make_grid_board("needle", 1, 2, 20, 5, 10)});
+  write_boards((dir / "boards.json").string(), {make_grid_board("patient", 2, 3, 40, 10, 0),
+                                                make_grid_board("needle", 1, 2, 20, 5, 10)});
   std::ofstream(dir / "scene.json") << R"({
     "camera": {"width": 640, "height": 480, "fx": 600, "distortion": [-0.1, 0.01, 0, 0, 0]},
     "background": {"type": "noise", "grey": 120, "contrast": 40},
