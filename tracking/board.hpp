@@ -5,8 +5,8 @@
 // "size" is the side of that square. Board frame of a printed board seen upright: x to the right,
 // y down, z into the board (away from a camera that looks at the printed face), as libapriltag's
 // own tag pose. Corner order = apriltag_detection_t::p: bottom-left, bottom-right, top-right,
-// top-left of the tag as printed, i.e. (-s/2, +s/2), (+s/2, +s/2), (+s/2, -s/2), (-s/2, -s/2) around
-// the tag centre (checked by rendering and detecting in tests/tracking/board_test.cpp).
+// top-left of the tag as printed, i.e. (-s/2, +s/2), (+s/2, +s/2), (+s/2, -s/2), (-s/2, -s/2)
+// around the tag centre (checked by rendering and detecting in tests/tracking/board_test.cpp).
 // Note: libapriltag's detection coordinates put pixel centres at (i + 0.5, j + 0.5); OpenCV and
 // calibration::CameraModel put them at (i, j). Measured on rendered tags: libapriltag's corners lie
 // +0.50 px in x and y from the projected truth (tests/tracking/synthetic_test.cpp).
@@ -14,11 +14,10 @@
 
 #include <Eigen/Core>
 #include <array>
-#include <string>
-#include <vector>
-
 #include <nlohmann/json_fwd.hpp>
 #include <opencv2/core.hpp>
+#include <string>
+#include <vector>
 
 namespace crepuscular::tracking {
 
@@ -34,7 +33,7 @@ struct BoardTag {
 };
 
 struct Board {
-  std::string name;                       // e.g. "patient", "needle"
+  std::string name;  // e.g. "patient", "needle"
   std::string family = "tag36h11";
   std::vector<BoardTag> tags;
   std::vector<Eigen::Vector3d> fiducials;  // CT-visible fiducials (patient board), board frame mm
@@ -43,11 +42,21 @@ struct Board {
   const BoardTag* find(int id) const;
 };
 
-// A planar grid of rows x cols tags of side tag_size_mm with gap_mm between them, ids from first_id,
-// in the z = 0 plane of the board frame.
-// Origin at the centre of the grid; ids run row by row from the top-left tag (smallest x, y).
+// A planar grid of rows x cols tags of side tag_size_mm with gap_mm between them, ids from
+// first_id, in the z = 0 plane of the board frame. Origin at the centre of the grid; ids run row by
+// row from the top-left tag (smallest x, y).
 Board make_grid_board(const std::string& name, int rows, int cols, double tag_size_mm,
                       double gap_mm, int first_id);
+
+// A Kalibr aprilgrid (Kalibr's target yaml: tagRows, tagCols, tagSize [m], tagSpacing [ratio of
+// tagSize]), family tag36h11b2, corners in Kalibr's target frame (mm): origin at the bottom-left
+// corner of tag 0's black square, x to the right and y up on the print as seen upright, z = x cross
+// y (out of the print, toward a camera that looks at it). Ids as Kalibr numbers them: 0 at the
+// bottom-left, along a row to the right, rows upward. Tag in row r (from the bottom) and column c:
+// bottom-left corner at ((1 + tagSpacing) * tagSize * (c, r)), corners in libapriltag's order
+// (bottom-left, bottom-right, top-right, top-left as printed), which is Kalibr's.
+Board make_kalibr_aprilgrid_board(const std::string& name, int tag_rows, int tag_cols,
+                                  double tag_size_mm, double tag_spacing);
 
 // The four corners of an upright square tag of side size_mm centred at `center` (z = 0 plane).
 std::array<Eigen::Vector3d, 4> square_tag_corners(const Eigen::Vector2d& center, double size_mm);
@@ -60,7 +69,15 @@ std::array<Eigen::Vector3d, 4> square_tag_corners(const Eigen::Vector2d& center,
 //           "fiducials": [[x,y,z], ...]}
 // "grid" is expanded into tags on reading (after any explicit "tags"); at least one tag; ids
 // unique within a family across all boards and within the family's code count.
+// A Kalibr aprilgrid board: {"name": "aprilgrid", "kalibr_aprilgrid": {"tagRows": 6, "tagCols": 6,
+// "tagSize_m": 0.088, "tagSpacing": 0.3}} (family tag36h11b2, make_kalibr_aprilgrid_board).
+// read_boards also reads Kalibr's own target yaml (told by its content, `target_type:`) as one
+// board named "aprilgrid".
 std::vector<Board> read_boards(const std::string& path);
+// A Kalibr target yaml's text (flat `key: value  # comment` lines, as Kalibr writes it) as the
+// aprilgrid board `name`; `what` names its origin in errors. Throws Error for other target types.
+Board read_kalibr_target_text(const std::string& yaml_text, const std::string& what,
+                              const std::string& name = "aprilgrid");
 // The same from JSON text or a parsed document; `what` names its origin in errors.
 std::vector<Board> read_boards_text(const std::string& json_text, const std::string& what);
 std::vector<Board> read_boards_json(const nlohmann::json& document, const std::string& what);

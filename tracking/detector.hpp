@@ -6,10 +6,9 @@
 #include <Eigen/Core>
 #include <array>
 #include <memory>
+#include <opencv2/core.hpp>
 #include <string>
 #include <vector>
-
-#include <opencv2/core.hpp>
 
 namespace crepuscular::tracking {
 
@@ -45,7 +44,10 @@ class TagDetector {
 
   const DetectorOptions& options() const { return options_; }
 
-  // All tags of the family in the image (8-bit grey or BGR). An empty image gives no detections.
+  // All tags of the family in the image (8- or 16-bit grey, BGR or BGRA; 16-bit as grey_8bit
+  // maps it). An empty image gives no detections. Family tag36h11b2 (Kalibr's aprilgrids, whose
+  // black corner squares touch the tags): quads are found on the image with white grown by 1 px,
+  // their corners refined on the image itself (cv::cornerSubPix at the tag/corner-square saddle).
   std::vector<Detection> detect(const cv::Mat& image);
 
   // Tags searched only inside the given rectangles (clipped to the image; overlapping rectangles
@@ -62,6 +64,11 @@ class TagDetector {
   DetectorOptions options_;
   std::unique_ptr<Impl> impl_;
 };
+
+// The image as 8-bit grey: colour converted to grey; 16-bit images mapped linearly from their own
+// range (darkest to brightest pixel) to 0..255, so that 10- or 12-bit data in 16-bit words keep
+// their contrast. Throws Error for other types.
+cv::Mat grey_8bit(const cv::Mat& image);
 
 // The family names TagDetector accepts.
 std::vector<std::string> tag_family_names();
