@@ -25,7 +25,8 @@ void add_calibrate_command(CLI::App& app) {
                      "A recording folder; frames are picked for coverage of the image");
   camera
       ->add_option("--board", c->board,
-                   "The target: boards.json of an AprilTag grid board, or "
+                   "The target: boards.json of an AprilTag grid board, Kalibr's aprilgrid "
+                   "target yaml, or "
                    "chessboard:COLSxROWS:SQUARE_MM counting inner corners as OpenCV does "
                    "(chessboard:9x6:25 for a board of 10 x 7 squares of 25 mm)")
       ->required();

@@ -17,7 +17,8 @@ void add_track_command(CLI::App& app) {
                   "v4l2:/dev/video0?width=1280&height=720&fps=60")
       ->required();
   cmd->add_option("--boards", a->boards,
-                  "Marker boards (boards.json); default: the recording's boards.json");
+                  "Marker boards (boards.json, or Kalibr's aprilgrid target yaml); default: "
+                  "the recording's boards.json");
   cmd->add_option("--camera", a->camera,
                   "Camera model (OpenCV YAML); default: the source's own (a recording's "
                   "camera.yaml, a synthetic scene's camera)");
@@ -41,7 +42,7 @@ void add_track_command(CLI::App& app) {
                   "tracked (in between only where their poses predict the tags); 0 = every frame")
       ->capture_default_str()
       ->check(in_range(0, 1e9, true));
-  cmd->add_option("--family", a->family, "AprilTag family of the boards")->capture_default_str();
+  cmd->add_option("--family", a->family, "AprilTag family of the boards (default: the boards')");
   cmd->add_flag("!--no-smoothing", a->smoothing,
                 "Report each frame's measured pose without the temporal filter");
   cmd->callback([a] {

@@ -70,7 +70,7 @@ TrackSummary run_track(const TrackRequest& a) {
   const calibration::CameraModel camera = session_camera(a.camera, *source, "track");
 
   tracking::TrackerOptions o;
-  o.detector.family = a.family;
+  o.detector.family = a.family.empty() ? boards.front().family : a.family;
   o.detector.decimate = a.decimate;
   o.detector.threads = a.threads;
   o.max_age_ms = a.max_age_ms;

@@ -19,7 +19,7 @@ struct TrackRequest {
   int threads = 2;
   int full_search_interval = 15;
   bool smoothing = true;
-  std::string family = "tag36h11";
+  std::string family;  // AprilTag family; empty: the first board's
 };
 
 struct TrackSummary {

@@ -411,6 +411,16 @@ cv::Mat decode_jpeg(const std::vector<uint8_t>& bytes, std::string* problem) {
 
 }  // namespace
 
+cv::Mat to_8bit_by_range(const cv::Mat& image) {
+  if (image.empty() || image.depth() == CV_8U) return image;
+  double lo = 0, hi = 0;
+  cv::minMaxLoc(image.reshape(1), &lo, &hi);
+  const double scale = hi > lo ? 255.0 / (hi - lo) : 0.0;
+  cv::Mat out;
+  image.convertTo(out, CV_8U, scale, -lo * scale);
+  return out;
+}
+
 cv::Mat decode_image(const std::vector<uint8_t>& bytes, std::string* problem) {
   if (bytes.empty()) {
     *problem = "empty image data";
@@ -430,7 +440,7 @@ cv::Mat decode_image(const std::vector<uint8_t>& bytes, std::string* problem) {
   if (is_jpeg(bytes)) return decode_jpeg(bytes, problem);
   cv::Mat image;
   try {
-    image = cv::imdecode(bytes, cv::IMREAD_COLOR);
+    image = to_8bit_by_range(cv::imdecode(bytes, cv::IMREAD_COLOR | cv::IMREAD_ANYDEPTH));
   } catch (const cv::Exception& e) {
     *problem = std::string("cannot decode image (") + e.err + ")";
     return {};

@@ -65,8 +65,7 @@ void parse_grid(const json& g, const JsonPath& at, Board& b) {
   as_object(g, at);
   for (const char* key : {"rows", "cols", "tag_size_mm", "gap_mm"}) {
     if (!g.contains(key)) {
-      at.key(key).fail(
-          "is missing (grid needs rows, cols, tag_size_mm, gap_mm; first_id optional)");
+      at.key(key).fail("is missing (grid needs rows, cols, tag_size_mm, gap_mm; first_id optional)");
     }
   }
   const int rows = int(required_integer(g, "rows", at, INT32_MIN, INT32_MAX));
@@ -236,8 +235,8 @@ Board parse_board(const json& j, const JsonPath& at) {
   }
   for (const BoardTag& t : b.tags) {
     if (t.id < 0 || t.id >= codes) {
-      at.fail("has tag id " + std::to_string(t.id) + " (board '" + b.name + "'), outside family " +
-              b.family + " (0 to " + std::to_string(codes - 1) + ")");
+      at.fail("has tag id " + std::to_string(t.id) + " (board '" + b.name +
+              "'), outside family " + b.family + " (0 to " + std::to_string(codes - 1) + ")");
     }
   }
   if (j.contains("fiducials")) {

@@ -5,8 +5,8 @@
 // "size" is the side of that square. Board frame of a printed board seen upright: x to the right,
 // y down, z into the board (away from a camera that looks at the printed face), as libapriltag's
 // own tag pose. Corner order = apriltag_detection_t::p: bottom-left, bottom-right, top-right,
-// top-left of the tag as printed, i.e. (-s/2, +s/2), (+s/2, +s/2), (+s/2, -s/2), (-s/2, -s/2)
-// around the tag centre (checked by rendering and detecting in tests/tracking/board_test.cpp).
+// top-left of the tag as printed, i.e. (-s/2, +s/2), (+s/2, +s/2), (+s/2, -s/2), (-s/2, -s/2) around
+// the tag centre (checked by rendering and detecting in tests/tracking/board_test.cpp).
 // Note: libapriltag's detection coordinates put pixel centres at (i + 0.5, j + 0.5); OpenCV and
 // calibration::CameraModel put them at (i, j). Measured on rendered tags: libapriltag's corners lie
 // +0.50 px in x and y from the projected truth (tests/tracking/synthetic_test.cpp).
@@ -14,10 +14,11 @@
 
 #include <Eigen/Core>
 #include <array>
-#include <nlohmann/json_fwd.hpp>
-#include <opencv2/core.hpp>
 #include <string>
 #include <vector>
+
+#include <nlohmann/json_fwd.hpp>
+#include <opencv2/core.hpp>
 
 namespace crepuscular::tracking {
 
@@ -33,7 +34,7 @@ struct BoardTag {
 };
 
 struct Board {
-  std::string name;  // e.g. "patient", "needle"
+  std::string name;                       // e.g. "patient", "needle"
   std::string family = "tag36h11";
   std::vector<BoardTag> tags;
   std::vector<Eigen::Vector3d> fiducials;  // CT-visible fiducials (patient board), board frame mm
@@ -42,9 +43,9 @@ struct Board {
   const BoardTag* find(int id) const;
 };
 
-// A planar grid of rows x cols tags of side tag_size_mm with gap_mm between them, ids from
-// first_id, in the z = 0 plane of the board frame. Origin at the centre of the grid; ids run row by
-// row from the top-left tag (smallest x, y).
+// A planar grid of rows x cols tags of side tag_size_mm with gap_mm between them, ids from first_id,
+// in the z = 0 plane of the board frame.
+// Origin at the centre of the grid; ids run row by row from the top-left tag (smallest x, y).
 Board make_grid_board(const std::string& name, int rows, int cols, double tag_size_mm,
                       double gap_mm, int first_id);
 

@@ -9,6 +9,7 @@
 #include <sstream>
 
 #include "foundation/error.hpp"
+#include "recordings/recording.hpp"
 #include "tracking/tag_family.hpp"
 
 namespace crepuscular::tracking {
@@ -150,8 +151,7 @@ std::vector<Detection> TagDetector::detect_grey(const cv::Mat& grey, const cv::P
     // 0..1); OpenCV and CameraModel place them at integers. The shift was measured against
     // cv::projectPoints and cv::aruco in tests/tracking/detector_test.cpp.
     const double ox = offset.x - kApriltagPixelCentre, oy = offset.y - kApriltagPixelCentre;
-    for (int k = 0; k < 4; ++k)
-      d.corners[k] = Eigen::Vector2d(det->p[k][0] + ox, det->p[k][1] + oy);
+    for (int k = 0; k < 4; ++k) d.corners[k] = Eigen::Vector2d(det->p[k][0] + ox, det->p[k][1] + oy);
     d.center = Eigen::Vector2d(det->c[0] + ox, det->c[1] + oy);
     if (corner_squares) {
       const Eigen::Vector2d o(offset.x, offset.y);
@@ -184,13 +184,7 @@ cv::Mat grey_8bit(const cv::Mat& image) {
     throw Error("tag detector: image type " + std::to_string(image.type()) +
                 " is not supported; expected 8- or 16-bit grey, BGR or BGRA");
   }
-  if (grey.depth() == CV_8U) return grey;
-  double lo = 0, hi = 0;
-  cv::minMaxLoc(grey, &lo, &hi);
-  cv::Mat out;
-  const double scale = hi > lo ? 255.0 / (hi - lo) : 0.0;
-  grey.convertTo(out, CV_8U, scale, -lo * scale);
-  return out;
+  return recordings::to_8bit_by_range(grey);
 }
 
 std::vector<cv::Rect> TagDetector::merge_regions(std::vector<cv::Rect> regions) {
