@@ -315,9 +315,11 @@ Stats run_frames(const DetectorOptions& o) {
 
 // 26 frames: EuRoC's pinhole (8 bits) and TUM VI's fisheye (16 bits, full and 12-bit range),
 // frontal and tilted 30 to 50 degrees, sharp and blurred (sigma 0.8 px), noise 1.5 grey levels.
-// Measured: decimate 1: 90.0 % of all 892 tags wholly in the frames, decimate 2: 89.2 %; of those
-// with cells at least 2.5 px wide XX; corners mean 0.12 px, max 1.8 / 3.4 px (a few extreme fisheye
-// corners keep libapriltag's position). libapriltag alone (before) found 34 % / 48 %.
+// Measured (decimate 1 / 2): 90.0 / 89.2 % of the 892 tags wholly in the frames, 96.5 / 96.9 % of
+// the 718 with cells at least 2.5 px wide (the rest: far fisheye periphery), none wrong; corners
+// mean 0.12 px, max 1.8 / 3.4 px (a few fisheye corners where the refinement gives up keep
+// libapriltag's position). libapriltag alone found 34.4 / 50.8 % (23 wrong ids or corners at
+// decimate 2), corners mean 0.30 / 0.35 px, max 4.6 / 4.9 px.
 TEST(KalibrAprilgrid, TagsWithCornerSquaresAreFoundInSharpBlurredFisheyeAnd16BitFrames) {
   DetectorOptions o;
   o.family = "tag36h11b2";
