@@ -57,9 +57,9 @@ cv::Mat part_corner_squares(const cv::Mat& grey) {
 }
 
 // Corners (OpenCV pixels) of a tag with corner squares refined on the image (cv::cornerSubPix,
-// half-width of the window about one cell, Kalibr's own refinement) as the saddle points where the tag's black corner meets its corner
-// square. A corner the refinement moves farther than a quarter cell (at least 1 px), or too near
-// the image border for the window, keeps libapriltag's position.
+// as Kalibr refines them; window half-width about one cell) as the saddle points where the tag's
+// black corner meets its corner square. A corner the refinement moves farther than a quarter cell
+// (at least 1 px), or too near the image border for the window, keeps libapriltag's position.
 void refine_corner_square_corners(const cv::Mat& grey, std::array<Eigen::Vector2d, 4>& p) {
   double side = 1e30;
   for (size_t i = 0; i < 4; ++i) side = std::min(side, (p[(i + 1) % 4] - p[i]).norm());
