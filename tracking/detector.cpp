@@ -47,8 +47,19 @@ cv::Mat part_corner_squares(const cv::Mat& grey) {
   const cv::Mat box = cv::getStructuringElement(cv::MORPH_RECT, cv::Size(7, 7));
   cv::dilate(f, top, box);
   cv::erode(f, bottom, box);
-  const cv::Mat contrast = cv::max(top - bottom, kSaddleMinContrast) * kSaddleContrast;
-  const cv::Mat saddle_points = ixy.mul(ixy) - ixx.mul(iyy) > contrast.mul(contrast);
+  // saddle > (k * max(contrast, floor))^2, per pixel in one pass.
+  cv::Mat saddle_points(grey.size(), CV_8U);
+  const float k2 = float(kSaddleContrast * kSaddleContrast);
+  const float floor_contrast = float(kSaddleMinContrast);
+  for (int y = 0; y < grey.rows; ++y) {
+    const float *xx = ixx.ptr<float>(y), *yy = iyy.ptr<float>(y), *xy = ixy.ptr<float>(y);
+    const float *hi = top.ptr<float>(y), *lo = bottom.ptr<float>(y);
+    uint8_t* m = saddle_points.ptr<uint8_t>(y);
+    for (int x = 0; x < grey.cols; ++x) {
+      const float c = std::max(hi[x] - lo[x], floor_contrast);
+      m[x] = xy[x] * xy[x] - xx[x] * yy[x] > k2 * c * c ? 255 : 0;
+    }
+  }
   cv::Mat grown;
   cv::dilate(grey, grown, cv::Mat());
   cv::Mat out = grey.clone();
