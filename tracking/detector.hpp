@@ -67,7 +67,7 @@ class TagDetector {
 };
 
 // The image as 8-bit grey: colour converted to grey; 16-bit images mapped linearly from their own
-// range (darkest to brightest pixel) to 0..255 (recordings::to_8bit_by_range), so that 10- or
+// range (recordings::to_8bit_by_range) to 0..255, so that 10- or
 // 12-bit data in 16-bit words keep their contrast (measured better than >> 8 on 12-bit frames in
 // tests/tracking/kalibr_test.cpp). Throws Error for other types.
 cv::Mat grey_8bit(const cv::Mat& image);
