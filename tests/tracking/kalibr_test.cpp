@@ -315,9 +315,9 @@ Stats run_frames(const DetectorOptions& o) {
 
 // 26 frames: EuRoC's pinhole (8 bits) and TUM VI's fisheye (16 bits, full and 12-bit range),
 // frontal and tilted 30 to 50 degrees, sharp and blurred (sigma 0.8 px), noise 1.5 grey levels.
-// Measured (decimate 1 / 2): 90.2 / 89.1 % of the 892 tags wholly in the frames, 96.5 / 96.9 % of
+// Measured (decimate 1 / 2): 92.2 / 91.8 % of the 892 tags wholly in the frames, 96.7 / 97.5 % of
 // the 718 with cells at least 2.5 px wide (the rest: far fisheye periphery), none wrong; corners
-// mean 0.12 px, max 1.8 / 3.4 px (a few fisheye corners where the refinement gives up keep
+// mean 0.12 / 0.13 px, max 2.9 / 3.4 px (a few fisheye corners where the refinement gives up keep
 // libapriltag's position). libapriltag alone found 34.4 / 50.8 % (23 wrong ids or corners at
 // decimate 2), corners mean 0.30 / 0.35 px, max 4.6 / 4.9 px.
 TEST(KalibrAprilgrid, TagsWithCornerSquaresAreFoundInSharpBlurredFisheyeAnd16BitFrames) {
@@ -327,7 +327,7 @@ TEST(KalibrAprilgrid, TagsWithCornerSquaresAreFoundInSharpBlurredFisheyeAnd16Bit
     o.decimate = decimate;
     const Stats s = run_frames(o);
     EXPECT_GE(s.found_resolvable, 0.95 * s.resolvable) << "decimate " << decimate;
-    EXPECT_GE(s.found, 0.88 * s.visible) << "decimate " << decimate;
+    EXPECT_GE(s.found, 0.9 * s.visible) << "decimate " << decimate;
     EXPECT_EQ(s.wrong, 0);
     EXPECT_LT(s.mean(), 0.15) << "decimate " << decimate;
     EXPECT_LT(s.max, 4.0) << "decimate " << decimate;
