@@ -47,8 +47,9 @@ class TagDetector {
 
   // All tags of the family in the image (8- or 16-bit grey, BGR or BGRA; 16-bit as grey_8bit
   // maps it). An empty image gives no detections. Family tag36h11b2 (Kalibr's aprilgrids, whose
-  // black corner squares touch the tags): quads are found on the image with white grown by 1 px,
-  // their corners refined on the image itself (cv::cornerSubPix at the tag/corner-square saddle).
+  // black corner squares touch the tags): tags are searched where white is grown by 1 px at the
+  // saddle points (tag and square come apart there), then on the image itself; their corners are
+  // refined on the image (cv::cornerSubPix at the tag/corner-square saddle). About twice the time.
   std::vector<Detection> detect(const cv::Mat& image);
 
   // Tags searched only inside the given rectangles (clipped to the image; overlapping rectangles
