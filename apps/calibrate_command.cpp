@@ -27,6 +27,7 @@ void add_calibrate_command(CLI::App& app) {
   camera
       ->add_option("--board", c->board,
                    "The target: boards.json of a marker board (AprilTag or ArUco markers), "
+                   "Kalibr's aprilgrid target yaml, "
                    "chessboard:COLSxROWS:SQUARE_MM counting inner corners as OpenCV does "
                    "(chessboard:9x6:25 for a board of 10 x 7 squares of 25 mm), or "
                    "charuco:SQUARES_XxSQUARES_Y:SQUARE_MM:MARKER_MM:DICT counting squares as "

@@ -19,7 +19,8 @@ void add_track_command(CLI::App& app) {
                   "v4l2:/dev/video0?width=1280&height=720&fps=60")
       ->required();
   cmd->add_option("--boards", a->boards,
-                  "Marker boards (boards.json); default: the recording's boards.json");
+                  "Marker boards (boards.json, or Kalibr's aprilgrid target yaml); default: "
+                  "the recording's boards.json");
   cmd->add_option("--camera", a->camera,
                   "Camera model (OpenCV YAML); default: the source's own (a recording's "
                   "camera.yaml, a synthetic scene's camera)");

@@ -142,7 +142,8 @@ Views views_from_images(const std::string& spec, TargetFinder& finder) {
   Views out;
   const std::vector<std::string> files = list_images(spec);
   for (size_t i = 0; i < files.size(); ++i) {
-    const cv::Mat image = cv::imread(files[i], cv::IMREAD_COLOR);
+    const cv::Mat image =
+        recordings::to_8bit_by_range(cv::imread(files[i], cv::IMREAD_COLOR | cv::IMREAD_ANYDEPTH));
     if (image.empty()) {
       spdlog::warn("calibrate camera: {} cannot be read as an image; skipped", files[i]);
       continue;

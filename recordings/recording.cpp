@@ -411,6 +411,48 @@ cv::Mat decode_jpeg(const std::vector<uint8_t>& bytes, std::string* problem) {
 
 }  // namespace
 
+cv::Mat to_8bit_by_range(const cv::Mat& image) {
+  if (image.empty() || image.depth() == CV_8U) return image;
+  if (image.depth() != CV_16U) {  // float or signed images (TIFF, EXR): darkest to brightest
+    double lo = 0, hi = 0;
+    cv::minMaxLoc(image.reshape(1), &lo, &hi);
+    const double scale = hi > lo && std::isfinite(hi - lo) ? 255.0 / (hi - lo) : 0.0;
+    cv::Mat out;
+    image.convertTo(out, CV_8U, scale, -lo * scale);
+    return out;
+  }
+  // The range between the 0.01 % and 99.99 % quantiles of the values: a few hot or dead pixels do
+  // not squeeze the rest into a handful of grey levels.
+  std::vector<uint32_t> histogram(65536, 0);
+  const cv::Mat values = image.reshape(1);
+  for (int y = 0; y < values.rows; ++y) {
+    const uint16_t* row = values.ptr<uint16_t>(y);
+    for (int x = 0; x < values.cols; ++x) ++histogram[row[x]];
+  }
+  const size_t total = values.total(), tail = total / 10000;
+  double lo = 0, hi = 65535;
+  size_t seen = 0;
+  for (size_t v = 0; v < histogram.size(); ++v) {
+    seen += histogram[v];
+    if (seen > tail) {
+      lo = double(v);
+      break;
+    }
+  }
+  seen = 0;
+  for (size_t v = histogram.size(); v-- > 0;) {
+    seen += histogram[v];
+    if (seen > tail) {
+      hi = double(v);
+      break;
+    }
+  }
+  const double scale = hi > lo ? 255.0 / (hi - lo) : 0.0;
+  cv::Mat out;
+  image.convertTo(out, CV_8U, scale, -lo * scale);
+  return out;
+}
+
 cv::Mat decode_image(const std::vector<uint8_t>& bytes, std::string* problem) {
   if (bytes.empty()) {
     *problem = "empty image data";
@@ -430,7 +472,7 @@ cv::Mat decode_image(const std::vector<uint8_t>& bytes, std::string* problem) {
   if (is_jpeg(bytes)) return decode_jpeg(bytes, problem);
   cv::Mat image;
   try {
-    image = cv::imdecode(bytes, cv::IMREAD_COLOR);
+    image = to_8bit_by_range(cv::imdecode(bytes, cv::IMREAD_COLOR | cv::IMREAD_ANYDEPTH));
   } catch (const cv::Exception& e) {
     *problem = std::string("cannot decode image (") + e.err + ")";
     return {};

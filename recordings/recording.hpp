@@ -158,8 +158,14 @@ class RecordingReader {
   std::vector<PoseRow> truth_;  // sorted by frame
 };
 
-// Decodes a JPEG or PNG image to 8-bit BGR. A truncated JPEG (no end-of-image marker), an empty
-// buffer or undecodable bytes give an empty Mat and set *problem; never throws.
+// Decodes a JPEG or PNG image to 8-bit BGR (16-bit PNGs, e.g. TUM VI's, as to_8bit_by_range maps
+// them). A truncated JPEG (no end-of-image marker), an empty buffer or undecodable bytes give an
+// empty Mat and set *problem; never throws.
 cv::Mat decode_image(const std::vector<uint8_t>& bytes, std::string* problem);
+
+// An 8-bit image as it is; a 16-bit one (any channels) mapped linearly from its own range (the
+// 0.01 % to 99.99 % quantiles of its values, so a few hot pixels do not matter) to 0..255,
+// saturating beyond: 10- or 12-bit data in 16-bit words keep their contrast.
+cv::Mat to_8bit_by_range(const cv::Mat& image);
 
 }  // namespace crepuscular::recordings

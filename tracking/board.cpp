@@ -3,18 +3,24 @@
 #include "tracking/board.hpp"
 
 #include <apriltag.h>
+#include <spdlog/spdlog.h>
 
+#include <algorithm>
+#include <cctype>
 #include <climits>
 #include <cmath>
+#include <cstdlib>
 #include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <set>
+#include <sstream>
 
 #include "calibration/aruco.hpp"
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
 #include "foundation/output_files.hpp"
+#include "foundation/text.hpp"
 #include "tracking/tag_family.hpp"
 
 namespace crepuscular::tracking {
@@ -152,6 +158,117 @@ std::string parse_aruco_grid(const json& g, const JsonPath& at, Board& b) {
   return dictionary;
 }
 
+constexpr const char* kKalibrFamily = "tag36h11b2";
+
+// A Kalibr aprilgrid from the fields of `g` (Kalibr's names; the size's key is size_key, in
+// metres), as make_kalibr_aprilgrid_board.
+Board parse_kalibr_aprilgrid(const json& g, const JsonPath& at, const std::string& size_key,
+                             const std::string& name) {
+  const std::string needs = "tagRows, tagCols, " + size_key + " [m] and tagSpacing [ratio]";
+  for (const std::string& key :
+       {std::string("tagRows"), std::string("tagCols"), size_key, std::string("tagSpacing")}) {
+    if (!g.contains(key)) at.key(key).fail("is missing (a Kalibr aprilgrid needs " + needs + ")");
+  }
+  const int rows = int(required_integer(g, "tagRows", at, 1, 1000));
+  const int cols = int(required_integer(g, "tagCols", at, 1, 1000));
+  const double size_m = required_number(g, size_key, at);
+  const double spacing = required_number(g, "tagSpacing", at);
+  if (!(size_m > 0)) {
+    at.key(size_key).fail("is " + std::to_string(size_m) +
+                          ", expected the tag's side in metres (> 0)");
+  }
+  if (size_m > 10) {
+    at.key(size_key).fail("is " + std::to_string(size_m) +
+                          ", expected the tag's side in metres (Kalibr's unit; 0.088 is 88 mm)");
+  }
+  if (!(spacing > 0)) {
+    at.key("tagSpacing")
+        .fail("is " + std::to_string(spacing) +
+              ", expected the gap between tags as a ratio of tagSize (> 0)");
+  }
+  const int codes = tag_family_code_count(kKalibrFamily);
+  if (rows * cols > codes) {
+    at.fail("has " + std::to_string(rows) + " x " + std::to_string(cols) + " tags, more than the " +
+            std::to_string(codes) + " codes of tag36h11");
+  }
+  return make_kalibr_aprilgrid_board(name, rows, cols, 1000.0 * size_m, spacing);
+}
+
+// Kalibr's target yaml as flat fields: `key: value` lines, `#` comments, values quoted strings,
+// numbers (integers kept as integers) or bare words. Anything else (nesting, lists) is refused.
+json parse_flat_yaml(const std::string& text, const std::string& what) {
+  json out = json::object();
+  std::istringstream in(text);
+  std::string line;
+  int number = 0;
+  while (std::getline(in, line)) {
+    ++number;
+    const std::string where = what + ": line " + std::to_string(number);
+    // Strip the comment (a # outside quotes).
+    char quote = 0;
+    size_t end = line.size();
+    for (size_t i = 0; i < line.size(); ++i) {
+      const char ch = line[i];
+      if (quote) {
+        if (ch == quote) quote = 0;
+      } else if (ch == '\'' || ch == '"') {
+        quote = ch;
+      } else if (ch == '#') {
+        end = i;
+        break;
+      }
+    }
+    std::string s = line.substr(0, end);
+    while (!s.empty() && std::isspace(static_cast<unsigned char>(s.back()))) s.pop_back();
+    if (s.empty() || s.find_first_not_of(" \t\r") == std::string::npos) continue;
+    if (s.rfind("%YAML", 0) == 0 || s == "---") continue;
+    if (std::isspace(static_cast<unsigned char>(s[0]))) {
+      throw Error(where + ": \"" + s + "\" is indented; expected flat `key: value` lines");
+    }
+    const size_t colon = s.find(':');
+    std::string key = s.substr(0, colon);
+    const bool identifier = !key.empty() && std::all_of(key.begin(), key.end(), [](char ch) {
+      return std::isalnum(static_cast<unsigned char>(ch)) || ch == '_';
+    });
+    if (colon == std::string::npos || !identifier) {
+      throw Error(where + ": \"" + s + "\" is not a `key: value` line (Kalibr target yaml)");
+    }
+    std::string value = s.substr(colon + 1);
+    value.erase(0, value.find_first_not_of(" \t"));
+    if (value.empty()) throw Error(where + ": field " + key + " has no value");
+    if (out.contains(key)) throw Error(where + ": field " + key + " appears twice");
+    if (value[0] == '\'' || value[0] == '"') {
+      if (value.size() < 2 || value.back() != value[0] ||
+          value.find(value[0], 1) != value.size() - 1) {
+        throw Error(where + ": field " + key + " has the unclosed string " + value);
+      }
+      out[key] = value.substr(1, value.size() - 2);
+      continue;
+    }
+    const char* begin = value.c_str();
+    char* stop = nullptr;
+    const long long integer = std::strtoll(begin, &stop, 10);
+    if (*stop == '\0') {
+      out[key] = int64_t(integer);
+      continue;
+    }
+    const double number_value = std::strtod(begin, &stop);
+    if (*stop == '\0' && std::isfinite(number_value)) {
+      out[key] = number_value;
+    } else {
+      out[key] = value;
+    }
+  }
+  return out;
+}
+
+// Whether a boards file's text is a Kalibr target yaml rather than boards.json.
+bool looks_like_kalibr_target(const std::string& text) {
+  const size_t first = text.find_first_not_of(" \t\r\n");
+  if (first == std::string::npos || text[first] == '{' || text[first] == '[') return false;
+  return text.find("target_type") != std::string::npos;
+}
+
 Board parse_board(const json& j, const JsonPath& at) {
   as_object(j, at);
   Board b;
@@ -159,6 +276,8 @@ Board parse_board(const json& j, const JsonPath& at) {
     at.key("name").fail("is missing, expected a board name such as \"patient\" or \"needle\"");
   }
   b.name = j["name"].get<std::string>();
+  const bool kalibr = j.contains("kalibr_aprilgrid");
+  if (kalibr) b.family = kKalibrFamily;
   b.family = optional_string(j, "family", at, b.family);
   for (const char* key : {"charuco", "aruco_grid"}) {
     if (!j.contains(key)) continue;
@@ -174,6 +293,10 @@ Board parse_board(const json& j, const JsonPath& at) {
     }
     b.family = dictionary;
   }
+  if (kalibr && b.family != kKalibrFamily) {
+    at.key("family").fail("is " + b.family + ", but a kalibr_aprilgrid is printed as " +
+                          kKalibrFamily + "; remove \"family\"");
+  }
   const int codes = [&] {
     try {
       return tag_family_code_count(b.family);
@@ -183,8 +306,16 @@ Board parse_board(const json& j, const JsonPath& at) {
   }();
   if (j.contains("tags")) parse_tags(j["tags"], at.key("tags"), b);
   if (j.contains("grid")) parse_grid(j["grid"], at.key("grid"), b);
+  if (kalibr) {
+    const JsonPath kat = at.key("kalibr_aprilgrid");
+    const Board grid =
+        parse_kalibr_aprilgrid(as_object(j["kalibr_aprilgrid"], kat), kat, "tagSize_m", b.name);
+    b.tags.insert(b.tags.end(), grid.tags.begin(), grid.tags.end());
+  }
   if (b.tags.empty()) {
-    at.fail("(board '" + b.name + "') has no tags; expected \"tags\" or \"grid\"");
+    at.fail("(board '" + b.name +
+            "') has no tags; expected \"tags\", \"grid\" or "
+            "\"kalibr_aprilgrid\"");
   }
   for (const BoardTag& t : b.tags) {
     if (t.id < 0 || t.id >= codes) {
@@ -235,7 +366,50 @@ Board make_grid_board(const std::string& name, int rows, int cols, double tag_si
   return b;
 }
 
+Board make_kalibr_aprilgrid_board(const std::string& name, int tag_rows, int tag_cols,
+                                  double tag_size_mm, double tag_spacing) {
+  Board b;
+  b.name = name;
+  b.family = kKalibrFamily;
+  const double pitch = (1.0 + tag_spacing) * tag_size_mm;
+  for (int r = 0; r < tag_rows; ++r) {
+    for (int c = 0; c < tag_cols; ++c) {
+      BoardTag t;
+      t.id = r * tag_cols + c;
+      const Eigen::Vector3d bl(c * pitch, r * pitch, 0.0);
+      t.corners = {bl, bl + Eigen::Vector3d(tag_size_mm, 0, 0),
+                   bl + Eigen::Vector3d(tag_size_mm, tag_size_mm, 0),
+                   bl + Eigen::Vector3d(0, tag_size_mm, 0)};
+      b.tags.push_back(t);
+    }
+  }
+  return b;
+}
+
+Board read_kalibr_target_text(const std::string& yaml_text, const std::string& what,
+                              const std::string& name) {
+  const json fields = parse_flat_yaml(yaml_text, what);
+  const JsonPath at(what);
+  if (!fields.contains("target_type")) {
+    at.key("target_type").fail("is missing (a Kalibr target yaml, expected 'aprilgrid')");
+  }
+  const std::string type = as_string(fields["target_type"], at.key("target_type"));
+  if (type != "aprilgrid") {
+    at.key("target_type")
+        .fail("is '" + type +
+              "'; Crepuscular reads Kalibr targets of type "
+              "'aprilgrid' only (for a checkerboard use --board chessboard:...)");
+  }
+  for (const std::string& field :
+       unknown_fields(fields, {"target_type", "tagRows", "tagCols", "tagSize", "tagSpacing"}, at)) {
+    spdlog::warn("{}: field {} is not one of Kalibr's aprilgrid fields; ignored", what, field);
+  }
+  return parse_kalibr_aprilgrid(fields, at, "tagSize", name);
+}
+
 std::vector<Board> read_boards(const std::string& path) {
+  const std::string text = read_text_or_empty(path);
+  if (looks_like_kalibr_target(text)) return {read_kalibr_target_text(text, path)};
   return read_boards_json(read_json_file(path, "boards file"), path);
 }
 

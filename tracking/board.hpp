@@ -61,6 +61,16 @@ Board make_charuco_board(const std::string& name, const calibration::CharucoSpec
 Board make_aruco_grid_board(const std::string& name, int markers_x, int markers_y, double marker_mm,
                             double separation_mm, const std::string& dictionary, int first_id);
 
+// A Kalibr aprilgrid (Kalibr's target yaml: tagRows, tagCols, tagSize [m], tagSpacing [ratio of
+// tagSize]), family tag36h11b2, corners in Kalibr's target frame (mm): origin at the bottom-left
+// corner of tag 0's black square, x to the right and y up on the print as seen upright, z = x cross
+// y (out of the print, toward a camera that looks at it). Ids as Kalibr numbers them: 0 at the
+// bottom-left, along a row to the right, rows upward. Tag in row r (from the bottom) and column c:
+// bottom-left corner at ((1 + tagSpacing) * tagSize * (c, r)), corners in libapriltag's order
+// (bottom-left, bottom-right, top-right, top-left as printed), which is Kalibr's.
+Board make_kalibr_aprilgrid_board(const std::string& name, int tag_rows, int tag_cols,
+                                  double tag_size_mm, double tag_spacing);
+
 // The four corners of an upright square tag of side size_mm centred at `center` (z = 0 plane).
 std::array<Eigen::Vector3d, 4> square_tag_corners(const Eigen::Vector2d& center, double size_mm);
 
@@ -78,7 +88,15 @@ std::array<Eigen::Vector3d, 4> square_tag_corners(const Eigen::Vector2d& center,
 // make_charuco_board / make_aruco_grid_board and set family to their dictionary.
 // "grid" is expanded into tags on reading (after any explicit "tags"); at least one tag; ids
 // unique within a family across all boards and within the family's code count.
+// A Kalibr aprilgrid board: {"name": "aprilgrid", "kalibr_aprilgrid": {"tagRows": 6, "tagCols": 6,
+// "tagSize_m": 0.088, "tagSpacing": 0.3}} (family tag36h11b2, make_kalibr_aprilgrid_board).
+// read_boards also reads Kalibr's own target yaml (told by its content, `target_type:`) as one
+// board named "aprilgrid".
 std::vector<Board> read_boards(const std::string& path);
+// A Kalibr target yaml's text (flat `key: value  # comment` lines, as Kalibr writes it) as the
+// aprilgrid board `name`; `what` names its origin in errors. Throws Error for other target types.
+Board read_kalibr_target_text(const std::string& yaml_text, const std::string& what,
+                              const std::string& name = "aprilgrid");
 // The same from JSON text or a parsed document; `what` names its origin in errors.
 std::vector<Board> read_boards_text(const std::string& json_text, const std::string& what);
 std::vector<Board> read_boards_json(const nlohmann::json& document, const std::string& what);

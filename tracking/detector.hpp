@@ -60,7 +60,11 @@ class TagDetector {
 
   const DetectorOptions& options() const { return options_; }
 
-  // All tags of the family in the image (8-bit grey or BGR). An empty image gives no detections.
+  // All tags of the family in the image (8- or 16-bit grey, BGR or BGRA; 16-bit as grey_8bit
+  // maps it). An empty image gives no detections. Family tag36h11b2 (Kalibr's aprilgrids, whose
+  // black corner squares touch the tags): tags are searched where white is grown by 1 px at the
+  // saddle points (tag and square come apart there), then on the image itself; their corners are
+  // refined on the image (cv::cornerSubPix at the tag/corner-square saddle). About twice the time.
   std::vector<Detection> detect(const cv::Mat& image);
 
   // Tags searched only inside the given rectangles (clipped to the image; overlapping rectangles
@@ -77,6 +81,13 @@ class TagDetector {
   DetectorOptions options_;
   std::unique_ptr<Impl> impl_;
 };
+
+// The image as 8-bit grey: colour converted to grey; 16-bit images mapped linearly from their own
+// range (recordings::to_8bit_by_range) to 0..255, so that 10- or
+// 12-bit data in 16-bit words keep their contrast (measured better than >> 8 on 12-bit frames in
+// tests/tracking/kalibr_test.cpp). Throws Error for other types.
+cv::Mat grey_8bit(const cv::Mat& image);
+
 
 // The tags of several families at once (those of a set of boards): one TagDetector per family,
 // each detection naming its family. Throws Error as TagDetector does, or for no family.
