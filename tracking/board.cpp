@@ -121,7 +121,10 @@ std::string parse_charuco(const json& g, const JsonPath& at, Board& b) {
   spec.dictionary = optional_string(g, "dictionary", at, "");
   spec.first_id = int(optional_integer(g, "first_id", at, 0, 0, INT32_MAX));
   try {
-    add_opencv_markers(*calibration::make_charuco_board(spec), b);
+    const Board charuco = make_charuco_board(b.name, spec);
+    b.tags.insert(b.tags.end(), charuco.tags.begin(), charuco.tags.end());
+    b.ink_squares.insert(b.ink_squares.end(), charuco.ink_squares.begin(),
+                         charuco.ink_squares.end());
   } catch (const Error& e) {
     at.fail(std::string("is not a ChArUco board OpenCV can make: ") + e.what());
   }
@@ -311,6 +314,7 @@ Board parse_board(const json& j, const JsonPath& at) {
     const Board grid =
         parse_kalibr_aprilgrid(as_object(j["kalibr_aprilgrid"], kat), kat, "tagSize_m", b.name);
     b.tags.insert(b.tags.end(), grid.tags.begin(), grid.tags.end());
+    b.ink_squares.insert(b.ink_squares.end(), grid.ink_squares.begin(), grid.ink_squares.end());
   }
   if (b.tags.empty()) {
     at.fail("(board '" + b.name +
@@ -381,6 +385,14 @@ Board make_kalibr_aprilgrid_board(const std::string& name, int tag_rows, int tag
                    bl + Eigen::Vector3d(tag_size_mm, tag_size_mm, 0),
                    bl + Eigen::Vector3d(0, tag_size_mm, 0)};
       b.tags.push_back(t);
+    }
+  }
+  // Kalibr's corner squares: side tagSpacing * tagSize, in every gap where tag corners meet and
+  // along the outer rows and columns, touching the tags at their corners.
+  const double gap = tag_spacing * tag_size_mm;
+  for (int r = 0; r <= tag_rows; ++r) {
+    for (int c = 0; c <= tag_cols; ++c) {
+      b.ink_squares.push_back({Eigen::Vector3d(c * pitch - 0.5 * gap, r * pitch - 0.5 * gap, 0.0), gap});
     }
   }
   return b;
@@ -475,7 +487,19 @@ Board make_charuco_board(const std::string& name, const calibration::CharucoSpec
   Board b;
   b.name = name;
   b.family = spec.dictionary;
-  add_opencv_markers(*calibration::make_charuco_board(spec), b);
+  const cv::Ptr<cv::aruco::CharucoBoard> board = calibration::make_charuco_board(spec);
+  add_opencv_markers(*board, b);
+  // The chessboard's black squares: the squares that hold no marker.
+  const double side = board->getSquareLength();
+  for (int y = 0; y < spec.squares_y; ++y) {
+    for (int x = 0; x < spec.squares_x; ++x) {
+      const Eigen::Vector3d centre((x + 0.5) * side, (y + 0.5) * side, 0.0);
+      const bool marker = std::any_of(b.tags.begin(), b.tags.end(), [&](const BoardTag& t) {
+        return (t.center() - centre).norm() < 0.25 * side;
+      });
+      if (!marker) b.ink_squares.push_back({centre, side});
+    }
+  }
   return b;
 }
 

@@ -41,6 +41,15 @@ struct Board {
   std::string family = "tag36h11";
   std::vector<BoardTag> tags;
   std::vector<Eigen::Vector3d> fiducials;  // CT-visible fiducials (patient board), board frame mm
+  // Solid black squares printed beside the tags, as the synthetic renderer draws them: Kalibr's
+  // corner squares, a ChArUco board's chessboard squares. Centres in the board frame (mm), sides
+  // parallel to the tags' edges. Made with the board from its description; boards.json as
+  // write_boards writes it carries the tags only.
+  struct InkSquare {
+    Eigen::Vector3d centre = Eigen::Vector3d::Zero();
+    double side_mm = 0;
+  };
+  std::vector<InkSquare> ink_squares;
 
   // The tag with this id, or nullptr.
   const BoardTag* find(int id) const;

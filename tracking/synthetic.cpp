@@ -141,6 +141,7 @@ struct RenderTables {
   std::vector<Eigen::Vector2d> nodes;
   cv::Mat background;  // CV_32F, grey levels
   std::map<std::pair<std::string, int>, TagPattern> patterns;
+  TagPattern ink{cv::Mat(1, 1, CV_8U, cv::Scalar(0)), 1, 1};  // a solid black square
 
   const Eigen::Vector2d& node(int i, int j) const { return nodes[size_t(j) * size_t(w + 1) + i]; }
 };
@@ -221,9 +222,36 @@ void add_board_surfaces(const SceneBoard& sb, const Eigen::Isometry3d& T,
       by1 = std::max(by1, outer.y());
     }
   }
+  // Printed squares beside the tags (Kalibr's corner squares, a ChArUco chessboard), with the
+  // edge directions of the first tag.
+  Eigen::Vector3d ex = Eigen::Vector3d::UnitX(), ey = Eigen::Vector3d::UnitY();
+  if (!sb.board.tags.empty()) {
+    const BoardTag& t = sb.board.tags.front();
+    ex = (t.corners[2] - t.corners[3]).normalized();
+    ey = (t.corners[0] - t.corners[3]).normalized();
+  }
+  for (const Board::InkSquare& q : sb.board.ink_squares) {
+    const Eigen::Vector3d half = 0.5 * q.side_mm * (ex + ey);
+    for (const Eigen::Vector3d& c : {Eigen::Vector3d(q.centre - half), Eigen::Vector3d(q.centre + half)}) {
+      planar = planar && std::abs(c.z()) < 1e-9;
+      bx0 = std::min(bx0, c.x());
+      by0 = std::min(by0, c.y());
+      bx1 = std::max(bx1, c.x());
+      by1 = std::max(by1, c.y());
+    }
+  }
   if (sb.plate && planar) {
-    const double g = sb.plate_margin_mm;
-    add({bx0 - g, by0 - g, 0}, {bx1 - bx0 + 2 * g, 0, 0}, {0, by1 - by0 + 2 * g, 0}, nullptr, 0.0);
+    // Printed on the side the tags face (boards whose frame has z out of the print, as Kalibr's,
+    // face +z).
+    const double g = sb.plate_margin_mm, w = bx1 - bx0 + 2 * g, h = by1 - by0 + 2 * g;
+    if (ex.cross(ey).z() >= 0) {
+      add({bx0 - g, by0 - g, 0}, {w, 0, 0}, {0, h, 0}, nullptr, 0.0);
+    } else {
+      add({bx0 - g, by1 + g, 0}, {w, 0, 0}, {0, -h, 0}, nullptr, 0.0);
+    }
+  }
+  for (const Board::InkSquare& q : sb.board.ink_squares) {
+    add(q.centre - 0.5 * q.side_mm * (ex + ey), q.side_mm * ex, q.side_mm * ey, &m.ink, 1e-3);
   }
   for (const BoardTag& tag : sb.board.tags) {
     const TagPattern& p = m.patterns.at({sb.board.family, tag.id});

@@ -11,9 +11,11 @@
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <opencv2/aruco/charuco.hpp>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgproc.hpp>
 
+#include "calibration/aruco.hpp"
 #include "foundation/error.hpp"
 #include "tests/support/temporary_folder.hpp"
 
@@ -441,6 +443,69 @@ TEST(Synthetic, BuiltinSceneKeepsBoardsInViewAndApproachesTarget) {
   std::map<int, int> seen;
   for (const Detected& d : detect(img)) ++seen[d.id];
   for (int id : {0, 1, 2, 3, 4, 5, 10, 11, 12, 13}) EXPECT_EQ(seen[id], 1) << "tag " << id;
+}
+
+// Boards are drawn as printed. A ChArUco board seen square-on: every chessboard square is dark
+// where OpenCV's own drawing of the board (CharucoBoard::draw) is dark, and light where it is
+// light. A Kalibr aprilgrid: its corner squares are dark, the paper between them light, from the
+// side its tags face (Kalibr's frame has z out of the print).
+TEST(Synthetic, ChArUcoAndKalibrBoardsAreDrawnAsPrinted) {
+  calibration::CharucoSpec spec;
+  spec.squares_x = 5;
+  spec.squares_y = 7;
+  spec.square_mm = 40;
+  spec.marker_mm = 30;
+  spec.dictionary = "DICT_6X6_250";
+  SyntheticScene scene;
+  scene.frame_count = 1;
+  scene.background = "plain";
+  scene.background_grey = 128;
+  SceneBoard charuco;
+  charuco.board = make_charuco_board("calib", spec);
+  Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+  T.translation() = Eigen::Vector3d(-100, -140, 600);  // the board's centre on the optical axis
+  charuco.keyframes = {{0.0, T}};
+  scene.boards = {charuco};
+  cv::Mat image;
+  cv::cvtColor(SyntheticRenderer(scene).render(0), image, cv::COLOR_BGR2GRAY);
+  cv::Mat drawn;  // OpenCV's print at 2 px per mm
+  calibration::make_charuco_board(spec)->draw(cv::Size(400, 560), drawn, 0, 1);
+  int dark = 0;
+  for (int y = 0; y < spec.squares_y; ++y) {
+    for (int x = 0; x < spec.squares_x; ++x) {
+      // A point inside the square clear of any marker: 4 mm from its top-left corner.
+      const Eigen::Vector3d p(x * 40.0 + 4.0, y * 40.0 + 4.0, 0.0);
+      const Eigen::Vector2d px = scene.camera.project(T * p);
+      const bool ours = image.at<uint8_t>(int(std::lround(px.y())), int(std::lround(px.x()))) < 128;
+      const bool opencv = drawn.at<uint8_t>(int(p.y() * 2), int(p.x() * 2)) < 128;
+      EXPECT_EQ(ours, opencv) << "square (" << x << ", " << y << ")";
+      dark += ours;
+    }
+  }
+  EXPECT_EQ(dark, 18);  // 35 squares, 17 of them holding a marker
+
+  SyntheticScene kalibr_scene = scene;
+  SceneBoard grid;
+  grid.board = make_kalibr_aprilgrid_board("aprilgrid", 3, 4, 40.0, 0.3);
+  Eigen::Isometry3d Tk = Eigen::Isometry3d::Identity();
+  Tk.linear() = Eigen::AngleAxisd(M_PI, Eigen::Vector3d::UnitX()).toRotationMatrix();  // y up
+  Tk.translation() = Eigen::Vector3d(-100, 70, 600);
+  grid.keyframes = {{0.0, Tk}};
+  kalibr_scene.boards = {grid};
+  cv::cvtColor(SyntheticRenderer(kalibr_scene).render(0), image, cv::COLOR_BGR2GRAY);
+  const auto level = [&](double x, double y) {
+    const Eigen::Vector2d px = kalibr_scene.camera.project(Tk * Eigen::Vector3d(x, y, 0));
+    return image.at<uint8_t>(int(std::lround(px.y())), int(std::lround(px.x())));
+  };
+  const double pitch = 52.0, gap = 12.0;
+  for (int r = 0; r <= 3; ++r) {
+    for (int c = 0; c <= 4; ++c) {
+      EXPECT_LT(level(c * pitch - 0.5 * gap, r * pitch - 0.5 * gap), 80) << "corner square";
+    }
+  }
+  // Paper: in a gap between two tags, halfway between corner squares, and beyond the squares.
+  EXPECT_GT(level(pitch - 0.5 * gap, 20.0), 180);
+  EXPECT_GT(level(20.0, -gap - 5.0), 180);
 }
 
 }  // namespace
