@@ -2,6 +2,8 @@
 // from libapriltag's family definitions.
 #include "tracking/board.hpp"
 
+#include <fmt/format.h>
+
 #include <apriltag.h>
 #include <spdlog/spdlog.h>
 
@@ -207,6 +209,15 @@ json parse_flat_yaml(const std::string& text, const std::string& what) {
   while (std::getline(in, line)) {
     ++number;
     const std::string where = what + ": line " + std::to_string(number);
+    // Kalibr writes plain ASCII; any other byte (binary data, another encoding) is not its file.
+    for (const char ch : line) {
+      const auto byte = static_cast<unsigned char>(ch);
+      if (byte >= 0x80 || (byte < 0x20 && ch != '\t' && ch != '\r')) {
+        throw Error(where + ": holds the byte " + fmt::format("0x{:02X}", unsigned(byte)) +
+                    ", which is not plain text; expected a Kalibr target yaml (ASCII `key: value` "
+                    "lines)");
+      }
+    }
     // Strip the comment (a # outside quotes).
     char quote = 0;
     size_t end = line.size();
