@@ -13,7 +13,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install-deps.sh
-bash scripts/build.sh
+# The demo needs the command only, not the tests and benchmarks.
+CREPUSCULAR_BUILD_TARGET=crepuscular bash scripts/build.sh
 ./build/apps/crepuscular demo --out demo "$@"
 echo "demo: outputs in demo/ (start with demo/report.md and demo/overlay.mp4; open"
 echo "      demo/phantom/ct.nii.gz with demo/plan/path_safety_svv.nii.gz in 3D Slicer)"
