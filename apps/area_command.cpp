@@ -9,7 +9,7 @@ void add_area_command(CLI::App& app) {
   auto req = std::make_shared<pipelines::AreaRequest>();
   CLI::App* cmd = app.add_subcommand(
       "area",
-      "Area safety: how much room each safe access region around the tumor leaves.\n"
+      "Area safety, how much room each safe access region around the tumor leaves.\n"
       "The tumor is approximated by the ellipsoid of its principal axes; every vertex of a\n"
       "fine spherical grid on it is pushed outward along its normal until the maximum distance\n"
       "(safe) or the first unsafe point (unsafe). Connected safe vertices form regions; each\n"

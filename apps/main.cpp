@@ -2,6 +2,8 @@
 #include <spdlog/spdlog.h>
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
+#include <sstream>
 #include <csignal>
 #include <cerrno>
 #include <cstdio>
@@ -18,6 +20,36 @@ const std::atomic<bool>* stop_on_signals() { return stop_flag_on_interruption();
 
 }  // namespace crepuscular::apps
 
+namespace {
+
+// The top-level --help lists each command with the lead of its description (up to the first
+// full stop or colon outside parentheses); each command's own --help keeps the whole text.
+class CommandListFormatter : public CLI::Formatter {
+ public:
+  std::string make_subcommand(const CLI::App* sub) const override {
+    const std::string& text = sub->get_description();
+    size_t end = text.size();
+    int depth = 0;
+    for (size_t i = 0; i < text.size(); ++i) {
+      const char c = text[i];
+      depth += c == '(' ? 1 : c == ')' ? -1 : 0;
+      const bool stop = (c == '.' || c == ':') && depth == 0 &&
+                        (i + 1 == text.size() || text[i + 1] == ' ' || text[i + 1] == '\n');
+      if (stop) {
+        end = i;
+        break;
+      }
+    }
+    std::string lead = text.substr(0, end);
+    std::replace(lead.begin(), lead.end(), '\n', ' ');
+    std::stringstream out;
+    CLI::detail::format_help(out, sub->get_display_name(true), lead, get_column_width());
+    return out.str();
+  }
+};
+
+}  // namespace
+
 int main(int argc, char** argv) {
   // Ctrl-C, SIGTERM and SIGHUP remove the output in progress; a write past the file size limit or
   // into a closed pipe fails as an error (foundation/interruptions.hpp).
@@ -26,6 +58,7 @@ int main(int argc, char** argv) {
       "Crepuscular: how safe are the straight needle paths from every point around a tumor?\n"
       "The tumor is treated as a light source and vulnerable structures cast shadows (the\n"
       "'crepuscular rays' method). Start with `crepuscular demo`, or see each command's --help."};
+  app.formatter(std::make_shared<CommandListFormatter>());
   app.set_version_flag("--version", std::string("crepuscular ") + CREPUSCULAR_VERSION);
   app.require_subcommand(1);
   // Option errors read like every other error: "error: ..." on one line.

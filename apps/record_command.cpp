@@ -9,9 +9,9 @@ void add_record_command(CLI::App& app) {
   auto args = std::make_shared<pipelines::RecordRequest>();
   CLI::App* cmd = app.add_subcommand(
       "record",
-      "Record frames from a source into a recording folder that `crepuscular track` and the\n"
-      "training simulators replay (DESIGN.md section 8: frames/, frames.csv with capture\n"
-      "timestamps, camera.yaml, session.json, and ground_truth.csv when the source has truth).\n"
+      "Record frames from a source into a recording folder, which `crepuscular track` and the\n"
+      "training simulators replay. It holds frames/, frames.csv with capture timestamps,\n"
+      "camera.yaml, session.json, and ground_truth.csv when the source has truth.\n"
       "\n"
       "Sources:\n"
       "  v4l2:/dev/video0?width=1280&height=720&fps=60[&format=mjpeg|yuyv]   a camera (MJPEG\n"

@@ -9,9 +9,9 @@ void add_synth_command(CLI::App& app) {
   auto args = std::make_shared<pipelines::SynthRequest>();
   CLI::App* cmd = app.add_subcommand(
       "synth",
-      "Render synthetic camera frames of AprilTag marker boards with known poses, as a recording\n"
-      "that `crepuscular track --source recording:DIR` replays and whose ground truth measures\n"
-      "tracking accuracy in millimetres. Boards are drawn at scripted poses through the camera\n"
+      "Render synthetic camera frames of marker boards at known poses, as a recording. It replays\n"
+      "with `crepuscular track --source recording:DIR`, and its ground truth measures tracking\n"
+      "accuracy in millimetres. Boards are drawn at scripted poses through the camera\n"
       "model (distortion included) onto a background, with optional noise, blur, lighting,\n"
       "occlusions, dropped and corrupt frames; tag corners land where the camera model projects\n"
       "them (sub-pixel, anti-aliased).\n"
