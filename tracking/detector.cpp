@@ -22,6 +22,33 @@ namespace {
 // Where libapriltag puts the centre of the top-left pixel (x and y).
 constexpr double kApriltagPixelCentre = 0.5;
 
+// Where the quad's diagonals cross: the image of the tag's centre under any homography.
+Eigen::Vector2d diagonal_crossing(const std::array<Eigen::Vector2d, 4>& p) {
+  const Eigen::Vector2d d0 = p[2] - p[0], d1 = p[3] - p[1];
+  Eigen::Matrix2d A;
+  A << d0, -d1;
+  if (std::abs(A.determinant()) < 1e-9) return 0.25 * (p[0] + p[1] + p[2] + p[3]);
+  const Eigen::Vector2d st = A.inverse() * (p[1] - p[0]);
+  return p[0] + st.x() * d0;
+}
+
+// libapriltag's detection in OpenCV's pixel convention, shifted by `offset` (where the searched
+// image lies in the frame). libapriltag 3.3 places pixel centres at half-integer coordinates
+// (the top-left pixel spans 0..1); OpenCV and CameraModel place them at integers. The shift was
+// measured against cv::projectPoints and cv::aruco in tests/tracking/detector_test.cpp.
+Detection from_apriltag(const apriltag_detection_t& det, const std::string& family,
+                        const cv::Point& offset) {
+  Detection d;
+  d.family = family;
+  d.id = det.id;
+  d.hamming = det.hamming;
+  d.decision_margin = det.decision_margin;
+  const double ox = offset.x - kApriltagPixelCentre, oy = offset.y - kApriltagPixelCentre;
+  for (int k = 0; k < 4; ++k) d.corners[k] = Eigen::Vector2d(det.p[k][0] + ox, det.p[k][1] + oy);
+  d.center = Eigen::Vector2d(det.c[0] + ox, det.c[1] + oy);
+  return d;
+}
+
 // Markers of an OpenCV dictionary (cv::aruco::detectMarkers; pixel centres at integers already),
 // corners turned from cv::aruco's order (clockwise in the image from the marker's top-left) into
 // apriltag_detection_t::p order (counter-clockwise from its bottom-left).
@@ -39,16 +66,7 @@ std::vector<Detection> detect_aruco(const cv::Mat& grey, const cv::Point& offset
       const cv::Point2f& p = corners[m][size_t(3 - k)];
       d.corners[k] = Eigen::Vector2d(p.x + offset.x, p.y + offset.y);
     }
-    // The centre as libapriltag reports it: where the diagonals cross.
-    const Eigen::Vector3d a = Eigen::Vector3d(d.corners[0].x(), d.corners[0].y(), 1)
-                                  .cross(Eigen::Vector3d(d.corners[2].x(), d.corners[2].y(), 1));
-    const Eigen::Vector3d b = Eigen::Vector3d(d.corners[1].x(), d.corners[1].y(), 1)
-                                  .cross(Eigen::Vector3d(d.corners[3].x(), d.corners[3].y(), 1));
-    const Eigen::Vector3d c = a.cross(b);
-    d.center =
-        std::abs(c.z()) > 1e-12
-            ? Eigen::Vector2d(c.x() / c.z(), c.y() / c.z())
-            : Eigen::Vector2d(0.25 * (d.corners[0] + d.corners[1] + d.corners[2] + d.corners[3]));
+    d.center = diagonal_crossing(d.corners);  // as libapriltag reports a centre
   }
   return out;
 }
@@ -127,15 +145,6 @@ void refine_corner_square_corners(const cv::Mat& grey, std::array<Eigen::Vector2
   }
 }
 
-// Where the quad's diagonals cross: the image of the tag's centre under any homography.
-Eigen::Vector2d diagonal_crossing(const std::array<Eigen::Vector2d, 4>& p) {
-  const Eigen::Vector2d d0 = p[2] - p[0], d1 = p[3] - p[1];
-  Eigen::Matrix2d A;
-  A << d0, -d1;
-  if (std::abs(A.determinant()) < 1e-9) return 0.25 * (p[0] + p[1] + p[2] + p[3]);
-  const Eigen::Vector2d st = A.inverse() * (p[1] - p[0]);
-  return p[0] + st.x() * d0;
-}
 
 }  // namespace
 
@@ -221,19 +230,7 @@ std::vector<Detection> TagDetector::detect_grey(const cv::Mat& grey, const cv::P
       zarray_get(found, i, &det);
       const auto same_id = [&](const Detection& e) { return e.id == det->id; };
       if (std::any_of(out.begin(), out.begin() + std::ptrdiff_t(earlier), same_id)) continue;
-      Detection d;
-      d.family = options_.family;
-      d.id = det->id;
-      d.hamming = det->hamming;
-      d.decision_margin = det->decision_margin;
-      // libapriltag 3.3 places pixel centres at half-integer coordinates (the top-left pixel spans
-      // 0..1); OpenCV and CameraModel place them at integers. The shift was measured against
-      // cv::projectPoints and cv::aruco in tests/tracking/detector_test.cpp.
-      const double ox = offset.x - kApriltagPixelCentre, oy = offset.y - kApriltagPixelCentre;
-      for (int k = 0; k < 4; ++k) {
-        d.corners[k] = Eigen::Vector2d(det->p[k][0] + ox, det->p[k][1] + oy);
-      }
-      d.center = Eigen::Vector2d(det->c[0] + ox, det->c[1] + oy);
+      Detection d = from_apriltag(*det, options_.family, offset);
       if (corner_squares) {
         const Eigen::Vector2d o(offset.x, offset.y);
         for (Eigen::Vector2d& c : d.corners) c -= o;
@@ -365,18 +362,11 @@ std::vector<Detection> detect_families(const cv::Mat& image,
   for (int i = 0; i < zarray_size(found); ++i) {
     apriltag_detection_t* det = nullptr;
     zarray_get(found, i, &det);
-    Detection d;
-    for (auto& [name, family] : opened) {
-      if (family.get() == det->family) d.family = name;
+    std::string name;
+    for (auto& [candidate, family] : opened) {
+      if (family.get() == det->family) name = candidate;
     }
-    d.id = det->id;
-    d.hamming = det->hamming;
-    d.decision_margin = det->decision_margin;
-    for (int k = 0; k < 4; ++k) {
-      d.corners[k] = Eigen::Vector2d(det->p[k][0] - kApriltagPixelCentre,
-                                     det->p[k][1] - kApriltagPixelCentre);
-    }
-    d.center = Eigen::Vector2d(det->c[0] - kApriltagPixelCentre, det->c[1] - kApriltagPixelCentre);
+    Detection d = from_apriltag(*det, name, {0, 0});
     out.push_back(d);
   }
   apriltag_detections_destroy(found);
