@@ -95,6 +95,41 @@ void PendingFile::commit() {
   unregister_partial_output(temporary_);
 }
 
+PendingTextFile::PendingTextFile(const std::string& path, std::string what,
+                                 std::string_view header)
+    : file_(path), what_(std::move(what)) {
+  out_ = std::fopen(file_.temporary().c_str(), "wb");
+  if (!out_) throw Error(path + ": cannot create the " + what_ + " (" + std::strerror(errno) + ")");
+  write(std::string(header) + "\n");
+}
+
+PendingTextFile::~PendingTextFile() {
+  if (out_) std::fclose(out_);  // the temporary goes with file_
+}
+
+void PendingTextFile::write(std::string_view text) {
+  if (!out_) throw Error(path() + ": " + what_ + " already finished");
+  if (std::fwrite(text.data(), 1, text.size(), out_) != text.size()) {
+    const int error = errno;
+    check_file_size_limit(file_.temporary(), path());
+    throw Error(path() + ": cannot write the " + what_ + " (" + std::strerror(error) + ")");
+  }
+}
+
+void PendingTextFile::commit() {
+  if (!out_) return;
+  const bool failed = std::ferror(out_) != 0;
+  int error = errno;
+  const bool closed = std::fclose(out_) == 0;
+  if (!closed) error = errno;
+  out_ = nullptr;
+  if (failed || !closed) {
+    check_file_size_limit(file_.temporary(), path());
+    throw Error(path() + ": cannot write the " + what_ + " (" + std::strerror(error) + ")");
+  }
+  file_.commit();
+}
+
 void write_file_atomically(const std::string& path,
                            const std::function<void(const std::string& temporary)>& write) {
   PendingFile file(path);

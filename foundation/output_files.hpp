@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdio>
 #include <functional>
 #include <optional>
 #include <string>
@@ -59,6 +60,27 @@ class PendingFile {
   std::string path_;
   std::string temporary_;
   bool committed_ = false;
+};
+
+// A text file (a CSV, a log) written piece by piece through a PendingFile: `header` is its first
+// line; commit() closes it and gives it its final name, a writer destroyed without commit() (a
+// failed run) leaves nothing. Errors name the path and `what` ("poses CSV"): "PATH: cannot write
+// the poses CSV (reason)", a write past the file size limit said as such.
+class PendingTextFile {
+ public:
+  PendingTextFile(const std::string& path, std::string what, std::string_view header);
+  ~PendingTextFile();
+  PendingTextFile(const PendingTextFile&) = delete;
+  PendingTextFile& operator=(const PendingTextFile&) = delete;
+
+  void write(std::string_view text);  // as given: lines end with their own '\n'
+  void commit();
+  const std::string& path() const { return file_.path(); }
+
+ private:
+  PendingFile file_;  // declared first: removed after the stream has closed it
+  std::string what_;
+  std::FILE* out_ = nullptr;
 };
 
 // The file a staged folder gets on commit (kRemove): it names what the tool wrote there. Only an

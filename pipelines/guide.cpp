@@ -93,26 +93,12 @@ class VideoOutput {
 class LogOutput {
  public:
   explicit LogOutput(const std::string& path)
-      : file_(in_made_folder(path)),
-        out_(std::fopen(file_.temporary().c_str(), "w"), &std::fclose) {
-    if (!out_) throw Error(path + ": cannot write the log");
-    std::fprintf(out_.get(), "%s\n", guide_log_header().c_str());
-  }
-  void write(const std::string& row) { std::fprintf(out_.get(), "%s\n", row.c_str()); }
-  void commit() {
-    const bool failed = std::ferror(out_.get()) != 0;
-    const int error = errno;
-    if (std::fclose(out_.release()) != 0 || failed) {
-      check_file_size_limit(file_.temporary(), file_.path());
-      throw Error(file_.path() + ": cannot write the log (" +
-                  std::strerror(failed ? error : errno) + ")");
-    }
-    file_.commit();
-  }
+      : file_(in_made_folder(path), "log", guide_log_header()) {}
+  void write(const std::string& row) { file_.write(row + "\n"); }
+  void commit() { file_.commit(); }
 
  private:
-  PendingFile file_;  // declared first: removed after the stream has closed it
-  std::unique_ptr<std::FILE, int (*)(std::FILE*)> out_;
+  PendingTextFile file_;
 };
 
 // Everything a guidance run writes besides the window: the video, snapshots, the per-frame log

@@ -3,9 +3,6 @@
 
 #include <fmt/format.h>
 
-#include <cerrno>
-#include <cstring>
-
 #include "foundation/csv.hpp"
 #include "foundation/error.hpp"
 
@@ -41,7 +38,7 @@ std::string format_details_rows(const TrackResult& r, const std::vector<Board>& 
     bool any = false;
     for (size_t i = 0; i < r.detections.size(); ++i) {
       const Detection& d = r.detections[i];
-      if ((!d.family.empty() && d.family != boards[b].family) || !boards[b].find(d.id)) continue;
+      if (!belongs_to(boards[b], d)) continue;
       on_a_board[i] = true;
       out += head + "," + tag_fields(d) + "\n";
       any = true;
@@ -56,32 +53,13 @@ std::string format_details_rows(const TrackResult& r, const std::vector<Board>& 
   return out;
 }
 
-DetailsCsvWriter::DetailsCsvWriter(const std::string& path) : output_(path) {
-  file_ = std::fopen(output_.temporary().c_str(), "wb");
-  if (!file_) {
-    throw Error(path + ": cannot create the details CSV (" + std::strerror(errno) + ")");
-  }
-  std::fprintf(file_, "%s\n", kDetailsCsvHeader);
-}
-
-DetailsCsvWriter::~DetailsCsvWriter() {
-  if (file_) std::fclose(file_);  // the temporary goes with output_
-}
+DetailsCsvWriter::DetailsCsvWriter(const std::string& path)
+    : output_(path, "details CSV", kDetailsCsvHeader) {}
 
 void DetailsCsvWriter::write(const TrackResult& result, const std::vector<Board>& boards) {
-  if (!file_) throw Error(path() + ": details CSV already finished");
-  const std::string rows = format_details_rows(result, boards);
-  if (std::fwrite(rows.data(), 1, rows.size(), file_) != rows.size()) {
-    throw Error(path() + ": cannot write the details CSV (" + std::strerror(errno) + ")");
-  }
+  output_.write(format_details_rows(result, boards));
 }
 
-void DetailsCsvWriter::finish() {
-  if (!file_) return;
-  const bool ok = std::fflush(file_) == 0 && std::fclose(file_) == 0;
-  file_ = nullptr;
-  if (!ok) throw Error(path() + ": cannot write the details CSV");
-  output_.commit();
-}
+void DetailsCsvWriter::finish() { output_.commit(); }
 
 }  // namespace crepuscular::tracking

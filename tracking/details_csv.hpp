@@ -9,7 +9,6 @@
 // tracking::Detection.
 #pragma once
 
-#include <cstdio>
 #include <string>
 #include <vector>
 
@@ -30,17 +29,13 @@ std::string format_details_rows(const TrackResult& result, const std::vector<Boa
 class DetailsCsvWriter {
  public:
   explicit DetailsCsvWriter(const std::string& path);
-  ~DetailsCsvWriter();
-  DetailsCsvWriter(const DetailsCsvWriter&) = delete;
-  DetailsCsvWriter& operator=(const DetailsCsvWriter&) = delete;
 
   void write(const TrackResult& result, const std::vector<Board>& boards);
   void finish();
   const std::string& path() const { return output_.path(); }
 
  private:
-  PendingFile output_;
-  std::FILE* file_ = nullptr;
+  PendingTextFile output_;
 };
 
 }  // namespace crepuscular::tracking

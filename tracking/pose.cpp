@@ -134,10 +134,14 @@ bool is_planar(const std::vector<Eigen::Vector3d>& pts) {
 
 }  // namespace
 
+bool belongs_to(const Board& board, const Detection& d) {
+  return (d.family.empty() || d.family == board.family) && board.find(d.id) != nullptr;
+}
+
 BoardCorners match_board_corners(const Board& board, const std::vector<Detection>& detections) {
   std::map<int, const Detection*> best;
   for (const Detection& d : detections) {
-    if ((!d.family.empty() && d.family != board.family) || !board.find(d.id)) continue;
+    if (!belongs_to(board, d)) continue;
     auto it = best.find(d.id);
     if (it == best.end() || it->second->decision_margin < d.decision_margin) best[d.id] = &d;
   }

@@ -36,6 +36,10 @@ struct BoardCorners {
 // larger decision margin).
 BoardCorners match_board_corners(const Board& board, const std::vector<Detection>& detections);
 
+// Whether a detection is one of `board`'s tags: its id is on the board, and its family is the
+// board's (a detection naming no family counts as the board's).
+bool belongs_to(const Board& board, const Detection& detection);
+
 struct BoardPose {
   bool valid = false;
   Eigen::Isometry3d T_cam_board = Eigen::Isometry3d::Identity();

@@ -49,36 +49,18 @@ std::string format_pose_record(const PoseRecord& rec) {
   return recordings::format_pose_row(row);
 }
 
-PosesCsvWriter::PosesCsvWriter(const std::string& path) : output_(path) {
-  file_ = std::fopen(output_.temporary().c_str(), "wb");
-  if (!file_) {
-    throw Error(path + ": cannot create the poses CSV (" + std::strerror(errno) + ")");
-  }
-  std::fprintf(file_, "%s\n", recordings::kPoseCsvHeader);
-}
-
-PosesCsvWriter::~PosesCsvWriter() {
-  if (file_) std::fclose(file_);  // the temporary goes with output_
-}
+PosesCsvWriter::PosesCsvWriter(const std::string& path)
+    : output_(path, "poses CSV", recordings::kPoseCsvHeader) {}
 
 void PosesCsvWriter::write(const PoseRecord& record) {
-  if (!file_) throw Error(path() + ": poses CSV already finished");
-  if (std::fprintf(file_, "%s\n", format_pose_record(record).c_str()) < 0) {
-    throw Error(path() + ": cannot write the poses CSV");
-  }
+  output_.write(format_pose_record(record) + "\n");
 }
 
 void PosesCsvWriter::write(const TrackResult& result) {
   for (const BoardStatus& s : result.boards) write(to_record(result, s));
 }
 
-void PosesCsvWriter::finish() {
-  if (!file_) return;
-  const bool ok = std::fflush(file_) == 0 && std::fclose(file_) == 0;
-  file_ = nullptr;
-  if (!ok) throw Error(path() + ": cannot write the poses CSV");
-  output_.commit();
-}
+void PosesCsvWriter::finish() { output_.commit(); }
 
 std::vector<PoseRecord> read_poses_csv(const std::string& path) {
   std::ifstream in(path, std::ios::binary);

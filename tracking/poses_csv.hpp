@@ -34,9 +34,6 @@ PoseRecord to_record(const TrackResult& result, const BoardStatus& status);
 class PosesCsvWriter {
  public:
   explicit PosesCsvWriter(const std::string& path);
-  ~PosesCsvWriter();
-  PosesCsvWriter(const PosesCsvWriter&) = delete;
-  PosesCsvWriter& operator=(const PosesCsvWriter&) = delete;
 
   void write(const PoseRecord& record);
   void write(const TrackResult& result);  // one row per board
@@ -44,8 +41,7 @@ class PosesCsvWriter {
   const std::string& path() const { return output_.path(); }
 
  private:
-  PendingFile output_;
-  std::FILE* file_ = nullptr;
+  PendingTextFile output_;
 };
 
 // Reads a poses CSV (tracked and lost rows; ground_truth.csv as well). Throws Error naming the file
