@@ -19,8 +19,7 @@ const std::map<std::string, planning::Device>& device_names() {
 
 const std::map<std::string, planning::Mode>& mode_names() {
   static const std::map<std::string, planning::Mode> names = {{"exact", planning::Mode::kExact},
-                                                              {"fast", planning::Mode::kFast},
-                                                              {"tables", planning::Mode::kTables}};
+                                                              {"fast", planning::Mode::kFast}};
   return names;
 }
 

@@ -55,20 +55,13 @@ std::shared_ptr<std::string> add_plan_inputs(CLI::App* cmd, pipelines::PlanReque
   cmd->add_flag("--per-phase", req->per_phase,
                 "With --phases or 4D inputs: also write each phase's volumes, "
                 "path_safety_<value>_<phase>.nii.gz (evaluate then names the worst phase)");
-  cmd->add_flag("--refine-every-phase", req->refine_every_phase,
-                "With phases in fast mode: refine each phase's class boundaries everywhere. By "
-                "default a phase's boundary is not refined where the phases computed before it "
-                "are already at least as unsafe there, so it cannot change the combined class "
-                "(the phases at the ends of the motion are computed first; never where they are "
-                "safe). Refining every phase costs more time for the same combined classes "
-                "(99.9 % or more in the measurements). --per-phase implies it");
   cmd->add_option("--phases-at-once", req->phases_at_once,
-                  "With phases: how many phases are computed at once. Default: 3 on a GPU (the "
-                  "phases' host steps run beside the others' rays; a phase leaves refinement only "
-                  "to the phases before the ones computed beside it: its coarsest decisions to "
-                  "those three back, its finer ones to those two back; the third's finer ones "
-                  "to the first two), 1 on the cores; 0 chooses. "
-                  "Each phase at once holds its volumes in memory (about 2.2 GB at 513^3)")
+                  "With phases: how many phases are computed at once. Default (0): 3 on a GPU, "
+                  "where one phase's host steps run beside the others' rays, 1 on the cores. In "
+                  "fast mode a phase does not refine a class boundary where the phases computed "
+                  "before it are already at least as unsafe (the combined class cannot change); "
+                  "the log prints which phases each one waits for. Each phase at once holds its "
+                  "volumes in memory (about 2.2 GB at 513^3)")
       ->check(CLI::Range(0, 4));
   return lesion_at;
 }
@@ -109,26 +102,30 @@ void add_plan_method(CLI::App* cmd, pipelines::PlanRequest& r, std::string& valu
                   "exact: every ray marched (the reference). fast: the grid sampled coarse to "
                   "fine, a lattice about 8 mm apart first; voxels where the safety classes change "
                   "are computed, the inside of a region of one class is interpolated (on one "
-                  "H100 about 10x faster than exact on a 513^3 grid at 0.7 mm: 7 s against "
-                  "68 s; the same class on 99.5 % or more of the voxels). tables: rays cast once from each tumor "
-                  "surface point and looked up by direction and distance. fast and tables "
-                  "recompute 1000 random voxels exactly and report the difference in plan.json")
+                  "GPU about 10x faster than exact on a 513^3 grid at 0.7 mm, the same class on "
+                  "99.9 % or more of the voxels). Fast mode recomputes --fast-check-voxels random "
+                  "voxels exactly and reports the difference in plan.json (fast_mode_vs_exact)")
       ->transform(enum_names(mode_names()))
       ->default_str("exact");
-  cmd->add_option("--fast-surface-block", req->path_safety.fast_surface_block,
+  cmd->add_option("--fast-surface-block", req->path_safety.fast.surface_block,
                   "Fast mode: one ray per block of this many tumor voxels a side, cast to the "
                   "block's middle surface point and counted for each of its surface points (1: "
                   "every surface point, as exact mode; 2: about a third of the rays, 1.5-2.5x "
                   "faster, exact mode's class on only 98-99.5 % of the voxels: a first look)")
       ->capture_default_str()
       ->check(in_range(1, 4));
-  cmd->add_option("--fast-ray-stride", req->path_safety.fast_ray_stride,
+  cmd->add_option("--fast-ray-stride", req->path_safety.fast.ray_stride,
                   "Fast mode: blocking samples per quadrature point along each ray (1: every "
                   "sample, as exact mode; 2: pairs of samples taken at their midpoint, half the "
                   "samples; 0: automatic, runs of at most 1.05 mm and 1.5 blocking voxels: 3 at "
                   "0.7 mm spacing, 2 at 1 mm, 1 from 1.4 mm on)")
       ->capture_default_str()
       ->check(in_range(0, 4));
+  cmd->add_option("--fast-check-voxels", req->path_safety.fast.check_voxels,
+                  "Fast mode: random voxels of the region recomputed exactly to measure fast "
+                  "mode's difference from exact mode (0: none)")
+      ->capture_default_str()
+      ->check(in_range(0, 1000000));
   cmd->add_option("--threads", req->path_safety.threads,
                   "CPU threads, 1 to 1024 (default: all cores)")
       ->check(in_range(1, 1024, true));

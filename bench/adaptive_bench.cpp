@@ -27,10 +27,8 @@ struct Shadow {
 int main(int argc, char** argv) {
   CLI::App app{"fast mode's coarse-to-fine sampler on an analytic field, timed"};
   int half = 256, shadows = 400;
-  bool cellwise = false;
   app.add_option("--half", half, "grid half width in voxels (the grid is 2 half + 1 a side)");
   app.add_option("--shadows", shadows, "balls of lower SVV and higher blocking in the field");
-  app.add_flag("--cellwise", cellwise, "the finest level cell by cell (every voxel computed)");
   CLI11_PARSE(app, argc, argv);
 
   OutputGrid g;
@@ -92,9 +90,9 @@ int main(int argc, char** argv) {
                                           std::vector<float>(size_t(n) * n * n, NAN));
   float* out[kernels::kValueCount];
   for (int v = 0; v < kernels::kValueCount; ++v) out[v] = volumes[size_t(v)].data();
-  // The plan's defaults (coarsest stride, margins, dilation, the finest level's margin).
-  AdaptiveOptions o = adaptive_options(PathSafetyOptions{}, g);
-  o.pointwise_finest = !cellwise;
+  // The plan's coarsest stride and margins.
+  AdaptiveOptions o;
+  o.stride = coarsest_stride(g.geometry.spacing[0], g.radius_mm);
   // 60 % of the ball in the scan: a plane at 0.3 R.
   o.known = [half](int64_t i, int64_t, int64_t) { return double(i - half) < 0.3 * half; };
   std::vector<uint8_t> known_mask(size_t(n) * n * n);
@@ -110,7 +108,6 @@ int main(int argc, char** argv) {
   for (const auto& [name, seconds] : report.seconds) steps[name] = seconds;
   std::cout << nlohmann::json{{"grid", n},
                               {"steps_s", steps},
-                              {"pointwise_finest", !cellwise},
                               {"coarsest_stride", o.stride},
                               {"evaluated", report.evaluated},
                               {"interpolated", report.interpolated},

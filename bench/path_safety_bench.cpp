@@ -11,6 +11,7 @@
 
 #include "planning/preprocessing/blocking.hpp"
 #include "planning/safety/path_safety.hpp"
+#include "planning/safety/path_safety_scene.hpp"
 #include "planning/simulation/phantom.hpp"
 #include "planning/safety/safety_classes.hpp"
 #include "planning/preprocessing/vulnerability.hpp"
@@ -80,9 +81,8 @@ int main(int argc, char** argv) {
   std::string which = "phantom", device = "cpu", values_text = "all";
   double spacing = 3.0, radius = 150.0;
   int grid = 513, threads = 0, probe = 2000, tumor_voxels = 508, gpus = 0;
-  bool texture = false, each_value = false;
+  bool each_value = false;
   std::string mode = "exact";
-  double angular = 5.0;
   app.add_option("--case", which, "phantom (demo plan) or headline (512^3, 508-voxel tumor)");
   app.add_option("--device", device, "cpu or cuda");
   app.add_option("--value", values_text, "values (svv,isbv,ivbv,bvv or all)");
@@ -94,14 +94,7 @@ int main(int argc, char** argv) {
   app.add_option("--threads", threads, "CPU threads (0: all)");
   app.add_option("--gpus", gpus, "CUDA devices (0: all visible)");
   app.add_option("--probe", probe, "ROI voxels probed to count samples");
-  app.add_flag("--texture", texture, "CUDA: blocking in a 3D texture (hardware filtering)");
-  bool fast_texture = false;
-  app.add_flag("--fast-texture", fast_texture,
-               "CUDA: texture for fast mode only (exact keeps float filtering, the definition)");
   app.add_option("--mode", mode, "exact, fast, or both (fast compared with exact in full)");
-  app.add_option("--angular", angular, "fast mode: angular oversampling");
-  int slots = 0;
-  app.add_option("--slots", slots, "fast mode on CUDA: direction tables per batch (0: auto)");
   CLI11_PARSE(app, argc, argv);
   spdlog::set_level(spdlog::level::warn);
 
@@ -112,7 +105,6 @@ int main(int argc, char** argv) {
   PathSafetyOptions o;
   o.device = parse_device(device);
   o.threads = threads;
-  o.cuda_texture = texture;
   o.max_gpus = gpus;
   if (which == "phantom") {
     po.spacing_mm = spacing;
@@ -177,8 +169,8 @@ int main(int argc, char** argv) {
     }
     for (const auto& [phase, s] : r.phases) j["phases"][phase] = s;
     if (r.mode == Mode::kFast) {
-      j["direction_cells"] = r.direction_cells;
-      j["angular"] = angular;
+      j["points_computed_exactly"] = r.fast.evaluated_points;
+      j["coarsest_stride"] = r.fast.coarsest_stride;
     }
     if (exact) {
       const ModeDifference d = compare_volumes(exact->volumes, r.volumes, values);
@@ -193,24 +185,19 @@ int main(int argc, char** argv) {
     std::printf("%s\n", j.dump().c_str());
     std::fflush(stdout);
   };
-  o.fast_angular = angular;
-  o.fast_check_voxels = 0;
-  o.cuda_fast_slots = slots;
+  o.fast.check_voxels = 0;
   for (unsigned values : runs) {
     o.values = values;
     if (mode == "exact" || mode == "both") {
       o.mode = Mode::kExact;
-      o.cuda_texture = texture;
       const PathSafetyResult exact = compute_path_safety(blocking, tumor, o);
       report(exact, values, "exact", nullptr);
       if (mode == "both") {
         o.mode = Mode::kFast;
-        o.cuda_texture = texture || fast_texture;
         report(compute_path_safety(blocking, tumor, o), values, "fast", &exact);
       }
     } else {
       o.mode = Mode::kFast;
-      o.cuda_texture = texture || fast_texture;
       report(compute_path_safety(blocking, tumor, o), values, "fast", nullptr);
     }
   }

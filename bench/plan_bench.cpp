@@ -115,51 +115,19 @@ int bench_plan(int argc, char** argv) {
   double radius = 100.0;
   std::string mode = "fast", device = "auto", work = "/tmp/crepuscular_plan_bench", values = "all";
   bool keep = false;
-  double fast_angular = PathSafetyOptions{}.fast_angular;
-  double fast_refine = PathSafetyOptions{}.fast_refine;
-  double fast_refine_relative = PathSafetyOptions{}.fast_refine_relative;
-  int fast_stride = PathSafetyOptions{}.fast_stride;
-  bool no_dilate = false;
-  double svv_margin = PathSafetyOptions{}.fast_svv_margin;
-  double blocking_margin = PathSafetyOptions{}.fast_blocking_margin;
-  bool texture = false;
   int phases = 0;
   app.add_option("--phantom-spacing", phantom_spacing, "phantom voxel size, mm");
   app.add_option("--tumor-diameter", tumor_diameter, "ball tumor diameter, mm");
   app.add_option("--tumor-spacing", tumor_spacing, "tumor mask voxel size, mm");
   app.add_option("--spacing", spacing, "output spacing h, mm (0: the smallest input spacing)");
   app.add_option("--radius", radius, "region of interest R, mm");
-  app.add_option("--mode", mode, "exact, fast or tables");
-  app.add_option("--fast-stride", fast_stride, "fast mode: coarsest lattice stride");
-  int fast_surface_block = PathSafetyOptions{}.fast_surface_block;
-  app.add_option("--fast-surface-block", fast_surface_block,
+  app.add_option("--mode", mode, "exact or fast");
+  FastModeOptions fast;
+  app.add_option("--fast-surface-block", fast.surface_block,
                  "fast mode: one ray per block of this many tumor voxels a side");
-  int fast_ray_stride = PathSafetyOptions{}.fast_ray_stride;
-  app.add_option("--fast-ray-stride", fast_ray_stride,
+  app.add_option("--fast-ray-stride", fast.ray_stride,
                  "fast mode: blocking samples per quadrature point along a ray");
-  int check_voxels = PathSafetyOptions{}.fast_check_voxels;
-  app.add_option("--check-voxels", check_voxels, "fast mode: voxels of the self-check");
-  double finest_margin = PathSafetyOptions{}.fast_finest_margin;
-  double combination_margin = PathSafetyOptions{}.fast_combination_margin_share;
-  app.add_option("--fast-finest-margin", finest_margin, "fast mode: the finest level's margins");
-  app.add_option("--fast-combination-margin", combination_margin,
-                 "breathing, fast mode: the combination's share of the blocking margin where a "
-                 "phase leaves to it");
-  app.add_flag("--fast-no-dilate", no_dilate, "fast mode: refine only cells that disagree");
-  bool cellwise_halves = false;
-  app.add_flag("--fast-cellwise-halves", cellwise_halves,
-               "fast mode: refined cells of edge 4 split whole (every point of stride 2 computed)");
-  app.add_option("--fast-svv-margin", svv_margin, "fast mode: SVV points near a threshold refine");
-  app.add_option("--fast-blocking-margin", blocking_margin,
-                 "fast mode: relative margin of the blocking values' thresholds");
-  app.add_flag("--texture", texture, "CUDA: blocking volume through a texture (hardware filtering)");
-  bool no_overlap = false;
-  app.add_flag("--fast-no-overlap", no_overlap,
-               "fast mode on the GPU: the sampler's host steps one after the other, not beside "
-               "the GPU's work");
-  bool no_tumor_leaps = false;
-  app.add_flag("--no-tumor-leaps", no_tumor_leaps,
-               "rays look up every sample of the tumor's box (no leaps over voxels of one kind)");
+  app.add_option("--check-voxels", fast.check_voxels, "fast mode: voxels of the self-check");
   app.add_option("--device", device, "auto, cpu or cuda");
   app.add_option("--value", values, "values (svv,isbv,ivbv,bvv or all)");
   double phase_tumor_diameter = 0.0;
@@ -169,38 +137,18 @@ int bench_plan(int argc, char** argv) {
   app.add_option("--phases", phases,
                  "breathing: plan the breathing phantom's phases (their own tumors; "
                  "--tumor-diameter and --tumor-spacing do not apply)");
-  bool refine_every_phase = false;
-  app.add_flag("--refine-every-phase", refine_every_phase,
-               "breathing, fast mode: refine every phase's class boundaries, also where the "
-               "phases before decide the combination's class");
+  bool per_phase = false;
+  app.add_flag("--per-phase", per_phase,
+               "breathing: write every phase's volumes (every phase refined everywhere)");
   int phases_at_once = 0;
-  bool read_all_first = false;
-  app.add_flag("--read-all-first", read_all_first,
-               "breathing: read every phase's inputs before computing (default: the blocking "
-               "volumes beside the computation)");
   app.add_option("--phases-at-once", phases_at_once,
                  "breathing: phases computed at once (0: the plan's default)");
-  int newer_from_level = 1;
-  bool not_ahead = false;
-  app.add_flag("--no-prepare-ahead", not_ahead,
-               "breathing: prepare each phase at its turn, not beside the phases before it");
-  app.add_option("--newer-from-level", newer_from_level,
-                 "breathing, three or more at once: the lattice level from which a phase leaves "
-                 "to the combination two phases back (the coarser to three back; 0: every "
-                 "level two back)");
-  bool third_after_first = false;
-  app.add_flag("--third-after-first", third_after_first,
-               "breathing, three or more at once: the third phase's finer decisions leave to "
-               "the first phase alone, beside the second (not to the first two, after it)");
   app.add_option("--work", work, "working folder (phantom and plan)");
   app.add_flag("--keep", keep, "keep the working folder");
   bool reuse_phantom = false;
   app.add_flag("--reuse-phantom", reuse_phantom,
                "keep the phantom in the working folder for the next run, and plan one found there "
                "(runs with the same phantom options)");
-  app.add_option("--fast-angular", fast_angular, "tables mode: direction cells per distance/h");
-  app.add_option("--fast-refine", fast_refine, "tables mode: spread marched exactly (< 0: never)");
-  app.add_option("--fast-refine-relative", fast_refine_relative, "tables mode: relative spread");
   bool verbose = false;
   app.add_flag("--verbose", verbose, "log the plan's progress (info) instead of warnings only");
   CLI11_PARSE(app, argc, argv);
@@ -253,7 +201,7 @@ int bench_plan(int argc, char** argv) {
   }
   // The phantom's files on the disk before the plan is timed: a plan reads a scan that is there
   // already, and the writeback of a fresh phantom's few GB held up the first timed plan after it
-  // by up to 9 s (bench/RESULTS.md, twenty-ninth session).
+  // by seconds (bench/RESULTS.md, 2026-11-29).
   if (!reuse) sync();
   const double setup_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t_setup).count();
@@ -264,28 +212,9 @@ int bench_plan(int argc, char** argv) {
   req.path_safety.device = parse_device(device);
   req.path_safety.spacing_mm = spacing;
   req.path_safety.radius_mm = radius;
-  req.path_safety.fast_angular = fast_angular;
-  req.path_safety.fast_refine = fast_refine;
-  req.path_safety.fast_refine_relative = fast_refine_relative;
-  req.path_safety.fast_stride = fast_stride;
-  req.path_safety.fast_dilate = !no_dilate;
-  req.path_safety.fast_surface_block = fast_surface_block;
-  req.path_safety.fast_ray_stride = fast_ray_stride;
-  req.path_safety.fast_check_voxels = check_voxels;
-  req.path_safety.fast_finest_margin = finest_margin;
-  req.path_safety.fast_combination_margin_share = combination_margin;
-  req.path_safety.fast_pointwise_halves = !cellwise_halves;
-  req.path_safety.fast_svv_margin = svv_margin;
-  req.path_safety.fast_blocking_margin = blocking_margin;
-  req.path_safety.cuda_texture = texture;
-  req.path_safety.tumor_leaps = !no_tumor_leaps;
-  req.path_safety.fast_overlap_host = !no_overlap;
-  req.refine_every_phase = refine_every_phase;
+  req.path_safety.fast = fast;
+  req.per_phase = per_phase;
   req.phases_at_once = phases_at_once;
-  req.newer_combination_from_level = newer_from_level;
-  req.prepare_phase_ahead = !not_ahead;
-  req.third_after_second = !third_after_first;
-  req.stream_phase_reads = !read_all_first;
   req.out_dir = work + "/plan";
   const CpuUse before = cpu_use();
   const auto t0 = std::chrono::steady_clock::now();
@@ -307,24 +236,10 @@ int bench_plan(int argc, char** argv) {
                          {"surface_points", plan.contains("tumor") ? plan["tumor"].value("surface_points", nlohmann::json())
                                                                : nlohmann::json()},
                          {"mode", mode},
-                         {"tables", {fast_angular, fast_refine, fast_refine_relative}},
-                         {"fast_stride", fast_stride},
-                         {"fast_dilate", !no_dilate},
-                         {"fast_surface_block", fast_surface_block},
-                         {"fast_ray_stride", fast_ray_stride},
-                         {"fast_finest_margin", finest_margin},
-                         {"fast_combination_margin", combination_margin},
-                         {"fast_pointwise_halves", !cellwise_halves},
-                         {"fast_margins", {svv_margin, blocking_margin}},
-                         {"texture", texture},
-                         {"tumor_leaps", !no_tumor_leaps},
-                         {"fast_overlap_host", !no_overlap},
-                         {"refine_every_phase", refine_every_phase},
+                         {"fast_surface_block", fast.surface_block},
+                         {"fast_ray_stride", fast.ray_stride},
+                         {"per_phase", per_phase},
                          {"phases_at_once", phases_at_once},
-                         {"newer_from_level", newer_from_level},
-                         {"prepare_phase_ahead", !not_ahead},
-                         {"third_after_second", !third_after_first},
-                         {"read_all_first", read_all_first},
                          {"fast_vs_exact", plan.value("fast_mode_vs_exact", nlohmann::json())},
                          {"device", plan["parameters"]["device"]},
                          {"setup_s_not_counted", setup_s},

@@ -40,13 +40,6 @@ struct CudaRunOptions {
   BlockingStorage storage = BlockingStorage::kGlobal;
   int max_devices = 0;  // 0: all visible devices
   std::function<void(double)> progress;
-  // Fast mode (kernels/path_safety_fast.hpp) when fast_cells > 0: the octahedral map side and
-  // radial samples of the direction tables.
-  int fast_cells = 0;
-  int fast_radial = 0;
-  double fast_refine = -1.0;  // DirectionTable::refine
-  double fast_refine_relative = 0.0;  // DirectionTable::refine_relative
-  int fast_slots = 0;  // direction tables cast per batch; 0: as many as fit, at most 16
   // Called once, before the first result is written to out[]: the caller may still be
   // allocating the host arrays that out[] points to (it fills out[] here) while the kernels run.
   std::function<void()> wait_for_outputs;
@@ -56,13 +49,12 @@ struct CudaRunReport {
   std::string devices;          // e.g. "cuda:NVIDIA H100 80GB HBM3 x1"
   int device_count = 0;
   double kernel_seconds = 0.0;  // wall time of the kernels, all devices together
-  // Where the time went on device 0 (fast mode: setup, cast, combine, finish), seconds.
+  // Where the time went on device 0, seconds, where the backend says.
   std::vector<std::pair<std::string, double>> phases;
 };
 
-// Computes the requested values (bits of PathSafetyValue) for every voxel of the ball, in exact
-// mode (the output grid split into slabs, one per device) or in fast mode (the surface points
-// split between devices, their per-voxel sums added on the host). `scene`
+// Computes the requested values (bits of PathSafetyValue) for every voxel of the ball, exactly
+// (the output grid split into slabs of whole z-slices, one per device). `scene`
 // holds host pointers (blocking, tumor mask, surface points); out[slot] are host arrays of n^3
 // floats for the requested values (set to NaN outside the ball). Throws crepuscular::Error on a CUDA
 // failure.

@@ -44,7 +44,7 @@ void make_plan(const DemoRequest& a, const std::string& dir) {
     // Ten plans instead of one: SVV alone (what guidance and the scenario read first), and a
     // smaller exact check of fast mode per phase, keep the breathing demo within minutes.
     req.path_safety.values = kernels::kSvv;
-    req.path_safety.fast_check_voxels = 200;
+    req.path_safety.fast.check_voxels = 200;
   } else {
     req.labels = {dir + "/phantom/labels.nii.gz"};
     req.tumor = dir + "/phantom/tumor.nii.gz";

@@ -30,7 +30,9 @@
 #include "pipelines/plan_inputs.hpp"
 #include "planning/imaging/volume_io.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
-#include "planning/safety/breathing.hpp"
+#include "planning/breathing/combiner.hpp"
+#include "planning/breathing/executor.hpp"
+#include "planning/breathing/schedule.hpp"
 #include "planning/safety/unknown.hpp"
 #include "planning/trajectories/markups.hpp"
 
@@ -219,7 +221,7 @@ nlohmann::json parameters_json(const PlanRequest& req, const PathSafetyResult& r
 // Fast mode's points, level by level (the coarsest first).
 nlohmann::json points_per_level_json(const PathSafetyResult& result) {
   nlohmann::json levels = nlohmann::json::array();
-  for (const auto& [stride, count] : result.sampler_levels) {
+  for (const auto& [stride, count] : result.fast.levels) {
     levels.push_back({{"stride", stride}, {"points", count}});
   }
   return levels;
@@ -227,24 +229,19 @@ nlohmann::json points_per_level_json(const PathSafetyResult& result) {
 
 // Fast mode's check against the exact method on random voxels.
 nlohmann::json fast_check_json(const PlanRequest& req, const PathSafetyResult& result) {
-  nlohmann::json check = {{"voxels", result.check_voxels}, {"mode", mode_name(result.mode)}};
-  if (result.mode == Mode::kTables) {
-    check["direction_cells"] = result.direction_cells;
-    check["angular_oversampling"] = req.path_safety.fast_angular;
-  } else {
-    check["coarsest_stride"] = result.fast_stride;
-    check["surface_block"] = req.path_safety.fast_surface_block;
-    check["ray_stride"] = result.fast_ray_stride;
-    check["rays_per_voxel"] =
-        result.fast_surface_points > 0 ? result.fast_surface_points : result.surface_points;
-    check["points_computed_exactly"] = result.evaluated_points;
-    check["voxels_interpolated"] = result.interpolated_voxels;
-    check["points_per_level"] = points_per_level_json(result);
-  }
+  const FastModeReport& fast = result.fast;
+  nlohmann::json check = {{"voxels", fast.check_voxels}, {"mode", mode_name(result.mode)}};
+  check["coarsest_stride"] = fast.coarsest_stride;
+  check["surface_block"] = req.path_safety.fast.surface_block;
+  check["ray_stride"] = fast.ray_stride;
+  check["rays_per_voxel"] = fast.surface_points > 0 ? fast.surface_points : result.surface_points;
+  check["points_computed_exactly"] = fast.evaluated_points;
+  check["voxels_interpolated"] = fast.interpolated_voxels;
+  check["points_per_level"] = points_per_level_json(result);
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (!(result.values & (1u << v))) continue;
-    check[value_name(1u << v)] = {{"relative_l2", result.check_relative_l2[size_t(v)]},
-                                  {"class_agreement", result.check_class_agreement[size_t(v)]}};
+    check[value_name(1u << v)] = {{"relative_l2", fast.check_relative_l2[size_t(v)]},
+                                  {"class_agreement", fast.check_class_agreement[size_t(v)]}};
   }
   return check;
 }
@@ -305,7 +302,7 @@ nlohmann::json plan_json(const PlanRequest& req, const PlanInputs& in,
   plan["preprocessing"] = in.preprocessing;
   plan["tumor_source"] = in.tumor_source;
   plan["parameters"] = parameters_json(req, result);
-  if (result.mode != Mode::kExact) plan["fast_mode_vs_exact"] = fast_check_json(req, result);
+  if (result.mode == Mode::kFast) plan["fast_mode_vs_exact"] = fast_check_json(req, result);
   const Eigen::Vector3d& c = result.grid.centre;
   plan["grid"] = geometry_json(result.grid.geometry);
   plan["grid"]["centre_lps_mm"] = {c.x(), c.y(), c.z()};
@@ -325,7 +322,7 @@ nlohmann::json plan_json(const PlanRequest& req, const PlanInputs& in,
   return plan;
 }
 
-// --- Breathing (DESIGN.md §10) -------------------------------------------------------------------
+// --- Breathing (docs/ARCHITECTURE.md §6) -----------------------------------------------------
 
 // The phases' inputs and the request of each (the plan's own request with its files).
 struct PhaseInputs {
@@ -457,7 +454,7 @@ std::vector<size_t> listed_order(size_t n) {
 // A phase's tumor, its lesion chosen, and its centroid.
 void read_phase_tumor(PhaseInputs& p) {
   read_plan_tumor(p.request, p.inputs);
-  p.centroid = extract_tumor_surface(p.inputs.tumor, tumor_file(p.phase.tumor)).centroid;
+  p.centroid = tumor_centroid(p.inputs.tumor, tumor_file(p.phase.tumor));
 }
 
 // A phase's input file as plan.json records it: a frame of a 4D input as that file.
@@ -500,7 +497,7 @@ std::vector<PhaseInputs> read_phases(const PlanRequest& req, const PhaseList& li
       p.inputs = read_plan_inputs(p.request);
       p.inputs.seconds["inputs"] = seconds_since(t_read);
       if (k > 0) p.inputs.labels = {};
-      p.centroid = extract_tumor_surface(p.inputs.tumor, tumor_file(p.phase.tumor)).centroid;
+      p.centroid = tumor_centroid(p.inputs.tumor, tumor_file(p.phase.tumor));
       spdlog::info("breathing: read {} ({} of {} phases)", p.phase.name, ++done, out.size());
     });
     spdlog::info("breathing: reading {} phases, {} at a time", out.size(), readers.readers());
@@ -579,8 +576,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   // With the region's spacing and radius given, the grid needs only the tumors' centroids: every
   // tumor is read first, then the blocking volumes beside the computation, in the order the
   // phases are computed (a phase starts once its own are read). Otherwise every input first.
-  const bool stream = req.stream_phase_reads && req.path_safety.spacing_mm > 0.0 &&
-                      req.path_safety.radius_mm > 0.0;
+  const bool stream = req.path_safety.spacing_mm > 0.0 && req.path_safety.radius_mm > 0.0;
   std::vector<PhaseInputs> phases;
   std::future<void> first_blocking;  // the first phase's (always computed first), beside the tumors
   if (stream) {
@@ -628,8 +624,8 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
         });
   }
   // The later phases' inputs checksummed as they are read, on one thread beside the computation
-  // (in the readers, they held back each phase's start). Declared after `blocking_reads`:
-  // joined before it goes.
+  // (not in the readers, where they would hold back each phase's start). Declared after
+  // `blocking_reads`: joined before it goes.
   std::future<void> checksums;
   if (blocking_reads) {
     checksums = std::async(std::launch::async, [&phases, &order, &blocking_reads] {
@@ -640,191 +636,30 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     });
   }
   // Fast mode leaves refinement out where a phase cannot change the combination's class
-  // (PathSafetyOptions::combined_so_far), unless every phase's own volumes are written.
-  const bool leave_to_combination = req.path_safety.mode == Mode::kFast && !req.per_phase &&
-                                    !req.refine_every_phase;
+  // (combination.hpp), unless every phase's own volumes are written.
+  const bool leave_to_combination = req.path_safety.mode == Mode::kFast && !req.per_phase;
   // Phases computed at once: on a GPU three, so that the phases' host steps (preparation, the
   // sampler's steps between launches) run beside the others' rays; one on the cores, where they
-  // would share them. A phase's sampler leaves to the combination of the phases before the one
-  // computed beside it (it cannot wait for that one's fold); the third prepares and samples its
-  // coarsest level meanwhile, then waits for its fold (H100, 10 phases, the same points as two
-  // at once: 25 mm tumor 1.0-2.5 s less, 2 cm tumor from as long to 1.8 s less; memory: one
-  // more phase's volumes; bench/RESULTS.md, twentieth session).
-  const size_t at_once = std::min<size_t>(
-      phases.size(), req.phases_at_once > 0
-                         ? size_t(req.phases_at_once)
-                         : (gpus_for(shared.path_safety.device) > 0 ? 3 : 1));
-  // A phase's coarsest decisions leave to the combination of the phases up to three before it
-  // where three are computed at once, the finer ones to the combination up to two before it:
-  // the third phase at once samples its second level while the first of the other two is
-  // still computed, and waits for that one's fold only at its finer levels (H100, 10 phases,
-  // 2 cm tumor: 18.7-19.2 -> 17.3-18.4 s, 0.05 % fewer points; one more set of volumes in
-  // memory; bench/RESULTS.md, twenty-first session).
-  const size_t late_lag = std::min<size_t>(at_once, 2);
-  const int newer_from_level = req.newer_combination_from_level;
-  const size_t early_lag = at_once >= 3 && newer_from_level > 0 ? 3 : late_lag;
-  // The third phase computed beside the fourth, both after the second: its finer decisions
-  // leave to the first two (H200, 10 phases, 2 cm tumor: 23.85 -> 22.51 M points, end to end
-  // within the instances' spread; bench/RESULTS.md, twenty-ninth session). The second is
-  // computed alone then, beside the coarsest levels of the third and fourth.
-  const bool third_after_second = early_lag == 3 && req.third_after_second;
-  combiner.keep_earlier(leave_to_combination && at_once > 1 ? int(early_lag) - 1 : 0);
-  // Folded into the combination: a phase's sampler waits for an earlier phase's fold; on an error
-  // every fold not yet made fails, so that nothing waits for it.
-  struct Signal {
-    std::promise<void> promise;
-    std::shared_future<void> done = promise.get_future().share();
-    std::once_flag once;
-    void set() {
-      std::call_once(once, [this] { promise.set_value(); });
-    }
-    void fail(std::exception_ptr e) {
-      std::call_once(once, [this, e] { promise.set_exception(e); });
-    }
-  };
-  std::vector<Signal> folded(phases.size());
-  // The folds in order: a phase folds once the one before it has (and the first phase has taken
-  // its own statistics of the volumes it lends).
-  std::vector<Signal> fold_turn(phases.size());
-  // A phase's fold into the other extreme done (PhaseCombiner::fold_extreme), after its fold.
-  std::vector<Signal> extreme_turn(phases.size());
-  // A later phase's result once its scan's coverage is applied (its volumes final), kept here
-  // until its fold is made: a phase asking for the combination with it reads it through the
-  // combination of the phases before it (CombinedVolumes::pending) rather than wait for the
-  // fold. `reading`: per phase, the result its sampler reads so, held until it has computed.
-  std::vector<Signal> covered(phases.size());
-  std::mutex pending_lock;
-  std::vector<std::shared_ptr<const PathSafetyResult>> pending(phases.size());
-  std::vector<std::shared_ptr<const PathSafetyResult>> reading(phases.size());
+  // would share them.
+  const int at_once = req.phases_at_once > 0
+                          ? req.phases_at_once
+                          : (gpus_for(shared.path_safety.device) > 0 ? 3 : 1);
+  const PhaseSchedule schedule = schedule_phases(int(phases.size()), at_once, leave_to_combination);
+  spdlog::info("breathing: {} at once; the schedule, steps in the order computed ({}):\n{}",
+               schedule.at_once, [&] {
+                 std::string names;
+                 for (size_t at = 0; at < order.size(); ++at) {
+                   names += (at ? ", " : "") + phases[order[at]].phase.name;
+                 }
+                 return names;
+               }(),
+               schedule.table());
   std::vector<Clock::time_point> t_phase(phases.size());
-  // With phases side by side (on a GPU), one more phase is prepared (its scene uploaded, its
-  // volumes allocated) beside them and samples once the phase `at_once` before it has computed:
-  // its turn. So the card does not wait for a new phase's preparation when one ends.
-  const size_t ahead = at_once > 1 && req.prepare_phase_ahead ? 1 : 0;
-  std::vector<Signal> turn(phases.size());
-  for (size_t at = 0; at < std::min(at_once, phases.size()); ++at) turn[at].set();
-  // A phase's result is finished on a thread of its own beside the next phases' path safety: the
-  // scan's coverage applied and folded into the combination after the phase before it was folded;
-  // then, beside the next phases and folds, its check compared, statistics taken and its own
-  // volumes written with --per-phase. Its `seconds` run from its path safety's start to its
-  // finish.
-  const auto finish_one = [&](size_t at, PathSafetyResult result) {
-    trace::event("finish_begin", 0, int(at));
-    const size_t k = order[at];
-    const PhaseInputs& p = phases[k];
-    // Its device memory freed at the end of this finish: freeing waits for the device, here
-    // beside the samplers rather than in their way.
-    const std::shared_ptr<void> device_memory = std::move(result.device_memory);
-    CoverageReport coverage;
-    const Volume<uint8_t> region =
-        apply_scan_coverage(result, p.inputs.coverage, p.inputs.tumor, {req.crop_to_scan},
-                            &coverage);
-    trace::event("coverage_applied", 0, int(at));
-    // A later phase's volumes are final now: lent to the samplers that read them before its fold.
-    std::shared_ptr<PathSafetyResult> kept;
-    if (at > 0) {
-      kept = std::make_shared<PathSafetyResult>(std::move(result));
-      const std::lock_guard<std::mutex> lock(pending_lock);
-      pending[at] = kept;
-    }
-    covered[at].set();
-    if (k == 0) first_coverage = coverage;
-    warn_about_coverage(coverage, req.crop_to_scan);
-    if (at > 0) fold_turn[at - 1].done.get();  // the folds in order (its error taken here)
-    // Folded in first, for the later phases' samplers (which wait for it). The first phase lends
-    // its volumes to the combination; its own check and statistics are then taken of them there,
-    // before the next fold may change them.
-    PathSafetyResult* own = kept ? kept.get() : &result;
-    const auto combined = [&folded, &pending_lock, &pending, at] {
-      {
-        const std::lock_guard<std::mutex> lock(pending_lock);
-        pending[at].reset();  // its samplers read the combination from now on
-      }
-      folded[at].set();
-      trace::event("folded", 0, int(at));
-    };
-    if (at == 0) {
-      combiner.add(std::move(result), region, combined);
-      own = &combiner.combined();
-      extreme_turn[at].set();
-    } else {
-      combiner.fold(*kept, region, combined);
-      fold_turn[at].set();
-      // Off the folds' path: fewer cores while samplers run beside it (the last phase's take
-      // them all, beside the plan's writes). The other extreme beside the next phase's fold.
-      if (at + 1 < order.size()) omp_set_num_threads(std::max(1, omp_get_num_procs() / 4));
-      combiner.fold_extreme(*kept);
-      extreme_turn[at].set();
-    }
-    trace::event("fold_done", 0, int(at));  // and the other extreme
-    // The first phase's own check (its statistics come from the check's pass). A later phase
-    // that left refinement to the phases before it has approximate values there, so its own
-    // check would tell little (the combination's is the plan's): its statistics alone.
-    if (at == 0 || !leave_to_combination) finish_fast_check(*own);
-    trace::event("checked", 0, int(at));
-    nlohmann::json entry;
-    entry["name"] = p.phase.name;
-    // A frame of a 4D input is recorded as that file (the frame is the phase's).
-    const auto recorded = [&](const std::string& f) {
-      return input_json(recorded_file(p.phase, f), req.out_dir);
-    };
-    nlohmann::json labels = nlohmann::json::array();
-    for (const auto& f : label_files(p.phase.labels)) labels.push_back(recorded(f));
-    entry["inputs"] = {{"label_maps", labels},
-                       {"tumor", recorded(tumor_file(p.phase.tumor))},
-                       {"ct", recorded(p.phase.ct)}};
-    if (p.phase.frame >= 0) entry["inputs"]["frame"] = p.phase.frame;
-    entry["tumor_centroid_lps_mm"] = point_json(p.centroid);
-    const PathSafetyResult& r = *own;
-    entry["tumor_voxels"] = r.tumor_voxels;
-    entry["unknown_voxels"] = coverage.unknown_voxels;
-    entry["device"] = r.device;
-    entry["computed_as"] = at + 1;
-    if (r.mode == Mode::kFast) {
-      entry["points_computed_exactly"] = r.evaluated_points;
-      entry["points_per_level"] = points_per_level_json(r);
-      if (leave_to_combination && at > 0) {
-        entry["left_to_earlier_phases"] = {{"cells", r.cells_left_to_combination},
-                                           {"finest_points", r.points_left_to_combination}};
-      }
-    }
-    entry["read_s"] = p.inputs.seconds;
-    entry["path_safety_s"] = r.seconds;
-    for (const auto& [step, seconds] : r.phases) entry["path_safety_phases"][step] = seconds;
-    for (int v = 0; v < kernels::kValueCount; ++v) {
-      const unsigned bit = 1u << v;
-      if (!(r.values & bit)) continue;
-      // Taken with the classes by the check's comparison, where it ran.
-      entry["statistics"][value_name(bit)] = statistics_json(statistics_of(*own, bit));
-      if (req.per_phase) {
-        const std::string file = std::string("path_safety_") + value_name(bit) + "_" +
-                                 p.phase.name + ".nii.gz";
-        write_volume(r.volumes[size_t(v)], out.file(file));
-        entry["outputs"][value_name(bit)] = file;
-      }
-    }
-    entry["seconds"] = seconds_since(t_phase[at]);
-    phase_entries[k] = std::move(entry);
-    if (at == 0) fold_turn[at].set();
-    trace::event("finish_end", 0, int(at));
-  };
-  // The finish of the phase at `at`, its fold after the one before (whose error it takes).
-  const auto finish_phase = [&](size_t at, PathSafetyResult result) {
-    try {
-      finish_one(at, std::move(result));
-    } catch (...) {
-      folded[at].fail(std::current_exception());
-      fold_turn[at].fail(std::current_exception());
-      extreme_turn[at].fail(std::current_exception());
-      covered[at].fail(std::current_exception());
-      throw;
-    }
-  };
-  t = Clock::now();
-  // Declared after `out`: joined before a failed plan's folder goes.
-  std::vector<std::future<PathSafetyResult>> computing(phases.size());
-  std::vector<std::future<void>> finishing(phases.size());
-  const auto start = [&](size_t at) {
+  nlohmann::json outputs;
+  std::vector<std::future<void>> input_writes;
+  StepHooks hooks;
+  hooks.compute = [&](size_t at, const CombinationSource& combination,
+                      const std::function<void()>& before_sampling) {
     const size_t k = order[at];
     const PhaseInputs& p = phases[k];
     spdlog::info("breathing: path safety of {} ({} of {})", p.phase.name, at + 1,
@@ -839,120 +674,86 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
       phase_request.path_safety.progress =
           progress_in_steps("breathing: path safety of " + p.phase.name);
     }
-    if (leave_to_combination && at > 0) {
-      // The combination of the phases up to the one two before this one (the first phase's for
-      // the second; for the third the first two's, or the first's with third_after_second off):
-      // the phase just before is computed beside this one. With three at
-      // once, the coarsest decisions take the combination up to three before (`early`), so that
-      // the phase waits for the newer one only before its finer levels (the combiner keeps the
-      // combinations read: none is written over before the phases reading it are done).
-      const auto combination_of = [&folded, &combiner](size_t source) {
-        return [&folded, &combiner, source]() -> CombinedVolumes {
-          trace::event("comb_wait_begin");
-          folded[source].done.get();
-          trace::event("comb_wait_end");
-          return combiner.volumes_after(int(source) + 1);
-        };
-      };
-      const size_t source = at > late_lag ? at - late_lag : at == 2 && third_after_second ? 1 : 0;
-      const size_t early = at > early_lag ? at - early_lag : 0;
-      phase_request.path_safety.combined_so_far = combination_of(early);
-      if (early != source) {
-        // The newer combination without waiting for the fold of `source`: its volumes, once
-        // final, read through the combination of the phases before it (folded before it, in
-        // order). Where its fold is made already, the combination itself. The combination before
-        // `source` stays put while this phase samples: it is written over only by the fold of
-        // the phase `keep_earlier` + 1 after `source`, which is this one or a later one.
-        phase_request.path_safety.combined_newer = [&, source, at]() -> CombinedVolumes {
-          trace::event("comb_wait_begin");
-          covered[source].done.get();
-          std::shared_ptr<const PathSafetyResult> lent;
-          {
-            const std::lock_guard<std::mutex> lock(pending_lock);
-            lent = pending[source];
-          }
-          if (!lent) {
-            folded[source].done.get();
-            trace::event("comb_wait_end");
-            return combiner.volumes_after(int(source) + 1);
-          }
-          folded[source - 1].done.get();
-          CombinedVolumes v = combiner.volumes_after(int(source));
-          for (int s = 0; s < kernels::kValueCount; ++s) {
-            if (v.folded[size_t(s)]) v.pending[size_t(s)] = lent->volumes[size_t(s)].data();
-          }
-          reading[at] = std::move(lent);  // released once this phase has computed
-          trace::event("comb_wait_end");
-          return v;
-        };
-        phase_request.path_safety.newer_from_level = newer_from_level;
-      }
-    }
-    if (ahead > 0) {
-      phase_request.path_safety.before_sampling = [&turn, at] { turn[at].done.get(); };
-    }
-    trace::event("start", 0, int(at));
-    computing[at] = std::async(std::launch::async, [&p, &turn, &reading, at, at_once,
-                                                    phase_request = std::move(phase_request)] {
-      trace::current_phase() = int(at);
-      trace::event("compute_begin");
-      // The next phase's turn comes when this one has computed, or failed; the phase it read
-      // before that phase's fold is released then.
-      struct TurnOnExit {
-        std::vector<Signal>& turn;
-        std::shared_ptr<const PathSafetyResult>& read;
-        size_t next;
-        ~TurnOnExit() {
-          read.reset();
-          if (next < turn.size()) turn[next].set();
-        }
-      } turn_on_exit{turn, reading[at], at + at_once};
-      auto r = compute(phase_request, p.inputs);
-      trace::event("compute_end");
-      return r;
-    });
+    phase_request.path_safety.combination = combination;
+    phase_request.path_safety.before_sampling = before_sampling;
+    return compute(phase_request, p.inputs);
   };
   // The plan's own inputs (the first phase's blocking volume and tumor) written once the first
-  // phase has computed, beside the later phases, rather than among the plan's last writes.
-  nlohmann::json outputs;
-  std::vector<std::future<void>> input_writes;
-  const auto hand_over = [&](size_t at) {
-    PathSafetyResult result = computing[at].get();
+  // phase has computed, beside the later phases; a later phase's blocking volume is done with
+  // then (its finish needs its tumor and scan).
+  hooks.computed = [&](size_t at) {
     if (at == 0) input_writes = write_inputs(out, phases.front().inputs, outputs);
-    // A later phase's blocking volume is done with (its finish needs its tumor and scan); the
-    // first phase's is written as the plan's own.
     if (order[at] > 0) phases[order[at]].inputs.blocking = {};
-    finishing[at] = std::async(std::launch::async, finish_phase, at, std::move(result));
   };
-  // Every finish, in order (the first error in the order of computation).
-  const auto wait_for_finishes = [&finishing] {
-    for (auto& f : finishing) {
-      if (f.valid()) f.get();
-    }
+  hooks.cover = [&](size_t at, PathSafetyResult& result) {
+    const size_t k = order[at];
+    CoverageReport coverage;
+    Volume<uint8_t> region = apply_scan_coverage(result, phases[k].inputs.coverage,
+                                                 phases[k].inputs.tumor, {req.crop_to_scan},
+                                                 &coverage);
+    if (k == 0) first_coverage = coverage;
+    warn_about_coverage(coverage, req.crop_to_scan);
+    phase_entries[k]["unknown_voxels"] = coverage.unknown_voxels;
+    return region;
   };
-  try {
-    const size_t started = std::min(order.size(), at_once + ahead);
-    for (size_t at = 0; at < order.size(); ++at) {
-      if (at >= started) hand_over(at - started);
-      start(at);
+  hooks.report = [&](size_t at, PathSafetyResult& own) {
+    const size_t k = order[at];
+    const PhaseInputs& p = phases[k];
+    // The first phase's own check (its statistics come from the check's pass). A later phase
+    // that left refinement to the phases before it has approximate values there, so its own
+    // check would tell little (the combination's is the plan's): its statistics alone.
+    if (at == 0 || !leave_to_combination) finish_fast_check(own);
+    trace::event("checked", 0, int(at));
+    nlohmann::json& entry = phase_entries[k];
+    entry["name"] = p.phase.name;
+    // A frame of a 4D input is recorded as that file (the frame is the phase's).
+    const auto recorded = [&](const std::string& f) {
+      return input_json(recorded_file(p.phase, f), req.out_dir);
+    };
+    nlohmann::json labels = nlohmann::json::array();
+    for (const auto& f : label_files(p.phase.labels)) labels.push_back(recorded(f));
+    entry["inputs"] = {{"label_maps", labels},
+                       {"tumor", recorded(tumor_file(p.phase.tumor))},
+                       {"ct", recorded(p.phase.ct)}};
+    if (p.phase.frame >= 0) entry["inputs"]["frame"] = p.phase.frame;
+    entry["tumor_centroid_lps_mm"] = point_json(p.centroid);
+    entry["tumor_voxels"] = own.tumor_voxels;
+    entry["device"] = own.device;
+    entry["computed_as"] = at + 1;
+    if (own.mode == Mode::kFast) {
+      entry["points_computed_exactly"] = own.fast.evaluated_points;
+      entry["points_per_level"] = points_per_level_json(own);
+      if (leave_to_combination && at > 0) {
+        entry["left_to_earlier_phases"] = {{"cells", own.fast.cells_left_to_combination},
+                                           {"finest_points", own.fast.points_left_to_combination}};
+      }
     }
-    for (size_t at = order.size() - started; at < order.size(); ++at) hand_over(at);
-    // The combination is whole; the last other extreme and statistics go on beside the writes.
-    folded.back().done.get();
-  } catch (...) {
-    const std::exception_ptr error = std::current_exception();
+    entry["read_s"] = p.inputs.seconds;
+    entry["path_safety_s"] = own.seconds;
+    for (const auto& [step, seconds] : own.phases) entry["path_safety_phases"][step] = seconds;
+    for (int v = 0; v < kernels::kValueCount; ++v) {
+      const unsigned bit = 1u << v;
+      if (!(own.values & bit)) continue;
+      // Taken with the classes by the check's comparison, where it ran.
+      entry["statistics"][value_name(bit)] = statistics_json(statistics_of(own, bit));
+      if (req.per_phase) {
+        const std::string file = std::string("path_safety_") + value_name(bit) + "_" +
+                                 p.phase.name + ".nii.gz";
+        write_volume(own.volumes[size_t(v)], out.file(file));
+        entry["outputs"][value_name(bit)] = file;
+      }
+    }
+    entry["seconds"] = seconds_since(t_phase[at]);
+  };
+  hooks.failed = [&] {
     if (blocking_reads) blocking_reads->stop();
-    for (Signal& s : folded) s.fail(error);
-    for (Signal& s : fold_turn) s.fail(error);
-    for (Signal& s : extreme_turn) s.fail(error);
-    for (Signal& s : covered) s.fail(error);
-    for (Signal& s : turn) s.fail(error);
-    for (auto& c : computing) {
-      if (c.valid()) c.wait();
-    }
-    for (auto& f : finishing) {
-      if (f.valid()) f.wait();
-    }
+  };
+  t = Clock::now();
+  // Declared after `out`: its threads are joined before a failed plan's folder goes.
+  ScheduleRun run(schedule, combiner, hooks);
+  try {
+    run.run();
+  } catch (...) {
     for (auto& f : input_writes) {
       if (f.valid()) f.wait();  // before the staged folder goes
     }
@@ -963,7 +764,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   PathSafetyResult& combined = combiner.combined();
   const Volume<uint8_t>& region = combiner.region();
   combined.pending_check = nullptr;
-  combined.check_voxels = 0;
+  combined.fast.check_voxels = 0;
 
   // The plan's own files: the combination, with the first phase's blocking, tumor and labels.
   const PhaseInputs& first = phases.front();
@@ -975,7 +776,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
                                                        region, area_safety, geometry);
   // Fast mode's check of the combination (every phase's exact values at the check's voxels,
   // combined, against the combined volumes) beside area safety: taken before it, its classes'
-  // passes held area safety back by 0.3 s at the plan's end (H100, twenty-fourth session).
+  // passes would hold area safety back at the plan's end.
   if (const CheckSample* check = combiner.check_sample()) {
     spdlog::info("breathing: the combination against the phases' exact values combined");
     compare_with_check_sample(*check, combined.values, combined);
@@ -985,7 +786,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   std::array<double, kernels::kValueCount> class_change{};
   const auto class_change_beside = [&] {
     // Every phase's other extreme, taken after its fold (a failed finish fails its turn too).
-    for (Signal& e : extreme_turn) e.done.get();
+    run.wait_extremes();
     trace::event("last_extreme", 0, -1);
     std::array<const SafetyClasses*, kernels::kValueCount> classes{};
     for (int v = 0; v < kernels::kValueCount; ++v) {
@@ -1018,7 +819,7 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
   breathing["reference_phase"] = first.phase.name;
   breathing["reference"] =
       "blocking, tumor and label map of the plan are the reference phase's (the first listed)";
-  wait_for_finishes();  // the phases' own statistics, taken beside the writes
+  run.wait_reports();  // the phases' own statistics, taken beside the writes
   nlohmann::json phase_list = nlohmann::json::array();
   for (nlohmann::json& e : phase_entries) phase_list.push_back(std::move(e));
   breathing["phases"] = phase_list;
@@ -1156,7 +957,7 @@ PhaseList four_d_phase_list(const PlanRequest& req, int phases,
 
 nlohmann::json run_plan(const PlanRequest& request) {
   PlanRequest req = request;
-  req.path_safety.fast_check_later = true;  // compared while the volumes are written
+  req.path_safety.compare_check_later = true;  // compared while the volumes are written
   // The GPU starts while the inputs are read, and smooths the safety margin unless the CPU was
   // asked for.
   start_device_warm_up(req.path_safety.device);

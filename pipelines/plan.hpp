@@ -25,31 +25,15 @@ struct PlanRequest : PlanInputOptions {
   // being unknown.
   bool crop_to_scan = false;
   std::string out_dir;
-  // Breathing (DESIGN.md §10): phases.json; then the label maps, tumor and CT come from it, one
-  // set per phase, and the plan combines the phases (planning/safety/breathing.hpp).
+  // Breathing (docs/ARCHITECTURE.md §6): phases.json; then the label maps, tumor and CT come from
+  // it, one set per phase, and the plan combines the phases (planning/breathing/).
   std::string phases;
-  bool per_phase = false;  // also write path_safety_<value>_<phase>.nii.gz per phase
-  // Fast mode over phases: refine every phase's class boundaries, also where the phases computed
-  // before decide the combination's class (PathSafetyOptions::combined_so_far). Slower; implied
-  // by per_phase, whose volumes must each be right.
-  bool refine_every_phase = false;
-  // Phases computed at once: 0 chooses (3 on a GPU, 1 on the cores).
+  // Also write path_safety_<value>_<phase>.nii.gz per phase; every phase's class boundaries are
+  // then refined (none is left to the combination), so that each phase's volumes are right.
+  bool per_phase = false;
+  // Phases computed at once: 0 chooses (3 on a GPU, 1 on the cores); each holds its volumes in
+  // memory (planning/breathing/schedule.hpp).
   int phases_at_once = 0;
-  // Three or more at once, fast mode: a phase's decisions from this level of its lattice on
-  // (1: the second) leave to the combination of the phases up to two before it, the coarser
-  // ones to that of the phases up to three before it, folded earlier
-  // (PathSafetyOptions::combined_newer). 0: every level to the phases up to two before it.
-  int newer_combination_from_level = 1;
-  // With the above (> 0): the third phase computed leaves its finer decisions to the combination
-  // of the first two (waiting for the second's computing, beside which the fourth samples its
-  // coarsest level), not to the first alone beside the second (false).
-  bool third_after_second = true;
-  // Phases side by side: one more phase prepared beside them, sampling at its turn (false: a
-  // phase is prepared when its turn comes).
-  bool prepare_phase_ahead = true;
-  // With spacing and radius given: the tumors read first, the blocking volumes beside the
-  // computation (false: every input read before the first phase is computed).
-  bool stream_phase_reads = true;
 };
 
 // Runs preprocessing and path safety and writes PLAN_DIR/blocking.nii.gz, PLAN_DIR/roi.nii.gz

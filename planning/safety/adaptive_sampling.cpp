@@ -22,6 +22,13 @@ namespace crepuscular::planning {
 
 namespace {
 
+// The finest level's margins, a share of the others: none. A point between two computed voxels
+// of one class is interpolated (measured on every test scene: the same classes as with the whole
+// margins at 31 % fewer points; bench/RESULTS.md, 2026-11-25).
+constexpr double kFinestMargin = 0.0;
+// Beside an evaluator on another device, the finest level in this many pieces.
+constexpr int64_t kFinestPieces = 4;
+
 constexpr uint8_t kPending = 0, kEvaluated = 1, kInterpolated = 2, kQueued = 3, kUnknown = 4;
 // Interpolated by a level point by point (sample_between), which decides a point alike from every
 // cell that shares it: the others of its pass pass over it. kDecided + the pass's number (from
@@ -197,9 +204,7 @@ struct Cell {
 // The uniform cells of one edge that one fill interpolates, marked by their lattice position, so
 // that a voxel shared by several of them (on a face, an edge or a corner) is written by one alone
 // (fill_owned). The cells of a fill are then filled side by side, in lattice order, each voxel
-// once: in passes by lattice parity, every shared voxel was written by each of its cells, and
-// consecutive cells of a pass lay apart in memory (the fills took a quarter of a ten-phase plan's
-// core time, bench/RESULTS.md, twenty-seventh session).
+// once, and consecutive cells of a fill lie together in memory.
 class FilledCells {
  public:
   // The lattice of edge `size` through the centre voxel `half`, over a grid of n voxels per axis,
@@ -399,7 +404,7 @@ int danger_rank(const SafetyClasses& c, double v, const AdaptiveOptions& o, doub
   return int(c.classify(v));
 }
 
-// The combination of the phases computed before (AdaptiveOptions::combined_so_far): whether this
+// The combination of the phases computed before (AdaptiveOptions::combination): whether this
 // phase can change its class. `most_dangerous[s]` is, per value slot whose class changes among
 // the supports (or lies near a threshold), the most dangerous class of the supports toward danger
 // (-1: the value needs nothing from the combination; -2: a support is unknown, never left).
@@ -442,7 +447,7 @@ struct Combination {
       // The combination's side: its margins a share of the blocking ones, none for SVV
       // (AdaptiveOptions::combination_margin_share).
       const SafetyClasses& c = classes[size_t(s)];
-      const double side = c.higher_is_safer ? 0.0 : scale * o.combination_margin_share;
+      const double side = c.higher_is_safer ? 0.0 : scale * kCombinationMarginShare;
       if (danger_rank(c, w, o, side, false) < most_dangerous[size_t(s)]) {
         return false;
       }
@@ -689,7 +694,7 @@ std::vector<FinestPoint> finest_points() {
 }
 
 // A level point by point: inside the refined cells of edge 2 (the finest level) or 4 (the level
-// above it, AdaptiveOptions::pointwise_halves), an edge's midpoint, a face's centre and the
+// above it, the level above the finest point by point), an edge's midpoint, a face's centre and the
 // cell's centre are computed where the corners around them (the edge's ends, the face's
 // corners, the cell's corners) differ in a class or lie near a threshold (the margins times
 // `scale`), and interpolated from them where they agree. A class boundary crossing a cell is
@@ -776,12 +781,12 @@ int64_t sample_between(const std::vector<Cell>& refined, double scale, const Out
   };
   const int64_t cells = int64_t(refined.size());
   int64_t computed = 0;
-  if (options.overlap_host_steps && cells >= std::max<int64_t>(2, options.overlap_finest_from)) {
+  if (options.overlap_host_steps && cells >= 2) {
     // In pieces: each piece's points computed and stored (on the evaluator's device, the store
     // on the cores) while the next piece's are gathered. The decisions depend on the corners
     // alone, which are never finest points, so the points are those of one pass; a point
     // offered by two pieces is claimed by the first.
-    const int64_t pieces = std::clamp<int64_t>(options.finest_pieces, 2, cells);
+    const int64_t pieces = std::min<int64_t>(kFinestPieces, cells);
     std::vector<GridPoint> piece[2];
     std::vector<float> piece_values[2];
     std::future<void> running;
@@ -982,7 +987,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     return interpolated;
   };
   bool classes_known = false;
-  // The phases before, combined (AdaptiveOptions::combined_so_far), asked for after the coarsest
+  // The phases before, combined (AdaptiveOptions::combination), asked for after the coarsest
   // level.
   Combination combination;
   // What the combination must cover for a cell (Combination::covers): its corners' most
@@ -1040,9 +1045,9 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     // Thresholds from the coarsest lattice's samples inside the region (a uniform sample of it),
     // combined with the phases before where there are any: the combination's classes.
     if (!classes_known) {
-      if (options.combined_so_far) {
+      if (options.combination.so_far) {
         const auto tw = std::chrono::steady_clock::now();
-        combination = options.combined_so_far();
+        combination = options.combination.so_far();
         clock.add(StepClock::kCombinationWait, tw);
         t += std::chrono::steady_clock::now() - tw;  // the refinement's own time excludes it
       }
@@ -1069,10 +1074,11 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     }
 
     // A later combination for this level's decisions and the finer ones'.
-    if (options.combined_newer && combination.any() && level == options.newer_from_level &&
+    if (options.combination.newer && combination.any() &&
+        level == options.combination.newer_from_level &&
         level > 0) {
       const auto tw = std::chrono::steady_clock::now();
-      combination = options.combined_newer();
+      combination = options.combination.newer();
       clock.add(StepClock::kCombinationWait, tw);
       t += std::chrono::steady_clock::now() - tw;
     }
@@ -1107,7 +1113,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       refine[size_t(c)] = split ? 1 : unknown ? 2 : 0;
     }
     std::vector<uint8_t> own;  // the cells' own decisions, where dilation adds to them
-    if (level == 0 && options.dilate && size > 1) {
+    if (level == 0 && size > 1) {
       std::vector<uint8_t> grown = refine;
       for (size_t c = 0; c < cells.size(); ++c) {
         if (refine[c] != 1) continue;
@@ -1125,7 +1131,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
       refine.swap(grown);
       own.swap(grown);
     }
-    // Cells left to the phases before (AdaptiveOptions::combined_so_far): filled from their
+    // Cells left to the phases before (AdaptiveOptions::combination): filled from their
     // corners. A cell refined only for its neighbour's sake (dilation: a shadow thinner than a
     // cell may cross it unseen by its corners) is left only where the combination is dangerous
     // throughout it.
@@ -1150,16 +1156,15 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     const int64_t count = int64_t(cells.size());
     children.assign(cells.size(), 0);  // bit `child`: that child meets the region
     const auto to_finest = [&](int64_t c) {
-      return size == 2 && options.pointwise_finest && refine[size_t(c)] == 1;
+      return size == 2 && refine[size_t(c)] == 1;
     };
-    // Cells of edge 4 sampled point by point (AdaptiveOptions::pointwise_halves); a cell refined
+    // Cells of edge 4 sampled point by point (the level above the finest point by point); a cell refined
     // only as a dilated neighbour is split whole, so that a shadow its corners miss is seen.
     const auto to_halves = [&](int64_t c) {
-      return size == 4 && options.pointwise_halves && options.pointwise_finest &&
-             refine[size_t(c)] == 1 && !dilated_only(c);
+      return size == 4 && refine[size_t(c)] == 1 && !dilated_only(c);
     };
     const int h = size / 2;
-    // Children left to the phases before (AdaptiveOptions::combined_so_far): a split cell's
+    // Children left to the phases before (AdaptiveOptions::combination): a split cell's
     // children in which the combination covers the cell's corners are not split but filled from
     // the cell's corners, as a cell left whole is (children of edge 2 and more: the finest level
     // decides point by point).
@@ -1236,7 +1241,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     int finest_level = level + 1;
     std::function<void()> fill_finest_beside;
     if (!finest.empty() && size == 4) {
-      // The lattice of stride 2 point by point inside the cells of edge 4 (pointwise_halves),
+      // The lattice of stride 2 point by point inside the cells of edge 4,
       // the uniform cells of edge 4 filled beside its computation.
       int64_t filled = 0;
       std::function<void()> fill_beside;
@@ -1273,7 +1278,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
             v[m][s] = store.value_if_any(cell.i + (m % 3) * 2, cell.j + (m / 3 % 3) * 2,
                                          cell.k + (m / 9) * 2, s);
           }
-          key[m] = class_key(v[m], slots, report, options, options.finest_margin);
+          key[m] = class_key(v[m], slots, report, options, kFinestMargin);
         }
         uint8_t split = 0, filled_bits = 0;
         for (int child = 0; child < 8; ++child) {
@@ -1325,7 +1330,7 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     }
     if (!finest.empty()) {
       const int64_t computed =
-          sample_between(finest, options.finest_margin, grid, options, slots, evaluate, report,
+          sample_between(finest, kFinestMargin, grid, options, slots, evaluate, report,
                          store, lists, queue, values, clock, combination, 0, fill_finest_beside,
                          [&](double f) { progress.at(finest_level, f); });
       report.evaluated += computed;
@@ -1374,25 +1379,6 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
   report.seconds = clock.named();
   progress.at(levels - 1, 1.0);
   return report;
-}
-
-AdaptiveOptions adaptive_options(const PathSafetyOptions& options, const OutputGrid& grid) {
-  AdaptiveOptions adaptive;
-  adaptive.values = options.values;
-  adaptive.stride = options.fast_stride > 0
-                        ? options.fast_stride
-                        : coarsest_stride(grid.geometry.spacing[0], grid.radius_mm);
-  adaptive.svv_margin = options.fast_svv_margin;
-  adaptive.blocking_margin = options.fast_blocking_margin;
-  adaptive.dilate = options.fast_dilate;
-  adaptive.finest_margin = options.fast_finest_margin;
-  adaptive.pointwise_halves = options.fast_pointwise_halves;
-  adaptive.combined_so_far = options.combined_so_far;
-  adaptive.combination_margin_share = options.fast_combination_margin_share;
-  adaptive.combined_newer = options.combined_newer;
-  adaptive.newer_from_level = options.newer_from_level;
-  adaptive.progress = options.progress;
-  return adaptive;
 }
 
 }  // namespace crepuscular::planning

@@ -22,11 +22,11 @@
 
 #include "foundation/csv.hpp"
 #include "foundation/trace.hpp"
-#include "kernels/path_safety_fast.hpp"
 #include "kernels/value_set.hpp"
 #include "planning/imaging/sampling.hpp"
 #include "planning/preprocessing/blocking.hpp"
 #include "planning/safety/adaptive_sampling.hpp"
+#include "planning/safety/path_safety_scene.hpp"
 #include "planning/safety/safety_classes.hpp"
 #include <random>
 
@@ -146,12 +146,11 @@ Device parse_device(const std::string& text) {
 Mode parse_mode(const std::string& text) {
   if (text == "exact") return Mode::kExact;
   if (text == "fast") return Mode::kFast;
-  if (text == "tables") return Mode::kTables;
-  throw Error("path safety mode: unknown mode '" + text + "' (expected exact, fast or tables)");
+  throw Error("path safety mode: unknown mode '" + text + "' (expected exact or fast)");
 }
 
 const char* mode_name(Mode mode) {
-  return mode == Mode::kFast ? "fast" : mode == Mode::kTables ? "tables" : "exact";
+  return mode == Mode::kFast ? "fast" : "exact";
 }
 
 const char* device_name(Device device) {
@@ -250,6 +249,21 @@ TumorSurface extract_tumor_surface(const Volume<uint8_t>& tumor, const std::stri
     }
   }
   return s;
+}
+
+Eigen::Vector3d tumor_centroid(const Volume<uint8_t>& tumor, const std::string& source) {
+  return extract_tumor_surface(tumor, source).centroid;
+}
+
+void FastModeOptions::check() const {
+  const auto refuse = [](const char* option, const char* expected, int got) {
+    throw Error(fmt::format("fast mode {}: expected {} (got {})", option, expected, got));
+  };
+  if (surface_block < 1 || surface_block > 4) refuse("--fast-surface-block", "1 to 4", surface_block);
+  if (ray_stride < 0 || ray_stride > 4) refuse("--fast-ray-stride", "0 (automatic) to 4", ray_stride);
+  if (check_voxels < 0 || check_voxels > 1000000) {
+    refuse("--fast-check-voxels", "0 to 1000000", check_voxels);
+  }
 }
 
 double farthest_blocking_mm(const Volume<float>& blocking, const Eigen::Vector3d& centre) {
@@ -705,91 +719,17 @@ void run_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid& gr
   if (progress) progress(1.0);
 }
 
-// Largest distance from a surface point to a voxel of the region of interest, mm.
-double max_ray_length(const OutputGrid& grid, const kernels::PathSafetyScene<double>& scene) {
-  double far = 0.0;
-  for (int t = 0; t < scene.surface_count; ++t) {
-    const auto& q = scene.surface[t].position;
-    far = std::max(far, (Eigen::Vector3d(q.x, q.y, q.z) - grid.centre).norm());
-  }
-  return grid.radius_mm + far + grid.geometry.spacing[0];
-}
-
-void run_cpu_fast(const kernels::PathSafetyScene<double>& scene, const OutputGrid& grid,
-                  unsigned values, int threads, double angular, double refine,
-                  double refine_relative, PathSafetyResult& result,
-                  const std::function<void(double)>& progress) {
-  const auto& g = grid.geometry;
-  const VoxelCentres centre(g);
-  const double h = g.spacing[0];
-  int m = 0, radial = 0;
-  kernels::direction_table_size(max_ray_length(grid, scene), h, m, radial, angular);
-  result.direction_cells = m;
-  const size_t cells = size_t(m) * size_t(m);
-  const bool moments = (values & kernels::kBvv) != 0;
-  std::vector<float> c0(cells * size_t(radial)), c1, c2;
-  if (moments) {
-    c1.resize(c0.size());
-    c2.resize(c0.size());
-  }
-  std::vector<kernels::DirectionCrossing> crossing(cells);
-  kernels::DirectionTable<double> table{};
-  table.m = m;
-  table.radial = radial;
-  table.cells = int64_t(cells);
-  table.dr = 0.5 * h;  // one stored sample per blocking sample (kernels::direction_table_size)
-  table.gamma = 0.5 * h;
-  table.refine = refine;
-  table.refine_relative = refine_relative;
-  table.c0 = c0.data();
-  table.c1 = moments ? c1.data() : nullptr;
-  table.c2 = moments ? c2.data() : nullptr;
-  table.crossing = crossing.data();
-  // The ROI voxels, compact.
-  std::vector<int64_t> roi;
-  roi.reserve(size_t(grid.roi_voxels));
-  for (int64_t k = 0; k < g.dims[2]; ++k)
-    for (int64_t j = 0; j < g.dims[1]; ++j)
-      for (int64_t i = 0; i < g.dims[0]; ++i)
-        if (grid.in_roi(i, j, k)) roi.push_back(g.offset(i, j, k));
-  std::vector<kernels::VoxelState<double>> states(roi.size());
-  const kernels::GridSampler<double> sampler{scene.blocking};
-  kernels::with_value_set(values, [&](auto tag) {
-    constexpr unsigned kValues = decltype(tag)::value;
-    for (int t = 0; t < scene.surface_count; ++t) {
-      const auto& target = scene.surface[t];
-#pragma omp parallel for schedule(dynamic, 16) num_threads(threads)
-      for (int64_t c = 0; c < int64_t(cells); ++c) {
-        kernels::cast_direction(scene, target, table, int(c % m), int(c / m), sampler);
-      }
-#pragma omp parallel for schedule(static) num_threads(threads)
-      for (int64_t v = 0; v < int64_t(roi.size()); ++v) {
-        const Index3 idx = g.index_of_offset(roi[size_t(v)]);
-        kernels::combine_from_table<double, kValues>(states[size_t(v)], scene, target, table,
-                                                     centre(idx[0], idx[1], idx[2]));
-      }
-      if (progress) progress(double(t + 1) / double(scene.surface_count));
-    }
-  });
-  float* out[kernels::kValueCount] = {};
-  value_outputs(result, values, out);
-#pragma omp parallel for schedule(static) num_threads(threads)
-  for (int64_t v = 0; v < int64_t(roi.size()); ++v) {
-    float res[kernels::kValueCount] = {0.0f, 0.0f, 0.0f, 0.0f};
-    kernels::finalize_values(states[size_t(v)], values, scene.s2, res);
-    for (int s = 0; s < kernels::kValueCount; ++s) {
-      if (out[s]) out[s][roi[size_t(v)]] = res[s];
-    }
-  }
-}
-
 // Fast mode: the output grid sampled coarse to fine (adaptive_sampling.hpp), each point's values
 // computed by `evaluate` (exact rays on the CPU or the GPU).
 void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafetyOptions& options,
                   const PointEvaluator& evaluate, PathSafetyResult& result,
                   bool evaluator_on_device = false) {
-  AdaptiveOptions adaptive = adaptive_options(options, grid);
-  adaptive.overlap_host_steps = evaluator_on_device && options.fast_overlap_host;
+  AdaptiveOptions adaptive;
+  adaptive.values = options.values;
+  adaptive.stride = coarsest_stride(grid.geometry.spacing[0], grid.radius_mm);
+  adaptive.combination = options.combination;
+  adaptive.progress = options.progress;
+  adaptive.overlap_host_steps = evaluator_on_device;
   if (known) {
     const ImageGeometry& g = grid.geometry;
     adaptive.known = [known, &g, coverage = options.coverage](int64_t i, int64_t j, int64_t k) {
@@ -800,7 +740,7 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
     };
   }
   adaptive.known_mask = known;
-  result.fast_stride = adaptive.stride;
+  result.fast.coarsest_stride = adaptive.stride;
   float* out[kernels::kValueCount] = {};
   value_outputs(result, options.values, out);
   if (options.before_sampling) {
@@ -810,12 +750,12 @@ void run_adaptive(const OutputGrid& grid, const uint8_t* known, const PathSafety
   trace::event("sampling_begin");
   const AdaptiveReport report = sample_adaptively(grid, adaptive, evaluate, out);
   trace::event("sampling_end");
-  result.evaluated_points = report.evaluated;
-  result.interpolated_voxels = report.interpolated;
-  result.sampler_levels = report.levels;
-  result.cells_left_to_combination = report.cells_left_to_combination;
-  result.points_left_to_combination = report.points_left_to_combination;
-  if (adaptive.combined_so_far) {
+  result.fast.evaluated_points = report.evaluated;
+  result.fast.interpolated_voxels = report.interpolated;
+  result.fast.levels = report.levels;
+  result.fast.cells_left_to_combination = report.cells_left_to_combination;
+  result.fast.points_left_to_combination = report.points_left_to_combination;
+  if (adaptive.combination) {
     spdlog::info("fast mode: {} cells and {} finest points left to the phases before (they "
                  "decide the combination's class there; this phase's own values there, and so "
                  "its own check, are approximate)",
@@ -880,7 +820,8 @@ CheckSample exact_check_sample(const OutputGrid& grid, const uint8_t* known, int
 void compare_with_check_sample(const CheckSample& sample, unsigned values,
                                PathSafetyResult& result) {
   const std::vector<int64_t>& offsets = sample.offsets;
-  result.check_voxels = int64_t(offsets.size());
+  FastModeReport& fast = result.fast;
+  fast.check_voxels = int64_t(offsets.size());
   for (int v = 0; v < kernels::kValueCount; ++v) {
     const unsigned bit = 1u << v;
     if (!(values & bit)) continue;
@@ -894,27 +835,27 @@ void compare_with_check_sample(const CheckSample& sample, unsigned values,
       ref2 += a * a;
       same += classes.classify(a) == classes.classify(b);
     }
-    result.check_relative_l2[size_t(v)] = ref2 > 0.0 ? std::sqrt(diff2 / ref2) : std::sqrt(diff2);
-    result.check_class_agreement[size_t(v)] =
+    fast.check_relative_l2[size_t(v)] = ref2 > 0.0 ? std::sqrt(diff2 / ref2) : std::sqrt(diff2);
+    fast.check_class_agreement[size_t(v)] =
         offsets.empty() ? 1.0 : double(same) / double(offsets.size());
   }
   for (int v = 0; v < kernels::kValueCount; ++v) {
     if (values & (1u << v)) {
       spdlog::info("fast mode vs exact at {} voxels: {} relative L2 {:.2e}, same class {:.2f} %",
-                   result.check_voxels, value_name(1u << v), result.check_relative_l2[size_t(v)],
-                   100.0 * result.check_class_agreement[size_t(v)]);
+                   fast.check_voxels, value_name(1u << v), fast.check_relative_l2[size_t(v)],
+                   100.0 * fast.check_class_agreement[size_t(v)]);
     }
   }
 }
 
 namespace {
 
-// Fast mode's self-check (options.fast_check_voxels voxels recomputed exactly), logged.
+// Fast mode's self-check (options.fast.check_voxels voxels recomputed exactly), logged.
 void check_fast_mode(const OutputGrid& grid, const uint8_t* known,
                      const PathSafetyOptions& options, const PointEvaluator& evaluate,
                      PathSafetyResult& result) {
   result.check_sample = std::make_shared<const CheckSample>(
-      exact_check_sample(grid, known, options.fast_check_voxels, evaluate));
+      exact_check_sample(grid, known, options.fast.check_voxels, evaluate));
   compare_with_check_sample(*result.check_sample, options.values, result);
 }
 
@@ -961,6 +902,7 @@ void check_inputs(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
   if (options.values == 0 || (options.values & ~kernels::kAllValues) != 0) {
     throw Error("path safety: no valid value requested (expected svv, isbv, ivbv, bvv)");
   }
+  options.fast.check();
   if (!(options.eps >= 0.0) || !std::isfinite(options.eps)) {
     throw Error("insignificant blocking eps: must be a finite number >= 0 (got " +
                 std::to_string(options.eps) + ")");
@@ -1101,11 +1043,11 @@ class CudaBackend {
     desc.n = int(grid.geometry.dims[0]);
     desc.half = int(grid.half);
     desc.max_sq = grid.max_sq;
-    if (options.mode == Mode::kExact) desc.known = known;
     if (options.mode == Mode::kFast) {
       run_fast(scene, fast_scene, grid, known, desc, options, clock, volumes, result);
       return;
     }
+    desc.known = known;
     float* out[kernels::kValueCount] = {};
     kernels::CudaRunOptions cuda;
     cuda.wait_for_outputs = [&] {
@@ -1116,25 +1058,13 @@ class CudaBackend {
           "allocate_wait",
           std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count());
     };
-    cuda.storage = options.cuda_texture ? kernels::BlockingStorage::kTexture
-                                        : kernels::BlockingStorage::kGlobal;
+    cuda.storage = kernels::BlockingStorage::kGlobal;
     cuda.max_devices = options.max_gpus;
     cuda.progress = options.progress;
-    if (options.mode == Mode::kTables) {
-      int m = 0, radial = 0;
-      kernels::direction_table_size(max_ray_length(grid, scene), grid.geometry.spacing[0], m,
-                                    radial, options.fast_angular);
-      cuda.fast_cells = m;
-      cuda.fast_radial = radial;
-      cuda.fast_slots = options.cuda_fast_slots;
-      cuda.fast_refine = options.fast_refine;
-      cuda.fast_refine_relative = options.fast_refine_relative;
-      result.direction_cells = m;
-    }
     const kernels::CudaRunReport report =
         kernels::run_path_safety_cuda(scene, desc, options.values, out, cuda);
     volumes.collect(result);  // when the backend failed before asking for them
-    result.device = report.devices + (options.cuda_texture ? " (texture)" : "");
+    result.device = report.devices;
     result.phases = clock.phases;
     result.phases.insert(result.phases.end(), report.phases.begin(), report.phases.end());
   }
@@ -1147,11 +1077,9 @@ class CudaBackend {
                 const uint8_t* known, const kernels::OutputGridDesc& desc,
                 const PathSafetyOptions& options, PhaseClock& clock, PendingVolumes& volumes,
                 PathSafetyResult& result) {
-    // Fast mode samples through a texture of halves (hardware filtering: 1.3x faster kernels on
-    // the H100, relative L2 below 2e-3 against float filtering; halves instead of floats: half the
-    // bytes a sample reads, 4 % faster kernels and 6 % faster ten-phase plans, bench/RESULTS.md,
-    // twenty-fourth session); its self-check recomputes in global memory, the exact definition,
-    // so that it measures the texture's difference too.
+    // Fast mode samples through a texture of halves (hardware filtering, relative L2 below 2e-3
+    // against float filtering; bench/RESULTS.md, 2026-11-28); its self-check recomputes in global
+    // memory, the exact definition, so that it measures the texture's difference too.
     // Both scenes go with the result (PathSafetyResult::device_memory): freed here, they would
     // wait for the kernels of a phase computed beside this one.
     struct Scenes {
@@ -1172,18 +1100,14 @@ class CudaBackend {
       };
     };
     // The self-check's scene uploads, and its exact values are computed, on another thread while
-    // the grid is sampled: computed after the sampling, they queued behind the rays of a phase
-    // computed beside this one and held up this phase's hand-over by up to 0.4 s (bench/RESULTS.md,
-    // nineteenth session).
+    // the grid is sampled, rather than after it behind the rays of a phase computed beside this
+    // one.
     std::future<CheckSample> exact;
-    if (options.fast_check_voxels > 0) {
+    if (options.fast.check_voxels > 0) {
       exact = std::async(std::launch::async, [&] {
         scenes->reference = std::make_unique<kernels::CudaPointEvaluator>(
-            scene, desc, options.values,
-            options.cuda_texture ? kernels::BlockingStorage::kTexture
-                                 : kernels::BlockingStorage::kGlobal,
-            options.max_gpus);
-        return exact_check_sample(grid, known, options.fast_check_voxels,
+            scene, desc, options.values, kernels::BlockingStorage::kGlobal, options.max_gpus);
+        return exact_check_sample(grid, known, options.fast.check_voxels,
                                   evaluator_of(*scenes->reference));
       });
     }
@@ -1198,7 +1122,7 @@ class CudaBackend {
       result.pending_check = [sample, values](PathSafetyResult& r) {
         compare_with_check_sample(*sample, values, r);
       };
-      if (!options.fast_check_later) finish_fast_check(result);
+      if (!options.compare_check_later) finish_fast_check(result);
       clock.done("self_check");  // the wait for the exact values (and the comparison)
     }
     result.device = evaluator.devices() + " (texture)";
@@ -1249,9 +1173,6 @@ void run_on_cpu(const kernels::PathSafetyScene<double>& scene, const OutputGrid&
   if (options.mode == Mode::kFast) {
     run_adaptive(grid, known, options,
                  cpu_point_evaluator(scene, grid, options.values, result.threads), result);
-  } else if (options.mode == Mode::kTables) {
-    run_cpu_fast(scene, grid, options.values, result.threads, options.fast_angular,
-                 options.fast_refine, options.fast_refine_relative, result, options.progress);
   } else {
     run_cpu(scene, grid, known, options.values, result.threads, result, options.progress);
   }
@@ -1359,15 +1280,14 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
                device == Device::kCuda ? "cuda" : "cpu");
   // The scan's mask on the output grid, made on another thread while the bricks are.
   std::future<Volume<uint8_t>> scan_mask;
-  if (options.coverage && !options.coverage->empty() && options.mode != Mode::kTables) {
+  if (options.coverage && !options.coverage->empty()) {
     scan_mask = std::async(std::launch::async,
                            [&] { return options.coverage->mask(grid.geometry); });
   }
   const std::vector<float> bricks = blocking_bricks(blocking);
-  // The GPU's walks leap (H100 headline: kernels 3.28 -> 2.95 s); the cores' do not, where the
-  // extra work per sample cost more than the samples it saved (2 cores, 2 mm plan: path safety
-  // 25.3-25.8 s without, 27.4-28.0 s with; bench/RESULTS.md, thirteenth session).
-  const std::vector<uint8_t> leaps = options.tumor_leaps && device == Device::kCuda
+  // The GPU's walks leap over the tumor's box; the cores' do not, where the extra work per
+  // sample costs more than the samples it saves (bench/RESULTS.md, 2026-11-26).
+  const std::vector<uint8_t> leaps = device == Device::kCuda
                                          ? tumor_leaps(ray_tumor, surface.lo, surface.hi)
                                          : std::vector<uint8_t>{};
   const auto scene =
@@ -1377,27 +1297,27 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   TumorSurface fast_surface;
   kernels::PathSafetyScene<double> fast_scene = scene;
   if (options.mode == Mode::kFast) {
-    result.fast_ray_stride = options.fast_ray_stride > 0
-                                 ? options.fast_ray_stride
+    result.fast.ray_stride = options.fast.ray_stride > 0
+                                 ? options.fast.ray_stride
                                  : automatic_ray_stride(grid.geometry.spacing[0],
                                                         blocking.geometry().spacing.minCoeff());
-    fast_scene.blocking_stride = result.fast_ray_stride;
-    if (result.fast_ray_stride > 1) {
+    fast_scene.blocking_stride = result.fast.ray_stride;
+    if (result.fast.ray_stride > 1) {
       spdlog::info("fast mode: the blocking volume sampled in runs of {} samples ({:.2f} mm), "
                    "each at its midpoint",
-                   result.fast_ray_stride, result.fast_ray_stride * result.gamma_mm);
+                   result.fast.ray_stride, result.fast.ray_stride * result.gamma_mm);
     }
   }
-  if (options.mode == Mode::kFast && options.fast_surface_block > 1) {
+  if (options.mode == Mode::kFast && options.fast.surface_block > 1) {
     fast_surface = surface_representatives(surface, ray_tumor.geometry(),
-                                           options.fast_surface_block);
+                                           options.fast.surface_block);
     fast_scene = make_scene(blocking, ray_tumor, fast_surface, result.gamma_mm, options.eps,
                             bricks, leaps);
-    fast_scene.blocking_stride = result.fast_ray_stride;
-    result.fast_surface_points = int64_t(fast_surface.points.size());
+    fast_scene.blocking_stride = result.fast.ray_stride;
+    result.fast.surface_points = int64_t(fast_surface.points.size());
     spdlog::info("fast mode: {} rays per voxel stand for the {} surface points (blocks of {}^3 "
                  "tumor voxels)",
-                 fast_surface.points.size(), surface.points.size(), options.fast_surface_block);
+                 fast_surface.points.size(), surface.points.size(), options.fast.surface_block);
   }
   clock.done("bricks");
   // Unknown is never computed: voxels outside the scan stay NaN (the plan marks them unknown).
@@ -1417,7 +1337,8 @@ PathSafetyResult compute_path_safety(const Volume<float>& blocking, const Volume
   result.seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   // Fast mode on the GPU checked itself there; otherwise the CPU recomputes the sample.
-  if (options.mode != Mode::kExact && options.fast_check_voxels > 0 && result.check_voxels == 0 &&
+  if (options.mode == Mode::kFast && options.fast.check_voxels > 0 &&
+      result.fast.check_voxels == 0 &&
       !result.pending_check) {
     const auto t = std::chrono::steady_clock::now();
     check_fast_mode(grid, known, options,

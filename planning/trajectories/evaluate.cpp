@@ -18,7 +18,7 @@
 #include "foundation/error.hpp"
 #include "kernels/path_safety_math.hpp"
 #include "planning/trajectories/markups.hpp"
-#include "planning/safety/path_safety.hpp"
+#include "planning/safety/path_safety_scene.hpp"
 #include "planning/imaging/sampling.hpp"
 #include "planning/imaging/volume_io.hpp"
 #include "planning/safety/unknown.hpp"

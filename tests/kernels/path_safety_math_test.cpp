@@ -67,51 +67,6 @@ TEST(Sampling, BoxRangeCoversTheBoxWithOneVoxelMargin) {
   EXPECT_GT(k_in, k_out);  // misses the box
 }
 
-}  // namespace
-}  // namespace crepuscular::kernels
-
-#include "kernels/path_safety_fast.hpp"
-
-namespace crepuscular::kernels {
-namespace {
-
-TEST(Octahedral, EncodeDecodeRoundTrip) {
-  std::mt19937 rng(5);
-  std::normal_distribution<double> n(0.0, 1.0);
-  for (int i = 0; i < 1000; ++i) {
-    Vec3<double> d{n(rng), n(rng), n(rng)};
-    const double len = std::sqrt(dot(d, d));
-    d = {d.x / len, d.y / len, d.z / len};
-    double u, v;
-    octahedral_encode(d, u, v);
-    ASSERT_LE(std::abs(u), 1.0);
-    ASSERT_LE(std::abs(v), 1.0);
-    const Vec3<double> e = octahedral_decode(u, v);
-    EXPECT_NEAR(e.x, d.x, 1e-12);
-    EXPECT_NEAR(e.y, d.y, 1e-12);
-    EXPECT_NEAR(e.z, d.z, 1e-12);
-  }
-}
-
-TEST(Octahedral, WrappedNeighbourCellsAreNeighbourDirections) {
-  // Across the map's outer edge the fold pairs cell (-1, b) with (0, m-1-b): their directions
-  // must be as close as neighbouring cells inside the map (< 3 cell sizes apart).
-  const int m = 64;
-  const auto centre = [&](int a, int b) {
-    return octahedral_decode((a + 0.5) * 2.0 / m - 1.0, (b + 0.5) * 2.0 / m - 1.0);
-  };
-  for (int b = 0; b < m; ++b) {
-    int a = -1, bb = b;
-    wrap_cell<double>(m, a, bb);
-    EXPECT_EQ(a, 0);
-    EXPECT_EQ(bb, m - 1 - b);
-    // The cell just outside the edge at (-1, b) continues the sphere beyond cell (0, b).
-    const Vec3<double> inside = centre(0, b), wrapped = centre(a, bb);
-    const double angle = std::acos(std::min(1.0, dot(inside, wrapped)));
-    EXPECT_LT(angle, 3.0 * 3.6 / m) << "b = " << b;
-  }
-}
-
 // The launch order of fast mode's point blocks (launch_order.hpp) against work summed point by
 // point here: every block once, in the order of decreasing work, ties in their own order.
 TEST(LaunchOrder, BlocksStartLongestFirstEachOnce) {

@@ -320,26 +320,26 @@ TEST(PlanBreathing, RigidShiftOfTheSceneShiftsEachPhasesVolumeByTheSameVector) {
 // Fast mode over the breathing phantom's phases: a phase's class boundaries are left to the
 // phases computed before it where they already decide the combination's class. The ends of the
 // motion come first (end-exhale, then end-inhale); the later phases compute fewer points; the
-// combination has the classes of the plan that refines every phase, and both agree with the
-// exact plan's combination. plan.json's check is the combination's against every phase's
-// exact values combined.
+// combination has the classes of the plan that refines every phase (--per-phase), and both agree
+// with the exact plan's combination, one, two or three phases at once (the schedule's table is
+// phase_schedule_test's). plan.json's check is the combination's against every phase's exact
+// values combined.
 TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
   const test::TemporaryFolder dir;
   PhantomOptions po;
   po.spacing_mm = 3.0;
   write_breathing_phantom(po, 4, dir.file("cycle"));
   const auto request = [&](const std::string& out, Mode mode, bool every_phase,
-                           int at_once = 1, int newer_from_level = 1) {
+                           int at_once = 1) {
     PlanRequest r;
     r.phases_at_once = at_once;
-    r.newer_combination_from_level = newer_from_level;
     r.phases = dir.file("cycle/phases.json");
     r.path_safety.device = Device::kCpu;
     r.path_safety.mode = mode;
     r.path_safety.spacing_mm = 3.0;
     r.path_safety.radius_mm = 60.0;
     r.area_safety.enabled = false;
-    r.refine_every_phase = every_phase;
+    r.per_phase = every_phase;
     r.out_dir = dir.file(out);
     return r;
   };
@@ -348,21 +348,11 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
   const nlohmann::json exact = run_plan(request("exact", Mode::kExact, false));
   // Two phases at once: the later of two leaves refinement to the phases before the other.
   const nlohmann::json two = run_plan(request("two", Mode::kFast, false, 2));
-  // Three at once (the default on a GPU) with every level leaving to the fold two before: the
-  // third waits, after its coarsest level, for that fold, so every phase leaves to the phases it
-  // leaves to two at once.
-  const nlohmann::json three_late = run_plan(request("three_late", Mode::kFast, false, 3, 0));
-  // The default: the fourth phase's coarsest decisions leave to the first phase alone (three
-  // back), its finer ones to the first two (two back), as two at once; the third's finer ones
-  // to the first two as well (one back, as one at a time), its coarsest to the first alone.
+  // Three at once (the default on a GPU): the fourth phase's coarsest decisions leave to the
+  // first phase alone (three back), its finer ones to the first two (two back), as two at once;
+  // the third's finer ones to the first two as well (one back, as one at a time), its coarsest
+  // to the first alone.
   const nlohmann::json three = run_plan(request("three", Mode::kFast, false, 3));
-  // Three at once with the third beside the second, its finer decisions to the first alone.
-  nlohmann::json three_beside;
-  {
-    PlanRequest r = request("three_beside", Mode::kFast, false, 3);
-    r.third_after_second = false;
-    three_beside = run_plan(r);
-  }
   const auto& phases = left["breathing"]["phases"];
   ASSERT_EQ(phases.size(), 4u);
   EXPECT_EQ(phases[0]["computed_as"], 1);
@@ -395,34 +385,25 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
     EXPECT_EQ(two_phases[k]["computed_as"], phases[k]["computed_as"]);
   }
   EXPECT_EQ(two_phases[2]["points_computed_exactly"], phases[2]["points_computed_exactly"]);
-  bool fourth_differs = false, third_differs = false;
-  int64_t third_points = 0, third_points_beside = 0;
+  bool fourth_differs = false;
+  int64_t third_points = 0, third_points_two = 0;
   for (size_t k = 0; k < 4; ++k) {
-    EXPECT_EQ(three_late["breathing"]["phases"][k]["points_computed_exactly"],
-              two_phases[k]["points_computed_exactly"]) << k;
     const auto& p = three["breathing"]["phases"][k];
-    const auto& b = three_beside["breathing"]["phases"][k];
     const int as = p["computed_as"].get<int>();
     if (as < 3) {  // nothing three back, the second leaves to the first: as two at once
       EXPECT_EQ(p["points_computed_exactly"], two_phases[k]["points_computed_exactly"]) << k;
-      EXPECT_EQ(b["points_computed_exactly"], two_phases[k]["points_computed_exactly"]) << k;
     } else if (as == 3) {
-      // Beside the second: as two at once. After it: its finer decisions have the second's
-      // boundaries to leave to as well.
-      EXPECT_EQ(b["points_computed_exactly"], two_phases[k]["points_computed_exactly"]) << k;
-      third_differs = p["points_computed_exactly"] != b["points_computed_exactly"];
+      // Its finer decisions have the second's boundaries to leave to as well.
       third_points = p["points_computed_exactly"].get<int64_t>();
-      third_points_beside = b["points_computed_exactly"].get<int64_t>();
+      third_points_two = two_phases[k]["points_computed_exactly"].get<int64_t>();
     } else {
       fourth_differs = p["points_computed_exactly"] != two_phases[k]["points_computed_exactly"];
-      EXPECT_EQ(b["points_computed_exactly"], p["points_computed_exactly"]) << k;
       EXPECT_GT(p["left_to_earlier_phases"]["cells"].get<int64_t>(), 0);
     }
   }
   // The fourth's coarsest decisions had less to leave to (the first phase only).
   EXPECT_TRUE(fourth_differs);
-  EXPECT_TRUE(third_differs);
-  EXPECT_LT(third_points, third_points_beside);
+  EXPECT_LT(third_points, third_points_two);
   EXPECT_LT(points_two, points_every * 9 / 10) << points_two << " vs " << points_every;
   EXPECT_EQ(left["fast_mode_vs_exact"]["points_computed_exactly"].get<int64_t>(), points_left);
   const Volume<uint8_t> roi = read_volume<uint8_t>(dir.file("exact/roi.nii.gz"));
@@ -434,7 +415,6 @@ TEST(PlanBreathing, FastPhasesLeaveToTheCombinationOnlyWhatTheyCannotChange) {
     };
     const Volume<float> l = volume("left"), e = volume("every"), x = volume("exact"),
                         t = volume("two"), three_default = volume("three");
-    expect_identical(t, volume("three_late"), value + " three at once, two back throughout");
     SafetyClasses classes;
     const nlohmann::json& c = exact["classes"][value];
     classes.higher_is_safer = value == "svv";
@@ -532,23 +512,24 @@ TEST(PlanBreathing, PhasesReadSideBySidePlanAsReadOneByOne) {
 
 // With the spacing and radius given, the tumors are read first and each blocking volume beside
 // the computation, in the order the phases are computed: the same plan, volume for volume, as
-// with every input read first, also with two phases at once. A corrupted label map met while
+// with every input read first (the radius not given), also with two phases at once. A corrupted label map met while
 // phases are computed fails the plan naming it, leaves nothing, and nothing waits for it.
 TEST(PlanBreathing, BlockingVolumesReadBesideTheComputationPlanAsReadFirst) {
   const test::TemporaryFolder dir;
   const ThreePhases three = write_three_phases(dir.path());
   const test::MiniPlanInputs& in = three.in;
   const std::string &a = three.a, &b = three.b, &list = three.list;
-  const auto request = [&](const std::string& phases, const std::string& out, bool stream,
+  const auto request = [&](const std::string& phases, const std::string& out, double radius,
                            int at_once) {
     PlanRequest r = phases_request(phases, dir.file(out));
     r.path_safety.spacing_mm = 2.0;
-    r.stream_phase_reads = stream;
+    r.path_safety.radius_mm = radius;  // 0: the default, which needs every input first
     r.phases_at_once = at_once;
     return r;
   };
-  const nlohmann::json first = run_plan(request(list, "first", false, 1));
-  const nlohmann::json beside = run_plan(request(list, "beside", true, 2));
+  const nlohmann::json first = run_plan(request(list, "first", 0.0, 1));
+  const double radius = first["parameters"]["radius_mm"].get<double>();
+  const nlohmann::json beside = run_plan(request(list, "beside", radius, 2));
   EXPECT_EQ(first["grid"], beside["grid"]);
   for (const char* v : kValues) {
     expect_identical(read_volume<float>(dir.file("first/path_safety_") + v + ".nii.gz", VolumeReadOptions::path_safety_file()),
@@ -571,7 +552,7 @@ TEST(PlanBreathing, BlockingVolumesReadBesideTheComputationPlanAsReadFirst) {
     const std::string bad = write_phase_list(dir.path(), phases);
     for (int at_once : {1, 2}) {
       try {
-        run_plan(request(bad, "plan", true, at_once));
+        run_plan(request(bad, "plan", radius, at_once));
         ADD_FAILURE() << "corrupt label map of phase " << at << " accepted";
       } catch (const Error& e) {
         EXPECT_NE(std::string(e.what()).find("corrupt.nii.gz"), std::string::npos) << e.what();

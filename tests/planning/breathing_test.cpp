@@ -1,6 +1,6 @@
-// The phases of a breathing cycle combined voxel by voxel (planning/safety/breathing.hpp): the
+// The phases of a breathing cycle combined voxel by voxel (planning/breathing/combiner.hpp): the
 // least safe phase wins, unknown in any phase stays unknown, and the class change share.
-#include "planning/safety/breathing.hpp"
+#include "planning/breathing/combiner.hpp"
 
 #include <gtest/gtest.h>
 
@@ -244,10 +244,10 @@ TEST(PhaseCombiner, TheCheckIsOfTheCombinationAgainstThePhasesExactValuesCombine
   EXPECT_EQ(check->exact, (std::vector<float>{60, 3, 0, 0, 40, 7, 0, 0}));
   PathSafetyResult& combined = combiner.combined();
   compare_with_check_sample(*check, combined.values, combined);
-  EXPECT_EQ(combined.check_voxels, 2);
-  EXPECT_DOUBLE_EQ(combined.check_class_agreement[0], 1.0);
-  EXPECT_DOUBLE_EQ(combined.check_relative_l2[0], 0.0);
-  EXPECT_DOUBLE_EQ(combined.check_relative_l2[1], 0.0);
+  EXPECT_EQ(combined.fast.check_voxels, 2);
+  EXPECT_DOUBLE_EQ(combined.fast.check_class_agreement[0], 1.0);
+  EXPECT_DOUBLE_EQ(combined.fast.check_relative_l2[0], 0.0);
+  EXPECT_DOUBLE_EQ(combined.fast.check_relative_l2[1], 0.0);
   // A phase without a check leaves the combination without one.
   PathSafetyResult c = result({60, 85, 99, 45}, {3.0f, 1.0f, 1.0f, 1.0f});
   combiner.add(c, states({1, 1, 1, 1}, g));

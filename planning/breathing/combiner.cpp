@@ -1,5 +1,5 @@
 // Path safety over the breathing cycle: the voxelwise combination of the phases.
-#include "planning/safety/breathing.hpp"
+#include "planning/breathing/combiner.hpp"
 
 #include <omp.h>
 
@@ -216,12 +216,13 @@ void PhaseCombiner::fold(const PathSafetyResult& phase, const Volume<uint8_t>& r
   }
   fold_check(phase);
   // Fast mode's points, summed over the phases, level by level (by stride).
-  combined_.evaluated_points += phase.evaluated_points;
-  combined_.interpolated_voxels += phase.interpolated_voxels;
-  combined_.cells_left_to_combination += phase.cells_left_to_combination;
-  combined_.points_left_to_combination += phase.points_left_to_combination;
-  for (const auto& [stride, points] : phase.sampler_levels) {
-    auto& levels = combined_.sampler_levels;
+  FastModeReport& fast = combined_.fast;
+  fast.evaluated_points += phase.fast.evaluated_points;
+  fast.interpolated_voxels += phase.fast.interpolated_voxels;
+  fast.cells_left_to_combination += phase.fast.cells_left_to_combination;
+  fast.points_left_to_combination += phase.fast.points_left_to_combination;
+  for (const auto& [stride, points] : phase.fast.levels) {
+    auto& levels = fast.levels;
     const auto at = std::find_if(levels.begin(), levels.end(),
                                  [stride = stride](const auto& l) { return l.first == stride; });
     if (at != levels.end()) {
