@@ -65,7 +65,7 @@ TEST(EvaluateTest, UniformBlockingIntegralIsCoefficientTimesLength) {
   const double length = (t.target - t.entry).norm();
   EXPECT_NEAR(e.length_mm, length, 1e-9);
   EXPECT_NEAR(e.line_integral, 0.3 * length, 1e-5 * length);
-  // N = ceil(length / gamma), l = length / N <= gamma (DESIGN.md section 4).
+  // N = ceil(length / gamma), l = length / N <= gamma (docs/ARCHITECTURE.md §4).
   EXPECT_EQ(e.samples, int(std::ceil(length / 1.0)));
   EXPECT_LE(e.step_mm, 1.0 + 1e-12);
 }
