@@ -70,8 +70,8 @@ TEST(EvaluateTest, UniformBlockingIntegralIsCoefficientTimesLength) {
   EXPECT_LE(e.step_mm, 1.0 + 1e-12);
 }
 
-// An entry 5e9 mm away printed "-2147483648 samples" and one at 1e9 mm took 21 s: refused at
-// once, as is a point that is not finite.
+// An entry 5e9 mm away would overflow the sample count and one at 1e9 mm would take seconds to
+// march: both are refused at once, as is a point that is not finite.
 TEST(EvaluateTest, AbsurdOrNonFinitePointsAreRefusedAtOnce) {
   const Volume<float> b(cube_grid(40, 2.0), 0.3f);
   const PlanData plan = blocking_plan(b);
