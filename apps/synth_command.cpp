@@ -22,7 +22,7 @@ void add_synth_command(CLI::App& app) {
       "toward\n"
       "the phantom's tumor over 3 s at 30 fps.\n"
       "\n"
-      "Writes the recording folder DIR (DESIGN.md section 8):\n"
+      "Writes the recording folder DIR (docs/ARCHITECTURE.md §8):\n"
       "  frames/000000.jpg ...  the frames (gaps in the numbers are dropped frames)\n"
       "  frames.csv             frame,timestamp_ns,file\n"
       "  ground_truth.csv       frame,timestamp_ns,board,state,tx,ty,tz,qw,qx,qy,qz,rms_px\n"

@@ -1,7 +1,7 @@
 // Large buffers backed by transparent huge pages where the system offers them ("madvise" mode,
 // as Debian's kernels default to). A fresh 513^3 float volume is 132 000 pages of 4 KiB, and the
-// kernel's clearing of each on first touch cost a plan ~0.2 s per volume (bench/RESULTS.md,
-// fourteenth session); as 2 MiB pages it is a few hundred faults.
+// kernel's clearing of each on first touch costs a plan ~0.2 s per volume (bench/RESULTS.md,
+// 2026-11-26, the headline's whole command under 5 s); as 2 MiB pages it is a few hundred faults.
 #pragma once
 
 #include <cstddef>

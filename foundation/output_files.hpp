@@ -1,6 +1,6 @@
-// Outputs that appear complete or not at all (DESIGN.md §3): files are written under a temporary
-// name in the same folder and renamed; whole output folders are staged beside their final place.
-// Every module writes its outputs through these; errors name the final path.
+// Outputs that appear complete or not at all (docs/ARCHITECTURE.md §3): files are written under a
+// temporary name in the same folder and renamed; whole output folders are staged beside their final
+// place. Every module writes its outputs through these; errors name the final path.
 #pragma once
 
 #include <cstddef>

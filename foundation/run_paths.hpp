@@ -1,4 +1,4 @@
-// The one rule on where a run may write (ARCHITECTURE.md §3), checked before any work: outputs
+// The one rule on where a run may write (docs/ARCHITECTURE.md §3), checked before any work: outputs
 // never replace, hold or go into the run's inputs, never meet each other, and a folder another
 // command made is replaced only when the user says so (--overwrite).
 #pragma once

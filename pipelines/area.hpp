@@ -1,6 +1,6 @@
-// The area job (§3.3, DESIGN.md §6): the area safety geometry alone, as a fast preview from the
-// blocking volume or from an existing plan's path safety volume, written as OUT/area_safety.vtk
-// and OUT/area.json.
+// The area job (§3.3, docs/ARCHITECTURE.md §6): the area safety geometry alone, as a fast preview
+// from the blocking volume or from an existing plan's path safety volume, written as
+// OUT/area_safety.vtk and OUT/area.json.
 #pragma once
 
 #include <limits>

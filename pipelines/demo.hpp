@@ -19,9 +19,9 @@ struct DemoRequest {
   // the farthest voxel with any blocking, spans the whole phantom because muscle carries risk).
   double radius_mm = 120.0;
   bool guidance = true;  // false: stop after the plan and the slice views
-  // Breathing (DESIGN.md §10): the phantom as a cycle of this many phases (0: at rest), planned
-  // over all of them with per-phase volumes (SVV only); slices, scenario and guidance use the
-  // combined plan, report.md tabulates both approaches' safety per phase.
+  // Breathing (docs/ARCHITECTURE.md §10): the phantom as a cycle of this many phases (0: at rest),
+  // planned over all of them with per-phase volumes (SVV only); slices, scenario and guidance use
+  // the combined plan, report.md tabulates both approaches' safety per phase.
   int breathing_phases = 0;
   double breathing_amplitude_mm = 12.0;
 };

@@ -50,9 +50,9 @@ struct GuideRequest {
   std::string poses_patient = "ReferenceToTracker";  // "": the tracker's frame is the patient's
   double poses_fps = 30;
   overlay::GuidanceOptions options;
-  // Tag outlines found at half resolution: 5x less CPU per 720p frame than full resolution
-  // (bench/RESULTS.md), for boards whose tags are 25 px or more across, as in the operating room;
-  // --decimate 1 finds smaller ones.
+  // Tag outlines found at half resolution: 4.2x less CPU per 720p frame than full resolution
+  // (bench/RESULTS.md, 2026-12-07, real cameras and real trackers), for boards whose tags are
+  // 25 px or more across, as in the operating room; --decimate 1 finds smaller ones.
   tracking::TrackerOptions tracker = [] {
     tracking::TrackerOptions o;
     o.detector.decimate = 2.0;

@@ -48,8 +48,8 @@ struct PlanInputs {
   nlohmann::json seconds;             // the steps' wall times (blocking, tumor: concurrent)
 };
 
-// A breathing cycle (DESIGN.md §10) as phases.json lists it: per phase its label maps, tumor and
-// optional CT (paths relative to phases.json), in the order of the cycle.
+// A breathing cycle (docs/ARCHITECTURE.md §10) as phases.json lists it: per phase its label maps,
+// tumor and optional CT (paths relative to phases.json), in the order of the cycle.
 struct PlanPhase {
   std::string name;                 // "phase00", or "phase<K>" when phases.json names none
   std::vector<std::string> labels;  // label specs FILE[:TABLE]

@@ -1,5 +1,5 @@
 // Recording jobs: any frame source (camera, recording, synthetic scene) into a recording folder
-// (DESIGN.md §8), and a synthetic scene rendered into one with its ground truth.
+// (docs/ARCHITECTURE.md §8), and a synthetic scene rendered into one with its ground truth.
 #pragma once
 
 #include <atomic>

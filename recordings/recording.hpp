@@ -1,5 +1,5 @@
-// Recordings (DESIGN.md section 8): a folder of frames, their capture timestamps, camera.yaml and
-// session.json. Written frame by frame so that a killed recorder leaves a replayable folder.
+// Recordings (docs/ARCHITECTURE.md §8): a folder of frames, their capture timestamps, camera.yaml
+// and session.json. Written frame by frame so that a killed recorder leaves a replayable folder.
 //
 // Layout of a recording folder:
 //   frames/000000.jpg ...   one image file per frame (JPEG or PNG), named by frame number

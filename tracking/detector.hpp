@@ -15,8 +15,8 @@
 namespace crepuscular::tracking {
 
 // The detector's settings: libapriltag's "user-configurable parameters". The defaults were
-// measured on apriltag's own test photos and on rendered boards (bench/RESULTS.md, "Real cameras
-// and real trackers").
+// measured on apriltag's own test photos and on rendered boards (bench/RESULTS.md, 2026-12-07,
+// real cameras and real trackers).
 struct DetectorOptions {
   // tag36h11, tag36h11b2 (Kalibr), tag25h9, tag16h5, ..., or an OpenCV dictionary
   // (DICT_6X6_250, ...) found by cv::aruco

@@ -1,5 +1,5 @@
-// Pose of a marker board from the detected corners of its tags (DESIGN.md section 7): a planar PnP
-// start (IPPE, both solutions when a single tag is ambiguous), then Ceres refinement of the
+// Pose of a marker board from the detected corners of its tags (docs/ARCHITECTURE.md §7): a planar
+// PnP start (IPPE, both solutions when a single tag is ambiguous), then Ceres refinement of the
 // reprojection error through the full camera model (distortion included) with a robust loss, and
 // the covariance of the six pose parameters.
 #pragma once

@@ -1,7 +1,7 @@
 // Sampling a Volume at physical points (LPS mm): nearest voxel, trilinear interpolation (zero
 // outside, NaN-skipping, clamped to the grid), and the physical -> index affine the kernels take.
 // kernels::sample_blocking stays the path-safety definition of trilinear sampling (host and
-// device, DESIGN.md §4); everything else on the host samples through the functions here.
+// device, docs/ARCHITECTURE.md §4); everything else on the host samples through the functions here.
 #pragma once
 
 #include <Eigen/Core>

@@ -1,6 +1,6 @@
-// The scanned volume (DESIGN.md §4 "Scan coverage"): the intersection of the grids of the inputs
-// that describe the anatomy (label maps, CT, a blocking volume given). Outside it the anatomy is
-// unknown.
+// The scanned volume (docs/ARCHITECTURE.md §4 "Scan coverage"): the intersection of the grids of
+// the inputs that describe the anatomy (label maps, CT, a blocking volume given). Outside it the
+// anatomy is unknown.
 #pragma once
 
 #include <Eigen/Core>

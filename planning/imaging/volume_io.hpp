@@ -12,10 +12,10 @@
 namespace crepuscular::planning {
 
 // Held while ITK reads an image file (header or voxels, every format). ITK's readers are not known
-// to be safe on several threads at once: a breathing plan reading its phases side by side aborted
-// with a corrupted heap inside NiftiImageIO::ReadImageInformation (bench/RESULTS.md, sixteenth
-// session), as concurrent NIfTI reads are reported to do elsewhere. Reads take turns; what is
-// done with the voxels afterwards (conversion, checks, preprocessing) still runs side by side.
+// to be safe on several threads at once: concurrent reads of a breathing plan's phases corrupt the
+// heap inside NiftiImageIO::ReadImageInformation (bench/RESULTS.md, 2026-11-27, runs of 1.05 mm
+// along the rays), as concurrent NIfTI reads are reported to elsewhere. Reads take turns; what is
+// done with the voxels afterwards (conversion, checks, preprocessing) runs side by side.
 // Recursive: one read may open its header under it and then read its voxels.
 std::recursive_mutex& image_read_mutex();
 

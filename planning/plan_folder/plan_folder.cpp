@@ -57,7 +57,8 @@ std::string compute_checksum(const std::string& path);
 // Checksums already taken in this process, by file, size and modification time: a plan over
 // breathing phases records each phase's inputs as its phase finishes and the first phase's again
 // in plan.json, at its end (0.14 s for a CT and label map at 0.7 mm on the H100's host,
-// bench/RESULTS.md, twenty-fourth session). A file written since has another time or size.
+// bench/RESULTS.md, 2026-11-28, a texture of halves). A file written since has another time or
+// size.
 class ChecksumCache {
  public:
   std::string get(const std::string& path) {

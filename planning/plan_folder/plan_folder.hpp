@@ -74,9 +74,9 @@ struct PlanData {
   // Voxel states of roi.nii.gz (planning/safety/unknown.hpp RegionState: 0 not computed, 1
   // computed, 2 unknown: outside the scan); empty for plans without it.
   Volume<uint8_t> region;
-  // Breathing plans (plan.json "breathing", DESIGN.md §10): the phases' names in cycle order and,
-  // when the plan was made with per-phase volumes, each value's volume per phase (same order; NaN
-  // wherever the combined plan has no computed value). Empty otherwise.
+  // Breathing plans (plan.json "breathing", docs/ARCHITECTURE.md §10): the phases' names in cycle
+  // order and, when the plan was made with per-phase volumes, each value's volume per phase (same
+  // order; NaN wherever the combined plan has no computed value). Empty otherwise.
   std::vector<std::string> phases;
   std::map<std::string, std::vector<Volume<float>>> phase_path_safety;
   std::map<std::string, SafetyClasses> classes;      // plan.json "classes"

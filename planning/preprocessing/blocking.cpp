@@ -1,5 +1,5 @@
-// Preprocessing (§3.1, DESIGN.md §5): the blocking volume b (risk per mm) from a label map and a
-// vulnerability table, or from CT thresholds, with the Gaussian safety margin done by ITK.
+// Preprocessing (§3.1, docs/ARCHITECTURE.md §5): the blocking volume b (risk per mm) from a
+// label map and a vulnerability table, or from CT thresholds, with the Gaussian safety margin.
 #include "planning/preprocessing/blocking.hpp"
 #include "planning/imaging/itk_image.hpp"
 #include "planning/preprocessing/smoothing.hpp"

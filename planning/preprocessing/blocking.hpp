@@ -1,5 +1,6 @@
-// Preprocessing (§3.1, DESIGN.md §5): the blocking volume b (risk per mm) from a label map and a
-// vulnerability table, or from CT thresholds when no labels exist, with a Gaussian safety margin.
+// Preprocessing (§3.1, docs/ARCHITECTURE.md §5): the blocking volume b (risk per mm) from a
+// label map and a vulnerability table, or from CT thresholds when no labels exist, with a
+// Gaussian safety margin.
 #pragma once
 
 #include <cstdint>

@@ -26,8 +26,8 @@ struct LabelMapInput {
 //    labels a structure at x (background, or outside every map);
 //  - table: the inputs' levels (one scale, see combine_label_maps) and one label per level,
 //    value k + 1, named after the level;
-//  - coverage: the scanned volume, the intersection of the input maps' grids (DESIGN.md §4); add
-//    the CT's grid to it where a CT is given.
+//  - coverage: the scanned volume, the intersection of the input maps' grids (docs/ARCHITECTURE.md
+//    §4); add the CT's grid to it where a CT is given.
 // blocking_from_labels(labels, table, ...) then gives per level the union of the maps' masks of
 // that level, with the margin as for one map; for a single map on its own grid it is exactly
 // blocking_from_labels() of that map.

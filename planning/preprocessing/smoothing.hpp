@@ -1,8 +1,8 @@
-// The safety margin's Gaussian (DESIGN.md §5): ITK's discrete Gaussian (Lindeberg's kernel, the
-// DiscreteGaussianImageFilter's own operators, variance in mm^2, zero-flux edges), applied as
-// separable passes over the box where the input is non-zero, grown by the kernel. ITK's filter
-// spends most of a plan's preprocessing in its neighbourhood iterators; this gives its values in a
-// fraction of the time.
+// The safety margin's Gaussian (docs/ARCHITECTURE.md §5): ITK's discrete Gaussian (Lindeberg's
+// kernel, the DiscreteGaussianImageFilter's own operators, variance in mm^2, zero-flux edges),
+// applied as separable passes over the box where the input is non-zero, grown by the kernel. ITK's
+// filter spends most of a plan's preprocessing in its neighbourhood iterators; this gives its
+// values in a fraction of the time.
 #pragma once
 
 #include <array>

@@ -203,9 +203,9 @@ double dome_z(double x, double y) {
   return std::max(dome(kDomeRightX, kDomeRightApex), dome(kDomeLeftX, kDomeLeftApex));
 }
 
-// Breathing (DESIGN.md §10): the moving anatomy's displacement field, smooth, largest at the
-// diaphragm and fading with the vertical distance from it; bones, skin, the body wall, the spine
-// and the great vessels stay.
+// Breathing (docs/ARCHITECTURE.md §10): the moving anatomy's displacement field, smooth, largest at
+// the diaphragm and fading with the vertical distance from it; bones, skin, the body wall, the
+// spine and the great vessels stay.
 constexpr double kBreathingAnteriorRatio = 0.35;  // anterior motion per mm of caudal motion
 constexpr double kBreathingFadeSigmaMm = 70.0;    // Gaussian fade with distance from the dome
 

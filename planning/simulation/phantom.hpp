@@ -14,8 +14,8 @@
 
 namespace crepuscular::planning {
 
-// Breathing (DESIGN.md §10): the diaphragm, the organs below it (liver, its vessels, the tumor,
-// kidneys, spleen, bowel) and the heart and lungs' bases move by the displacement field
+// Breathing (docs/ARCHITECTURE.md §10): the diaphragm, the organs below it (liver, its vessels, the
+// tumor, kidneys, spleen, bowel) and the heart and lungs' bases move by the displacement field
 // u = inhale * amplitude * w * (0, -0.35, -1) (caudal and anterior), with w = 1 at the
 // diaphragm's dome and a Gaussian fade (sigma 70 mm) with the vertical distance from it; bones,
 // skin, body wall, spine, aorta and vena cava stay.

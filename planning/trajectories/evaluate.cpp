@@ -86,7 +86,7 @@ TrajectoryEvaluator::~TrajectoryEvaluator() = default;
 
 namespace {
 
-// Line integral exactly as DESIGN.md section 4 defines it for a ray p -> t (kernels): sets the
+// Line integral exactly as docs/ARCHITECTURE.md §4 defines it for a ray p -> t (kernels): sets the
 // integral, its sample count and its step.
 void integrate_blocking(const kernels::PathSafetyScene<double>& scene, const Trajectory& t,
                         TrajectoryEvaluation& e,
@@ -255,7 +255,8 @@ EntryArea entry_area(const AreaSafetyGeometry& a, const Eigen::Vector3d& entry) 
 
 namespace {
 
-// Breathing plans: the entry's value in each phase and the least safe phase (DESIGN.md §10).
+// Breathing plans (docs/ARCHITECTURE.md §10): the entry's value in each phase and the least safe
+// phase.
 void worst_phase(const PlanData& plan, const std::string& value, const Eigen::Vector3d& entry,
                  EntryValue& ev) {
   ev.at_worst_phase = kNaN;

@@ -80,7 +80,7 @@ struct TrajectoryEvaluation {
   double length_mm = 0;
   double step_mm = 0;            // the line integral's sampling step l (<= gamma)
   int samples = 0;               // N
-  double line_integral = 0;      // sum_k b(x_k) l, DESIGN.md section 4 (k = 1..N, x_N = target)
+  double line_integral = 0;      // sum_k b(x_k) l, docs/ARCHITECTURE.md §4 (k = 1..N, x_N = target)
   double structure_step_mm = 0;  // sampling step of the structure search
   std::vector<StructureHit> structures;  // by depth
   bool labels_available = false;

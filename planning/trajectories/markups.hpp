@@ -1,5 +1,5 @@
 // 3D Slicer markups files (.mrk.json): reading needle trajectories drawn as line markups, and
-// writing them back, with the coordinate system stated in the file (DESIGN.md section 3).
+// writing them back, with the coordinate system stated in the file (docs/ARCHITECTURE.md §3).
 #pragma once
 
 #include <Eigen/Core>

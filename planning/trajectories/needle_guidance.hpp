@@ -1,6 +1,6 @@
 // Live safety of a tracked needle against a plan (issue 7, overlay layer 5): the needle's tip and
 // axis in CT, its line extended to the tumor and evaluated as a straight trajectory (evaluate.hpp:
-// line integral of DESIGN.md section 4, structures crossed with depth), the distance to the
+// line integral of docs/ARCHITECTURE.md §4, structures crossed with depth), the distance to the
 // target, whether the line meets the tumor, its safety class, and the angle to the nearest safe
 // direction of the area safety geometry. No rendering.
 #pragma once
@@ -15,9 +15,10 @@
 
 namespace crepuscular::planning {
 
-// kUnknown: the needle's line leaves the scanned volume between the body and the target (DESIGN.md
-// §4): what it crosses there is not known, so it is never called safe (a crossing seen in the scan
-// still makes it dangerous). A tip held in the air beyond the scan's edge is not unknown.
+// kUnknown: the needle's line leaves the scanned volume (docs/ARCHITECTURE.md §4) between the
+// body and the target: what it crosses there is not known, so it is never called safe (a crossing
+// seen in the scan still makes it dangerous). A tip held in the air beyond the scan's edge is not
+// unknown.
 enum class NeedleSafety { kSafe, kMedium, kDangerous, kUnknown };
 const char* needle_safety_name(NeedleSafety s);  // "safe", "medium", "dangerous", "unknown"
 
@@ -46,7 +47,7 @@ struct NeedleState {
   // Empty (samples 0, line integral 0) when the needle points away.
   TrajectoryEvaluation evaluation;
   double eps = 0.5;   // insignificant blocking (plan.json parameters.eps)
-  bool clear = true;  // line_integral <= eps (DESIGN.md section 4)
+  bool clear = true;  // line_integral <= eps (docs/ARCHITECTURE.md §4)
   // Path safety class at line_start for the plan's first value ("safe", "medium", "dangerous",
   // "outside" beyond the region of interest, "" when the plan has no path safety volume).
   std::string tip_class;

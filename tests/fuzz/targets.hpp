@@ -3,9 +3,9 @@
 // plan.json, area safety meshes, OpenIGTLink streams from a tracking server), each behind one
 // function of the bytes of one file.
 //
-// The contract they check is DESIGN.md §3's: a reader either accepts its file or refuses it with
-// crepuscular::Error (a message naming the file). Any other exception, a crash, a hang or an
-// allocation beyond the fuzzer's limit is a finding. The same functions run under libFuzzer
+// The contract they check is docs/ARCHITECTURE.md §3's: a reader either accepts its file or refuses
+// it with crepuscular::Error (a message naming the file). Any other exception, a crash, a hang or
+// an allocation beyond the fuzzer's limit is a finding. The same functions run under libFuzzer
 // (tests/fuzz/libfuzzer_main.cpp, scripts/fuzz.sh) and, through fuzz_corpus_test, over the
 // corpus and every past finding in the ordinary test suite.
 #pragma once

@@ -729,7 +729,7 @@ TEST_F(GuidanceTest, SlightlyMovedBoardShowsPlacedPicturesThenThoseDrawnAhead) {
   EXPECT_GT(stale_off, 0.2);
   EXPECT_LT(placed_off, 0.25 * stale_off) << placed_off << " px vs " << stale_off << " px";
   // The warp is taken only when its largest error at the anatomy's points is within a quarter
-  // pixel (ARCHITECTURE.md §6): the centroid of the placed pictures lies within that of the truth.
+  // pixel (docs/ARCHITECTURE.md §7): the placed pictures' centroid lies within that of the truth.
   EXPECT_LT(placed_off, 0.25);
   std::printf("anatomy centroid off by %.3f px placed, %.3f px stale\n", placed_off, stale_off);
 

@@ -72,7 +72,7 @@ class OutputSafetyTest : public ::testing::Test {
 test::TemporaryFolder* OutputSafetyTest::folder_ = nullptr;
 std::string OutputSafetyTest::phantom_;
 
-// `plan --out` onto the phantom folder it reads used to replace it, label map and CT included.
+// `plan --out` onto the phantom folder it reads would replace it, label map and CT included.
 TEST_F(OutputSafetyTest, PlanOntoItsInputsFolderIsRefused) {
   const auto before = contents(phantom_);
   std::string err;
@@ -141,7 +141,8 @@ TEST_F(OutputSafetyTest, GuideOutputsMustDiffer) {
 }
 
 // A write past the file size limit (ulimit -f) ends the run with an error that says so and
-// leaves no staging folder or temporary file (SIGXFSZ used to kill it where it stood).
+// leaves no staging folder or temporary file (SIGXFSZ, left at its default, would kill it where it
+// stood).
 TEST_F(OutputSafetyTest, FileSizeLimitEndsWithAnErrorAndLeavesNothing) {
   const fs::path root = *folder_ / "fsize";
   fs::create_directories(root);

@@ -65,13 +65,13 @@ TEST(EvaluateTest, UniformBlockingIntegralIsCoefficientTimesLength) {
   const double length = (t.target - t.entry).norm();
   EXPECT_NEAR(e.length_mm, length, 1e-9);
   EXPECT_NEAR(e.line_integral, 0.3 * length, 1e-5 * length);
-  // N = ceil(length / gamma), l = length / N <= gamma (DESIGN.md section 4).
+  // N = ceil(length / gamma), l = length / N <= gamma (docs/ARCHITECTURE.md §4).
   EXPECT_EQ(e.samples, int(std::ceil(length / 1.0)));
   EXPECT_LE(e.step_mm, 1.0 + 1e-12);
 }
 
-// An entry 5e9 mm away printed "-2147483648 samples" and one at 1e9 mm took 21 s: refused at
-// once, as is a point that is not finite.
+// An entry 5e9 mm away would overflow the sample count and one at 1e9 mm would take seconds to
+// march: both are refused at once, as is a point that is not finite.
 TEST(EvaluateTest, AbsurdOrNonFinitePointsAreRefusedAtOnce) {
   const Volume<float> b(cube_grid(40, 2.0), 0.3f);
   const PlanData plan = blocking_plan(b);

@@ -1,4 +1,4 @@
-// Tests of the built-in phantom: determinism, grid geometry, anatomy where DESIGN.md's demo expects
+// Tests of the built-in phantom: determinism, grid geometry, anatomy where the demo expects
 // it (LPS mm), tumor size and placement, and straight approaches that are safe and unsafe.
 #include "planning/simulation/phantom.hpp"
 
@@ -379,7 +379,7 @@ TEST(Phantom, WritesFourFilesThatReadBack) {
   EXPECT_TRUE(tumor.values() == ph.tumor.values());
 }
 
-// Breathing (DESIGN.md §10). Phases of a 10-phase cycle at 12 mm, 3 mm voxels.
+// Breathing (docs/ARCHITECTURE.md §10). Phases of a 10-phase cycle at 12 mm, 3 mm voxels.
 Phantom breathing_phase(int phase) {
   PhantomOptions o = options(3.0, 1);
   o.inhale = breathing_inhale(phase, 10);

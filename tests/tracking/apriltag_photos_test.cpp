@@ -111,9 +111,10 @@ TEST(AprilTagPhotos, ReferenceSettingsFindAll47TagsAtTheReferenceCorners) {
 }
 
 // The project's defaults: full resolution with edge refinement, which puts the corners of rendered
-// tags nearer their truth (bench/RESULTS.md). On these photos they find 46 of the 47 tags, and
-// their corners differ from the reference (made without refinement) by 0.37 px on average, 2.3 px
-// on the most oblique tag. Decimation 2, libapriltag's faster choice, misses the small tags (34).
+// tags nearer their truth (bench/RESULTS.md, 2026-12-07). On these photos they find 46 of the 47
+// tags, and their corners differ from the reference (made without refinement) by 0.37 px on
+// average, 2.3 px on the most oblique tag. Decimation 2, libapriltag's faster choice, misses the
+// small tags (34).
 TEST(AprilTagPhotos, DefaultsFindAllButOneTagWhereDecimationMissesTheSmallOnes) {
   const Agreement defaults = agreement(DetectorOptions{});
   EXPECT_GE(defaults.found, 46);
