@@ -58,8 +58,8 @@ struct TextureSampler {
 // hold c, which covers the trilinear support of every sample whose texture coordinate floors into
 // b; -1 otherwise. Empty bricks hold 0 (no leaping), and the bricks cover every sample of every
 // ray of the evaluator's points, so a sample needs neither a bounds check nor a code mapped to
-// its value (H100 profile, twenty-third session: the brick lookup's bounds, the +0.5 per axis and
-// the leap codes took 8 of the 38 instructions of a sample).
+// its value (H100 profile: the brick lookup's bounds, the +0.5 per axis and the leap codes took 8
+// of the 38 instructions of a sample; bench/RESULTS.md, 2026-11-28).
 struct MarchTextureSampler {
   static constexpr float kShift = 0.5f;
   cudaTextureObject_t texture;
@@ -318,7 +318,7 @@ int cuda_warm_up() {
     // flight, each waited for by a thread of its own, while the phases' host steps, folds and
     // checks need every core. A wait ends a few microseconds later; a launch takes milliseconds
     // at least. (H200, 10 phases: no change measurable within the instances' spread, which the
-    // host steps set; bench/RESULTS.md, twenty-sixth session.) Flags set on a device already
+    // host steps set; bench/RESULTS.md, 2026-11-28.) Flags set on a device already
     // started replace its earlier ones.
     cudaSetDeviceFlags(cudaDeviceScheduleBlockingSync);
     cudaFree(nullptr);
@@ -756,7 +756,7 @@ void CudaPointEvaluator::evaluate(const int32_t* ijk, int64_t count, float* out)
   }
   // Launches of at most kChunk points: each level of fast mode's sampler in one launch at the
   // headline (each launch ends with its longest threads alone on the card: 2.95 -> 2.85 s of
-  // kernels against launches of 2^20 points, bench/RESULTS.md, fourteenth session).
+  // kernels against launches of 2^20 points, bench/RESULTS.md, 2026-11-26).
   constexpr int64_t kChunk = int64_t(1) << 22;
   on_every_device(devices, [&](int d) {
     const int64_t p0 = count * d / devices, p1 = count * (d + 1) / devices;

@@ -1,4 +1,4 @@
-// The path safety values of DESIGN.md §4 (paper §3.2, Algorithm 1), written once as host/device
+// The path safety values of docs/ARCHITECTURE.md §4 (paper §3.2, Algorithm 1), written once as host/device
 // functions: the CPU backend and the CUDA kernels call exactly these. Plain structs, raw buffers,
 // no Eigen or STL containers, so nvcc and the host compiler read the same code.
 #pragma once
@@ -107,8 +107,8 @@ CREPUSCULAR_HD Vec3<double> apply_rn(const Affine<double>& a, Vec3<double> p) {
 // GPU one round-down addition instead of a conversion: x + 1.5 * 2^23 (float; 1.5 * 2^52 for
 // double) has a unit in the last place of 1, so rounding it down leaves floor(x) in the low bits
 // of its mantissa. Conversions issue at an eighth of the rate of additions on the H100, and the
-// ray marches take three per sample (with the sample counters kept as reals: fast mode's GPU
-// kernels 4.95 s in the eleventh session, 4.61 s in the twelfth, bench/RESULTS.md).
+// ray marches take three per sample (bench/RESULTS.md, 2026-11-26, fast mode reads the blocking
+// volume in runs).
 CREPUSCULAR_HD_INLINE int floor_int(float x) {
 #ifdef __CUDA_ARCH__
   return __float_as_int(__fadd_rd(x, 12582912.0f)) - 0x4B400000;
@@ -202,7 +202,7 @@ constexpr int kMaxTumorLeap = 0x7f;
 template <typename Real>
 struct SurfacePoint {
   Vec3<Real> position;  // voxel centre, LPS mm
-  Vec3<Real> normal;    // outward unit normal (DESIGN.md §4); zero when undefined
+  Vec3<Real> normal;    // outward unit normal (docs/ARCHITECTURE.md §4); zero when undefined
   int offset;           // linear offset of its voxel in the tumor mask
   // Surface points this one stands for (fast mode's representatives of a block of the surface;
   // 1 in exact mode): its ray counts `weight` times in every value.
@@ -280,7 +280,7 @@ CREPUSCULAR_HD_INLINE Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Rea
 // Tumor lookups take the voxel nearest to a continuous tumor index r. A point on a face between
 // two voxels belongs to the lower one: the tie is broken by 1e-10 voxel, far above rounding noise
 // (1e-12 at index 4096), so that it does not depend on where the grid's origin lies. Ties are
-// common where the tumor lies on the output lattice (a resampled tumor, DESIGN.md §4): samples
+// common where the tumor lies on the output lattice (a resampled tumor, docs/ARCHITECTURE.md §4): samples
 // every h/2 along an axis land on faces. The voxel is floor(r + kHalfBelowTies) per axis.
 constexpr double kHalfBelowTies = 0.5 - 1e-10;
 
@@ -414,7 +414,7 @@ CREPUSCULAR_HD void box_range(Vec3<Real> origin, Vec3<Real> step, const int lo[3
   }
 }
 
-// Tumor occupancy along one ray (DESIGN.md §4): is t front-facing from p, is it back-facing, and
+// Tumor occupancy along one ray (docs/ARCHITECTURE.md §4): is t front-facing from p, is it back-facing, and
 // how many samples k <= N lie in the tumor (the chord is that count times l). The chord is needed
 // only where t is back-facing (IVBV): a ray that is neither front- nor back-facing (nor asked
 // about back-facing) contributes nothing, and its walk stops where it sees another tumor voxel,

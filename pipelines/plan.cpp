@@ -322,7 +322,7 @@ nlohmann::json plan_json(const PlanRequest& req, const PlanInputs& in,
   return plan;
 }
 
-// --- Breathing (docs/ARCHITECTURE.md §6) -----------------------------------------------------
+// --- Breathing (docs/ARCHITECTURE.md §10) -----------------------------------------------------
 
 // The phases' inputs and the request of each (the plan's own request with its files).
 struct PhaseInputs {

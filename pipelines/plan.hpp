@@ -25,7 +25,7 @@ struct PlanRequest : PlanInputOptions {
   // being unknown.
   bool crop_to_scan = false;
   std::string out_dir;
-  // Breathing (docs/ARCHITECTURE.md §6): phases.json; then the label maps, tumor and CT come from
+  // Breathing (docs/ARCHITECTURE.md §10): phases.json; then the label maps, tumor and CT come from
   // it, one set per phase, and the plan combines the phases (planning/breathing/).
   std::string phases;
   // Also write path_safety_<value>_<phase>.nii.gz per phase; every phase's class boundaries are

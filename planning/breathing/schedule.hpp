@@ -1,4 +1,4 @@
-// The order in which a plan over breathing phases computes them (docs/ARCHITECTURE.md §6): a
+// The order in which a plan over breathing phases computes them (docs/ARCHITECTURE.md §10): a
 // plain value computed up front from the number of phases and how many are computed at once,
 // printed in the log, and run by the plan.
 //

@@ -1,4 +1,4 @@
-// Area safety geometry (paper section 3.3, DESIGN.md section 6): a tessellated PCA ellipsoid of
+// Area safety geometry (paper section 3.3, docs/ARCHITECTURE.md §6): a tessellated PCA ellipsoid of
 // the tumor, every vertex extruded along its normal until the maximum distance or an unsafe point;
 // connected safe regions; each region's size by the divergence theorem; every vertex weighted by
 // its region's size (its leeway).

@@ -1,4 +1,4 @@
-// Breathing's view into fast mode (docs/ARCHITECTURE.md §6): the phases computed before a phase,
+// Breathing's view into fast mode (docs/ARCHITECTURE.md §10): the phases computed before a phase,
 // combined on its grid, and when the phase asks for them. With them, the phase leaves a class
 // boundary unrefined where it cannot change the combination's class (adaptive_sampling.hpp).
 #pragma once

@@ -1,4 +1,4 @@
-// Fast mode (docs/ARCHITECTURE.md §5): the output grid sampled coarse to fine, every voxel where
+// Fast mode (docs/ARCHITECTURE.md §11): the output grid sampled coarse to fine, every voxel where
 // the safety classes change computed exactly, the inside of a region of one class interpolated.
 // What a user chooses, and the design's fixed quantities.
 #pragma once

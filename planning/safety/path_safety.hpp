@@ -49,7 +49,7 @@ struct PathSafetyOptions {
   double spacing_mm = 0.0;  // output spacing h; 0: the smallest spacing of the inputs
   double radius_mm = 0.0;   // region of interest R; 0: distance to the farthest voxel with b > 0
   // Centre of the output grid, LPS mm; unset: the tumor centroid. Several breathing phases share
-  // one grid centred on their mean tumor centroid (docs/ARCHITECTURE.md §6).
+  // one grid centred on their mean tumor centroid (docs/ARCHITECTURE.md §10).
   std::optional<Eigen::Vector3d> centre_lps_mm;
   // Spacing the tumor mask is resampled to before its surface is taken (docs/ARCHITECTURE.md §4,
   // tumor sampling). kTumorSpacingAuto: the output spacing h, applied only where the mask is

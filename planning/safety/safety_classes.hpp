@@ -1,4 +1,4 @@
-// Safety classes of a path safety value (DESIGN.md §4): safe, medium, dangerous, with thresholds
+// Safety classes of a path safety value (docs/ARCHITECTURE.md §4): safe, medium, dangerous, with thresholds
 // per value, and the comparison of two path safety results (fast mode against exact).
 #pragma once
 

@@ -10,6 +10,7 @@
 
 #include "kernels/path_safety_math.hpp"
 #include "planning/safety/path_safety.hpp"
+#include "planning/safety/path_safety_scene.hpp"
 #include "planning/safety/safety_classes.hpp"
 
 namespace crepuscular::planning {

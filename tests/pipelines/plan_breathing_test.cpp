@@ -1,4 +1,4 @@
-// Planning over the breathing cycle (DESIGN.md §10): the combination of the phases on one grid,
+// Planning over the breathing cycle (docs/ARCHITECTURE.md §10): the combination of the phases on one grid,
 // checked against the single-phase plan, the per-phase volumes, a vessel that moves across a path
 // and a rigid shift of the whole scene.
 #include <gtest/gtest.h>

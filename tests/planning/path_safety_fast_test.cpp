@@ -69,7 +69,7 @@ void expect_fast_agrees_with_exact(uint32_t seed) {
   {
     const Mode mode = Mode::kFast;
     o.mode = mode;
-    o.fast.fast.check_voxels = 300;
+    o.fast.check_voxels = 300;
     const PathSafetyResult fast = compute_path_safety(s.blocking, s.tumor, o);
     const ModeDifference d = compare_volumes(exact.volumes, fast.volumes, kernels::kAllValues);
     EXPECT_EQ(d.voxels, exact.grid.roi_voxels);
@@ -136,7 +136,7 @@ PathSafetyResult fast_on_fine_scene(const std::string& label,
   const FineScene& f = fine_scene();
   PathSafetyOptions o = f.options;
   o.mode = Mode::kFast;
-  o.fast.fast.check_voxels = 0;
+  o.fast.check_voxels = 0;
   adjust(o);
   PathSafetyResult fast = compute_path_safety(f.scene.blocking, f.scene.tumor, o);
   const ModeDifference d = compare_volumes(f.exact.volumes, fast.volumes, kernels::kAllValues);
@@ -204,7 +204,7 @@ TEST(PathSafetyFast, SurfaceBlocksStandForTheirPointsWithTheirWeight) {
   const PathSafetyResult exact = compute_path_safety(s.blocking, s.tumor, o);
   o.mode = Mode::kFast;
   o.fast.surface_block = 2;
-  o.fast.fast.check_voxels = 300;
+  o.fast.check_voxels = 300;
   const PathSafetyResult fast = compute_path_safety(s.blocking, s.tumor, o);
   EXPECT_EQ(fast.surface_points, exact.surface_points);
   EXPECT_GT(fast.fast.surface_points, exact.surface_points / 5);

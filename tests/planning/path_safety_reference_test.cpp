@@ -1,4 +1,4 @@
-// Independent brute-force reference for the exact path safety values (DESIGN.md §4).
+// Independent brute-force reference for the exact path safety values (docs/ARCHITECTURE.md §4).
 //
 // Everything below is re-derived from the written definition only: trilinear blocking with zero
 // padding, nearest-voxel tumor occupancy, 6-neighbour surface, ray sampling with gamma = h/2,
@@ -522,7 +522,7 @@ struct CompareLimits {
   // BVV depends on the normals, computed here independently (sigma = 1 voxel, truncated at
   // 4 sigma, zero padding, central differences, physical gradient). They were found to agree with
   // the product to rounding, hence the tight limits; a legitimate change of the smoothing details
-  // would move BVV by ~1e-4 and may justify loosening these (DESIGN.md fixes only sigma).
+  // would move BVV by ~1e-4 and may justify loosening these (the definition fixes only sigma).
   double bvv_rel_l2 = 1e-5;      // relative L2 over compared voxels
   double bvv_rel = 1e-4;         // per voxel (also the tolerance at tie voxels)
   double min_compared = 0.98;    // fraction of ROI voxels free of ties, per value group

@@ -1,5 +1,6 @@
-// Analytic cases of the path safety values (DESIGN.md §4) and the input checks of the planner.
+// Analytic cases of the path safety values (docs/ARCHITECTURE.md §4) and the input checks of the planner.
 #include "planning/safety/path_safety.hpp"
+#include "planning/safety/path_safety_scene.hpp"
 #include "planning/safety/safety_classes.hpp"
 #include "planning/safety/unknown.hpp"
 
@@ -152,7 +153,7 @@ Volume<uint8_t> cube_tumor(const ImageGeometry& g, int lo, int hi) {
   return tumor;
 }
 
-// Tumor sampling (DESIGN.md §4): a fine mask of a ball of 10 mm radius resampled to 2 mm holds the
+// Tumor sampling (docs/ARCHITECTURE.md §4): a fine mask of a ball of 10 mm radius resampled to 2 mm holds the
 // voxels whose centres lie in the ball, up to the fine mask's own half voxel at its boundary.
 TEST(TumorSampling, ResampledBallHasTheBallsVoxelsAtTheNewSpacing) {
   const double radius = 10.0;
