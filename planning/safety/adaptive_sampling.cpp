@@ -751,13 +751,15 @@ int64_t sample_between(const std::vector<Cell>& refined, double scale, const Out
             if (left_to_combination) {
               const auto most = most_dangerous_of(ranks, p.corner, p.ends, slots);
               const int32_t b = leave_box;
+              // The combination's side keeps its whole share of the margin (the thresholds'
+              // drift as later phases fold in), whatever the finest level's own margins.
               left_to_combination =
                   b == 0 ? combination.covers(store.offset(i, j, k), most, report.classes,
-                                              options, scale)
+                                              options, 1.0)
                          : combination_covers_box(
                                combination, store, grid,
                                Cell{int32_t(i) - b, int32_t(j) - b, int32_t(k) - b, 2 * b}, most,
-                               report.classes, options, scale);
+                               report.classes, options, 1.0);
             }
             cell_left += left_to_combination ? 1 : 0;
             if (!uniform && !left_to_combination) {

@@ -1,6 +1,6 @@
-// A property of fast mode's breathing shortcut (AdaptiveOptions::combined_so_far and
-// combined_newer, planning/safety/adaptive_sampling.hpp), on seeded random scenes sampled as a
-// plan samples its phases: one, two or three at once.
+// A property of fast mode's breathing shortcut (AdaptiveOptions::combination, its so_far and
+// newer, planning/safety/adaptive_sampling.hpp), on seeded random scenes sampled as a plan
+// samples its phases: one, two or three at once.
 //
 // The property, per scene and number of phases at once, for SVV and ISBV: at every voxel of the
 // region where the combination of the phases each refined fully (no combination given) has the
@@ -11,8 +11,8 @@
 //
 // Why it must hold: a phase leaves a cell unrefined only where every voxel of it is at least as
 // dangerous in the combination it reads as the most dangerous of the cell's corners (the corners
-// moved toward danger by the whole margins, the combination toward safety by a share, 0.25, of
-// the blocking margin). Its values there are interpolated from those corners, so they stay within
+// moved toward danger by the whole margins, the combination toward safety by a share,
+// kCombinationMarginShare, of the blocking margin). Its values there are interpolated from those corners, so they stay within
 // the corners' classes; fast mode's premise (a phase's class inside a cell, edge or face lies
 // within the classes of its corners) keeps its exact values there too. So where a phase is left
 // to the combination, the combination's class is the class it gets with the phase's exact
@@ -64,9 +64,9 @@ constexpr int kHalf = 24;   // a grid of 49^3 voxels, the region a ball of radiu
 constexpr int kStride = 4;  // the coarsest lattice
 constexpr int kScenes = 20;
 constexpr unsigned kFirstSeed = 1;
-// The share of the blocking margin by which the sampler moves the combination toward safety
-// (adaptive_sampling.hpp): the rise of the thresholds it absorbs.
-constexpr double kCombinationShare = 0.25;
+// The share of the blocking margin by which the sampler moves the combination toward safety: the
+// rise of the thresholds it absorbs.
+constexpr double kCombinationShare = kCombinationMarginShare;
 
 OutputGrid ball_grid(int half) {
   OutputGrid g;
@@ -257,10 +257,10 @@ Sampled sample_phase(const OutputGrid& g, const PhaseField& f, const Volumes& ex
   AdaptiveOptions o;
   o.values = kValues;
   o.stride = kStride;
-  if (so_far) o.combined_so_far = [so_far] { return combined(*so_far); };
+  if (so_far) o.combination.so_far = [so_far] { return combined(*so_far); };
   if (newer) {
-    o.combined_newer = [newer] { return combined(*newer); };
-    o.newer_from_level = 1;
+    o.combination.newer = [newer] { return combined(*newer); };
+    o.combination.newer_from_level = 1;
   }
   const PointEvaluator evaluate = [&](const std::vector<GridPoint>& points,
                                       std::vector<float>& values) {
