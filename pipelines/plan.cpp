@@ -645,15 +645,10 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
                           ? req.phases_at_once
                           : (gpus_for(shared.path_safety.device) > 0 ? 3 : 1);
   const PhaseSchedule schedule = schedule_phases(int(phases.size()), at_once, leave_to_combination);
-  spdlog::info("breathing: {} at once; the schedule, steps in the order computed ({}):\n{}",
-               schedule.at_once, [&] {
-                 std::string names;
-                 for (size_t at = 0; at < order.size(); ++at) {
-                   names += (at ? ", " : "") + phases[order[at]].phase.name;
-                 }
-                 return names;
-               }(),
-               schedule.table());
+  std::vector<std::string> step_names;
+  for (const size_t k : order) step_names.push_back(phases[k].phase.name);
+  spdlog::info("breathing: {} at once; the schedule (steps in the order computed):\n{}",
+               schedule.at_once, schedule.table(step_names));
   std::vector<Clock::time_point> t_phase(phases.size());
   nlohmann::json outputs;
   std::vector<std::future<void>> input_writes;

@@ -41,7 +41,7 @@ PhaseSchedule schedule_phases(int phases, int at_once, bool leave) {
   return s;
 }
 
-std::string PhaseSchedule::table() const {
+std::string PhaseSchedule::table(const std::vector<std::string>& names) const {
   const auto step_name = [](int step) { return step < 0 ? std::string("-") : std::to_string(step + 1); };
   std::string out;
   for (size_t at = 0; at < steps.size(); ++at) {
@@ -52,8 +52,10 @@ std::string PhaseSchedule::table() const {
       leaves += ", finer to " + (p.fine_to == 0 ? "1" : "1-" + step_name(p.fine_to));
       if (p.fine_to > p.coarse_to) leaves += " (" + step_name(p.fine_to) + " before its fold)";
     }
-    out += fmt::format("step {}: prepared after {}, samples after {}, {}\n", at + 1,
-                       step_name(p.prepared_after), step_name(p.samples_after), leaves);
+    const std::string name = at < names.size() ? " " + names[at] : std::string();
+    out += fmt::format("{}step {}{}: prepared after {}, samples after {}, {}", at ? "\n" : "",
+                       at + 1, name, step_name(p.prepared_after), step_name(p.samples_after),
+                       leaves);
   }
   return out;
 }

@@ -34,9 +34,10 @@ struct PhaseSchedule {
   int at_once = 1;           // steps computed at once
   int kept_combinations = 0;  // combinations before the latest kept readable (PhaseCombiner)
   std::vector<PhaseStep> steps;
-  // One line per step, for the log and the tests: "step 3: prepared after 1, samples after 0,
-  // coarsest levels leave to 1, finer to 1-2".
-  std::string table() const;
+  // One line per step, for the log and the tests: "step 3: prepared after -, samples after -,
+  // coarsest level leaves to 1, finer to 1-2 (2 before its fold)"; with `names` (one per step),
+  // each step's name after its number.
+  std::string table(const std::vector<std::string>& names = {}) const;
 };
 
 // The schedule of `phases` steps, `at_once` of them computed at once (>= 1; at most `phases`

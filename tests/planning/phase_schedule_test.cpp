@@ -67,7 +67,11 @@ TEST(PhaseSchedule, ThreeAtOnceCoarsestThreeBackFinerTwoBack) {
             "step 5: prepared after 1, samples after 2, coarsest level leaves to 1-2, finer to 1-3 "
             "(3 before its fold)\n"
             "step 6: prepared after 2, samples after 3, coarsest level leaves to 1-3, finer to 1-4 "
-            "(4 before its fold)\n");
+            "(4 before its fold)");
+  EXPECT_EQ(schedule_phases(2, 2, true).table({"end-exhale", "end-inhale"}),
+            "step 1 end-exhale: prepared after -, samples after -, refines every boundary\n"
+            "step 2 end-inhale: prepared after -, samples after -, coarsest level leaves to 1, "
+            "finer to 1");
 }
 
 TEST(PhaseSchedule, WithoutLeavingEveryStepRefinesEverything) {
