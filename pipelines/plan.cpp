@@ -691,13 +691,13 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
     phase_entries[k]["unknown_voxels"] = coverage.unknown_voxels;
     return region;
   };
-  hooks.report = [&](size_t at, PathSafetyResult& own) {
+  hooks.report = [&](size_t at, PathSafetyResult& result) {
     const size_t k = order[at];
     const PhaseInputs& p = phases[k];
-    // The first phase's own check (its statistics come from the check's pass). A later phase
-    // that left refinement to the phases before it has approximate values there, so its own
+    // The first phase's result check (its statistics come from the check's pass). A later phase
+    // that left refinement to the phases before it has approximate values there, so its result
     // check would tell little (the combination's is the plan's): its statistics alone.
-    if (at == 0 || !leave_to_combination) finish_fast_check(own);
+    if (at == 0 || !leave_to_combination) finish_fast_check(result);
     trace::event("checked", 0, int(at));
     nlohmann::json& entry = phase_entries[k];
     entry["name"] = p.phase.name;
@@ -712,29 +712,29 @@ nlohmann::json run_plan_phases(const PlanRequest& req, const PhaseList& list,
                        {"ct", recorded(p.phase.ct)}};
     if (p.phase.frame >= 0) entry["inputs"]["frame"] = p.phase.frame;
     entry["tumor_centroid_lps_mm"] = point_json(p.centroid);
-    entry["tumor_voxels"] = own.tumor_voxels;
-    entry["device"] = own.device;
+    entry["tumor_voxels"] = result.tumor_voxels;
+    entry["device"] = result.device;
     entry["computed_as"] = at + 1;
-    if (own.mode == Mode::kFast) {
-      entry["points_computed_exactly"] = own.fast.evaluated_points;
-      entry["points_per_level"] = points_per_level_json(own);
+    if (result.mode == Mode::kFast) {
+      entry["points_computed_exactly"] = result.fast.evaluated_points;
+      entry["points_per_level"] = points_per_level_json(result);
       if (leave_to_combination && at > 0) {
-        entry["left_to_earlier_phases"] = {{"cells", own.fast.cells_left_to_combination},
-                                           {"finest_points", own.fast.points_left_to_combination}};
+        entry["left_to_earlier_phases"] = {{"cells", result.fast.cells_left_to_combination},
+                                           {"finest_points", result.fast.points_left_to_combination}};
       }
     }
     entry["read_s"] = p.inputs.seconds;
-    entry["path_safety_s"] = own.seconds;
-    for (const auto& [step, seconds] : own.phases) entry["path_safety_phases"][step] = seconds;
+    entry["path_safety_s"] = result.seconds;
+    for (const auto& [step, seconds] : result.phases) entry["path_safety_phases"][step] = seconds;
     for (int v = 0; v < kernels::kValueCount; ++v) {
       const unsigned bit = 1u << v;
-      if (!(own.values & bit)) continue;
+      if (!(result.values & bit)) continue;
       // Taken with the classes by the check's comparison, where it ran.
-      entry["statistics"][value_name(bit)] = statistics_json(statistics_of(own, bit));
+      entry["statistics"][value_name(bit)] = statistics_json(statistics_of(result, bit));
       if (req.per_phase) {
         const std::string file = std::string("path_safety_") + value_name(bit) + "_" +
                                  p.phase.name + ".nii.gz";
-        write_volume(own.volumes[size_t(v)], out.file(file));
+        write_volume(result.volumes[size_t(v)], out.file(file));
         entry["outputs"][value_name(bit)] = file;
       }
     }

@@ -36,10 +36,11 @@ struct ScheduleRun::State {
   PhaseCombiner& combiner;
   StepHooks hooks;
   size_t n;
-  // Per step: folded into the combination; its fold made (the folds go in step order); its
-  // other extreme folded; its volumes final (lent to the steps that read it before its fold);
-  // its turn to sample.
-  std::vector<Signal> folded, fold_turn, extreme_turn, covered, turn;
+  // Per step: its combination readable (`folded`); its fold made, and for the first step its
+  // report taken too (the next fold waits for it: the folds go in step order); its other extreme
+  // folded; its volumes final (`covered`: lent to the steps that read it before its fold); free
+  // to sample.
+  std::vector<Signal> folded, fold_made, extreme_made, covered, may_sample;
   std::mutex pending_lock;
   // A later step's final result until its fold, and per step the result it reads so.
   std::vector<std::shared_ptr<const PathSafetyResult>> pending, reading;
@@ -48,11 +49,11 @@ struct ScheduleRun::State {
 
   State(const PhaseSchedule& s, PhaseCombiner& c, StepHooks h)
       : schedule(s), combiner(c), hooks(std::move(h)), n(s.steps.size()), folded(n),
-        fold_turn(n), extreme_turn(n), covered(n), turn(n), pending(n), reading(n),
+        fold_made(n), extreme_made(n), covered(n), may_sample(n), pending(n), reading(n),
         computing(n), finishing(n) {}
 
   void fail_all(std::exception_ptr e) {
-    for (auto* signals : {&folded, &fold_turn, &extreme_turn, &covered, &turn}) {
+    for (auto* signals : {&folded, &fold_made, &extreme_made, &covered, &may_sample}) {
       for (Signal& s : *signals) s.fail(e);
     }
   }
@@ -107,7 +108,7 @@ struct ScheduleRun::State {
       }
     }
     std::function<void()> before_sampling;
-    if (step.samples_after >= 0) before_sampling = [this, at] { turn[at].done.get(); };
+    if (step.samples_after >= 0) before_sampling = [this, at] { may_sample[at].done.get(); };
     trace::event("start", 0, int(at));
     computing[at] = std::async(std::launch::async, [this, at, combination, before_sampling] {
       trace::current_phase() = int(at);
@@ -120,7 +121,7 @@ struct ScheduleRun::State {
         ~OnExit() {
           s.reading[at].reset();
           for (size_t later = at + 1; later < s.n; ++later) {
-            if (s.schedule.steps[later].samples_after == int(at)) s.turn[later].set();
+            if (s.schedule.steps[later].samples_after == int(at)) s.may_sample[later].set();
           }
         }
       } on_exit{*this, at};
@@ -138,14 +139,14 @@ struct ScheduleRun::State {
     const std::shared_ptr<void> device_memory = std::move(result.device_memory);
     const Volume<uint8_t> region = hooks.cover(at, result);
     trace::event("coverage_applied", 0, int(at));
-    std::shared_ptr<PathSafetyResult> kept;
+    std::shared_ptr<PathSafetyResult> final_result;
     if (at > 0) {
-      kept = std::make_shared<PathSafetyResult>(std::move(result));
+      final_result = std::make_shared<PathSafetyResult>(std::move(result));
       const std::lock_guard<std::mutex> lock(pending_lock);
-      pending[at] = kept;
+      pending[at] = final_result;
     }
     covered[at].set();
-    if (at > 0) fold_turn[at - 1].done.get();  // the folds in order (its error taken here)
+    if (at > 0) fold_made[at - 1].done.get();  // the folds in order (its error taken here)
     const auto combined = [this, at] {
       {
         const std::lock_guard<std::mutex> lock(pending_lock);
@@ -154,25 +155,25 @@ struct ScheduleRun::State {
       folded[at].set();
       trace::event("folded", 0, int(at));
     };
-    PathSafetyResult* own = kept.get();
+    PathSafetyResult* reported = final_result.get();
     if (at == 0) {
       // The first step lends its volumes to the combination; its report is taken of them there,
       // before the next fold may change them.
       combiner.add(std::move(result), region, combined);
-      own = &combiner.combined();
-      extreme_turn[at].set();
+      reported = &combiner.combined();
+      extreme_made[at].set();
     } else {
-      combiner.fold(*kept, region, combined);
-      fold_turn[at].set();
+      combiner.fold(*final_result, region, combined);
+      fold_made[at].set();
       // Off the folds' path: fewer cores while samplers run beside it (the last step's take
       // them all, beside the plan's writes). The other extreme beside the next step's fold.
       if (at + 1 < n) omp_set_num_threads(std::max(1, omp_get_num_procs() / 4));
-      combiner.fold_extreme(*kept);
-      extreme_turn[at].set();
+      combiner.fold_extreme(*final_result);
+      extreme_made[at].set();
     }
     trace::event("fold_done", 0, int(at));
-    hooks.report(at, *own);
-    if (at == 0) fold_turn[at].set();
+    hooks.report(at, *reported);
+    if (at == 0) fold_made[at].set();
     trace::event("finish_end", 0, int(at));
   }
 
@@ -185,8 +186,8 @@ struct ScheduleRun::State {
       } catch (...) {
         const std::exception_ptr e = std::current_exception();
         folded[at].fail(e);
-        fold_turn[at].fail(e);
-        extreme_turn[at].fail(e);
+        fold_made[at].fail(e);
+        extreme_made[at].fail(e);
         covered[at].fail(e);
         throw;
       }
@@ -218,7 +219,7 @@ void ScheduleRun::run() {
   State& s = *state_;
   try {
     for (size_t at = 0; at < s.n; ++at) {
-      if (s.schedule.steps[at].samples_after < 0) s.turn[at].set();
+      if (s.schedule.steps[at].samples_after < 0) s.may_sample[at].set();
     }
     // A step is started once the step it is prepared after has computed (and been handed over).
     size_t handed = 0;
@@ -239,7 +240,7 @@ void ScheduleRun::run() {
 }
 
 void ScheduleRun::wait_extremes() {
-  for (auto& e : state_->extreme_turn) e.done.get();
+  for (auto& e : state_->extreme_made) e.done.get();
 }
 
 void ScheduleRun::wait_reports() {

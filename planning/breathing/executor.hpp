@@ -26,10 +26,10 @@ struct StepHooks {
   // Makes step `at`'s volumes final (e.g. the scan's coverage) and returns its region
   // (PhaseCombiner::add). On the step's finishing thread, before its fold.
   std::function<Volume<uint8_t>(size_t at, PathSafetyResult& result)> cover;
-  // After step `at`'s fold: its own report. `own` is its result, or for the first step the
+  // After step `at`'s fold: its own report. `result` is its result, or for the first step the
   // combination that holds its volumes (the next fold waits for this call). On its finishing
   // thread, beside the later steps.
-  std::function<void(size_t at, PathSafetyResult& own)> report;
+  std::function<void(size_t at, PathSafetyResult& result)> report;
   // A step failed: stop what feeds the steps (e.g. input reads). May be empty.
   std::function<void()> failed;
 };
