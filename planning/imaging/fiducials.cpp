@@ -2,7 +2,6 @@
 #include "planning/imaging/fiducials.hpp"
 
 #include <itkConnectedComponentImageFilter.h>
-#include <spdlog/spdlog.h>
 
 #include <Eigen/Eigenvalues>
 #include <algorithm>
@@ -17,6 +16,7 @@
 
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
+#include "foundation/log.hpp"
 #include "planning/imaging/itk_image.hpp"
 #include "foundation/output_files.hpp"
 

@@ -4,8 +4,6 @@
 #include "planning/imaging/itk_image.hpp"
 #include "planning/preprocessing/smoothing.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <algorithm>
 #include <array>
 #include <cmath>
@@ -18,6 +16,7 @@
 
 #include "foundation/error.hpp"
 #include "foundation/large_buffers.hpp"
+#include "foundation/log.hpp"
 
 #if defined(CREPUSCULAR_HAVE_CUDA)
 #include "kernels/gaussian_cuda.hpp"
