@@ -1,6 +1,4 @@
 // The `crepuscular` command: plans safe straight needle paths to a tumor and guides the needle.
-#include <spdlog/spdlog.h>
-
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <sstream>
@@ -13,6 +11,7 @@
 #include "apps/commands.hpp"
 #include "foundation/error.hpp"
 #include "foundation/interruptions.hpp"
+#include "foundation/log.hpp"
 
 namespace crepuscular::apps {
 

@@ -4,7 +4,6 @@
 
 #include <ceres/ceres.h>
 #include <ceres/rotation.h>
-#include <spdlog/spdlog.h>
 
 #include <Eigen/SVD>
 #include <algorithm>
@@ -18,6 +17,7 @@
 #include <sstream>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 
 namespace crepuscular::calibration {
 namespace {

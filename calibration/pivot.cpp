@@ -4,7 +4,6 @@
 #include <fmt/format.h>
 
 #include <ceres/ceres.h>
-#include <spdlog/spdlog.h>
 
 #include <Eigen/Eigenvalues>
 #include <Eigen/QR>
@@ -14,6 +13,7 @@
 #include <sstream>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 
 namespace crepuscular::calibration {
 namespace {

@@ -3,7 +3,6 @@
 
 #include <ceres/ceres.h>
 #include <ceres/rotation.h>
-#include <spdlog/spdlog.h>
 
 #include <Eigen/Eigenvalues>
 #include <Eigen/SVD>
@@ -14,6 +13,7 @@
 #include <sstream>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 
 namespace crepuscular::calibration {
 namespace {

@@ -8,13 +8,13 @@
 #include <igtl_header.h>
 #include <igtl_transform.h>
 #include <igtl_util.h>
-#include <spdlog/spdlog.h>
 
 #include <algorithm>
 #include <csignal>
 #include <cstring>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "igtl/socket_close.hpp"
 
 namespace crepuscular::igtlink {

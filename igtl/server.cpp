@@ -2,12 +2,12 @@
 
 #include <igtlServerSocket.h>
 #include <igtlClientSocket.h>
-#include <spdlog/spdlog.h>
 
 #include <algorithm>
 #include <csignal>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "igtl/socket_close.hpp"
 
 namespace crepuscular::igtlink {

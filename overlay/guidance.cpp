@@ -13,9 +13,9 @@
 #include <fmt/format.h>
 #include <opencv2/core/utility.hpp>
 #include <opencv2/imgproc.hpp>
-#include <spdlog/spdlog.h>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "overlay/renderer.hpp"
 #include "overlay/targeting_view.hpp"
 #include "overlay/volume_rendering.hpp"

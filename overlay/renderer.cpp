@@ -19,9 +19,9 @@
 #include <sstream>
 
 #include <opencv2/core.hpp>
-#include <spdlog/spdlog.h>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "overlay/gl_program.hpp"
 
 // Last: Xlib's macros (None, Success, Status, ...) must not reach the headers above.

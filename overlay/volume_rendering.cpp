@@ -8,9 +8,8 @@
 #include <limits>
 #include <string>
 
-#include <spdlog/spdlog.h>
-
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "overlay/gl_program.hpp"
 
 namespace crepuscular::overlay {

@@ -3,7 +3,6 @@
 #include "pipelines/area.hpp"
 
 #include <fmt/format.h>
-#include <spdlog/spdlog.h>
 
 #include <algorithm>
 #include <cmath>
@@ -13,6 +12,7 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 #include "pipelines/job_inputs.hpp"
 #include "planning/imaging/volume_io.hpp"

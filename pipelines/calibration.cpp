@@ -2,8 +2,6 @@
 // frames, picking frames, measuring the needle board's poses, and writing the calibration files.
 #include "pipelines/calibration.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
@@ -16,6 +14,7 @@
 #include "calibration/aruco.hpp"
 #include "calibration/pivot.hpp"
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "pipelines/session_inputs.hpp"
 #include "recordings/recording.hpp"
 #include "tracking/board.hpp"

@@ -3,7 +3,6 @@
 #include "pipelines/demo.hpp"
 
 #include <fmt/format.h>
-#include <spdlog/spdlog.h>
 
 #include <algorithm>
 #include <cmath>
@@ -11,6 +10,7 @@
 #include <nlohmann/json.hpp>
 #include <optional>
 
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 #include "pipelines/demo_report.hpp"
 #include "pipelines/demo_scenario.hpp"

@@ -3,8 +3,6 @@
 // placed so both boards stay in view, and the needle scripted frame by frame.
 #include "pipelines/demo_scenario.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <algorithm>
 #include <cctype>
 #include <cmath>
@@ -17,6 +15,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 #include "planning/imaging/ray_march.hpp"
 #include "planning/imaging/volume_io.hpp"

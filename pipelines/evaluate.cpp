@@ -1,12 +1,11 @@
 // The evaluate job: the plan, the trajectories, their evaluations as text, JSON or CSV.
 #include "pipelines/evaluate.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <nlohmann/json.hpp>
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
 

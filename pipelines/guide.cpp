@@ -3,7 +3,6 @@
 #include "pipelines/guide.hpp"
 
 #include <fmt/format.h>
-#include <spdlog/spdlog.h>
 
 #include <algorithm>
 #include <chrono>
@@ -19,6 +18,7 @@
 
 #include "calibration/calibration_files.hpp"
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 #include "pipelines/guide_loop.hpp"
 #include "pipelines/guide_igtl.hpp"

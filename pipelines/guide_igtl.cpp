@@ -1,7 +1,6 @@
 #include "pipelines/guide_igtl.hpp"
 
 #include <fmt/format.h>
-#include <spdlog/spdlog.h>
 
 #include <algorithm>
 #include <filesystem>
@@ -10,6 +9,7 @@
 #include <opencv2/core.hpp>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "planning/trajectories/markups.hpp"
 
 namespace crepuscular::pipelines {

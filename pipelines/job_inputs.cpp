@@ -1,11 +1,10 @@
 // Input checks and the vulnerability table choice shared by the planning jobs.
 #include "pipelines/job_inputs.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <filesystem>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 
 namespace fs = std::filesystem;
 

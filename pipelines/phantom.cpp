@@ -2,7 +2,6 @@
 #include "pipelines/phantom.hpp"
 
 #include <fmt/format.h>
-#include <spdlog/spdlog.h>
 
 #include <Eigen/Core>
 #include <array>
@@ -15,6 +14,7 @@
 #include <algorithm>
 #include <nlohmann/json.hpp>
 
+#include "foundation/log.hpp"
 #include "planning/imaging/volume_io.hpp"
 
 namespace crepuscular::pipelines {

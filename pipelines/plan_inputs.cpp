@@ -1,8 +1,6 @@
 // Label maps, segmentations and the tumor lesion -> blocking volume, tumor mask, scanned volume.
 #include "pipelines/plan_inputs.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <algorithm>
 #include <cctype>
 #include <deque>
@@ -12,6 +10,7 @@
 
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
+#include "foundation/log.hpp"
 #include "pipelines/job_inputs.hpp"
 #include "planning/imaging/file_spec.hpp"
 #include "planning/imaging/lesions.hpp"

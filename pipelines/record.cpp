@@ -1,11 +1,10 @@
 // Recording a frame source, and rendering a synthetic scene, into a recording folder.
 #include "pipelines/record.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <vector>
 
 #include "calibration/camera_model.hpp"
+#include "foundation/log.hpp"
 #include "tracking/board.hpp"
 #include "tracking/synthetic.hpp"
 

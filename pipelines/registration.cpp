@@ -2,14 +2,13 @@
 // registration.yaml with the FRE per fiducial and the expected TRE at the tumor.
 #include "pipelines/registration.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <fstream>
 #include <sstream>
 
 #include "calibration/camera_model.hpp"
 #include "calibration/registration.hpp"
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "pipelines/session_inputs.hpp"
 #include "planning/imaging/fiducials.hpp"
 #include "planning/imaging/volume_io.hpp"

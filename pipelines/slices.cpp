@@ -6,8 +6,6 @@
 
 #include <Eigen/Geometry>
 
-#include <spdlog/spdlog.h>
-
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -17,6 +15,7 @@
 #include <nlohmann/json.hpp>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 #include "planning/imaging/scan_coverage.hpp"
 #include "planning/imaging/volume_io.hpp"

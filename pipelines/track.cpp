@@ -1,14 +1,13 @@
 // The track job: frames -> Tracker -> poses CSV, with counts and ground-truth errors.
 #include "pipelines/track.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <algorithm>
 #include <chrono>
 #include <memory>
 #include <set>
 #include <vector>
 
+#include "foundation/log.hpp"
 #include "pipelines/session_inputs.hpp"
 #include "tracking/board.hpp"
 #include "tracking/details_csv.hpp"

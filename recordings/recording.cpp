@@ -7,7 +7,6 @@
 
 #include <jpeglib.h>
 
-#include <spdlog/spdlog.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -24,6 +23,7 @@
 
 #include "foundation/csv.hpp"
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 #include "foundation/text.hpp"
 

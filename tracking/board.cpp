@@ -5,7 +5,6 @@
 #include <fmt/format.h>
 
 #include <apriltag.h>
-#include <spdlog/spdlog.h>
 
 #include <algorithm>
 #include <cctype>
@@ -21,6 +20,7 @@
 #include "calibration/aruco.hpp"
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 #include "foundation/text.hpp"
 #include "tracking/tag_family.hpp"

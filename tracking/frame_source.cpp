@@ -1,8 +1,6 @@
 // Frame source URIs, and the replay of recording folders.
 #include "tracking/frame_source.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <algorithm>
 #include <cctype>
 #include <chrono>
@@ -12,6 +10,7 @@
 
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 #include "recordings/recording.hpp"
 #include "tracking/synthetic.hpp"

@@ -3,8 +3,6 @@
 // scene files; the built-in guidance scene.
 #include "tracking/synthetic.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
@@ -20,6 +18,7 @@
 
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
+#include "foundation/log.hpp"
 #include "recordings/recording.hpp"
 
 namespace crepuscular::tracking {

@@ -1,8 +1,6 @@
 // Board tracking over frames: region-of-interest search, poses, alpha-beta filter, staleness.
 #include "tracking/tracker.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <algorithm>
 #include <cmath>
 #include <condition_variable>
@@ -14,6 +12,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 
 namespace crepuscular::tracking {
 

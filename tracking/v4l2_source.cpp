@@ -4,7 +4,6 @@
 #include <errno.h>
 #include <fcntl.h>
 #include <linux/videodev2.h>
-#include <spdlog/spdlog.h>
 #include <sys/ioctl.h>
 #include <sys/mman.h>
 #include <sys/select.h>
@@ -19,6 +18,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "recordings/recording.hpp"
 
 namespace crepuscular::tracking {

@@ -4,8 +4,6 @@
 // end early with zeros.
 #include "planning/imaging/dicom_series.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cctype>
@@ -22,6 +20,7 @@
 #include <sstream>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "planning/imaging/volume_io.hpp"
 
 #include <gdcmDataSet.h>

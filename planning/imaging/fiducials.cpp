@@ -1,9 +1,6 @@
 // Bead detection in a CT and Slicer point markups (see fiducials.hpp).
 #include "planning/imaging/fiducials.hpp"
 
-#include <itkConnectedComponentImageFilter.h>
-#include <spdlog/spdlog.h>
-
 #include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <cmath>
@@ -17,6 +14,7 @@
 
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
+#include "foundation/log.hpp"
 #include "planning/imaging/itk_image.hpp"
 #include "foundation/output_files.hpp"
 
@@ -32,7 +30,6 @@ struct Component {
 };
 
 using MaskImage = itk::Image<uint8_t, 3>;
-using LabelImage = itk::Image<uint32_t, 3>;
 
 // 1 where the CT is at or above `threshold`, on the CT's grid; `above` counts those voxels.
 template <typename T>
@@ -55,12 +52,9 @@ MaskImage::Pointer threshold_mask(const Volume<T>& ct, double threshold, int64_t
 template <typename T>
 std::vector<Component> connected_components(const Volume<T>& ct, const MaskImage::Pointer& mask) {
   const ImageGeometry& g = ct.geometry();
-  auto cc = itk::ConnectedComponentImageFilter<MaskImage, LabelImage>::New();
-  cc->SetInput(mask);
-  cc->SetFullyConnected(true);
-  cc->Update();
-  const uint32_t* labels = cc->GetOutput()->GetBufferPointer();
-  const size_t count = size_t(cc->GetObjectCount());
+  const ComponentLabels components = label_components(mask, true);
+  const uint32_t* labels = components.image->GetBufferPointer();
+  const size_t count = components.count;
   std::vector<Component> comps(count + 1);
   for (int64_t o = 0; o < g.voxel_count(); ++o) {
     const uint32_t l = labels[o];

@@ -69,4 +69,14 @@ inline ImageGeometry geometry_of_image_io(const itk::ImageIOBase& io, const std:
   return g;
 }
 
+// The connected components of the nonzero voxels of `mask` (ITK's ConnectedComponentImageFilter):
+// labels 1..count on the components, 0 elsewhere; 26-connected when `fully_connected`, else
+// 6-connected. Throws itk::ExceptionObject. Defined in itk_image.cpp, so that the filter's template
+// code is compiled once for every caller.
+struct ComponentLabels {
+  itk::Image<uint32_t, 3>::Pointer image;
+  size_t count = 0;
+};
+ComponentLabels label_components(const itk::Image<uint8_t, 3>* mask, bool fully_connected);
+
 }  // namespace crepuscular::planning

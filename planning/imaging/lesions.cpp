@@ -20,7 +20,6 @@
 #ifndef ITK_USE_SYSTEM_EIGEN
 #define ITK_USE_SYSTEM_EIGEN
 #endif
-#include <itkConnectedComponentImageFilter.h>
 #include <itkImage.h>
 
 namespace crepuscular::planning {
@@ -28,7 +27,6 @@ namespace crepuscular::planning {
 namespace {
 
 using MaskImage = itk::Image<uint8_t, 3>;
-using ComponentImage = itk::Image<uint32_t, 3>;
 
 std::string values_text(const std::vector<int32_t>& values) {
   return values.empty() ? "none (all 0)" : format_ranges(values);
@@ -40,17 +38,14 @@ std::vector<uint32_t> connected_components(const Volume<uint8_t>& mask, size_t& 
   set_image_geometry(*image, mask.geometry());
   image->Allocate();
   std::copy(mask.values().begin(), mask.values().end(), image->GetBufferPointer());
-  using Filter = itk::ConnectedComponentImageFilter<MaskImage, ComponentImage>;
-  auto cc = Filter::New();
-  cc->SetInput(image);
-  cc->SetFullyConnected(true);  // 26-connectivity
+  ComponentLabels components;
   try {
-    cc->Update();
+    components = label_components(image, true);  // 26-connectivity
   } catch (const itk::ExceptionObject& e) {
     throw Error(std::string("lesions: connected components failed: ") + e.GetDescription());
   }
-  count = size_t(cc->GetObjectCount());
-  const uint32_t* p = cc->GetOutput()->GetBufferPointer();
+  count = components.count;
+  const uint32_t* p = components.image->GetBufferPointer();
   return std::vector<uint32_t>(p, p + mask.voxel_count());
 }
 

@@ -2,8 +2,6 @@
 // MetaDataDictionary, voxels as stored (one component per layer), converted to label maps.
 #include "planning/imaging/segmentation.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <Eigen/Core>
 #include <algorithm>
 #include <cctype>
@@ -19,6 +17,7 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "planning/imaging/itk_image.hpp"
 #include "planning/imaging/volume_io.hpp"
 

@@ -4,8 +4,6 @@
 #include "planning/imaging/itk_image.hpp"
 #include "planning/imaging/dicom_series.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <Eigen/Core>
 #include <algorithm>
 #include <array>
@@ -29,6 +27,7 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 
 // ITK headers after ours: they are large and only planning/ sees them. ITK 5.2 bundles its own

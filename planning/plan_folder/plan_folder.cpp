@@ -4,7 +4,6 @@
 #include "foundation/output_files.hpp"
 
 #include <itksys/MD5.h>
-#include <spdlog/spdlog.h>
 
 #include <algorithm>
 #include <climits>
@@ -20,6 +19,7 @@
 
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
+#include "foundation/log.hpp"
 #include "planning/imaging/scan_coverage.hpp"
 #include "planning/imaging/volume_io.hpp"
 

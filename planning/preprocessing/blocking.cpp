@@ -4,8 +4,6 @@
 #include "planning/imaging/itk_image.hpp"
 #include "planning/preprocessing/smoothing.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <algorithm>
 #include <array>
 #include <cmath>
@@ -18,6 +16,7 @@
 
 #include "foundation/error.hpp"
 #include "foundation/large_buffers.hpp"
+#include "foundation/log.hpp"
 
 #if defined(CREPUSCULAR_HAVE_CUDA)
 #include "kernels/gaussian_cuda.hpp"
@@ -28,7 +27,6 @@
 #ifndef ITK_USE_SYSTEM_EIGEN
 #define ITK_USE_SYSTEM_EIGEN
 #endif
-#include <itkConnectedComponentImageFilter.h>
 #include <itkImage.h>
 
 namespace crepuscular::planning {
@@ -37,7 +35,6 @@ namespace {
 
 using FloatImage = itk::Image<float, 3>;
 using MaskImage = itk::Image<uint8_t, 3>;
-using ComponentImage = itk::Image<uint32_t, 3>;
 
 constexpr int kMaxLabelValue = 65535;  // vulnerability tables hold values 1..65535
 
@@ -235,17 +232,14 @@ std::vector<uint8_t> components_on_side_faces(const uint32_t* comp, size_t count
 // returns the number of inside air voxels.
 int64_t mark_inside_air(const AirMask& air, const ImageGeometry& g, const std::string& source,
                         std::vector<uint8_t>& inside_air) {
-  using Components = itk::ConnectedComponentImageFilter<MaskImage, ComponentImage>;
-  auto cc = Components::New();
-  cc->SetInput(air.image);
-  cc->SetFullyConnected(false);
+  ComponentLabels components;
   try {
-    cc->Update();
+    components = label_components(air.image, false);
   } catch (const itk::ExceptionObject& e) {
     throw Error(source + ": connected components of air failed: " + e.GetDescription());
   }
-  const uint32_t* comp = cc->GetOutput()->GetBufferPointer();
-  const size_t count = size_t(cc->GetObjectCount());
+  const uint32_t* comp = components.image->GetBufferPointer();
+  const size_t count = components.count;
   const std::vector<uint8_t> outside = components_on_side_faces(comp, count, g);
   const int64_t n = g.voxel_count();
   int64_t inside = 0;

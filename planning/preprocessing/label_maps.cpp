@@ -2,8 +2,6 @@
 // gives it, on the first map's grid (or a grid given), maps sampled at nearest voxels.
 #include "planning/preprocessing/label_maps.hpp"
 
-#include <spdlog/spdlog.h>
-
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -13,6 +11,7 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 
 namespace crepuscular::planning {
 

@@ -3,7 +3,6 @@
 #include "planning/simulation/phantom.hpp"
 
 #include <fmt/format.h>
-#include <spdlog/spdlog.h>
 
 #include <Eigen/Geometry>
 #include <algorithm>
@@ -17,6 +16,7 @@
 #include <vector>
 
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 #include "planning/imaging/volume_io.hpp"
 

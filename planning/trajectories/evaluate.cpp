@@ -2,7 +2,6 @@
 #include "planning/trajectories/evaluate.hpp"
 
 #include <fmt/format.h>
-#include <spdlog/spdlog.h>
 
 #include <algorithm>
 #include <cmath>
@@ -16,6 +15,7 @@
 
 #include "foundation/csv.hpp"
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "kernels/path_safety_math.hpp"
 #include "planning/trajectories/markups.hpp"
 #include "planning/safety/path_safety_scene.hpp"

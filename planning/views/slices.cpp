@@ -2,7 +2,6 @@
 #include "planning/views/slices.hpp"
 
 #include <fmt/format.h>
-#include <spdlog/spdlog.h>
 
 #include <Eigen/Geometry>
 #include <algorithm>
@@ -21,6 +20,7 @@
 
 #include "foundation/csv.hpp"
 #include "foundation/error.hpp"
+#include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
 #include "planning/imaging/sampling.hpp"
 #include "planning/imaging/volume_io.hpp"
