@@ -3,7 +3,7 @@
 #include "pipelines/plan.hpp"
 
 #include <omp.h>
-#include <spdlog/spdlog.h>
+#include "foundation/log.hpp"
 
 #include <algorithm>
 #include <array>

@@ -5,7 +5,7 @@
 
 #include <fmt/format.h>
 #include <omp.h>
-#include <spdlog/spdlog.h>
+#include "foundation/log.hpp"
 
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>

@@ -4,7 +4,7 @@
 #include <fmt/format.h>
 
 #include <omp.h>
-#include <spdlog/spdlog.h>
+#include "foundation/log.hpp"
 
 #include <algorithm>
 #include <array>

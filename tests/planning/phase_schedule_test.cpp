@@ -111,7 +111,9 @@ TEST(PhaseSchedule, EveryStepWaitsOnlyForEarlierSteps) {
           EXPECT_LT(p.fine_to, at);
           EXPECT_LE(p.coarse_to, p.fine_to);
           EXPECT_EQ(p.coarse_to >= 0, leave && at > 0);
-          if (p.fine_to > p.coarse_to) EXPECT_LE(p.fine_to - p.coarse_to, s.kept_combinations);
+          if (p.fine_to > p.coarse_to) {
+            EXPECT_LE(p.fine_to - p.coarse_to, s.kept_combinations);
+          }
           sampling_at_first += p.samples_after < 0;
         }
         EXPECT_EQ(sampling_at_first, s.at_once);
