@@ -1,6 +1,6 @@
-// The path safety values of docs/ARCHITECTURE.md §4 (paper §3.2, Algorithm 1), written once as host/device
-// functions: the CPU backend and the CUDA kernels call exactly these. Plain structs, raw buffers,
-// no Eigen or STL containers, so nvcc and the host compiler read the same code.
+// The path safety values of docs/ARCHITECTURE.md §4 (paper §3.2, Algorithm 1), written once as
+// host/device functions: the CPU backend and the CUDA kernels call exactly these. Plain structs,
+// raw buffers, no Eigen or STL containers, so nvcc and the host compiler read the same code.
 #pragma once
 
 #include <math.h>
@@ -277,11 +277,11 @@ CREPUSCULAR_HD_INLINE Real sample_blocking(const BlockingGrid<Real>& g, Vec3<Rea
   return trilinear_blocking(g, q);
 }
 
-// Tumor lookups take the voxel nearest to a continuous tumor index r. A point on a face between
-// two voxels belongs to the lower one: the tie is broken by 1e-10 voxel, far above rounding noise
+// Tumor lookups take the voxel nearest to a continuous tumor index r. A point on a face between two
+// voxels belongs to the lower one: the tie is broken by 1e-10 voxel, far above rounding noise
 // (1e-12 at index 4096), so that it does not depend on where the grid's origin lies. Ties are
-// common where the tumor lies on the output lattice (a resampled tumor, docs/ARCHITECTURE.md §4): samples
-// every h/2 along an axis land on faces. The voxel is floor(r + kHalfBelowTies) per axis.
+// common where the tumor lies on the output lattice (a resampled tumor, docs/ARCHITECTURE.md §4):
+// samples every h/2 along an axis land on faces. The voxel is floor(r + kHalfBelowTies) per axis.
 constexpr double kHalfBelowTies = 0.5 - 1e-10;
 
 // Offset of the tumor voxel at the shifted point r + kHalfBelowTies, or -1 when that voxel is
@@ -414,11 +414,11 @@ CREPUSCULAR_HD void box_range(Vec3<Real> origin, Vec3<Real> step, const int lo[3
   }
 }
 
-// Tumor occupancy along one ray (docs/ARCHITECTURE.md §4): is t front-facing from p, is it back-facing, and
-// how many samples k <= N lie in the tumor (the chord is that count times l). The chord is needed
-// only where t is back-facing (IVBV): a ray that is neither front- nor back-facing (nor asked
-// about back-facing) contributes nothing, and its walk stops where it sees another tumor voxel,
-// leaving samples_in_tumor a partial count.
+// Tumor occupancy along one ray (docs/ARCHITECTURE.md §4): is t front-facing from p, is it
+// back-facing, and how many samples k <= N lie in the tumor (the chord is that count times l). The
+// chord is needed only where t is back-facing (IVBV): a ray that is neither front- nor back-facing
+// (nor asked about back-facing) contributes nothing, and its walk stops where it sees another tumor
+// voxel, leaving samples_in_tumor a partial count.
 struct TumorCrossing {
   bool front_facing;
   bool back_facing;

@@ -1,5 +1,5 @@
-// Path safety over the breathing cycle (docs/ARCHITECTURE.md §10): the phases' volumes on one output grid
-// combined so that a voxel is safe only if it is safe in every phase.
+// Path safety over the breathing cycle (docs/ARCHITECTURE.md §10): the phases' volumes on one
+// output grid combined so that a voxel is safe only if it is safe in every phase.
 #pragma once
 
 #include <algorithm>

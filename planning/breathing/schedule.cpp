@@ -42,14 +42,17 @@ PhaseSchedule schedule_phases(int phases, int at_once, bool leave) {
 }
 
 std::string PhaseSchedule::table(const std::vector<std::string>& names) const {
-  const auto step_name = [](int step) { return step < 0 ? std::string("-") : std::to_string(step + 1); };
+  const auto step_name = [](int step) {
+    return step < 0 ? std::string("-") : std::to_string(step + 1);
+  };
   std::string out;
   for (size_t at = 0; at < steps.size(); ++at) {
     const PhaseStep& p = steps[at];
     std::string leaves = "refines every boundary";
     if (p.coarse_to >= 0) {
-      leaves = "coarsest level leaves to " + (p.coarse_to == 0 ? "1" : "1-" + step_name(p.coarse_to));
-      leaves += ", finer to " + (p.fine_to == 0 ? "1" : "1-" + step_name(p.fine_to));
+      const auto steps_to = [&](int last) { return last == 0 ? "1" : "1-" + step_name(last); };
+      leaves = "coarsest level leaves to " + steps_to(p.coarse_to);
+      leaves += ", finer to " + steps_to(p.fine_to);
       if (p.fine_to > p.coarse_to) leaves += " (" + step_name(p.fine_to) + " before its fold)";
     }
     const std::string name = at < names.size() ? " " + names[at] : std::string();

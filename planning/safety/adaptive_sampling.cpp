@@ -1160,8 +1160,9 @@ AdaptiveReport sample_adaptively(const OutputGrid& grid, const AdaptiveOptions& 
     const auto to_finest = [&](int64_t c) {
       return size == 2 && refine[size_t(c)] == 1;
     };
-    // Cells of edge 4 sampled point by point (the level above the finest point by point); a cell refined
-    // only as a dilated neighbour is split whole, so that a shadow its corners miss is seen.
+    // Cells of edge 4 sampled point by point (the level above the finest point by point); a cell
+    // refined only as a dilated neighbour is split whole, so that a shadow its corners miss is
+    // seen.
     const auto to_halves = [&](int64_t c) {
       return size == 4 && refine[size_t(c)] == 1 && !dilated_only(c);
     };

@@ -1,11 +1,11 @@
 // Fast mode of the path safety values: the output grid sampled coarse to fine. The values are
-// computed exactly (every ray marched, docs/ARCHITECTURE.md §4) on a lattice of every `stride`-th voxel;
-// a cell of that lattice whose eight corners fall in the same safety class, none of them near a
-// class threshold, is filled by trilinear interpolation of its corners, and every other cell is
-// split in eight and sampled again at half the stride, down to single voxels. Where the classes
-// change (the edges of shadows, of the region's safe bundles) every voxel is exact; inside a
-// region of one class the values are interpolated. The cost follows the area of the class
-// boundaries rather than the volume of the region.
+// computed exactly (every ray marched, docs/ARCHITECTURE.md §4) on a lattice of every `stride`-th
+// voxel; a cell of that lattice whose eight corners fall in the same safety class, none of them
+// near a class threshold, is filled by trilinear interpolation of its corners, and every other cell
+// is split in eight and sampled again at half the stride, down to single voxels. Where the classes
+// change (the edges of shadows, of the region's safe bundles) every voxel is exact; inside a region
+// of one class the values are interpolated. The cost follows the area of the class boundaries
+// rather than the volume of the region.
 #pragma once
 
 #include <array>

@@ -1,6 +1,6 @@
-// Area safety geometry (§3.3, docs/ARCHITECTURE.md §6): PCA ellipsoid of the tumor, spherical tessellation,
-// extrusion along the normals, connected safe regions and their sizes, the VTK mesh file, and the
-// plan's area safety step (the `area` job itself is pipelines/area.cpp).
+// Area safety geometry (§3.3, docs/ARCHITECTURE.md §6): PCA ellipsoid of the tumor, spherical
+// tessellation, extrusion along the normals, connected safe regions and their sizes, the VTK mesh
+// file, and the plan's area safety step (the `area` job itself is pipelines/area.cpp).
 #include "planning/safety/area_safety.hpp"
 
 #include <fmt/format.h>

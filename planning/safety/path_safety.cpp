@@ -259,7 +259,9 @@ void FastModeOptions::check() const {
   const auto refuse = [](const char* option, const char* expected, int got) {
     throw Error(fmt::format("fast mode {}: expected {} (got {})", option, expected, got));
   };
-  if (surface_block < 1 || surface_block > 4) refuse("--fast-surface-block", "1 to 4", surface_block);
+  if (surface_block < 1 || surface_block > 4) {
+    refuse("--fast-surface-block", "1 to 4", surface_block);
+  }
   if (ray_stride < 0 || ray_stride > 4) refuse("--fast-ray-stride", "0 (automatic) to 4", ray_stride);
   if (check_voxels < 0 || check_voxels > 1000000) {
     refuse("--fast-check-voxels", "0 to 1000000", check_voxels);

@@ -34,9 +34,9 @@ TumorSurface extract_tumor_surface(const Volume<uint8_t>& tumor, const std::stri
 OutputGrid make_output_grid(const Volume<float>& blocking, const Volume<uint8_t>& tumor,
                             const TumorSurface& surface, const PathSafetyOptions& options);
 // The tumor mask on an isotropic grid of `spacing` with the axes of the output grid and a lattice
-// through its centre (docs/ARCHITECTURE.md §4, tumor sampling): a voxel is tumor when its centre lies in a
-// tumor voxel of the mask (nearest voxel). Covers the mask's tumor voxels with one voxel to spare.
-// `surface` is the mask's own (its index bounding box is used).
+// through its centre (docs/ARCHITECTURE.md §4, tumor sampling): a voxel is tumor when its centre
+// lies in a tumor voxel of the mask (nearest voxel). Covers the mask's tumor voxels with one voxel
+// to spare. `surface` is the mask's own (its index bounding box is used).
 Volume<uint8_t> resample_tumor(const Volume<uint8_t>& tumor, const TumorSurface& surface,
                                const OutputGrid& grid, double spacing);
 

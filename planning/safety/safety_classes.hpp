@@ -1,5 +1,5 @@
-// Safety classes of a path safety value (docs/ARCHITECTURE.md §4): safe, medium, dangerous, with thresholds
-// per value, and the comparison of two path safety results (fast mode against exact).
+// Safety classes of a path safety value (docs/ARCHITECTURE.md §4): safe, medium, dangerous, with
+// thresholds per value, and the comparison of two path safety results (fast mode against exact).
 #pragma once
 
 #include <array>

@@ -1,6 +1,7 @@
-// Unknown is never safe (docs/ARCHITECTURE.md §4 "Scan coverage"): the voxels of the region of interest that
-// lie outside the scanned volume get no path safety value and a state of their own, distinct from
-// every safety class, in the volumes (NaN), in roi.nii.gz (kRegionUnknown) and in plan.json.
+// Unknown is never safe (docs/ARCHITECTURE.md §4 "Scan coverage"): the voxels of the region of
+// interest that lie outside the scanned volume get no path safety value and a state of their own,
+// distinct from every safety class, in the volumes (NaN), in roi.nii.gz (kRegionUnknown) and in
+// plan.json.
 #pragma once
 
 #include <array>

@@ -16,24 +16,12 @@
 
 #include "foundation/error.hpp"
 #include "planning/safety/adaptive_sampling.hpp"
+#include "tests/support/grids.hpp"
 
 namespace crepuscular::planning {
 namespace {
 
-OutputGrid ball_grid(int half) {
-  OutputGrid g;
-  const int n = 2 * half + 1;
-  g.geometry.dims = {n, n, n};
-  g.geometry.spacing = Eigen::Vector3d::Ones();
-  g.geometry.origin = Eigen::Vector3d::Constant(-half);
-  g.half = half;
-  g.max_sq = int64_t(half) * half;
-  for (int k = 0; k < n; ++k)
-    for (int j = 0; j < n; ++j)
-      for (int i = 0; i < n; ++i) g.roi_voxels += g.in_roi(i, j, k);
-  g.radius_mm = half;
-  return g;
-}
+using test::ball_grid;
 
 // SVV of a scene with one shadow: 20 % inside a ball of radius 7 voxels centred at (8, 0, 0)
 // from the centre, 95 % elsewhere (two classes, a sharp boundary).

@@ -12,12 +12,12 @@
 // Why it must hold: a phase leaves a cell unrefined only where every voxel of it is at least as
 // dangerous in the combination it reads as the most dangerous of the cell's corners (the corners
 // moved toward danger by the whole margins, the combination toward safety by a share,
-// kCombinationMarginShare, of the blocking margin). Its values there are interpolated from those corners, so they stay within
-// the corners' classes; fast mode's premise (a phase's class inside a cell, edge or face lies
-// within the classes of its corners) keeps its exact values there too. So where a phase is left
-// to the combination, the combination's class is the class it gets with the phase's exact
-// values, and elsewhere the phase is sampled as fast mode samples a phase. Two things make that
-// true here, and the test holds the scenes to both:
+// kCombinationMarginShare, of the blocking margin). Its values there are interpolated from those
+// corners, so they stay within the corners' classes; fast mode's premise (a phase's class inside a
+// cell, edge or face lies within the classes of its corners) keeps its exact values there too. So
+// where a phase is left to the combination, the combination's class is the class it gets with the
+// phase's exact values, and elsewhere the phase is sampled as fast mode samples a phase. Two things
+// make that true here, and the test holds the scenes to both:
 // - the premise, by construction: every phase's SVV and ISBV are monotone along each axis (the
 //   SVV of each phase a minimum of clamped linear ramps whose normals lie in one octant, its ISBV
 //   a floor plus soft ramps whose normals lie in one octant), so on any axis-aligned box of the
@@ -53,6 +53,7 @@
 #include "planning/imaging/volume.hpp"
 #include "planning/safety/adaptive_sampling.hpp"
 #include "planning/safety/safety_classes.hpp"
+#include "tests/support/grids.hpp"
 
 namespace crepuscular::planning {
 namespace {
@@ -68,20 +69,7 @@ constexpr unsigned kFirstSeed = 1;
 // rise of the thresholds it absorbs.
 constexpr double kCombinationShare = kCombinationMarginShare;
 
-OutputGrid ball_grid(int half) {
-  OutputGrid g;
-  const int n = 2 * half + 1;
-  g.geometry.dims = {n, n, n};
-  g.geometry.spacing = Eigen::Vector3d::Ones();
-  g.geometry.origin = Eigen::Vector3d::Constant(-half);
-  g.half = half;
-  g.max_sq = int64_t(half) * half;
-  for (int k = 0; k < n; ++k)
-    for (int j = 0; j < n; ++j)
-      for (int i = 0; i < n; ++i) g.roi_voxels += g.in_roi(i, j, k);
-  g.radius_mm = half;
-  return g;
-}
+using test::ball_grid;
 
 // SVV 95 % on the near side of a plane, falling by `slope` points per voxel of depth behind it,
 // down to 20 %: a shadow's edge, sharp (60 points a voxel) or soft (5).

@@ -27,4 +27,19 @@ planning::ImageGeometry oblique_geometry() {
   return g;
 }
 
+planning::OutputGrid ball_grid(int half) {
+  planning::OutputGrid g;
+  const int n = 2 * half + 1;
+  g.geometry.dims = {n, n, n};
+  g.geometry.spacing = Eigen::Vector3d::Ones();
+  g.geometry.origin = Eigen::Vector3d::Constant(-half);
+  g.half = half;
+  g.max_sq = int64_t(half) * half;
+  for (int k = 0; k < n; ++k)
+    for (int j = 0; j < n; ++j)
+      for (int i = 0; i < n; ++i) g.roi_voxels += g.in_roi(i, j, k);
+  g.radius_mm = half;
+  return g;
+}
+
 }  // namespace crepuscular::test
