@@ -30,6 +30,8 @@ void add_calibrate_command(CLI::App& app);
 void add_register_command(CLI::App& app);
 void add_guide_command(CLI::App& app);
 void add_demo_command(CLI::App& app);
+void add_render_command(CLI::App& app);
+void add_view_command(CLI::App& app);
 
 // --overwrite, on every command that replaces an output folder (foundation/run_paths.hpp).
 inline CLI::Option* add_overwrite_flag(CLI::App* cmd, bool& overwrite) {

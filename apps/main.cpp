@@ -81,6 +81,8 @@ int main(int argc, char** argv) {
   crepuscular::apps::add_calibrate_command(app);
   crepuscular::apps::add_register_command(app);
   crepuscular::apps::add_guide_command(app);
+  crepuscular::apps::add_render_command(app);
+  crepuscular::apps::add_view_command(app);
   crepuscular::apps::add_demo_command(app);
   try {
     app.parse(argc, argv);

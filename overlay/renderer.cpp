@@ -9,6 +9,7 @@
 #include <GLFW/glfw3.h>
 
 #include <algorithm>
+#include <deque>
 #include <atomic>
 #include <cmath>
 #include <cstring>
@@ -388,6 +389,22 @@ struct OverlayRenderer::Impl {
   EglTarget egl;                 // EGL backend
   std::string kind;              // "EGL device", "EGL surfaceless", ..., "GLFW/GLX"
   std::vector<int> keys;  // pressed since the last poll_keys()
+  std::deque<InputEvent> events;  // since the last poll_events()
+  int image_width = 0, image_height = 0;
+
+  void push(InputEvent e) {
+    if (events.size() >= 4096) events.pop_front();
+    events.push_back(e);
+  }
+  // The pointer in image pixels (the window may be scaled to the image).
+  void pointer(double& x, double& y) const {
+    double wx = 0, wy = 0;
+    glfwGetCursorPos(window, &wx, &wy);
+    int ww = 0, wh = 0;
+    glfwGetWindowSize(window, &ww, &wh);
+    x = ww > 0 ? wx * image_width / ww - 0.5 : wx;
+    y = wh > 0 ? wy * image_height / wh - 0.5 : wy;
+  }
   GLuint fbo = 0, colour_rb = 0, frame_texture = 0;
   GLuint shape_program = 0, background_program = 0;
   GLuint vao = 0, vbo = 0;
@@ -460,8 +477,42 @@ struct OverlayRenderer::Impl {
     }
     glfwMakeContextCurrent(window);
     glfwSetWindowUserPointer(window, this);
-    glfwSetKeyCallback(window, [](GLFWwindow* w, int key, int, int action, int) {
-      if (action == GLFW_PRESS) static_cast<Impl*>(glfwGetWindowUserPointer(w))->keys.push_back(key);
+    image_width = width;
+    image_height = height;
+    glfwSetKeyCallback(window, [](GLFWwindow* w, int key, int, int action, int mods) {
+      if (action != GLFW_PRESS && action != GLFW_REPEAT) return;
+      auto* impl = static_cast<Impl*>(glfwGetWindowUserPointer(w));
+      if (action == GLFW_PRESS) impl->keys.push_back(key);
+      InputEvent e;
+      e.kind = InputEvent::Kind::kKey;
+      e.key = key;
+      e.mods = mods;
+      impl->pointer(e.x, e.y);
+      impl->push(e);
+    });
+    glfwSetMouseButtonCallback(window, [](GLFWwindow* w, int button, int action, int mods) {
+      auto* impl = static_cast<Impl*>(glfwGetWindowUserPointer(w));
+      InputEvent e;
+      e.kind = action == GLFW_PRESS ? InputEvent::Kind::kPress : InputEvent::Kind::kRelease;
+      e.key = button;
+      e.mods = mods;
+      impl->pointer(e.x, e.y);
+      impl->push(e);
+    });
+    glfwSetCursorPosCallback(window, [](GLFWwindow* w, double, double) {
+      auto* impl = static_cast<Impl*>(glfwGetWindowUserPointer(w));
+      InputEvent e;
+      e.kind = InputEvent::Kind::kMove;
+      impl->pointer(e.x, e.y);
+      impl->push(e);
+    });
+    glfwSetScrollCallback(window, [](GLFWwindow* w, double, double dy) {
+      auto* impl = static_cast<Impl*>(glfwGetWindowUserPointer(w));
+      InputEvent e;
+      e.kind = InputEvent::Kind::kScroll;
+      e.scroll = dy;
+      impl->pointer(e.x, e.y);
+      impl->push(e);
     });
     kind = "GLFW/GLX";
     return true;
@@ -904,6 +955,18 @@ std::vector<int> OverlayRenderer::poll_keys() {
   std::vector<int> keys;
   keys.swap(impl_->keys);
   return keys;
+}
+
+bool OverlayRenderer::window_open() const {
+  return !impl_->window || !glfwWindowShouldClose(impl_->window);
+}
+
+std::vector<InputEvent> OverlayRenderer::poll_events() {
+  if (!impl_->window) return {};
+  glfwPollEvents();
+  std::vector<InputEvent> events(impl_->events.begin(), impl_->events.end());
+  impl_->events.clear();
+  return events;
 }
 
 cv::Mat OverlayRenderer::render() {

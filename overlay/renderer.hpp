@@ -43,6 +43,17 @@ struct DrawContext {
   int width = 0, height = 0;
 };
 
+// A user's input in a renderer's window (poll_events).
+struct InputEvent {
+  enum class Kind { kKey, kPress, kRelease, kMove, kScroll };
+  Kind kind = Kind::kKey;
+  int key = 0;   // kKey: GLFW key code ('A', 256 = Escape, ...); kPress/kRelease: mouse button
+                 // (0 left, 1 right, 2 middle)
+  int mods = 0;  // GLFW modifier bits: 1 Shift, 2 Control, 4 Alt
+  double x = 0, y = 0;  // the pointer in image pixels (OpenCV convention)
+  double scroll = 0;    // kScroll: wheel steps, positive away from the user
+};
+
 // Where the OpenGL context comes from.
 enum class RendererBackend {
   kAuto,  // visible: GLFW; headless: EGL, falling back to a hidden GLFW window
@@ -125,6 +136,11 @@ class OverlayRenderer {
   // Headless renderers have nothing to show: present() returns true and poll_keys() is empty.
   bool present();
   std::vector<int> poll_keys();
+  // Keys, mouse buttons, pointer moves and the wheel since the last call, in order (the most recent
+  // 4096 kept). Headless renderers: empty.
+  std::vector<InputEvent> poll_events();
+  // Whether the window is still open (false once the user closed it); headless: true.
+  bool window_open() const;
   bool visible() const { return options_.visible; }
   // The window's pixels as the X server holds them (XGetImage of the GLFW window: what the user
   // sees after present()), CV_8UC3 BGR of the window's size. Throws Error for renderers without a

@@ -4,6 +4,7 @@
 #include <GL/glcorearb.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 #include <string>
@@ -11,6 +12,7 @@
 #include "foundation/error.hpp"
 #include "foundation/log.hpp"
 #include "overlay/gl_program.hpp"
+#include "planning/safety/unknown.hpp"
 
 namespace crepuscular::overlay {
 
@@ -26,30 +28,49 @@ void main() {
 }
 )";
 
-// Ray casting (§3.4): one ray per pixel from the camera centre along the pixel's undistorted
-// direction, into the voxel grid's index space; the box of classified voxels is crossed in steps
-// of step_mm, each step sampled at its middle from the nearest voxel, composited front to back
-// with alpha = 1 - exp(-k * length); no shading. Output is premultiplied. reference_pixel() is the
-// same computation on the CPU: keep the two in step.
+// Ray casting (§3.4): one ray per pixel of the viewport from the camera centre along the pixel's
+// undistorted direction, into the voxel grid's index space; the box of classified (or anatomy)
+// voxels is crossed in steps of step_mm, each step sampled at its middle from the nearest voxel,
+// composited front to back. A sample whose anatomy kind differs from the previous sample's adds
+// that kind's surface (alpha, lit by the angle between the ray and the kind's gradient); a
+// sample's class adds alpha = 1 - exp(-k * length), unlit. Output is premultiplied.
+// reference_pixel() is the same computation on the CPU: keep the two in step.
 const char* kMarchFragment = R"(#version 330 core
-uniform usampler3D classes;
+uniform usampler3D classes;  // r: class, g: leap distance, b: anatomy kind
 uniform sampler2D rays;
 uniform mat3 M;
 uniform vec3 m0;
 uniform vec3 box_lo;
 uniform vec3 box_hi;
 uniform ivec3 dims;
-uniform float opacity[4];
-uniform vec3 colour[4];
-uniform vec4 full_step[4];  // a whole step of each class: premultiplied colour, alpha
+uniform vec3 spacing;
+uniform vec2 origin;  // the viewport's lower-left corner in the framebuffer
+uniform float opacity[5];
+uniform vec3 colour[5];
+uniform vec4 full_step[5];  // a whole step of each class: premultiplied colour, alpha
+uniform vec4 surface[16];   // per anatomy kind: colour, alpha (0: not drawn)
+uniform float ambient;
 uniform float step_mm;
 uniform int rows;
 uniform int max_steps;
 uniform float opaque;
 out vec4 out_colour;
+float inside(ivec3 v, uint s) {
+  return texelFetch(classes, clamp(v, ivec3(0), dims - 1), 0).b == s ? 1.0 : 0.0;
+}
+// Lighting of a surface of kind s at voxel v seen along D: its gradient from central differences
+// of the kind's indicator, compared with the ray in physical space.
+float shade(ivec3 v, uint s, vec3 D) {
+  vec3 g = vec3(inside(v + ivec3(1, 0, 0), s) - inside(v - ivec3(1, 0, 0), s),
+                inside(v + ivec3(0, 1, 0), s) - inside(v - ivec3(0, 1, 0), s),
+                inside(v + ivec3(0, 0, 1), s) - inside(v - ivec3(0, 0, 1), s));
+  float len = length(g / spacing) * length(D * spacing);
+  float c = len > 0.0 ? abs(dot(g, D)) / len : 1.0;
+  return ambient + (1.0 - ambient) * c;
+}
 void main() {
   out_colour = vec4(0.0);
-  ivec2 p = ivec2(int(gl_FragCoord.x), rows - 1 - int(gl_FragCoord.y));
+  ivec2 p = ivec2(int(gl_FragCoord.x - origin.x), rows - 1 - int(gl_FragCoord.y - origin.y));
   vec3 d = texelFetch(rays, p, 0).xyz;
   if (dot(d, d) < 0.5) return;
   vec3 D = M * d;
@@ -67,19 +88,34 @@ void main() {
   }
   if (!(t_out > t_in)) return;
   int n = min(int(ceil((t_out - t_in) / step_mm)), max_steps);
-  // Empty-space leaping: a voxel `g` (Chebyshev, in voxels) away from any classified voxel lets
-  // the samples whose positions move less than g - 1 voxels per axis be passed over: they all
-  // fall in unclassified voxels (the CPU reference takes them and finds nothing there).
+  // Empty-space leaping: a voxel `g` (Chebyshev, in voxels) away from any classified voxel and any
+  // anatomy surface lets the samples whose positions move less than g - 1 voxels per axis be
+  // passed over: they all fall in unclassified voxels of one kind (the CPU reference takes them
+  // and finds nothing there).
   float reach = max(abs(D.x), max(abs(D.y), abs(D.z))) * step_mm;
   vec3 C = vec3(0.0);
   float A = 0.0;
+  // Anatomy kind of the previous sample; the first sample's kind shows no surface (the grid's
+  // faces cut through the anatomy, they are not surfaces of it).
+  uint kind = 255u;
   int i = 0;
   while (i < n) {
     float t0 = t_in + float(i) * step_mm;
     float dt = i < n - 1 ? step_mm : t_out - t0;
     float t = t0 + 0.5 * dt;
     ivec3 v = clamp(ivec3(floor(m0 + t * D + 0.5)), ivec3(0), dims - 1);
-    uvec2 cg = texelFetch(classes, v, 0).rg;
+    uvec3 cg = texelFetch(classes, v, 0).rgb;
+    if (kind == 255u) kind = cg.b;
+    if (cg.b != kind) {
+      kind = cg.b;
+      vec4 s = surface[kind];
+      if (s.a > 0.0) {
+        float a = s.a;
+        C += (1.0 - A) * a * shade(v, kind, D) * s.rgb;
+        A += (1.0 - A) * a;
+        if (A >= opaque) break;
+      }
+    }
     int c = int(cg.r);
     if (c == 0) {
       i += 1 + max(0, int(floor((float(cg.g) - 1.01) / reach)));
@@ -101,9 +137,10 @@ void main() {
 const char* kCompositeFragment = R"(#version 330 core
 uniform sampler2D image;
 uniform vec2 size;
+uniform vec2 origin;  // the viewport's lower-left corner in the framebuffer
 out vec4 out_colour;
 void main() {
-  out_colour = texture(image, gl_FragCoord.xy / size);
+  out_colour = texture(image, (gl_FragCoord.xy - origin) / size);
 }
 )";
 
@@ -119,6 +156,10 @@ void validate_options(const VolumeRenderingOptions& o) {
                   std::to_string(o.opacity_per_mm[c]) + ", expected a finite value >= 0");
     }
   }
+  if (!(o.unknown_opacity_per_mm >= 0) || !std::isfinite(o.unknown_opacity_per_mm)) {
+    throw Error("volume rendering: unknown_opacity_per_mm is " +
+                std::to_string(o.unknown_opacity_per_mm) + ", expected a finite value >= 0");
+  }
   if (!(o.step_mm >= 0) || !std::isfinite(o.step_mm)) {
     throw Error("volume rendering: step_mm is " + std::to_string(o.step_mm) +
                 ", expected >= 0 (0: half the smallest voxel spacing)");
@@ -133,10 +174,31 @@ void validate_options(const VolumeRenderingOptions& o) {
 // class: every voxel closer than that to it (in each index) has none. Separable: exact 1D distance
 // along i, then min over j' of max(|j - j'|, g(j')), then the same along k.
 constexpr int kMaxLeap = 32;
-std::vector<uint8_t> empty_distance(const planning::Index3& dims, const std::vector<uint8_t>& classes) {
+// Voxels that stop a leap: those with a class, and those with a 6-neighbour of another anatomy
+// kind (a ray crossing into another kind passes one of them).
+std::vector<uint8_t> empty_distance(const planning::Index3& dims, const std::vector<uint8_t>& classes,
+                                    const std::vector<uint8_t>& kinds) {
   const int64_t nx = dims[0], ny = dims[1], nz = dims[2];
   std::vector<uint8_t> g(classes.size());
   for (size_t v = 0; v < classes.size(); ++v) g[v] = classes[v] ? 0 : kMaxLeap;
+  if (!kinds.empty()) {
+    const int64_t strides[3] = {1, nx, nx * ny};
+    const int64_t n[3] = {nx, ny, nz};
+    for (int64_t k = 0; k < nz; ++k) {
+      for (int64_t j = 0; j < ny; ++j) {
+        for (int64_t i = 0; i < nx; ++i) {
+          const int64_t v = i + nx * (j + ny * k);
+          const int64_t at[3] = {i, j, k};
+          for (int a = 0; a < 3 && g[size_t(v)]; ++a) {
+            if (at[a] + 1 < n[a] && kinds[size_t(v + strides[a])] != kinds[size_t(v)]) {
+              g[size_t(v)] = 0;
+              g[size_t(v + strides[a])] = 0;
+            }
+          }
+        }
+      }
+    }
+  }
   // One pass along an axis: g(x) <- min over x' of max(|x - x'|, g(x')), within kMaxLeap.
   const auto pass = [&](int64_t n, int64_t stride, int64_t lines, auto&& line_start) {
     std::vector<uint8_t> in(size_t(n), 0);
@@ -173,24 +235,54 @@ int cast_size(int image_size, double resolution_scale) {
                               : image_size;
 }
 
+// Classes of the transfer function: 0 none, 1..3 safe, medium, dangerous, 4 unknown.
+constexpr int kClassCount = 5;
+constexpr uint8_t kUnknownClass = 4;
+
+// Per class: absorption per mm (0 when hidden) and colour (RGB 0..255).
+struct ClassLook {
+  double opacity = 0;
+  planning::Rgb colour{0, 0, 0};
+};
+std::array<ClassLook, kClassCount> class_looks(const VolumeRenderingOptions& options) {
+  std::array<ClassLook, kClassCount> looks{};
+  const bool shown[3] = {options.show_safe, options.show_medium, options.show_dangerous};
+  const auto colours = planning::class_colours(options.palette);
+  for (size_t c = 0; c < 3; ++c) {
+    looks[c + 1] = {shown[c] ? options.opacity_per_mm[c] : 0.0, colours[c]};
+  }
+  looks[kUnknownClass] = {options.show_unknown ? options.unknown_opacity_per_mm : 0.0,
+                          kUnknownGrey};
+  return looks;
+}
+
+// The alpha of one crossing of each anatomy kind's surface (0 when hidden or kind 0).
+std::array<double, kMaxAnatomyKinds> surface_alphas(const std::vector<AnatomySurface>& surfaces,
+                                                    uint32_t hidden) {
+  std::array<double, kMaxAnatomyKinds> a{};
+  for (size_t k = 1; k < surfaces.size() && k < a.size(); ++k) {
+    a[k] = (hidden >> k) & 1u ? 0.0 : surfaces[k].opacity;
+  }
+  return a;
+}
+
 // The march shader's per-class uniforms, index 0 being "no class": absorption per mm (0 when the
 // class is hidden), colour 0..1, and one whole step's premultiplied colour and alpha.
 struct ClassUniforms {
-  float opacity[4] = {0, 0, 0, 0};
-  float colour[12] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
-  float full_step[16] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+  float opacity[kClassCount] = {};
+  float colour[kClassCount * 3] = {};
+  float full_step[kClassCount * 4] = {};
 };
 
 ClassUniforms class_uniforms(const VolumeRenderingOptions& options, float step_mm) {
   ClassUniforms u;
-  const bool shown[3] = {options.show_safe, options.show_medium, options.show_dangerous};
-  const auto colours = planning::class_colours(options.palette);
-  for (int c = 0; c < 3; ++c) {
-    u.opacity[c + 1] = shown[c] ? float(options.opacity_per_mm[c]) : 0.0f;
+  const auto looks = class_looks(options);
+  for (int c = 1; c < kClassCount; ++c) {
+    u.opacity[c] = float(looks[size_t(c)].opacity);
     for (int ch = 0; ch < 3; ++ch)
-      u.colour[(c + 1) * 3 + ch] = float(colours[size_t(c)][size_t(ch)] / 255.0);
+      u.colour[c * 3 + ch] = float(looks[size_t(c)].colour[size_t(ch)] / 255.0);
   }
-  for (int c = 1; c < 4; ++c) {
+  for (int c = 1; c < kClassCount; ++c) {
     const double a = 1.0 - std::exp(-double(u.opacity[c]) * double(step_mm));
     for (int ch = 0; ch < 3; ++ch) u.full_step[c * 4 + ch] = float(u.colour[c * 3 + ch] * a);
     u.full_step[c * 4 + 3] = float(a);
@@ -219,7 +311,8 @@ struct SafetyVolumeRendering::Gl {
   // Throws Error when the grid exceeds the 3D texture limit or a program does not link; the
   // caller checks glGetError.
   static std::unique_ptr<Gl> create(const planning::Index3& dims,
-                                    const std::vector<uint8_t>& voxel_classes);
+                                    const std::vector<uint8_t>& voxel_classes,
+                                    const std::vector<uint8_t>& voxel_kinds);
   // Re-makes the per-pixel rays of the width x height grid the rays are cast on (the image, or
   // its reduced version whose pixel centres map to image positions by the size ratio) when the
   // camera or that size changed.
@@ -229,8 +322,9 @@ struct SafetyVolumeRendering::Gl {
   void update_low_target(int width, int height, GLint target_fbo);
   // Binds the march program with its textures and uniforms, for a cast of `rows` rows.
   void bind_march(const RaySetup& ray, const Eigen::Vector3f& box_lo, const Eigen::Vector3f& box_hi,
-                  const planning::Index3& dims, const ClassUniforms& classes, float step_mm,
-                  int rows) const;
+                  const planning::ImageGeometry& grid, const ClassUniforms& classes,
+                  const float surfaces[4 * kMaxAnatomyKinds], float step_mm, int rows,
+                  const GLint viewport[4]) const;
   // Casts into the reduced-resolution target, then binds target_fbo, its viewport and the
   // composite program that draws the target over it.
   void cast_reduced(int width, int height, GLint target_fbo, const GLint viewport[4],
@@ -238,7 +332,8 @@ struct SafetyVolumeRendering::Gl {
 };
 
 std::unique_ptr<SafetyVolumeRendering::Gl> SafetyVolumeRendering::Gl::create(
-    const planning::Index3& dims, const std::vector<uint8_t>& voxel_classes) {
+    const planning::Index3& dims, const std::vector<uint8_t>& voxel_classes,
+    const std::vector<uint8_t>& voxel_kinds) {
   auto gl = std::make_unique<Gl>();
   GLint max_size = 0;
   glGetIntegerv(GL_MAX_3D_TEXTURE_SIZE, &max_size);
@@ -257,14 +352,15 @@ std::unique_ptr<SafetyVolumeRendering::Gl> SafetyVolumeRendering::Gl::create(
   glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
   glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAX_LEVEL, 0);
   glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
-  const std::vector<uint8_t> distance = empty_distance(dims, voxel_classes);
-  std::vector<uint8_t> texels(voxel_classes.size() * 2);
+  const std::vector<uint8_t> distance = empty_distance(dims, voxel_classes, voxel_kinds);
+  std::vector<uint8_t> texels(voxel_classes.size() * 4, 0);
   for (size_t v = 0; v < voxel_classes.size(); ++v) {
-    texels[2 * v] = voxel_classes[v];
-    texels[2 * v + 1] = distance[v];
+    texels[4 * v] = voxel_classes[v];
+    texels[4 * v + 1] = distance[v];
+    texels[4 * v + 2] = voxel_kinds.empty() ? 0 : voxel_kinds[v];
   }
-  glTexImage3D(GL_TEXTURE_3D, 0, GL_RG8UI, GLsizei(dims[0]), GLsizei(dims[1]), GLsizei(dims[2]), 0,
-               GL_RG_INTEGER, GL_UNSIGNED_BYTE, texels.data());
+  glTexImage3D(GL_TEXTURE_3D, 0, GL_RGBA8UI, GLsizei(dims[0]), GLsizei(dims[1]),
+               GLsizei(dims[2]), 0, GL_RGBA_INTEGER, GL_UNSIGNED_BYTE, texels.data());
   glGenTextures(1, &gl->ray_texture);
   glBindTexture(GL_TEXTURE_2D, gl->ray_texture);
   glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
@@ -315,9 +411,12 @@ void SafetyVolumeRendering::Gl::update_low_target(int width, int height, GLint t
 
 void SafetyVolumeRendering::Gl::bind_march(const RaySetup& ray, const Eigen::Vector3f& box_lo,
                                            const Eigen::Vector3f& box_hi,
-                                           const planning::Index3& dims,
-                                           const ClassUniforms& classes, float step_mm,
-                                           int rows) const {
+                                           const planning::ImageGeometry& grid,
+                                           const ClassUniforms& classes,
+                                           const float surfaces[4 * kMaxAnatomyKinds],
+                                           float step_mm, int rows,
+                                           const GLint viewport[4]) const {
+  const auto& dims = grid.dims;
   const GLuint program = march_program;
   glUseProgram(program);
   glBindVertexArray(vao);
@@ -334,9 +433,14 @@ void SafetyVolumeRendering::Gl::bind_march(const RaySetup& ray, const Eigen::Vec
   glUniform3fv(glGetUniformLocation(program, "box_hi"), 1, box_hi.data());
   glUniform3i(glGetUniformLocation(program, "dims"), GLint(dims[0]), GLint(dims[1]),
               GLint(dims[2]));
-  glUniform4fv(glGetUniformLocation(program, "full_step"), 4, classes.full_step);
-  glUniform1fv(glGetUniformLocation(program, "opacity"), 4, classes.opacity);
-  glUniform3fv(glGetUniformLocation(program, "colour"), 4, classes.colour);
+  glUniform4fv(glGetUniformLocation(program, "full_step"), kClassCount, classes.full_step);
+  glUniform1fv(glGetUniformLocation(program, "opacity"), kClassCount, classes.opacity);
+  glUniform3fv(glGetUniformLocation(program, "colour"), kClassCount, classes.colour);
+  glUniform4fv(glGetUniformLocation(program, "surface"), kMaxAnatomyKinds, surfaces);
+  glUniform1f(glGetUniformLocation(program, "ambient"), float(kSurfaceAmbient));
+  const Eigen::Vector3f spacing = grid.spacing.cast<float>();
+  glUniform3fv(glGetUniformLocation(program, "spacing"), 1, spacing.data());
+  glUniform2f(glGetUniformLocation(program, "origin"), float(viewport[0]), float(viewport[1]));
   glUniform1f(glGetUniformLocation(program, "step_mm"), step_mm);
   glUniform1i(glGetUniformLocation(program, "rows"), rows);
   glUniform1i(glGetUniformLocation(program, "max_steps"), kMaxSteps);
@@ -360,15 +464,42 @@ void SafetyVolumeRendering::Gl::cast_reduced(int width, int height, GLint target
   glUniform1i(glGetUniformLocation(composite_program, "image"), 0);
   glUniform2f(glGetUniformLocation(composite_program, "size"), float(context.width),
               float(context.height));
+  glUniform2f(glGetUniformLocation(composite_program, "origin"), float(viewport[0]),
+              float(viewport[1]));
 }
 
 SafetyVolumeRendering::SafetyVolumeRendering(const planning::Volume<float>& path_safety,
                                              const planning::SafetyClasses& classes,
-                                             VolumeRenderingOptions options)
+                                             VolumeRenderingOptions options,
+                                             const planning::Volume<uint8_t>* region_state,
+                                             const AnatomyContext* context)
     : geometry_(path_safety.geometry()), options_(options) {
   if (path_safety.empty()) throw Error("volume rendering: the path safety volume is empty");
   geometry_.validate("volume rendering: path safety volume");
   validate_options(options_);
+  if (region_state && !region_state->empty() &&
+      !region_state->geometry().same_grid(geometry_, 1e-4)) {
+    throw Error("volume rendering: the region states are not on the path safety grid");
+  }
+  if (region_state && region_state->empty()) region_state = nullptr;
+  if (context) {
+    if (!context->kinds.geometry().same_grid(geometry_, 1e-4)) {
+      throw Error("volume rendering: the anatomy context is not on the path safety grid");
+    }
+    if (context->surfaces.empty() || context->surfaces.size() > size_t(kMaxAnatomyKinds)) {
+      throw Error("volume rendering: the anatomy context has " +
+                  std::to_string(context->surfaces.size()) + " kinds (expected 1 to " +
+                  std::to_string(kMaxAnatomyKinds) + ")");
+    }
+    for (int64_t v = 0; v < context->kinds.voxel_count(); ++v) {
+      if (context->kinds[v] >= context->surfaces.size()) {
+        throw Error("volume rendering: anatomy kind " + std::to_string(context->kinds[v]) +
+                    " has no surface");
+      }
+    }
+    voxel_kinds_.assign(context->kinds.data(), context->kinds.data() + context->kinds.voxel_count());
+    surfaces_ = context->surfaces;
+  }
   voxel_classes_.resize(size_t(path_safety.voxel_count()));
   Eigen::Vector3i lo(std::numeric_limits<int>::max(), std::numeric_limits<int>::max(),
                      std::numeric_limits<int>::max());
@@ -380,8 +511,13 @@ SafetyVolumeRendering::SafetyVolumeRendering(const planning::Volume<float>& path
         const int64_t offset = geometry_.offset(i, j, k);
         const float value = path_safety[offset];
         uint8_t c = 0;
+        const bool outside_body = !voxel_kinds_.empty() && voxel_kinds_[size_t(offset)] == 0;
         if (std::isfinite(value)) {
-          c = uint8_t(1 + int(classes.classify(value)));
+          c = outside_body ? 0 : uint8_t(1 + int(classes.classify(value)));
+        } else if (region_state && (*region_state)[offset] == planning::kRegionUnknown) {
+          c = kUnknownClass;
+        }
+        if (c != 0 || (!voxel_kinds_.empty() && voxel_kinds_[size_t(offset)] != 0)) {
           const Eigen::Vector3i index(static_cast<int>(i), static_cast<int>(j), static_cast<int>(k));
           lo = lo.cwiseMin(index);
           hi = hi.cwiseMax(index);
@@ -443,14 +579,22 @@ Eigen::Vector4d SafetyVolumeRendering::reference_pixel(const calibration::Camera
     }
   }
   if (!(t_out > t_in)) return none;
-  const auto colours = planning::class_colours(options_.palette);
-  const bool shown[3] = {options_.show_safe, options_.show_medium, options_.show_dangerous};
+  const auto looks = class_looks(options_);
+  const auto alphas = surface_alphas(surfaces_, options_.hidden_surfaces);
   const float step_f = float(step());
   const double step_mm = step_f;
   const int n = std::min(int(std::ceil((t_out - t_in) / step_mm)), kMaxSteps);
   const auto& dims = geometry_.dims;
   Eigen::Vector3d C = Eigen::Vector3d::Zero();
   double alpha = 0;
+  const auto kind_at = [&](int64_t i, int64_t j, int64_t k) -> uint8_t {
+    if (voxel_kinds_.empty()) return 0;
+    i = std::clamp<int64_t>(i, 0, dims[0] - 1);
+    j = std::clamp<int64_t>(j, 0, dims[1] - 1);
+    k = std::clamp<int64_t>(k, 0, dims[2] - 1);
+    return voxel_kinds_[size_t(geometry_.offset(i, j, k))];
+  };
+  int kind = -1;  // the first sample's kind shows no surface
   for (int i = 0; i < n; ++i) {
     const double t0 = t_in + i * step_mm;
     const double dt = i < n - 1 ? step_mm : t_out - t0;
@@ -461,6 +605,29 @@ Eigen::Vector4d SafetyVolumeRendering::reference_pixel(const calibration::Camera
       index[a] = std::clamp<int64_t>(int64_t(std::floor(x[a] + 0.5)), 0, dims[size_t(a)] - 1);
     }
     const int c = voxel_classes_[size_t(geometry_.offset(index[0], index[1], index[2]))];
+    const uint8_t s = kind_at(index[0], index[1], index[2]);
+    if (kind < 0) kind = s;
+    if (s != kind) {
+      kind = s;
+      if (alphas[s] > 0) {
+        Eigen::Vector3d g;
+        for (int a = 0; a < 3; ++a) {
+          int64_t up[3] = {index[0], index[1], index[2]}, down[3] = {index[0], index[1], index[2]};
+          ++up[a];
+          --down[a];
+          g[a] = double(kind_at(up[0], up[1], up[2]) == s) - double(kind_at(down[0], down[1], down[2]) == s);
+        }
+        const Eigen::Vector3d spacing = geometry_.spacing;
+        const double len = g.cwiseQuotient(spacing).norm() * D.cwiseProduct(spacing).norm();
+        const double cosine = len > 0 ? std::abs(g.dot(D)) / len : 1.0;
+        const double shade = kSurfaceAmbient + (1.0 - kSurfaceAmbient) * cosine;
+        const double a = float(alphas[s]);
+        const auto& rgb = surfaces_[s].colour;
+        C += (1.0 - alpha) * a * shade * Eigen::Vector3d(rgb[0], rgb[1], rgb[2]) / 255.0;
+        alpha += (1.0 - alpha) * a;
+        if (alpha >= kVolumeRenderingOpaque) break;
+      }
+    }
     if (ambiguous && !*ambiguous) {
       for (int a = 0; a < 3; ++a) {
         const double f = x[a] + 0.5 - std::floor(x[a] + 0.5);  // position within the voxel, 0..1
@@ -474,11 +641,11 @@ Eigen::Vector4d SafetyVolumeRendering::reference_pixel(const calibration::Camera
           *ambiguous = true;
       }
     }
-    if (c == 0 || !shown[c - 1]) continue;
-    const double k = float(options_.opacity_per_mm[c - 1]);
+    if (c == 0) continue;
+    const double k = float(looks[size_t(c)].opacity);
     if (!(k > 0)) continue;
     const double a = 1.0 - std::exp(-k * dt);
-    const auto& rgb = colours[size_t(c - 1)];
+    const auto& rgb = looks[size_t(c)].colour;
     C += (1.0 - alpha) * a * Eigen::Vector3d(rgb[0], rgb[1], rgb[2]) / 255.0;
     alpha += (1.0 - alpha) * a;
     if (alpha >= kVolumeRenderingOpaque) break;
@@ -501,7 +668,7 @@ void SafetyVolumeRendering::draw(const DrawContext& context) {
   // The objects are lost with their context (e.g. a renderer made anew): make them again.
   if (gl_ && (!glIsProgram(gl_->march_program) || !glIsTexture(gl_->class_texture))) gl_.reset();
   if (!gl_) {
-    gl_ = Gl::create(geometry_.dims, voxel_classes_);
+    gl_ = Gl::create(geometry_.dims, voxel_classes_, voxel_kinds_);
     throw_on_gl_error("while creating the class texture");
   }
   if (box_lo_.x() > box_hi_.x()) return;  // nothing classified: nothing to draw
@@ -518,8 +685,17 @@ void SafetyVolumeRendering::draw(const DrawContext& context) {
 
   // Ray casting, premultiplied output (at reduced resolution: composited bilinearly).
   const float step_mm = float(step());
-  gl_->bind_march(ray_setup(), box_lo_, box_hi_, geometry_.dims, class_uniforms(options_, step_mm),
-                  step_mm, height);
+  float surfaces[4 * kMaxAnatomyKinds] = {};
+  const auto alphas = surface_alphas(surfaces_, options_.hidden_surfaces);
+  for (size_t k = 0; k < surfaces_.size(); ++k) {
+    for (size_t ch = 0; ch < 3; ++ch) surfaces[4 * k + ch] = float(surfaces_[k].colour[ch] / 255.0);
+    surfaces[4 * k + 3] = float(alphas[k]);
+  }
+  // The reduced cast fills its own target from its corner; the full one the viewport.
+  const GLint cast_viewport[4] = {reduced ? 0 : viewport[0], reduced ? 0 : viewport[1], width,
+                                  height};
+  gl_->bind_march(ray_setup(), box_lo_, box_hi_, geometry_, class_uniforms(options_, step_mm),
+                  surfaces, step_mm, height, cast_viewport);
   if (reduced) gl_->cast_reduced(width, height, target_fbo, viewport, context);
   glEnable(GL_BLEND);
   glBlendFunc(GL_ONE, GL_ONE_MINUS_SRC_ALPHA);

@@ -1,7 +1,11 @@
-// Volume rendering of a path safety volume from the camera's viewpoint (overlay layer 2, §3.4):
-// the class transfer function (safe, medium, dangerous, each with its colour and absorption), no
-// shading, classes hideable, colour-blind palette. Rays come through the calibrated camera model,
-// distortion included; a CPU reference computes the same integral for any pixel.
+// Volume rendering of a path safety volume from a camera's viewpoint (§3.4): the operating-room
+// camera's (overlay layer 2) or a planning camera's (the 3D planning view, overlay/plan_view.hpp).
+// The class transfer function (safe, medium, dangerous, each with its colour and absorption, and
+// unknown in grey where the plan's region states say so), no shading on the classes, classes
+// hideable, colour-blind palette; optionally the anatomy as context in the same rays: translucent,
+// lit surfaces where a ray enters the body, a bone, the tumor or a structure. Rays come through the
+// calibrated camera model, distortion included; a CPU reference computes the same integral for any
+// pixel.
 #pragma once
 
 #include <Eigen/Core>
@@ -9,6 +13,7 @@
 #include <array>
 #include <cstdint>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include "calibration/camera_model.hpp"
@@ -25,6 +30,10 @@ struct VolumeRenderingOptions {
   planning::Palette palette = planning::Palette::kDefault;
   // Hidden classes are fully transparent (§3.4: "remove certain safety classes").
   bool show_safe = true, show_medium = true, show_dangerous = true;
+  // Unknown voxels (region state unknown: outside the scan), drawn in kUnknownGrey, never in a
+  // class colour. Only with region states given to the constructor.
+  bool show_unknown = true;
+  double unknown_opacity_per_mm = 0.006;
   // Absorption coefficient per mm of each class (safe, medium, dangerous): a ray crossing L mm of
   // one class gets opacity 1 - exp(-k L). Defaults keep the video visible: 100 mm of safe region
   // give 33 %, of medium 45 %, of dangerous 63 %. Each must be >= 0.
@@ -34,6 +43,29 @@ struct VolumeRenderingOptions {
   // Fraction of the image resolution the rays are cast at (0 < s <= 1); below 1 the result is
   // upsampled bilinearly when composited (for software OpenGL; 1 on a GPU).
   double resolution_scale = 1.0;
+  // Anatomy kinds (AnatomyContext) whose surfaces are hidden: bit k hides kind k.
+  uint32_t hidden_surfaces = 0;
+};
+
+// Colour of unknown voxels in the 3D view (RGB).
+inline constexpr planning::Rgb kUnknownGrey = {150, 150, 150};
+
+// The anatomy around the tumor, drawn as context in the same rays: one kind per voxel of the path
+// safety grid (0: nothing, e.g. air), each kind a translucent surface where a ray enters it, lit
+// from the camera (shade = kSurfaceAmbient + (1 - kSurfaceAmbient) |cos| between the ray and the
+// kind's gradient). At most kMaxAnatomyKinds kinds. With a context, the voxels of kind 0 (outside
+// the body) show no class (a needle path starts on the skin), unknown ones excepted; the first
+// sample of a ray shows no surface (the grid's faces cut the anatomy, they are not its surfaces).
+inline constexpr int kMaxAnatomyKinds = 16;
+inline constexpr double kSurfaceAmbient = 0.35;
+struct AnatomySurface {
+  std::string name;                  // "skin", "bone", "tumor", "portal vein", ...
+  planning::Rgb colour = {255, 255, 255};
+  double opacity = 0.3;              // alpha of one crossing, 0..1 (0: not drawn)
+};
+struct AnatomyContext {
+  planning::Volume<uint8_t> kinds;   // on the path safety grid; values < surfaces.size()
+  std::vector<AnatomySurface> surfaces;  // by kind; surfaces[0] (nothing) is never drawn
 };
 
 // Front-to-back emission-absorption compositing ends once the opacity reaches this.
@@ -44,10 +76,13 @@ inline constexpr double kVolumeRenderingAmbiguity = 1e-4;
 
 class SafetyVolumeRendering {
  public:
-  // Classifies every voxel once (NaN: none). Throws Error when the volume is empty, its geometry
-  // is unusable, or an option is out of range.
+  // Classifies every voxel once (NaN: none; NaN where `region_state` is kRegionUnknown: unknown).
+  // `region_state` and `context`, when given, lie on the path safety grid. Throws Error when the
+  // volume is empty, its geometry is unusable, a grid differs, or an option is out of range.
   SafetyVolumeRendering(const planning::Volume<float>& path_safety,
-                        const planning::SafetyClasses& classes, VolumeRenderingOptions options = {});
+                        const planning::SafetyClasses& classes, VolumeRenderingOptions options = {},
+                        const planning::Volume<uint8_t>* region_state = nullptr,
+                        const AnatomyContext* context = nullptr);
   ~SafetyVolumeRendering();
   SafetyVolumeRendering(const SafetyVolumeRendering&) = delete;
   SafetyVolumeRendering& operator=(const SafetyVolumeRendering&) = delete;
@@ -59,7 +94,8 @@ class SafetyVolumeRendering {
   const Eigen::Isometry3d& pose() const { return T_cam_ct_; }
 
   // The layer's drawing step (OverlayRenderer::set_layer_draw): draws over what the bound
-  // framebuffer holds. Creates its OpenGL objects on the first call, in the current context (one
+  // framebuffer holds, within its current viewport, which holds the camera's image (context.width x
+  // context.height pixels). Creates its OpenGL objects on the first call, in the current context (one
   // rendering serves one renderer), and re-makes the per-pixel rays when the camera or the image
   // size changes. Throws Error on an OpenGL failure.
   void draw(const DrawContext& context);
@@ -76,8 +112,12 @@ class SafetyVolumeRendering {
   Eigen::Vector4d reference_pixel(const calibration::CameraModel& camera, double u, double v,
                                   bool* ambiguous = nullptr) const;
 
-  // Class index per voxel (0 none/NaN, 1 safe, 2 medium, 3 dangerous), i fastest.
+  // Class index per voxel (0 none/NaN, 1 safe, 2 medium, 3 dangerous, 4 unknown), i fastest.
   const std::vector<uint8_t>& voxel_classes() const { return voxel_classes_; }
+  const planning::ImageGeometry& geometry() const { return geometry_; }
+  // The anatomy kind per voxel (empty without context) and the kinds' surfaces.
+  const std::vector<uint8_t>& voxel_kinds() const { return voxel_kinds_; }
+  const std::vector<AnatomySurface>& surfaces() const { return surfaces_; }
 
  private:
   struct Gl;
@@ -91,7 +131,10 @@ class SafetyVolumeRendering {
 
   planning::ImageGeometry geometry_;
   std::vector<uint8_t> voxel_classes_;
-  Eigen::Vector3f box_lo_, box_hi_;  // index-space box of the classified voxels (empty: lo > hi)
+  std::vector<uint8_t> voxel_kinds_;       // empty without context
+  std::vector<AnatomySurface> surfaces_;
+  // Index-space box of the voxels with a class or an anatomy kind (empty: lo > hi).
+  Eigen::Vector3f box_lo_, box_hi_;
   VolumeRenderingOptions options_;
   Eigen::Isometry3d T_cam_ct_ = Eigen::Isometry3d::Identity();
   std::unique_ptr<Gl> gl_;

@@ -501,4 +501,9 @@ PlanData load_plan(const std::string& plan_dir, const PlanLoadOptions& options) 
   return plan;
 }
 
+std::string plan_input_path(const PlanData& plan, const char* key) {
+  return input_path(plan.json, key, plan.dir,
+                    JsonPath((fs::path(plan.dir) / "plan.json").string()));
+}
+
 }  // namespace crepuscular::planning

@@ -99,6 +99,11 @@ PlanData load_plan(const std::string& plan_dir, const PlanLoadOptions& options =
 // A grid as geometry_json wrote it; throws Error naming `where` and the field.
 ImageGeometry geometry_from_json(const nlohmann::json& j, const std::string& where);
 
+// The path of an input recorded in plan.json "inputs" (`key`: "ct", "labels", "tumor", ...), or,
+// when that file is gone and the plan moved with its inputs, the one at its relative path; "" when
+// plan.json records none.
+std::string plan_input_path(const PlanData& plan, const char* key);
+
 // Classes of a value as plan.json states them ("classes"); throws Error when absent.
 SafetyClasses classes_from_json(const nlohmann::json& plan, const std::string& value,
                                 const std::string& source);

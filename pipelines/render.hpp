@@ -1,0 +1,54 @@
+// The render job: the 3D planning view of a plan (overlay/plan_view.hpp) as a picture, without a
+// window (EGL on a GPU or Mesa), for reports; and the plan inputs that `render` and `view` share.
+#pragma once
+
+#include <opencv2/core.hpp>
+#include <string>
+#include <vector>
+
+#include "overlay/plan_view.hpp"
+#include "planning/plan_folder/plan_folder.hpp"
+
+namespace crepuscular::pipelines {
+
+// A plan with what its views show: every path safety value, region states, labels, tumor, area
+// safety, the blocking volume when `blocking` (for evaluating paths), and the CT (`ct`, else the
+// one plan.json records, when present).
+struct ViewInputs {
+  planning::PlanData plan;
+  planning::Volume<float> ct;  // empty without one
+  std::string ct_path;
+};
+ViewInputs load_view_inputs(const std::string& plan_dir, const std::string& ct,
+                            const std::string& labels, const std::vector<std::string>& series,
+                            bool blocking = false);
+
+// Draws the legend on a picture of the 3D view (BGR): the value, where the camera looks from, the
+// classes shown with their colours, and the surfaces.
+void draw_view_legend(cv::Mat& bgr, const overlay::PlanView3D& view,
+                      const overlay::ViewAngles& angles);
+
+// One picture of the view from `angles`, width x height, with its legend (headless renderer).
+cv::Mat render_plan_view(overlay::PlanView3D& view, const overlay::ViewAngles& angles, int width,
+                         int height);
+
+// "--hide" of `render` and `view`: any of safe, medium, dangerous, unknown (classes), skin, bone,
+// tumor, structures (surfaces), anatomy (every surface); sets the options' hidden flags. Throws
+// Error naming an unknown word.
+void apply_hidden(const std::string& list, overlay::PlanViewOptions& options);
+
+struct RenderRequest {
+  std::string plan_dir;
+  std::string ct;
+  std::string labels;
+  std::vector<std::string> series;
+  std::string view = "anterior";
+  int width = 1280, height = 960;
+  overlay::PlanViewOptions options;
+  std::string out;  // PNG, written whole or not at all
+};
+
+// Writes the picture; throws Error naming the input or output that is unusable.
+void run_render(const RenderRequest& request);
+
+}  // namespace crepuscular::pipelines
