@@ -22,7 +22,8 @@ void add_view_command(CLI::App& app) {
       "slices drawn as `crepuscular slices` draws them. Click on the skin to try an entry: the\n"
       "path to the tumor centre is drawn in every panel and evaluated as `crepuscular evaluate`\n"
       "does (line integral, structures crossed with depth, class, relative area safety); M\n"
-      "saves it as a 3D Slicer line markup beside the plan (PLAN-trajectory-NN.mrk.json).\n"
+      "saves it as a 3D Slicer line markup beside the plan (PLAN-trajectory-NN.mrk.json), P a\n"
+      "picture of the window (PLAN-view-NN.png).\n"
       "Keys (also shown in the window):\n" +
           keys +
           "Example:\n"

@@ -257,7 +257,7 @@ OrbitCamera PlanView3D::default_camera(ViewAngles angles, double aspect) const {
   return camera;
 }
 
-VolumeRenderingOptions PlanView3D::rendering_options(bool software) const {
+VolumeRenderingOptions PlanView3D::rendering_options(bool software, bool moving) const {
   VolumeRenderingOptions o;
   o.palette = options_.palette;
   o.show_safe = !options_.hidden[0];
@@ -267,8 +267,9 @@ VolumeRenderingOptions PlanView3D::rendering_options(bool software) const {
   for (double& k : o.opacity_per_mm) k *= options_.opacity_scale;
   o.unknown_opacity_per_mm *= options_.opacity_scale;
   o.resolution_scale = options_.resolution_scale > 0 ? options_.resolution_scale
-                       : software                     ? 0.5
-                                                      : 1.0;
+                       : !software                    ? 1.0
+                       : moving                       ? 0.25
+                                                      : 0.5;
   o.hidden_surfaces = options_.context ? options_.hidden_surfaces : ~0u;
   return o;
 }
@@ -277,7 +278,8 @@ SafetyVolumeRendering& PlanView3D::rendering() {
   auto& r = renderings_[value_];
   if (!r) {
     r = std::make_unique<SafetyVolumeRendering>(plan_.path_safety.at(value_),
-                                                plan_.classes.at(value_), rendering_options(false),
+                                                plan_.classes.at(value_),
+                                                rendering_options(false, false),
                                                 plan_.region.empty() ? nullptr : &plan_.region,
                                                 &context_);
   }
@@ -286,9 +288,9 @@ SafetyVolumeRendering& PlanView3D::rendering() {
 
 void PlanView3D::draw(const DrawContext& frame, const cv::Rect& panel,
                       const calibration::CameraModel& camera, const Eigen::Isometry3d& T_cam_ct,
-                      bool software) {
+                      bool software, bool moving) {
   SafetyVolumeRendering& r = rendering();
-  r.set_options(rendering_options(software));
+  r.set_options(rendering_options(software, moving));
   r.set_pose(T_cam_ct);
   // OpenGL's viewport counts rows from the bottom.
   glViewport(panel.x, frame.height - panel.y - panel.height, panel.width, panel.height);

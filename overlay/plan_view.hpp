@@ -76,8 +76,8 @@ struct PlanViewOptions {
   bool context = true;      // the anatomy surfaces
   uint32_t hidden_surfaces = 0;  // by AnatomyKind bit
   bool area_mesh = false;   // the area safety mesh's vertices, coloured by leeway
-  // Resolution of the rays relative to the image (0 < s <= 1; 0: 1 on a GPU, 0.5 on a software
-  // renderer).
+  // Resolution of the rays relative to the image (0 < s <= 1; 0: automatic: 1 on a GPU; on a
+  // software renderer 0.5, and 0.25 while the camera moves).
   double resolution_scale = 0;
 };
 
@@ -102,9 +102,10 @@ class PlanView3D {
 
   // Draws the view into `panel` (pixels of the renderer's image, `frame`) as `camera` (an image of
   // the panel's size) sees it from T_cam_ct: what OverlayRenderer::set_layer_draw runs.
-  // `software`: the renderer is Mesa's (for the automatic resolution).
+  // `software`: the renderer is Mesa's; `moving`: the camera moves (both for the automatic
+  // resolution).
   void draw(const DrawContext& frame, const cv::Rect& panel, const calibration::CameraModel& camera,
-            const Eigen::Isometry3d& T_cam_ct, bool software);
+            const Eigen::Isometry3d& T_cam_ct, bool software, bool moving = false);
   // The area safety mesh's vertices (when options.area_mesh) in the camera frame with their
   // leeway colours (BGR), for OverlayRenderer::add_points.
   std::vector<std::pair<Eigen::Vector3d, cv::Scalar>> mesh_points(
@@ -122,7 +123,7 @@ class PlanView3D {
   void release_gl();
 
  private:
-  VolumeRenderingOptions rendering_options(bool software) const;
+  VolumeRenderingOptions rendering_options(bool software, bool moving) const;
   const planning::PlanData& plan_;
   const planning::Volume<float>* ct_;
   PlanViewOptions options_;

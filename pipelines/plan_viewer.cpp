@@ -8,12 +8,14 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 #include <thread>
 
 #include "foundation/error.hpp"
 #include "foundation/log.hpp"
+#include "foundation/output_files.hpp"
 #include "planning/trajectories/markups.hpp"
 
 namespace fs = std::filesystem;
@@ -30,7 +32,6 @@ constexpr int kModShift = 1;
 constexpr double kDragPx = 3;           // a press that moves less than this is a click
 constexpr double kDegreesPerPx = 0.4;   // rotation by dragging in the 3D view
 constexpr double kDegreesPerKey = 15;   // rotation by the arrow keys
-const cv::Scalar kPanelBackground(30, 24, 20);
 
 planning::SlicePlaneKind plane_kind(ViewPanel panel) {
   switch (panel) {
@@ -70,17 +71,18 @@ std::vector<std::string> split_lines(const std::string& text) {
   return lines;
 }
 
-// The next free "<plan>-trajectory-NN.mrk.json" beside the plan folder.
-std::string next_markup_path(const std::string& plan_dir) {
+// The next free "<plan>-<what>-NN<extension>" beside the plan folder.
+std::string next_path_beside(const std::string& plan_dir, const std::string& what,
+                             const std::string& extension) {
   fs::path plan = fs::path(plan_dir).lexically_normal();
   if (plan.filename().empty()) plan = plan.parent_path();
   for (int n = 1; n < 10000; ++n) {
-    const fs::path p = plan.parent_path() /
-                       fmt::format("{}-trajectory-{:02d}.mrk.json", plan.filename().string(), n);
+    const fs::path p = plan.parent_path() / fmt::format("{}-{}-{:02d}{}", plan.filename().string(),
+                                                        what, n, extension);
     std::error_code ec;
     if (!fs::exists(p, ec)) return p.string();
   }
-  throw Error(plan_dir + ": no free trajectory markup name beside the plan");
+  throw Error(plan_dir + ": no free " + what + " file name beside the plan");
 }
 
 }  // namespace
@@ -91,6 +93,7 @@ const std::vector<std::string>& viewer_key_help() {
       "Shift+click          target of the trial path",
       "Backspace            clear the trial path",
       "M                    save the trial path as a Slicer line markup",
+      "P                    save a picture of the window",
       "drag in 3D / arrows  rotate;  wheel in 3D: zoom",
       "wheel on a slice     move its plane;  drag on a slice: move the other planes there",
       "Tab                  next path safety value",
@@ -113,7 +116,6 @@ PlanViewer::PlanViewer(const ViewInputs& inputs, ViewerOptions options)
   }
   view_ = std::make_unique<overlay::PlanView3D>(inputs_.plan, inputs_.ct.empty() ? nullptr : &inputs_.ct,
                                                 options_.view);
-  evaluator_ = std::make_unique<planning::TrajectoryEvaluator>(inputs_.plan);
   calibration::CameraModel window_camera;
   window_camera.width = options_.width;
   window_camera.height = options_.height;
@@ -127,12 +129,11 @@ PlanViewer::PlanViewer(const ViewInputs& inputs, ViewerOptions options)
   const std::string gl = renderer_->gl_description();
   software_ = gl.find("llvmpipe") != std::string::npos || gl.find("softpipe") != std::string::npos;
   spdlog::info("view: OpenGL {}", gl);
-  renderer_->set_frame(cv::Mat(options_.height, options_.width, CV_8UC3, kPanelBackground));
   for (const char* layer : {"3d", "mesh", "slices", "marks", "text"}) renderer_->clear_layer(layer);
   renderer_->set_layer_draw("3d", [this](const overlay::DrawContext& c) {
     const cv::Rect r = panels_[size_t(ViewPanel::k3d)];
     if (r.empty()) return;
-    view_->draw(c, r, camera3d(), orbit_.pose(), software_);
+    view_->draw(c, r, camera3d(), orbit_.pose(), software_, moving_);
   });
   cursor_ = inputs_.plan.tumor_centre;
   target_ = inputs_.plan.tumor_centre;
@@ -203,7 +204,8 @@ cv::Rect PlanViewer::panel_rect(ViewPanel panel) const { return panels_[size_t(p
 cv::Point PlanViewer::slice_origin(ViewPanel panel) const {
   const cv::Rect& r = panels_[size_t(panel)];
   const auto& s = slices_[size_t(panel)];
-  return {r.x + (r.width - s.view_width) / 2, r.y + (r.height - s.view_height) / 2};
+  return {r.x + std::max(0, (r.width - s.view_width) / 2),
+          r.y + std::max(0, (r.height - s.view_height) / 2)};
 }
 
 void PlanViewer::update_slices(bool all) {
@@ -219,6 +221,25 @@ void PlanViewer::update_slices(bool all) {
   scene.table = plan.table ? &*plan.table : nullptr;
   scene.tumor = plan.tumor.empty() ? nullptr : &plan.tumor;
   scene.area = plan.area ? &*plan.area : nullptr;
+  // A view grows beyond the CT where unknown voxels lie: then a coarser pixel for all three.
+  for (int attempt = 0; attempt < 4; ++attempt) {
+    render_slices(scene, all);
+    double over = 1;
+    for (int p = 1; p < kViewPanels; ++p) {
+      const cv::Rect& r = panels_[size_t(p)];
+      const auto& v = slices_[size_t(p)];
+      if (r.empty() || v.view_width == 0) continue;
+      over = std::max({over, double(v.view_width) / r.width, double(v.view_height) / r.height});
+    }
+    if (over <= 1) break;
+    slice_options_.pixel_mm *= over * 1.01;
+    all = true;
+  }
+  dirty_ = true;
+}
+
+void PlanViewer::render_slices(const planning::SliceScene& scene, bool all) {
+  const auto& plan = inputs_.plan;
   planning::SliceOptions o = slice_options_;
   o.palette = view_->options().palette;
   for (size_t c = 0; c < 3; ++c) o.hidden[c] = view_->options().hidden[c];
@@ -240,7 +261,6 @@ void PlanViewer::update_slices(bool all) {
     slices_[size_t(p)] = planning::render_slice(scene, plane, o);
     slice_revisions_[size_t(p)] = overlay::OverlayRenderer::new_image_revision();
   }
-  dirty_ = true;
 }
 
 std::string PlanViewer::evaluation_text() const {
@@ -255,6 +275,8 @@ void PlanViewer::evaluate() {
     t.name = "trial";
     t.entry = *entry_;
     t.target = target_;
+    // Made at the first path: it ranks every value's region of interest once.
+    if (!evaluator_) evaluator_ = std::make_unique<planning::TrajectoryEvaluator>(inputs_.plan);
     evaluation_ = evaluator_->evaluate(t);
   } catch (const Error& e) {
     spdlog::warn("view: {}", e.what());
@@ -275,12 +297,23 @@ void PlanViewer::set_target(const Eigen::Vector3d& target) {
   evaluate();
 }
 
+void PlanViewer::save_picture() {
+  const std::string path = next_path_beside(inputs_.plan.dir, "view", ".png");
+  const cv::Mat image = picture();
+  write_file_atomically(path, [&](const std::string& tmp) {
+    if (!cv::imwrite(tmp, image)) throw Error(path + ": cannot write the PNG");
+  });
+  saved_picture_ = path;
+  spdlog::info("view: picture saved as {}", path);
+  dirty_ = true;
+}
+
 void PlanViewer::save_markup() {
   if (!entry_) {
     spdlog::warn("view: no trial path to save (click on the skin first)");
     return;
   }
-  const std::string path = next_markup_path(inputs_.plan.dir);
+  const std::string path = next_path_beside(inputs_.plan.dir, "trajectory", ".mrk.json");
   planning::LineMarkup line;
   line.name = fs::path(path).stem().stem().string();
   line.first = *entry_;
@@ -448,6 +481,7 @@ void PlanViewer::handle(const overlay::InputEvent& e) {
       evaluate();
       break;
     case 'M': save_markup(); break;
+    case 'P': save_picture(); break;
     case 'H': help_ = !help_; dirty_ = true; break;
     default: break;
   }
@@ -468,7 +502,10 @@ void PlanViewer::update_layers() {
     if (panels_[size_t(p)].empty() || s.view_width == 0) continue;
     cv::Mat rgb(s.image.height, s.image.width, CV_8UC3, const_cast<uint8_t*>(s.image.rgb.data()));
     cv::Mat bgra;
-    cv::cvtColor(rgb(cv::Rect(0, 0, s.view_width, s.view_height)), bgra, cv::COLOR_RGB2BGRA);
+    const cv::Rect& panel = panels_[size_t(p)];
+    cv::cvtColor(rgb(cv::Rect(0, 0, std::min(s.view_width, panel.width),
+                              std::min(s.view_height, panel.height))),
+                 bgra, cv::COLOR_RGB2BGRA);
     r.add_layer_image("slices", bgra, slice_origin(ViewPanel(p)), slice_revisions_[size_t(p)]);
   }
   // The trial path: its line in every panel, coloured by the class of its entry.
@@ -530,6 +567,7 @@ void PlanViewer::update_layers() {
       "{}  |  hidden: {}  |  {}  |  H: keys", view_->value(), hidden.empty() ? "none" : hidden,
       o.palette == planning::Palette::kColorblind ? "colour-blind palette" : "default palette")};
   if (!saved_markup_.empty()) status.push_back("saved " + saved_markup_);
+  if (!saved_picture_.empty()) status.push_back("saved " + saved_picture_);
   for (const auto& c : inputs_.plan.changed_inputs) status.push_back("WARNING: " + c.message);
   const cv::Mat status_panel = text_panel(status, width);
   r.add_layer_image("text", status_panel, {host.x, y}, 0);
@@ -558,9 +596,15 @@ bool PlanViewer::frame(bool force) {
     std::this_thread::sleep_for(std::chrono::milliseconds(5));
     return true;
   }
+  // While the camera moves the 3D view may be drawn coarser (PlanViewOptions::resolution_scale);
+  // the frame after it stopped draws it again in full.
+  const Eigen::Isometry3d pose = orbit_.pose();
+  moving_ = !pose.isApprox(drawn_pose_, 1e-12) && drawn_once_;
   update_layers();
   renderer_->draw();
-  dirty_ = false;
+  drawn_pose_ = pose;
+  drawn_once_ = true;
+  dirty_ = moving_;
   return renderer_->present();
 }
 

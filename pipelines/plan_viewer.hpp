@@ -9,6 +9,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <Eigen/Geometry>
 #include <array>
 #include <atomic>
 #include <memory>
@@ -88,10 +89,16 @@ class PlanViewer {
   void set_entry(const Eigen::Vector3d& entry);
   void set_target(const Eigen::Vector3d& target);
   void save_markup();
+  // A picture of the window beside the plan (PLAN-view-NN.png).
+  void save_picture();
+  const std::string& saved_picture() const { return saved_picture_; }
 
  private:
   void place_panels();
+  // Draws the slices (all, or only the third, the oblique one) at a pixel size at which each fits
+  // its panel.
   void update_slices(bool all);
+  void render_slices(const planning::SliceScene& scene, bool all);
   void update_layers();
   void evaluate();
   std::optional<ViewPanel> panel_at(double x, double y) const;
@@ -116,9 +123,11 @@ class PlanViewer {
   std::optional<Eigen::Vector3d> entry_;
   Eigen::Vector3d target_ = Eigen::Vector3d::Zero();
   std::optional<planning::TrajectoryEvaluation> evaluation_;
-  std::string saved_markup_;
-  bool help_ = true;
+  std::string saved_markup_, saved_picture_;
+  bool help_ = false;
   bool dirty_ = true;
+  bool moving_ = false, drawn_once_ = false;
+  Eigen::Isometry3d drawn_pose_ = Eigen::Isometry3d::Identity();
   // Mouse: the button held, where it went down, and where it was last.
   int held_button_ = -1;
   int held_mods_ = 0;
