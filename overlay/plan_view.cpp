@@ -96,11 +96,10 @@ Eigen::Isometry3d OrbitCamera::pose() const {
   const Eigen::Vector3d out(std::sin(az) * std::cos(el), -std::cos(az) * std::cos(el),
                             std::sin(el));
   const Eigen::Vector3d z = -out;  // forward
-  // Up: superior, or, looking along the superior axis, anterior turned by the azimuth.
+  // Up: superior, or, looking along the superior axis, the side the azimuth names (anterior at
+  // azimuth 0: from the feet the image is then an axial slice in the radiological convention).
   Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
-  if (std::abs(out.z()) > 0.999) {
-    up = Eigen::Vector3d(-std::sin(az), std::cos(az), 0) * (out.z() > 0 ? -1.0 : 1.0);
-  }
+  if (std::abs(out.z()) > 0.999) up = Eigen::Vector3d(std::sin(az), -std::cos(az), 0);
   const Eigen::Vector3d x = z.cross(up).normalized();  // image right
   const Eigen::Vector3d y = z.cross(x);                  // image down
   Eigen::Isometry3d T_ct_cam = Eigen::Isometry3d::Identity();
@@ -175,7 +174,8 @@ AnatomyContext make_anatomy_context(const planning::PlanData& plan,
     for (int64_t j = 0; j < grid.dims[1]; ++j) {
       for (int64_t i = 0; i < grid.dims[0]; ++i) {
         const Eigen::Vector3d p = grid.index_to_physical(i, j, k);
-        uint8_t kind = kOutside;
+        // Without a label map or a CT nothing says where the body ends: all of it is body.
+        uint8_t kind = have_labels || have_ct ? kOutside : kSkin;
         int label = 0;
         if (have_labels) {
           const auto n = plan.labels.geometry().nearest_index(p);

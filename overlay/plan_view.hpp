@@ -62,7 +62,8 @@ inline constexpr double kBoneHu = 250;
 // The anatomy context of a plan on its path safety grid: body from the label map, bone from the
 // CT (when given, else labels whose names say bone), tumor from its mask, and one kind per
 // vulnerable structure (labels of the table's third level and above; beyond the kinds available,
-// structures share them). Each path safety voxel takes the nearest voxel of each input.
+// structures share them). Each path safety voxel takes the nearest voxel of each input. Without a
+// label map or a CT the whole grid counts as body (no skin is drawn, no class removed).
 AnatomyContext make_anatomy_context(const planning::PlanData& plan,
                                     const planning::Volume<float>* ct);
 
