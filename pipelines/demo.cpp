@@ -1,4 +1,4 @@
-// The demo job: phantom -> plan -> slices -> guidance scenario and its synthetic recording ->
+// The demo job: phantom -> plan -> slices -> 3D views -> guidance scenario and its synthetic recording ->
 // guidance, headless -> report.md, all under one staged folder.
 #include "pipelines/demo.hpp"
 
@@ -9,6 +9,7 @@
 #include <filesystem>
 #include <nlohmann/json.hpp>
 #include <optional>
+#include <opencv2/imgcodecs.hpp>
 
 #include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
@@ -18,6 +19,7 @@
 #include "pipelines/job_inputs.hpp"
 #include "pipelines/plan.hpp"
 #include "pipelines/registration.hpp"
+#include "pipelines/render.hpp"
 #include "pipelines/slices.hpp"
 #include "planning/simulation/phantom.hpp"
 #include "tracking/board.hpp"
@@ -54,14 +56,14 @@ void make_plan(const DemoRequest& a, const std::string& dir) {
   req.path_safety.mode = a.mode;
   req.path_safety.radius_mm = a.radius_mm;
   req.out_dir = dir + "/plan";
-  spdlog::info("demo [2/7]: planning path safety and area safety (radius {} mm, {} mode)",
+  spdlog::info("demo [2/8]: planning path safety and area safety (radius {} mm, {} mode)",
                a.radius_mm, planning::mode_name(a.mode));
   run_plan(req);
 }
 
 // Slice views through the largest safe region.
 void make_slices(const DemoRequest& a, const std::string& dir) {
-  spdlog::info("demo [3/7]: slice views");
+  spdlog::info("demo [3/8]: slice views");
   SlicesRequest sr;
   sr.plan_dir = dir + "/plan";
   sr.ct = phantom_file(a, dir, "ct.nii.gz");
@@ -72,9 +74,30 @@ void make_slices(const DemoRequest& a, const std::string& dir) {
   run_slices(sr);
 }
 
+// The 3D planning view from four sides (`render`), dangerous hidden as `view` and `render` start.
+void make_3d(const DemoRequest& a, const std::string& dir) {
+  spdlog::info("demo [4/8]: 3D views of the plan");
+  const ViewInputs inputs =
+      load_view_inputs(dir + "/plan", phantom_file(a, dir, "ct.nii.gz"), "", {});
+  overlay::PlanViewOptions options;
+  options.hidden[size_t(planning::SafetyClass::kDangerous)] = true;
+  overlay::PlanView3D view(inputs.plan, &inputs.ct, options);
+  StagedDirectory out(dir + "/3d");
+  for (const auto& [name, angles] : std::vector<std::pair<std::string, std::string>>{
+           {"anterior", "anterior"}, {"anterior_left", "30,20"}, {"left", "left"},
+           {"from_feet", "inferior"}}) {
+    const cv::Mat image = render_plan_view(view, overlay::parse_view_angles(angles), 1280, 960);
+    const std::string path = out.file(name + ".png");
+    write_file_atomically(path, [&](const std::string& tmp) {
+      if (!cv::imwrite(tmp, image)) throw Error(path + ": cannot write the PNG");
+    });
+  }
+  out.commit();
+}
+
 // The guidance scenario, its calibration files in setup/ and its synthetic recording.
 GuidanceScenario record_scenario(const planning::PlanData& plan, const std::string& dir) {
-  spdlog::info("demo [4/7]: choosing a safe and a vessel-crossing approach, scripting the scene");
+  spdlog::info("demo [5/8]: choosing a safe and a vessel-crossing approach, scripting the scene");
   GuidanceScenario scenario;
   try {
     scenario = make_guidance_scenario(plan);
@@ -88,7 +111,7 @@ GuidanceScenario record_scenario(const planning::PlanData& plan, const std::stri
     scenario = make_guidance_scenario(plan, wide);
   }
   write_guidance_setup(scenario, dir + "/setup");
-  spdlog::info("demo [5/7]: rendering the synthetic recording ({} frames)",
+  spdlog::info("demo [6/8]: rendering the synthetic recording ({} frames)",
                scenario.scene.frame_count);
   tracking::RecordOptions ro;
   std::vector<tracking::Board> boards;
@@ -106,7 +129,7 @@ GuidanceScenario record_scenario(const planning::PlanData& plan, const std::stri
 std::string register_board(const DemoRequest& a, const GuidanceScenario& scenario,
                            const std::string& dir) {
   const std::string ct = phantom_file(a, dir, "ct.nii.gz");
-  spdlog::info("demo [6/7]: registering the patient board to the CT by its beads (register)");
+  spdlog::info("demo [7/8]: registering the patient board to the CT by its beads (register)");
   std::string md = "\n## Registration\n\n";
   try {
     const int beads = paint_board_beads(scenario, ct);
@@ -142,7 +165,7 @@ std::string register_board(const DemoRequest& a, const GuidanceScenario& scenari
 // midway through each approach.
 GuideSummary guide(const planning::PlanData& plan, const GuidanceScenario& scenario,
                    const std::string& dir) {
-  spdlog::info("demo [7/7]: guidance on the recording (headless)");
+  spdlog::info("demo [8/8]: guidance on the recording (headless)");
   GuideRequest gr;
   gr.setup = read_guidance_setup(dir + "/setup/camera.yaml", dir + "/setup/registration.yaml",
                                  dir + "/setup/needle.yaml");
@@ -183,11 +206,11 @@ void run_demo(const DemoRequest& a) {
   po.spacing_mm = a.spacing_mm;
   po.amplitude_mm = a.breathing_amplitude_mm;
   if (a.breathing_phases > 0) {
-    spdlog::info("demo [1/7]: building the breathing phantom ({} mm, {} phases, {} mm at the "
+    spdlog::info("demo [1/8]: building the breathing phantom ({} mm, {} phases, {} mm at the "
                  "dome)", a.spacing_mm, a.breathing_phases, a.breathing_amplitude_mm);
     planning::write_breathing_phantom(po, a.breathing_phases, dir + "/phantom");
   } else {
-    spdlog::info("demo [1/7]: building the phantom ({} mm)", a.spacing_mm);
+    spdlog::info("demo [1/8]: building the phantom ({} mm)", a.spacing_mm);
     planning::write_phantom(planning::make_phantom(po), dir + "/phantom");
   }
   times["phantom_s"] = seconds_since(t);
@@ -201,6 +224,10 @@ void run_demo(const DemoRequest& a) {
   made_by.emplace("slices");
   make_slices(a, dir);
   times["slices_s"] = seconds_since(t);
+  t = Clock::now();
+  made_by.emplace("render");
+  make_3d(a, dir);
+  times["3d_s"] = seconds_since(t);
   made_by.reset();
 
   const planning::PlanData plan = planning::load_plan(dir + "/plan");
@@ -226,7 +253,7 @@ void run_demo(const DemoRequest& a) {
   staged.commit();
   spdlog::info(
       "demo: done in {:.0f} s. Outputs in {}/: report.md, overlay.mp4, snapshots/, "
-      "slices/, plan/, phantom/",
+      "slices/, 3d/, plan/, phantom/",
       times["total_s"].get<double>(), a.out_dir);
 }
 

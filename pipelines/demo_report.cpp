@@ -149,7 +149,9 @@ std::string demo_files_report(bool guidance, double total_s) {
          << "- plan/: path_safety_*.nii.gz (NaN outside the region), blocking.nii.gz, "
             "area_safety.vtk, plan.json: open with the CT in 3D Slicer\n"
          << "- slices/: axial, coronal, sagittal and oblique views through the largest safe "
-            "region\n";
+            "region\n"
+         << "- 3d/: the 3D planning view from anterior, anterior-left, left and the feet "
+            "(`crepuscular view --plan plan` shows it in a window)\n";
   if (guidance) {
     report << "- setup/: camera.yaml, registration.yaml, needle.yaml, boards.json, scene.json\n"
            << "- recording/: the synthetic camera recording with its ground truth\n"
