@@ -2,10 +2,12 @@
 // the start to the first picture, phase by phase (reading the plan and CT, the 3D view's anatomy,
 // the window with its slices, the first frame drawn), then frames per second while the 3D view
 // turns (2 degrees of azimuth per frame), in the 3D-only layout and in the 2x2 layout. One JSON
-// line on stdout.
+// line on stdout. The full plan (every value, the blocking volume) is read beside the first picture,
+// as `view` reads it; the first trial path waits for it.
 #include <CLI/CLI.hpp>
 #include <chrono>
 #include <cstdio>
+#include <future>
 #include <nlohmann/json.hpp>
 #include <spdlog/spdlog.h>
 
@@ -63,10 +65,17 @@ int main(int argc, char** argv) {
     nlohmann::json j;
     const auto t0 = std::chrono::steady_clock::now();
     auto t = t0;
-    const pipelines::ViewInputs inputs = pipelines::load_view_inputs(plan, ct, "", {}, true);
+    const pipelines::ViewInputs inputs = pipelines::load_view_inputs(plan, ct, "", {}, "", false);
     j["read_s"] = since(t);
     t = std::chrono::steady_clock::now();
-    pipelines::PlanViewer viewer(inputs, o);
+    // As `view` does: every value and the blocking volume read meanwhile.
+    const auto t_full = std::chrono::steady_clock::now();
+    double full_s = 0;
+    pipelines::PlanViewer viewer(inputs, o, std::async(std::launch::async, [&] {
+                                   auto p = pipelines::load_full_plan(plan, "", {});
+                                   full_s = since(t_full);
+                                   return p;
+                                 }));
     j["window_and_slices_s"] = since(t);
     t = std::chrono::steady_clock::now();
     viewer.frame(true);
@@ -76,6 +85,10 @@ int main(int argc, char** argv) {
     j["gl"] = viewer.renderer().gl_description();
     j["grid"] = {inputs.plan.grid.dims[0], inputs.plan.grid.dims[1], inputs.plan.grid.dims[2]};
     j["size"] = size;
+    // The first path waits for the full plan.
+    viewer.set_entry(inputs.plan.tumor_centre + Eigen::Vector3d(0, -60, 0));
+    j["full_plan_s"] = full_s;
+    j["first_path_s"] = since(t0);
     viewer.handle({overlay::InputEvent::Kind::kKey, 'L'});  // 2x2 -> 3D only
     j["fps_3d"] = turning_fps(viewer, frames);
     viewer.handle({overlay::InputEvent::Kind::kKey, 'L'});  // -> slices only

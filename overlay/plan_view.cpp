@@ -221,7 +221,8 @@ PlanView3D::PlanView3D(const planning::PlanData& plan, const planning::Volume<fl
                  ? "svv"
                  : plan_.values.front();
   }
-  if (!plan_.path_safety.count(value_)) {
+  add_values(plan_);
+  if (!values_.count(value_)) {
     std::string have;
     for (const auto& v : plan_.values) have += (have.empty() ? "" : ", ") + v;
     throw Error(plan_.dir + ": no path safety value '" + value_ + "' (the plan has " + have + ")");
@@ -236,10 +237,20 @@ void PlanView3D::set_options(const PlanViewOptions& options) {
   options_.value = value_;
 }
 
+void PlanView3D::add_values(const planning::PlanData& plan) {
+  for (const auto& [name, volume] : plan.path_safety) {
+    if (values_.count(name) || !plan.classes.count(name)) continue;
+    if (!values_.empty() && !volume.geometry().same_grid(plan_.grid, 1e-4)) {
+      throw Error(plan.dir + ": path_safety_" + name + " is not on the plan's grid");
+    }
+    values_[name] = {&volume, plan.classes.at(name)};
+  }
+}
+
 void PlanView3D::next_value() {
   std::vector<std::string> shown;
   for (const auto& v : plan_.values)
-    if (plan_.path_safety.count(v)) shown.push_back(v);
+    if (values_.count(v)) shown.push_back(v);
   const auto it = std::find(shown.begin(), shown.end(), value_);
   value_ = (it == shown.end() || it + 1 == shown.end()) ? shown.front() : *(it + 1);
 }
@@ -277,8 +288,7 @@ VolumeRenderingOptions PlanView3D::rendering_options(bool software, bool moving)
 SafetyVolumeRendering& PlanView3D::rendering() {
   auto& r = renderings_[value_];
   if (!r) {
-    r = std::make_unique<SafetyVolumeRendering>(plan_.path_safety.at(value_),
-                                                plan_.classes.at(value_),
+    r = std::make_unique<SafetyVolumeRendering>(volume(), classes(),
                                                 rendering_options(false, false),
                                                 plan_.region.empty() ? nullptr : &plan_.region,
                                                 &context_);

@@ -95,8 +95,14 @@ class PlanView3D {
   const PlanViewOptions& options() const { return options_; }
   void set_options(const PlanViewOptions& options);
   const std::string& value() const { return value_; }
-  // The value after the present one in plan.json's order (wraps around).
+  // The value after the present one in plan.json's order among those at hand (wraps around).
   void next_value();
+  // Values of another load of the same plan (on the same grid; e.g. every value, read after the
+  // first picture) join those at hand. `plan` must outlive the view.
+  void add_values(const planning::PlanData& plan);
+  // The present value's volume and classes.
+  const planning::Volume<float>& volume() const { return *values_.at(value_).first; }
+  const planning::SafetyClasses& classes() const { return values_.at(value_).second; }
 
   // The camera that shows the whole region of interest from `angles`.
   OrbitCamera default_camera(ViewAngles angles = {}, double aspect = 16.0 / 9.0) const;
@@ -130,6 +136,8 @@ class PlanView3D {
   PlanViewOptions options_;
   std::string value_;
   AnatomyContext context_;
+  std::map<std::string, std::pair<const planning::Volume<float>*, planning::SafetyClasses>>
+      values_;
   std::map<std::string, std::unique_ptr<SafetyVolumeRendering>> renderings_;
 };
 

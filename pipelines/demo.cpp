@@ -78,7 +78,7 @@ void make_slices(const DemoRequest& a, const std::string& dir) {
 void make_3d(const DemoRequest& a, const std::string& dir) {
   spdlog::info("demo [4/8]: 3D views of the plan");
   const ViewInputs inputs =
-      load_view_inputs(dir + "/plan", phantom_file(a, dir, "ct.nii.gz"), "", {});
+      load_view_inputs(dir + "/plan", phantom_file(a, dir, "ct.nii.gz"), "", {}, "");
   overlay::PlanViewOptions options;
   options.hidden[size_t(planning::SafetyClass::kDangerous)] = true;
   overlay::PlanView3D view(inputs.plan, &inputs.ct, options);

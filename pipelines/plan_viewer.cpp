@@ -108,8 +108,10 @@ const std::vector<std::string>& viewer_key_help() {
   return help;
 }
 
-PlanViewer::PlanViewer(const ViewInputs& inputs, ViewerOptions options)
-    : inputs_(inputs), options_(std::move(options)), layout_(options_.layout) {
+PlanViewer::PlanViewer(const ViewInputs& inputs, ViewerOptions options,
+                       std::future<planning::PlanData> full)
+    : inputs_(inputs), options_(std::move(options)), full_future_(std::move(full)),
+      layout_(options_.layout) {
   if (options_.width < 320 || options_.height < 240) {
     throw Error(fmt::format("view: window {}x{} (expected at least 320x240)", options_.width,
                             options_.height));
@@ -213,10 +215,10 @@ void PlanViewer::update_slices(bool all) {
   planning::SliceScene scene;
   scene.ct = &inputs_.ct;
   const auto& plan = inputs_.plan;
-  scene.path_safety = &plan.path_safety.at(view_->value());
+  scene.path_safety = &view_->volume();
   scene.region_state = plan.region.empty() ? nullptr : &plan.region;
   scene.value_name = view_->value();
-  scene.classes = plan.classes.at(view_->value());
+  scene.classes = view_->classes();
   scene.labels = plan.labels.empty() ? nullptr : &plan.labels;
   scene.table = plan.table ? &*plan.table : nullptr;
   scene.tumor = plan.tumor.empty() ? nullptr : &plan.tumor;
@@ -276,13 +278,27 @@ void PlanViewer::evaluate() {
     t.entry = *entry_;
     t.target = target_;
     // Made at the first path: it ranks every value's region of interest once.
-    if (!evaluator_) evaluator_ = std::make_unique<planning::TrajectoryEvaluator>(inputs_.plan);
+    take_full_plan(true);
+    if (!full_) throw Error("the plan with its blocking volume could not be read");
+    if (!evaluator_) evaluator_ = std::make_unique<planning::TrajectoryEvaluator>(*full_);
     evaluation_ = evaluator_->evaluate(t);
   } catch (const Error& e) {
     spdlog::warn("view: {}", e.what());
   }
   if (oblique_) update_slices(false);
   dirty_ = true;
+}
+
+void PlanViewer::take_full_plan(bool wait) {
+  if (full_ || !full_future_.valid()) return;
+  if (!wait && full_future_.wait_for(std::chrono::seconds(0)) != std::future_status::ready) return;
+  try {
+    full_ = std::make_unique<planning::PlanData>(full_future_.get());
+    view_->add_values(*full_);
+    dirty_ = true;
+  } catch (const Error& e) {
+    spdlog::error("view: {}", e.what());
+  }
 }
 
 void PlanViewer::set_entry(const Eigen::Vector3d& entry) {
@@ -428,6 +444,7 @@ void PlanViewer::handle(const overlay::InputEvent& e) {
     case kKeyEscape:
     case 'Q': open_ = false; break;
     case kKeyTab:
+      take_full_plan(true);
       view_->next_value();
       slices_changed = true;
       if (entry_) evaluate();
@@ -568,7 +585,9 @@ void PlanViewer::update_layers() {
       o.palette == planning::Palette::kColorblind ? "colour-blind palette" : "default palette")};
   if (!saved_markup_.empty()) status.push_back("saved " + saved_markup_);
   if (!saved_picture_.empty()) status.push_back("saved " + saved_picture_);
-  for (const auto& c : inputs_.plan.changed_inputs) status.push_back("WARNING: " + c.message);
+  if (full_) {
+    for (const auto& c : full_->changed_inputs) status.push_back("WARNING: " + c.message);
+  }
   const cv::Mat status_panel = text_panel(status, width);
   r.add_layer_image("text", status_panel, {host.x, y}, 0);
   y += status_panel.rows;
@@ -590,6 +609,7 @@ void PlanViewer::update_layers() {
 }
 
 bool PlanViewer::frame(bool force) {
+  take_full_plan(false);
   for (const auto& e : renderer_->poll_events()) handle(e);
   if (!open_ || !renderer_->window_open()) return false;
   if (!dirty_ && !force) {
@@ -615,8 +635,11 @@ cv::Mat PlanViewer::picture() {
 
 void run_view(const ViewRequest& req) {
   const auto t0 = std::chrono::steady_clock::now();
-  const ViewInputs inputs = load_view_inputs(req.plan_dir, req.ct, req.labels, req.series, true);
-  PlanViewer viewer(inputs, req.options);
+  const ViewInputs inputs = load_view_inputs(req.plan_dir, req.ct, req.labels, req.series,
+                                            req.options.view.value, false);
+  PlanViewer viewer(inputs, req.options,
+                    std::async(std::launch::async, load_full_plan, req.plan_dir, req.labels,
+                               req.series));
   viewer.frame(true);
   spdlog::info("view: first picture after {:.2f} s; H lists the keys, Esc quits",
                std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());

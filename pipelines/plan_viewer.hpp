@@ -12,6 +12,7 @@
 #include <Eigen/Geometry>
 #include <array>
 #include <atomic>
+#include <future>
 #include <memory>
 #include <optional>
 #include <string>
@@ -47,8 +48,11 @@ const std::vector<std::string>& viewer_key_help();
 class PlanViewer {
  public:
   // `inputs` must outlive the viewer. Opens the window (or the headless renderer). Throws Error
-  // when no OpenGL context can be made or the plan cannot be shown.
-  PlanViewer(const ViewInputs& inputs, ViewerOptions options);
+  // when no OpenGL context can be made or the plan cannot be shown. `full`: the plan with every
+  // value and its blocking volume, for the other values and for evaluating paths (read meanwhile;
+  // the first path waits for it).
+  PlanViewer(const ViewInputs& inputs, ViewerOptions options,
+             std::future<planning::PlanData> full);
   ~PlanViewer();
   PlanViewer(const PlanViewer&) = delete;
   PlanViewer& operator=(const PlanViewer&) = delete;
@@ -101,6 +105,8 @@ class PlanViewer {
   void render_slices(const planning::SliceScene& scene, bool all);
   void update_layers();
   void evaluate();
+  // Takes up the full plan once it has been read (`wait`: until then).
+  void take_full_plan(bool wait);
   std::optional<ViewPanel> panel_at(double x, double y) const;
   // The LPS point under window pixel (x, y) of a panel: on the slice's plane, or, in the 3D panel,
   // where the ray first meets the body.
@@ -109,6 +115,8 @@ class PlanViewer {
   const ViewInputs& inputs_;
   ViewerOptions options_;
   std::unique_ptr<overlay::PlanView3D> view_;
+  std::future<planning::PlanData> full_future_;
+  std::unique_ptr<planning::PlanData> full_;
   std::unique_ptr<planning::TrajectoryEvaluator> evaluator_;
   std::unique_ptr<overlay::OverlayRenderer> renderer_;
   bool software_ = false;
@@ -147,7 +155,8 @@ struct ViewRequest {
   const std::atomic<bool>* stop = nullptr;  // set by Ctrl-C
 };
 
-// Opens the view and runs it until the window closes.
+// Opens the view and runs it until the window closes: the first picture as soon as the shown value
+// and the CT are read; every other value, the blocking volume and the inputs' checks meanwhile.
 void run_view(const ViewRequest& request);
 
 }  // namespace crepuscular::pipelines

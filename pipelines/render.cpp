@@ -5,6 +5,8 @@
 
 #include <chrono>
 #include <cstring>
+#include <fstream>
+#include <future>
 #include <sstream>
 #include <filesystem>
 #include <opencv2/imgcodecs.hpp>
@@ -23,27 +25,56 @@ namespace crepuscular::pipelines {
 
 ViewInputs load_view_inputs(const std::string& plan_dir, const std::string& ct,
                             const std::string& labels, const std::vector<std::string>& series,
-                            bool blocking) {
+                            const std::string& value, bool check_inputs) {
   ViewInputs in;
   planning::PlanLoadOptions load;
-  load.blocking = blocking;
+  load.blocking = false;
+  load.only_value = value.empty() ? planning::plan_default_value(plan_dir) : value;
   load.labels_override = labels;
   load.series = series;
+  load.check_inputs = check_inputs;
+  // The CT beside the plan: the path it is read from needs plan.json only.
   spdlog::info("reading plan {}", plan_dir);
-  in.plan = planning::load_plan(plan_dir, load);
-  in.ct_path = ct.empty() ? planning::plan_input_path(in.plan, "ct") : ct;
-  std::error_code ec;
-  if (!in.ct_path.empty() && (ct.empty() && !fs::exists(in.ct_path, ec))) {
-    spdlog::warn("{}: the plan's CT {} is gone; the view shows no bone (give --ct)", plan_dir,
-                 in.ct_path);
-    in.ct_path.clear();
+  auto plan = std::async(std::launch::async, [&] { return planning::load_plan(plan_dir, load); });
+  std::string ct_path = ct;
+  if (ct_path.empty()) {
+    planning::PlanData json_only;
+    json_only.dir = plan_dir;
+    std::ifstream j((fs::path(plan_dir) / "plan.json").string());
+    try {
+      j >> json_only.json;
+      ct_path = planning::plan_input_path(json_only, "ct");
+    } catch (const std::exception&) {
+      ct_path.clear();  // load_plan reports what is wrong with plan.json
+    }
+    std::error_code ec;
+    if (!ct_path.empty() && !fs::exists(ct_path, ec)) {
+      spdlog::warn("{}: the plan's CT {} is gone; the view shows no bone and no slices (give --ct)",
+                   plan_dir, ct_path);
+      ct_path.clear();
+    }
   }
-  if (!in.ct_path.empty()) {
-    spdlog::info("reading CT {}", in.ct_path);
-    in.ct = planning::read_volume<float>(in.ct_path, {series});
+  std::future<planning::Volume<float>> ct_volume;
+  if (!ct_path.empty()) {
+    spdlog::info("reading CT {}", ct_path);
+    ct_volume = std::async(std::launch::async,
+                           [&] { return planning::read_volume<float>(ct_path, {series}); });
+  }
+  in.plan = plan.get();
+  if (ct_volume.valid()) {
+    in.ct = ct_volume.get();
+    in.ct_path = ct_path;
     planning::require_overlap_with_plan(in.ct.geometry(), in.plan.grid, in.ct_path, "the CT");
   }
   return in;
+}
+
+planning::PlanData load_full_plan(const std::string& plan_dir, const std::string& labels,
+                                  const std::vector<std::string>& series) {
+  planning::PlanLoadOptions load;
+  load.labels_override = labels;
+  load.series = series;
+  return planning::load_plan(plan_dir, load);
 }
 
 namespace {
@@ -157,7 +188,8 @@ void run_render(const RenderRequest& req) {
   if (lower != ".png" && lower != ".PNG") {
     throw Error(req.out + ": expected a .png file");
   }
-  const ViewInputs in = load_view_inputs(req.plan_dir, req.ct, req.labels, req.series);
+  const ViewInputs in =
+      load_view_inputs(req.plan_dir, req.ct, req.labels, req.series, req.options.value);
   overlay::PlanView3D view(in.plan, in.ct.empty() ? nullptr : &in.ct, req.options);
   const auto t_loaded = std::chrono::steady_clock::now();
   const cv::Mat image = render_plan_view(view, angles, req.width, req.height);

@@ -11,9 +11,10 @@
 
 namespace crepuscular::pipelines {
 
-// A plan with what its views show: every path safety value, region states, labels, tumor, area
-// safety, the blocking volume when `blocking` (for evaluating paths), and the CT (`ct`, else the
-// one plan.json records, when present).
+// A plan with what its views show: one path safety value (`value`, else svv when computed, else
+// the first), region states, labels, tumor, area safety, and the CT (`ct`, else the one plan.json
+// records, when present), read side by side. `check_inputs`: compare the plan's inputs with their
+// checksums (a full read of each).
 struct ViewInputs {
   planning::PlanData plan;
   planning::Volume<float> ct;  // empty without one
@@ -21,7 +22,12 @@ struct ViewInputs {
 };
 ViewInputs load_view_inputs(const std::string& plan_dir, const std::string& ct,
                             const std::string& labels, const std::vector<std::string>& series,
-                            bool blocking = false);
+                            const std::string& value, bool check_inputs = true);
+
+// Everything evaluating a path needs: every value, the blocking volume, labels and tumor, area
+// safety, with the inputs checked.
+planning::PlanData load_full_plan(const std::string& plan_dir, const std::string& labels,
+                                  const std::vector<std::string>& series);
 
 // Draws the legend on a picture of the 3D view (BGR): the value, where the camera looks from, the
 // classes shown with their colours, and the surfaces.

@@ -29,26 +29,6 @@ using namespace planning;  // NOLINT: the job drives the planning modules throug
 
 namespace {
 
-// The value asked for, else svv when the plan computed it, else the plan's first.
-std::string choose_value(const SlicesRequest& req) {
-  if (!req.value.empty()) return req.value;
-  const std::string json_path = (fs::path(req.plan_dir) / "plan.json").string();
-  std::ifstream in(json_path);
-  if (!in) throw Error(json_path + ": cannot open (is " + req.plan_dir + " a plan folder?)");
-  nlohmann::json j;
-  try {
-    in >> j;
-  } catch (const nlohmann::json::exception& e) {
-    throw Error(json_path + ": not valid JSON (" + e.what() + ")");
-  }
-  std::vector<std::string> values;
-  if (j.contains("parameters") && j["parameters"].contains("values")) {
-    for (const auto& v : j["parameters"]["values"]) values.push_back(v.get<std::string>());
-  }
-  if (values.empty()) throw Error(json_path + ": parameters.values is empty");
-  return std::find(values.begin(), values.end(), "svv") != values.end() ? "svv" : values[0];
-}
-
 // The scan the plan was made from (its label map, else its CT) when its grid is known, and a
 // warning when the CT given lies on another grid: it may be another patient's or another day's
 // scan, whose anatomy the plan's colours would be drawn over. "" when they agree or nothing is
@@ -170,7 +150,7 @@ nlohmann::json run_slices(const SlicesRequest& req) {
   if (req.out_dir.empty()) throw Error("slices: an output folder is required");
   if (req.planes.empty()) throw Error("slices: no plane given");
 
-  const std::string value = choose_value(req);
+  const std::string value = req.value.empty() ? plan_default_value(req.plan_dir) : req.value;
   PlanLoadOptions load;
   load.blocking = false;
   load.only_value = value;

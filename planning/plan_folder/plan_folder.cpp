@@ -501,6 +501,26 @@ PlanData load_plan(const std::string& plan_dir, const PlanLoadOptions& options) 
   return plan;
 }
 
+std::string plan_default_value(const std::string& plan_dir) {
+  const std::string json_path = (fs::path(plan_dir) / "plan.json").string();
+  std::ifstream in(json_path);
+  if (!in) throw Error(json_path + ": cannot open (is " + plan_dir + " a plan folder?)");
+  nlohmann::json j;
+  try {
+    in >> j;
+  } catch (const nlohmann::json::exception& e) {
+    throw Error(json_path + ": not valid JSON (" + e.what() + ")");
+  }
+  std::vector<std::string> values;
+  if (j.contains("parameters") && j["parameters"].is_object() &&
+      j["parameters"].contains("values") && j["parameters"]["values"].is_array()) {
+    for (const auto& v : j["parameters"]["values"])
+      if (v.is_string()) values.push_back(v.get<std::string>());
+  }
+  if (values.empty()) throw Error(json_path + ": parameters.values is empty");
+  return std::find(values.begin(), values.end(), "svv") != values.end() ? "svv" : values[0];
+}
+
 std::string plan_input_path(const PlanData& plan, const char* key) {
   return input_path(plan.json, key, plan.dir,
                     JsonPath((fs::path(plan.dir) / "plan.json").string()));

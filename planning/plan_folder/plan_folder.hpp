@@ -99,6 +99,10 @@ PlanData load_plan(const std::string& plan_dir, const PlanLoadOptions& options =
 // A grid as geometry_json wrote it; throws Error naming `where` and the field.
 ImageGeometry geometry_from_json(const nlohmann::json& j, const std::string& where);
 
+// The value a view shows when none is asked for: svv when the plan computed it, else its first.
+// Reads only plan.json; throws Error naming it when it is missing or lists no value.
+std::string plan_default_value(const std::string& plan_dir);
+
 // The path of an input recorded in plan.json "inputs" (`key`: "ct", "labels", "tumor", ...), or,
 // when that file is gone and the plan moved with its inputs, the one at its relative path; "" when
 // plan.json records none.

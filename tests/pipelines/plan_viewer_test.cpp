@@ -13,6 +13,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <future>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <thread>
@@ -78,13 +79,15 @@ class PlanViewerTest : public ::testing::Test {
   void SetUp() override {
     display_ = XOpenDisplay(nullptr);
     ASSERT_NE(display_, nullptr) << "no X display (Xvfb)";
-    inputs_ = std::make_unique<ViewInputs>(load_view_inputs(*plan_dir_, *ct_, "", {}, true));
+    inputs_ = std::make_unique<ViewInputs>(load_view_inputs(*plan_dir_, *ct_, "", {}, ""));
     ViewerOptions o;
     o.width = 1200;
     o.height = 800;
     o.angles = overlay::ViewAngles{0, 0};  // from anterior: the skin plane faces the camera
     o.view.resolution_scale = 1.0;
-    viewer_ = std::make_unique<PlanViewer>(*inputs_, o);
+    viewer_ = std::make_unique<PlanViewer>(
+        *inputs_, o, std::async(std::launch::async, load_full_plan, *plan_dir_, "",
+                                std::vector<std::string>{}));
     viewer_->frame(true);
     window_ = find_window(display_, DefaultRootWindow(display_));
     ASSERT_NE(window_, 0u);
