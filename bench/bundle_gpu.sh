@@ -17,6 +17,9 @@ if [ "${BUNDLE:-}" = plan ]; then
   targets=(path_safety_cuda_test path_safety_test path_safety_fast_test plan_breathing_test
            bench_plan)
 fi
+# BUNDLE=view: the 3D planning view's benchmark and `crepuscular plan` end to end (the headline
+# plan it opens), compressed.
+if [ "${BUNDLE:-}" = view ]; then targets=(bench_plan bench_view); fi
 cmake --build "$build" -j "$(nproc)" --target "${targets[@]}"
 rm -rf .device && mkdir -p .device/bin .device/lib
 for t in "${targets[@]}"; do
@@ -28,6 +31,8 @@ for b in .device/bin/*; do
   ldd "$b" | awk '/=> \// {print $3}'
 done | sort -u | grep -vE '/(libc|libm|libdl|libpthread|librt|ld-linux[^/]*|libcuda)\.so' |
   while read -r lib; do cp -L "$lib" .device/lib/; done
+# Symbols are not needed there: the bundle stays within what a call may carry.
+strip --strip-unneeded .device/bin/* .device/lib/* 2>/dev/null || true
 # WITH_PERF=1: Linux perf and its libraries too (bench/ab_gpu.sh's `profile`), from this machine's
 # linux-perf package.
 if [ -n "${WITH_PERF:-}" ]; then
@@ -40,7 +45,9 @@ fi
 du -sh .device
 # The overlay programs' libraries exceed the carry limit uncompressed: carry .device.tar.xz and
 # unpack it there (run_gpu.sh does).
-if [ "${BUNDLE:-}" = overlay ] || [ "${BUNDLE:-}" = plan ]; then
+if [ "${BUNDLE:-}" = overlay ] || [ "${BUNDLE:-}" = plan ] || [ "${BUNDLE:-}" = view ]; then
+  # The view's bundle (OpenCV's codecs with their libraries beside CUDA's) fits only at xz's best.
+  if [ "${BUNDLE:-}" = view ]; then export XZ_OPT=-9e; fi
   tar -cJf .device.tar.xz .device && rm -rf .device
   du -sh .device.tar.xz
   # Above the 64 MiB a call may carry (the overlay bundle, ~87 MB): two parts, carried by two calls
