@@ -422,7 +422,10 @@ class PhaseReaders {
       }
     }
   }
+  // Any thread may join the readers, several at once (a failing phase's waiter beside the plan's
+  // own unwinding): one joins, the others wait for it.
   void join() {
+    const std::lock_guard<std::mutex> lock(join_lock_);
     for (auto& t : threads_) {
       if (t.joinable()) t.join();
     }
@@ -442,6 +445,7 @@ class PhaseReaders {
   std::atomic<size_t> next_{0};
   std::atomic<bool> failed_{false}, stopped_{false};
   int cores_ = 1;
+  std::mutex join_lock_;
   std::vector<std::thread> threads_;
 };
 
