@@ -8,16 +8,18 @@
 #include <sys/wait.h>
 
 #include <Eigen/Geometry>
+#include <array>
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <set>
 #include <sstream>
-
-#include <nlohmann/json.hpp>
 
 #include "foundation/error.hpp"
 #include "pipelines/plan.hpp"
@@ -736,6 +738,12 @@ TEST_F(AreaSafetyFiles, PlanWhoseScanEndsOnOneSideStopsExtrusionsTowardItNotSafe
   }
   EXPECT_GT(toward, 0);
   EXPECT_GT(along, 0);
+  // The classes for 3D Slicer: the region beyond the scan is the unknown segment, never safe.
+  const std::array<int64_t, 4> classes =
+      test::expect_classes_segmentation_matches_plan(dir_ / "plan", "svv");
+  EXPECT_EQ(classes[3], plan["scan_coverage"]["unknown_voxels"].get<int64_t>());
+  EXPECT_GT(classes[3], 0);
+  EXPECT_GT(classes[0], 0);
 }
 
 TEST_F(AreaSafetyFiles, PlanWritesAreaSafetyAndTheAreaCommandRuns) {
