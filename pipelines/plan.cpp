@@ -28,6 +28,7 @@
 #include "foundation/trace.hpp"
 #include "pipelines/job_inputs.hpp"
 #include "pipelines/plan_inputs.hpp"
+#include "planning/imaging/segmentation.hpp"
 #include "planning/imaging/volume_io.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
 #include "planning/breathing/combiner.hpp"
@@ -35,6 +36,7 @@
 #include "planning/breathing/schedule.hpp"
 #include "planning/safety/unknown.hpp"
 #include "planning/trajectories/markups.hpp"
+#include "planning/views/palette.hpp"
 
 namespace crepuscular::pipelines {
 
@@ -157,9 +159,23 @@ std::future<double> area_safety_beside_writes(const PlanRequest& req,
   });
 }
 
-// Step 3b: voxel states and path safety volumes into the staged folder, concurrently, and the
-// writes of step 3a finished. `beside`, when given, runs once every volume's classes are taken,
-// while the writes go on.
+// The segments of path_safety_<value>_classes.seg.nrrd: the classes with their label values
+// (class_label), the default palette's colours and unknown grey.
+std::vector<SegmentSpec> class_segments() {
+  const std::array<Rgb, 3> colours = class_colours(Palette::kDefault);
+  const auto unit = [](const Rgb& c) {
+    return std::array<double, 3>{c[0] / 255.0, c[1] / 255.0, c[2] / 255.0};
+  };
+  return {{"safe", "safe", class_label(SafetyClass::kSafe), unit(colours[0])},
+          {"medium", "medium", class_label(SafetyClass::kMedium), unit(colours[1])},
+          {"dangerous", "dangerous", class_label(SafetyClass::kDangerous), unit(colours[2])},
+          {"unknown", "unknown", class_label(SafetyClass::kUnknown), {0.5, 0.5, 0.5}}};
+}
+
+// Step 3b: voxel states, path safety volumes and their classes
+// (path_safety_<value>_classes.seg.nrrd) into the staged folder, concurrently, and the writes of
+// step 3a finished. `beside`, when given, runs once every volume's classes are taken, while the
+// writes go on.
 Written write_volumes(const StagedDirectory& out, PathSafetyResult& result,
                       const Volume<uint8_t>& region, std::vector<std::future<void>> writes,
                       const nlohmann::json& outputs,
@@ -182,7 +198,15 @@ Written write_volumes(const StagedDirectory& out, PathSafetyResult& result,
         std::async(std::launch::async, [&out, &vol, file] { write_volume(vol, out.file(file)); }));
     w.outputs[name] = file;
     // Taken once, in one pass (or where fast mode's check took the classes, one for these).
-    w.classes[name] = classes_json(classes_of(result, bit));
+    const SafetyClasses classes = classes_of(result, bit);
+    w.classes[name] = classes_json(classes);
+    // The classes for 3D Slicer, by the thresholds plan.json states, unknown where roi says so.
+    const std::string classes_file = "path_safety_" + name + "_classes.seg.nrrd";
+    writes.push_back(std::async(std::launch::async, [&out, &vol, &region, classes, classes_file] {
+      write_segmentation(out.file(classes_file), class_labels(vol, classes, region),
+                         class_segments());
+    }));
+    w.outputs[name + "_classes"] = classes_file;
     w.statistics[name] = statistics_json(statistics_of(result, bit));
   }
   trace::event("classes_taken", 0, -1);

@@ -1,5 +1,5 @@
-// 3D Slicer segmentations (.seg.nrrd) through ITK's NrrdImageIO: header keys Segment<N>_* from the
-// MetaDataDictionary, voxels as stored (one component per layer), converted to label maps.
+// 3D Slicer segmentations (.seg.nrrd) through ITK's NrrdImageIO: header keys Segment<N>_* from and
+// to the MetaDataDictionary, voxels as stored (one component per layer), converted to label maps.
 #include "planning/imaging/segmentation.hpp"
 
 #include <Eigen/Core>
@@ -18,10 +18,12 @@
 
 #include "foundation/error.hpp"
 #include "foundation/log.hpp"
+#include "foundation/output_files.hpp"
 #include "planning/imaging/itk_image.hpp"
 #include "planning/imaging/volume_io.hpp"
 
 // ITK headers after itk_image.hpp, which has ITK use the system Eigen: one Eigen in this unit.
+#include <itkImageFileWriter.h>
 #include <itkMetaDataObject.h>
 #include <itkNrrdImageIO.h>
 
@@ -116,6 +118,18 @@ Extent parse_extent(const std::string& path, const std::string& key, const std::
     e.hi[a] = v[2 * a + 1];
   }
   return e;
+}
+
+// Segment<N>_Color "r g b" with each in [0, 1]; nothing otherwise.
+std::optional<std::array<double, 3>> parse_colour(const std::string& text) {
+  std::istringstream in(text);
+  std::array<double, 3> c{};
+  for (double& x : c) {
+    if (!(in >> x) || !(x >= 0.0 && x <= 1.0)) return std::nullopt;
+  }
+  std::string rest;
+  if (in >> rest) return std::nullopt;
+  return c;
 }
 
 // Reads every stored value (component fastest, as ITK orders them) into `raw`.
@@ -293,6 +307,9 @@ std::optional<SegmentEntry> segment_entry(const itk::MetaDataDictionary& dict,
     s.label_value = header_integer(path, segment_key(n, "LabelValue"), *value, 1, kMaxLabelValue);
   }
   s.layer = segment_layer(path, n, s.name, layer, layout);
+  if (const auto colour = header_value(dict, segment_key(n, "Color"))) {
+    s.colour = parse_colour(*colour);
+  }
   const auto extent = header_value(dict, segment_key(n, "Extent"));
   if (extent && !layout.legacy_4d) {
     entry.extent = parse_extent(path, segment_key(n, "Extent"), *extent);
@@ -476,6 +493,135 @@ Segmentation read_segmentation(const std::string& path) {
   spdlog::debug("{}: {} segments in {} layers, {} x {} x {} voxels", path, seg.segments.size(),
                 layout.layer_count, g.dims[0], g.dims[1], g.dims[2]);
   return seg;
+}
+
+namespace {
+
+bool ends_with_segmentation_nrrd(const std::string& path) {
+  const std::string ext = ".seg.nrrd";
+  std::string lower = fs::path(path).filename().string();
+  std::transform(lower.begin(), lower.end(), lower.begin(),
+                 [](unsigned char c) { return char(std::tolower(c)); });
+  return lower.size() > ext.size() &&
+         lower.compare(lower.size() - ext.size(), ext.size(), ext) == 0;
+}
+
+// A number as a stream writes it, with every digit a double needs to come back unchanged.
+std::string exact_text(double x) {
+  std::ostringstream out;
+  out.precision(std::numeric_limits<double>::max_digits10);
+  out << x;
+  return out.str();
+}
+
+// Error unless the specs have unique IDs and label values 1 to 255 and colours in [0, 1]; the
+// position of each label value's segment in `segments` (-1: none) otherwise.
+std::array<int, 256> check_segment_specs(const std::string& path,
+                                         const std::vector<SegmentSpec>& segments) {
+  if (segments.empty()) throw Error(path + ": cannot write a segmentation without segments");
+  std::array<int, 256> segment_of_value;
+  segment_of_value.fill(-1);
+  for (size_t n = 0; n < segments.size(); ++n) {
+    const SegmentSpec& s = segments[n];
+    const std::string which = "segment " + std::to_string(n) + " '" + s.name + "'";
+    if (s.id.empty()) throw Error(path + ": " + which + " has no ID (expected a unique ID)");
+    for (size_t m = 0; m < n; ++m) {
+      if (segments[m].id == s.id) {
+        throw Error(path + ": " + which + " has the ID '" + s.id + "' of segment " +
+                    std::to_string(m) + " (expected unique IDs)");
+      }
+    }
+    if (s.label_value == 0) {
+      throw Error(path + ": " + which + " has label value 0 (expected 1 to 255; 0 is no segment)");
+    }
+    if (segment_of_value[s.label_value] >= 0) {
+      throw Error(path + ": " + which + " has label value " + std::to_string(s.label_value) +
+                  ", as segment " + std::to_string(segment_of_value[s.label_value]) +
+                  " (expected unique label values in the one layer)");
+    }
+    segment_of_value[s.label_value] = int(n);
+    for (const double c : s.colour) {
+      if (!(c >= 0.0 && c <= 1.0)) {
+        throw Error(path + ": " + which + " has the colour component " + exact_text(c) +
+                    " (expected red, green, blue in [0, 1])");
+      }
+    }
+  }
+  return segment_of_value;
+}
+
+}  // namespace
+
+void write_segmentation(const std::string& path, const Volume<uint8_t>& labels,
+                        const std::vector<SegmentSpec>& segments) {
+  if (!ends_with_segmentation_nrrd(path)) {
+    throw Error(path + ": cannot write a segmentation (expected a file name ending in .seg.nrrd)");
+  }
+  const ImageGeometry& g = labels.geometry();
+  check_geometry(g, path);
+  if (int64_t(labels.values().size()) != g.voxel_count()) {
+    throw Error(path + ": cannot write (the label map holds " +
+                std::to_string(labels.values().size()) + " values for " +
+                std::to_string(g.voxel_count()) + " voxels)");
+  }
+  const std::array<int, 256> segment_of_value = check_segment_specs(path, segments);
+  std::array<int64_t, 256> voxels_of_value{};
+  for (const uint8_t v : labels.values()) ++voxels_of_value[v];
+  for (int v = 1; v < 256; ++v) {
+    if (voxels_of_value[size_t(v)] > 0 && segment_of_value[size_t(v)] < 0) {
+      throw Error(path + ": " + std::to_string(voxels_of_value[size_t(v)]) +
+                  " voxels hold the value " + std::to_string(v) +
+                  ", which no segment declares (expected 0 or a segment's label value)");
+    }
+  }
+
+  using Image = itk::Image<uint8_t, 3>;
+  auto image = Image::New();
+  set_image_geometry(*image, g);
+  // The writer only reads the buffer; the container does not own it.
+  image->GetPixelContainer()->SetImportPointer(const_cast<uint8_t*>(labels.data()),
+                                               itk::SizeValueType(g.voxel_count()), false);
+  itk::MetaDataDictionary& dict = image->GetMetaDataDictionary();
+  const auto put = [&dict](const std::string& key, const std::string& value) {
+    itk::EncapsulateMetaData<std::string>(dict, key, value);
+  };
+  put("Segmentation_MasterRepresentation", "Binary labelmap");
+  put("Segmentation_ContainedRepresentationNames", "Binary labelmap|");
+  put("Segmentation_ReferenceImageExtentOffset", "0 0 0");
+  // Every segment's extent is the whole grid: Slicer reads a layer within the extent of its first
+  // segment.
+  const std::string extent = "0 " + std::to_string(g.dims[0] - 1) + " 0 " +
+                             std::to_string(g.dims[1] - 1) + " 0 " + std::to_string(g.dims[2] - 1);
+  for (size_t n = 0; n < segments.size(); ++n) {
+    const SegmentSpec& s = segments[n];
+    const auto key = [n](const char* field) { return segment_key(int(n), field); };
+    put(key("ID"), s.id);
+    put(key("Name"), s.name);
+    put(key("NameAutoGenerated"), "0");
+    put(key("Color"),
+        exact_text(s.colour[0]) + " " + exact_text(s.colour[1]) + " " + exact_text(s.colour[2]));
+    put(key("ColorAutoGenerated"), "0");
+    put(key("Extent"), extent);
+    put(key("Tags"), "");
+    put(key("Layer"), "0");
+    put(key("LabelValue"), std::to_string(int(s.label_value)));
+  }
+
+  write_file_atomically(path, [&](const std::string& temporary) {
+    try {
+      auto writer = itk::ImageFileWriter<Image>::New();
+      writer->SetImageIO(itk::NrrdImageIO::New());
+      writer->SetFileName(temporary);
+      writer->SetInput(image);
+      writer->SetUseCompression(true);  // gzip, as Slicer writes .seg.nrrd
+      writer->SetCompressionLevel(1);
+      writer->Update();
+    } catch (const itk::ExceptionObject& e) {
+      throw Error(path + ": cannot write (" + one_line(e) + ")");
+    }
+  });
+  spdlog::debug("{}: wrote {} segments on {} x {} x {} voxels", path, segments.size(), g.dims[0],
+                g.dims[1], g.dims[2]);
 }
 
 }  // namespace crepuscular::planning

@@ -1,7 +1,9 @@
 // The plan folder (PLAN_DIR), written by the plan pipeline and read by every later step: its
 // format in one place. Files: blocking.nii.gz, roi.nii.gz, path_safety_<value>.nii.gz (NaN
-// outside the region of interest), area_safety.vtk (optional) and plan.json, whose pieces are made
-// here (geometry, inputs, classes) and read back by load_plan.
+// outside the region of interest), path_safety_<value>_classes.seg.nrrd (the value's classes for
+// 3D Slicer, docs/ARCHITECTURE.md §4; written by the plan pipeline, not read back here),
+// area_safety.vtk (optional) and plan.json, whose pieces are made here (geometry, inputs, classes)
+// and read back by load_plan.
 #pragma once
 
 #include <Eigen/Core>

@@ -639,12 +639,14 @@ void write_area_safety_vtk(const std::string& path, const AreaSafetyGeometry& g)
     for (const auto& n : g.normals) append3(s, n);
     s += "\n";
   }
-  s += "SCALARS safe unsigned_char 1\nLOOKUP_TABLE default\n";
+  // Leeway first: VTK's legacy reader (vtkDataReader::ReadScalarData) makes the first SCALARS of
+  // POINT_DATA the active scalars, which 3D Slicer and ParaView colour the mesh by.
+  s += "SCALARS leeway float 1\nLOOKUP_TABLE default\n";
+  for (float x : g.leeway) append_be(s, x);
+  s += "\nSCALARS safe unsigned_char 1\nLOOKUP_TABLE default\n";
   for (uint8_t x : g.safe) s.push_back(char(x ? 1 : 0));
   s += "\nSCALARS region int 1\nLOOKUP_TABLE default\n";
   for (int x : g.region) append_be(s, int32_t(x));
-  s += "\nSCALARS leeway float 1\nLOOKUP_TABLE default\n";
-  for (float x : g.leeway) append_be(s, x);
   s += "\n";
   if (g.extrusion.size() == nv) {
     s += "SCALARS extrusion_mm float 1\nLOOKUP_TABLE default\n";

@@ -169,14 +169,17 @@ double enclosed_volume(const AreaSafetyGeometry& geometry);
 
 // --- Files --------------------------------------------------------------------------------------
 
-// VTK legacy POLYDATA, BINARY (big-endian, as VTK and 3D Slicer read it), LPS mm (title line carries "SPACE=LPS" for 3D Slicer): POINTS,
-// POLYGONS, POINT_DATA with NORMALS (base normals) and scalars safe, region, leeway, extrusion_mm;
-// FIELD data with the ellipsoid and the regions. Written atomically (output_files.hpp).
+// VTK legacy POLYDATA, BINARY (big-endian, as VTK and 3D Slicer read it), LPS mm (title line
+// carries "SPACE=LPS" for 3D Slicer): POINTS, POLYGONS, POINT_DATA with NORMALS (base normals) and
+// scalars leeway, safe, region, extrusion_mm, leeway first so that it is the active scalar in 3D
+// Slicer and ParaView; FIELD data with the ellipsoid and the regions. Written atomically
+// (output_files.hpp).
 void write_area_safety_vtk(const std::string& path, const AreaSafetyGeometry& geometry);
 
-// Reads what write_area_safety_vtk wrote (BINARY, and ASCII as earlier versions wrote it): vertices, triangles, normals, safe, region, leeway,
-// extrusion (base = vertex - extrusion * normal), ellipsoid, regions and max distance. Throws
-// Error naming the file and the section when it is not such a file.
+// Reads what write_area_safety_vtk wrote (BINARY, and ASCII as earlier versions wrote it; the
+// scalars in any order): vertices, triangles, normals, safe, region, leeway, extrusion (base =
+// vertex - extrusion * normal), ellipsoid, regions and max distance. Throws Error naming the file
+// and the section when it is not such a file.
 AreaSafetyGeometry read_area_safety_vtk(const std::string& path);
 
 // The plan.json / area.json section: criterion, threshold, distances, counts and regions.

@@ -1,4 +1,5 @@
-// Default safety classes and the comparison of two path safety results.
+// Default safety classes, the classes as a label map and the comparison of two path safety
+// results.
 #include "planning/safety/safety_classes.hpp"
 
 #include <omp.h>
@@ -9,6 +10,9 @@
 #include <cstring>
 #include <utility>
 #include <vector>
+
+#include "foundation/error.hpp"
+#include "planning/safety/unknown.hpp"
 
 namespace crepuscular::planning {
 
@@ -194,6 +198,24 @@ SafetyClasses blocking_classes(uint64_t n, double largest, const AtRanks& at_ran
   c.safe = std::max(p20, kInsignificantShare * largest);
   c.dangerous = std::max(p60, c.safe);
   return c;
+}
+
+Volume<uint8_t> class_labels(const Volume<float>& values, const SafetyClasses& classes,
+                             const Volume<uint8_t>& region) {
+  const bool with_region = region.voxel_count() > 0;
+  if (with_region && !region.geometry().same_grid(values.geometry(), 1e-6)) {
+    throw Error("the voxel states (roi) lie on another grid than the path safety volume");
+  }
+  Volume<uint8_t> labels(values.geometry(), kNoClassLabel);
+  const int64_t n = values.voxel_count();
+  for (int64_t v = 0; v < n; ++v) {
+    if (with_region && region[v] == kRegionUnknown) {
+      labels[v] = class_label(SafetyClass::kUnknown);
+    } else if (!std::isnan(values[v])) {
+      labels[v] = class_label(classes.classify(values[v]));
+    }
+  }
+  return labels;
 }
 
 ValueStatistics value_statistics(const Volume<float>& volume, const RowRun& runs) {

@@ -33,6 +33,19 @@ struct SafetyClasses {
   }
 };
 
+// The classes as a label map, one label value per class: 0 none (outside the region of interest),
+// then safe, medium, dangerous, unknown (1 to 4).
+constexpr uint8_t kNoClassLabel = 0;
+constexpr uint8_t class_label(SafetyClass c) { return uint8_t(int(c) + 1); }
+
+// The class label of every voxel of `values`, on its grid: class_label(kUnknown) where `region`
+// (RegionState of planning/safety/unknown.hpp, as roi.nii.gz stores it) holds kRegionUnknown,
+// whatever the value; elsewhere class_label(classes.classify(value)) where the value is not NaN,
+// and kNoClassLabel where it is. So an unknown voxel is never labelled safe. `region` empty: no
+// voxel is unknown by its state. Throws Error when `region` is on another grid.
+Volume<uint8_t> class_labels(const Volume<float>& values, const SafetyClasses& classes,
+                             const Volume<uint8_t>& region);
+
 // Defaults: SVV is a percentage (safe >= 90 %, dangerous < 50 %). The blocking values have no
 // absolute scale, so they are relative to the region of interest: a voxel with no blocking on any
 // path (value 0) is safe; among the voxels with some blocking, the lowest 20 % are safe too (the

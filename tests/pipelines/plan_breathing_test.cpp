@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 #include <omp.h>
 
+#include <array>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -14,8 +15,8 @@
 #include "foundation/error.hpp"
 #include "pipelines/plan.hpp"
 #include "planning/imaging/volume_io.hpp"
-#include "planning/safety/unknown.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
+#include "planning/safety/unknown.hpp"
 #include "planning/simulation/phantom.hpp"
 #include "planning/trajectories/evaluate.hpp"
 #include "tests/support/plans.hpp"
@@ -152,6 +153,11 @@ TEST_F(MovingVessel, CombinationIsTheVoxelwiseMinimumOfSvvAndMaximumOfTheOthers)
     }
     EXPECT_GT(checked, 1000) << value;
     EXPECT_GT(differing_phases, 100) << value << ": the phases should differ";
+    // The combination's classes for 3D Slicer: the combined volume's, by the plan's thresholds.
+    const std::array<int64_t, 4> classes =
+        test::expect_classes_segmentation_matches_plan(dir_.path() / "plan", value);
+    EXPECT_EQ(classes[0] + classes[1] + classes[2], checked) << value;
+    EXPECT_EQ(classes[3], 0) << value;
   }
 }
 

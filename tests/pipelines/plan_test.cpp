@@ -175,6 +175,19 @@ TEST_F(PlanTest, WritesEveryValueOnTheOutputGridWithNanOutsideTheBall) {
   EXPECT_EQ(plan["tumor"]["voxels"].get<int>(), 27);
   EXPECT_GT(plan["timings"]["total_s"].get<double>(), 0.0);
   EXPECT_TRUE(plan["classes"].contains("bvv"));
+  // Each value's classes for 3D Slicer: voxel for voxel its volume's classes by plan.json's
+  // thresholds, every voxel of the region in one segment; no voxel unknown (one scan grid).
+  int64_t region_voxels = 0;
+  for (const uint8_t s : roi.values()) region_voxels += s != 0 ? 1 : 0;
+  for (const char* v : {"svv", "isbv", "ivbv", "bvv"}) {
+    EXPECT_TRUE(
+        fs::exists(dir_ / "plan" / ("path_safety_" + std::string(v) + "_classes.seg.nrrd")));
+    const std::array<int64_t, 4> n =
+        test::expect_classes_segmentation_matches_plan(dir_ / "plan", v);
+    EXPECT_EQ(n[0] + n[1] + n[2] + n[3], region_voxels) << v;
+    EXPECT_GT(n[0], 0) << v;  // the free side (-i) is safe for every value
+    EXPECT_EQ(n[3], 0) << v;
+  }
   EXPECT_EQ(leftovers(), std::vector<std::string>{"plan"});
 }
 

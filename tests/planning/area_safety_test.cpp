@@ -8,16 +8,18 @@
 #include <sys/wait.h>
 
 #include <Eigen/Geometry>
+#include <array>
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <set>
 #include <sstream>
-
-#include <nlohmann/json.hpp>
 
 #include "foundation/error.hpp"
 #include "pipelines/plan.hpp"
@@ -636,6 +638,10 @@ ok = ok and pd.GetNumberOfPoints() == int(sys.argv[2]) and pd.GetNumberOfPolys()
 for name in ("safe", "region", "leeway", "extrusion_mm"):
     ok = ok and pd.GetPointData().GetArray(name) is not None
 ok = ok and pd.GetPointData().GetNormals() is not None
+active = vtkPolyDataReader()
+active.SetFileName(sys.argv[1])
+active.Update()
+ok = ok and active.GetOutput().GetPointData().GetScalars().GetName() == "leeway"
 ok = ok and pd.GetFieldData().GetArray("region_size_mm3").GetNumberOfTuples() == int(sys.argv[5])
 m = vtkMassProperties()
 m.SetInputData(pd)
@@ -696,6 +702,65 @@ sys.exit(0 if ok else 3)
   EXPECT_NEAR(again.regions[1].size_mm3, g.regions[1].size_mm3, 1e-5 * g.regions[1].size_mm3);
 }
 
+// VTK's legacy reader makes the first SCALARS of POINT_DATA the active scalars (3D Slicer and
+// ParaView colour by them): the file's point data are the normals, then the leeway. Files in the
+// order written before (safe, region, leeway) read back the same.
+TEST_F(AreaSafetyFiles, LeewayIsTheFirstPointScalarsAndEarlierOrderStillReads) {
+  // Three regions of different sizes: leeways 1 and between 0 and 1.
+  const AreaSafetyGeometry g = sphere_in_rings({{7.0, 2.0}, {-7.0, 2.0}});
+  const std::string path = (dir_ / "area_safety.vtk").string();
+  write_area_safety_vtk(path, g);
+  std::stringstream all;
+  all << std::ifstream(path, std::ios::binary).rdbuf();
+  const std::string text = all.str();
+  const size_t nv = g.vertices.size();
+  const std::string point_data = "\nPOINT_DATA " + std::to_string(nv) + "\n";
+  size_t at = text.find(point_data);
+  ASSERT_NE(at, std::string::npos);
+  at += point_data.size();
+  const std::string normals = "NORMALS normals double\n";
+  ASSERT_EQ(text.compare(at, normals.size(), normals), 0);
+  at += normals.size() + 3 * nv * sizeof(double) + 1;  // big-endian doubles, then '\n'
+  // The blocks of the scalars in the order written: header lines, nv values, '\n'.
+  const std::string leeway_header = "SCALARS leeway float 1\nLOOKUP_TABLE default\n";
+  const std::string safe_header = "SCALARS safe unsigned_char 1\nLOOKUP_TABLE default\n";
+  const std::string region_header = "SCALARS region int 1\nLOOKUP_TABLE default\n";
+  const size_t leeway_at = at;
+  ASSERT_EQ(text.substr(leeway_at, leeway_header.size()), leeway_header);
+  const size_t safe_at = leeway_at + leeway_header.size() + 4 * nv + 1;
+  ASSERT_EQ(text.substr(safe_at, safe_header.size()), safe_header);
+  const size_t region_at = safe_at + safe_header.size() + nv + 1;
+  ASSERT_EQ(text.substr(region_at, region_header.size()), region_header);
+  const size_t rest_at = region_at + region_header.size() + 4 * nv + 1;
+  ASSERT_EQ(text.compare(rest_at, 16, "SCALARS extrusio"), 0);
+  // The first leeway value, big-endian float: the mesh's first vertex's.
+  uint32_t bits = 0;
+  for (size_t b = 0; b < 4; ++b) {
+    bits = bits << 8 | uint8_t(text[leeway_at + leeway_header.size() + b]);
+  }
+  float first = 0.0f;
+  std::memcpy(&first, &bits, 4);
+  EXPECT_EQ(first, g.leeway[0]);
+  int64_t leeway_between = 0;  // a leeway strictly between 0 and 1 somewhere: the values matter
+  for (const float x : g.leeway) leeway_between += x > 0.0f && x < 1.0f ? 1 : 0;
+  EXPECT_GT(leeway_between, 0);
+
+  const std::string earlier = text.substr(0, leeway_at) + text.substr(safe_at, rest_at - safe_at) +
+                              text.substr(leeway_at, safe_at - leeway_at) + text.substr(rest_at);
+  ASSERT_EQ(earlier.size(), text.size());
+  const std::string earlier_path = (dir_ / "earlier.vtk").string();
+  std::ofstream(earlier_path, std::ios::binary) << earlier;
+  for (const std::string& p : {path, earlier_path}) {
+    SCOPED_TRACE(p);
+    const AreaSafetyGeometry r = read_area_safety_vtk(p);
+    EXPECT_EQ(r.safe, g.safe);
+    EXPECT_EQ(r.region, g.region);
+    EXPECT_EQ(r.leeway, g.leeway);
+    ASSERT_EQ(r.extrusion.size(), nv);
+    for (size_t v = 0; v < nv; ++v) ASSERT_EQ(r.extrusion[v], g.extrusion[v]) << v;
+  }
+}
+
 TEST_F(AreaSafetyFiles, ReadingSomethingElseNamesTheFile) {
   const std::string path = (dir_ / "bad.vtk").string();
   std::ofstream(path) << "# vtk DataFile Version 3.0\nx\nASCII\nDATASET POLYDATA\nPOINTS 3 "
@@ -736,6 +801,12 @@ TEST_F(AreaSafetyFiles, PlanWhoseScanEndsOnOneSideStopsExtrusionsTowardItNotSafe
   }
   EXPECT_GT(toward, 0);
   EXPECT_GT(along, 0);
+  // The classes for 3D Slicer: the region beyond the scan is the unknown segment, never safe.
+  const std::array<int64_t, 4> classes =
+      test::expect_classes_segmentation_matches_plan(dir_ / "plan", "svv");
+  EXPECT_EQ(classes[3], plan["scan_coverage"]["unknown_voxels"].get<int64_t>());
+  EXPECT_GT(classes[3], 0);
+  EXPECT_GT(classes[0], 0);
 }
 
 TEST_F(AreaSafetyFiles, PlanWritesAreaSafetyAndTheAreaCommandRuns) {

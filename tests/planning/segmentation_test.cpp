@@ -1,20 +1,30 @@
-// Tests of 3D Slicer segmentations (planning/imaging/segmentation.hpp) and of matching their
-// segment names to vulnerability tables (planning/preprocessing/segment_matching.hpp). The
-// .seg.nrrd files are written here by hand, header text + raw voxels, in the layout 3D Slicer
-// writes (a 'list' axis first for several layers).
+// Tests of 3D Slicer segmentations (planning/imaging/segmentation.hpp), of matching their segment
+// names to vulnerability tables (planning/preprocessing/segment_matching.hpp) and of writing path
+// safety classes as one (planning/safety/safety_classes.hpp class_labels). The .seg.nrrd files read
+// are written here by hand, header text + raw voxels, in the layout 3D Slicer writes (a 'list'
+// axis first for several layers).
 #include "planning/imaging/segmentation.hpp"
 
 #include <gtest/gtest.h>
 
+#include <Eigen/Geometry>
+#include <array>
+#include <cmath>
 #include <cstdint>
+#include <filesystem>
 #include <fstream>
 #include <functional>
+#include <limits>
+#include <sstream>
 #include <string>
 #include <vector>
 
 #include "planning/preprocessing/blocking.hpp"
 #include "planning/preprocessing/label_maps.hpp"
 #include "planning/preprocessing/segment_matching.hpp"
+#include "planning/safety/safety_classes.hpp"
+#include "planning/safety/unknown.hpp"
+#include "planning/views/palette.hpp"
 #include "tests/support/errors.hpp"
 #include "tests/support/temporary_folder.hpp"
 
@@ -302,6 +312,189 @@ TEST(SegmentMatching, LayersCombineWithTheHigherLevelWinning) {
   const Volume<float> b = blocking_from_labels(combined.labels, combined.table, margin, "combined");
   const Volume<float> b0 = blocking_from_labels(seg.layers[0], tables[0], margin, "layer 0");
   EXPECT_EQ(b.values(), b0.values());
+}
+
+// --- Writing: path safety classes as a segmentation --------------------------------------------
+
+// The classes' segments as the plan writes them: default palette, unknown grey.
+std::vector<SegmentSpec> class_specs() {
+  const std::array<Rgb, 3> c = class_colours(Palette::kDefault);
+  const auto unit = [](const Rgb& rgb) {
+    return std::array<double, 3>{rgb[0] / 255.0, rgb[1] / 255.0, rgb[2] / 255.0};
+  };
+  return {{"safe", "safe", 1, unit(c[0])},
+          {"medium", "medium", 2, unit(c[1])},
+          {"dangerous", "dangerous", 3, unit(c[2])},
+          {"unknown", "unknown", 4, {0.5, 0.5, 0.5}}};
+}
+
+// A grid with nothing aligned: anisotropic spacing, an offset origin, a rotated direction.
+ImageGeometry oblique_grid() {
+  ImageGeometry g;
+  g.dims = {7, 6, 5};
+  g.spacing = Eigen::Vector3d(0.8, 1.25, 2.0);
+  g.origin = Eigen::Vector3d(-31.5, 12.25, 7.0);
+  g.direction = Eigen::AngleAxisd(0.4, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  return g;
+}
+
+// The header text of an attached-data NRRD file: everything before the blank line.
+std::string nrrd_header(const std::string& path) {
+  std::stringstream all;
+  all << std::ifstream(path, std::ios::binary).rdbuf();
+  const std::string text = all.str();
+  return text.substr(0, text.find("\n\n") + 1);
+}
+
+// One value's class thresholds and nine samples on both sides of each threshold, NaN among them.
+struct ValueCase {
+  const char* name;
+  SafetyClasses classes;
+  std::array<float, 9> samples;
+  float safest;  // a value that would be safe
+};
+
+// The definition (docs/ARCHITECTURE.md §4): unknown (4) where the voxel state is unknown, whatever
+// the value; no class (0) for NaN; else 1 safe, 2 medium, 3 dangerous by the thresholds.
+int expected_label(float value, uint8_t state, const SafetyClasses& c) {
+  if (state == kRegionUnknown) return 4;
+  if (std::isnan(value)) return 0;
+  if (c.higher_is_safer) return value >= c.safe ? 1 : (value < c.dangerous ? 3 : 2);
+  return value <= c.safe ? 1 : (value > c.dangerous ? 3 : 2);
+}
+
+TEST(SegmentationWriting, PathSafetyClassesReadBackVoxelForVoxel) {
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  const ValueCase cases[] = {{"svv",
+                              {true, 90.0, 50.0},
+                              {nan, 0.0f, 49.99f, 50.0f, 50.01f, 89.99f, 90.0f, 90.01f, 100.0f},
+                              100.0f},
+                             {"bvv",
+                              {false, 2.5, 7.25},
+                              {nan, 0.0f, 2.49f, 2.5f, 2.51f, 7.24f, 7.25f, 7.26f, 1e6f},
+                              0.0f}};
+  const ImageGeometry g = oblique_grid();
+  for (const ValueCase& vc : cases) {
+    SCOPED_TRACE(vc.name);
+    // Samples cycled over the voxels; the last slice (k = 4) is outside the scan: unknown, NaN but
+    // for one voxel that holds the safest value (unknown all the same). NaN elsewhere: outside the
+    // region of interest.
+    Volume<float> values(g, nan);
+    Volume<uint8_t> region(g, kRegionNotComputed);
+    for (int k = 0; k < 5; ++k) {
+      for (int j = 0; j < 6; ++j) {
+        for (int i = 0; i < 7; ++i) {
+          if (k == 4) {
+            region(i, j, k) = kRegionUnknown;
+            values(i, j, k) = i == 0 && j == 0 ? vc.safest : nan;
+          } else {
+            values(i, j, k) = vc.samples[size_t((i + 2 * j + 3 * k) % 9)];
+            region(i, j, k) = std::isnan(values(i, j, k)) ? kRegionNotComputed : kRegionComputed;
+          }
+        }
+      }
+    }
+    test::TemporaryFolder dir;
+    const std::string path = dir.file(std::string("path_safety_") + vc.name + "_classes.seg.nrrd");
+    write_segmentation(path, class_labels(values, vc.classes, region), class_specs());
+
+    const Segmentation seg = read_segmentation(path);
+    ASSERT_EQ(seg.layers.size(), 1u);
+    ASSERT_EQ(seg.segments.size(), 4u);
+    const std::vector<SegmentSpec> specs = class_specs();
+    for (size_t n = 0; n < 4; ++n) {
+      const Segment& s = seg.segments[n];
+      EXPECT_EQ(s.id, specs[n].id);
+      EXPECT_EQ(s.name, specs[n].name);
+      EXPECT_EQ(s.label_value, int(n) + 1);
+      EXPECT_EQ(s.layer, 0);
+      ASSERT_TRUE(s.colour.has_value()) << s.name;
+      for (size_t c = 0; c < 3; ++c) EXPECT_EQ((*s.colour)[c], specs[n].colour[c]) << s.name;
+    }
+    // Green 200/255, grey 0.5: the colours as Slicer reads them, 0..1.
+    EXPECT_NEAR((*seg.segments[0].colour)[1], 200.0 / 255.0, 1e-15);
+    EXPECT_EQ(*seg.segments[3].colour, (std::array<double, 3>{0.5, 0.5, 0.5}));
+
+    const ImageGeometry& r = seg.geometry();
+    EXPECT_EQ(r.dims, g.dims);
+    EXPECT_LT((r.origin - g.origin).cwiseAbs().maxCoeff(), 1e-9) << r.origin.transpose();
+    EXPECT_LT((r.spacing - g.spacing).cwiseAbs().maxCoeff(), 1e-9) << r.spacing.transpose();
+    EXPECT_LT((r.direction - g.direction).cwiseAbs().maxCoeff(), 1e-9) << r.direction;
+
+    // Each segment holds exactly its class's voxels; every class occurs, unknown on the last
+    // slice only (30 voxels, the safest value among them), no class where NaN.
+    std::array<int64_t, 5> voxels{};
+    for (int64_t v = 0; v < g.voxel_count(); ++v) {
+      ++voxels[size_t(expected_label(values[v], region[v], vc.classes))];
+    }
+    for (size_t n = 0; n < 4; ++n) {
+      const Volume<uint8_t> mask = seg.segment_mask(seg.segments[n]);
+      int64_t differing = 0, inside = 0;
+      for (int64_t v = 0; v < g.voxel_count(); ++v) {
+        const bool expected = expected_label(values[v], region[v], vc.classes) == int(n) + 1;
+        differing += (mask[v] != 0) != expected ? 1 : 0;
+        inside += mask[v];
+      }
+      EXPECT_EQ(differing, 0) << seg.segments[n].name;
+      EXPECT_EQ(inside, voxels[n + 1]) << seg.segments[n].name;
+      EXPECT_GT(inside, 0) << seg.segments[n].name;
+    }
+    EXPECT_EQ(voxels[4], 7 * 6);
+    EXPECT_EQ(seg.layers[0](0, 0, 4), 4);  // the safest value outside the scan: unknown
+    EXPECT_GT(voxels[0], 0);
+
+    // The header keys 3D Slicer writes, LPS, gzip.
+    const std::string header = nrrd_header(path);
+    for (const char* line :
+         {"type: unsigned char\n", "dimension: 3\n", "space: left-posterior-superior\n",
+          "sizes: 7 6 5\n", "kinds: domain domain domain\n", "encoding: gzip\n",
+          "Segmentation_MasterRepresentation:=Binary labelmap\n",
+          "Segmentation_ContainedRepresentationNames:=Binary labelmap|\n",
+          "Segmentation_ReferenceImageExtentOffset:=0 0 0\n", "Segment0_ID:=safe\n",
+          "Segment1_Name:=medium\n", "Segment2_LabelValue:=3\n", "Segment3_Layer:=0\n",
+          "Segment3_Color:=0.5 0.5 0.5\n", "Segment3_Extent:=0 6 0 5 0 4\n",
+          "Segment0_NameAutoGenerated:=0\n", "Segment0_ColorAutoGenerated:=0\n"}) {
+      EXPECT_NE(header.find(line), std::string::npos) << line << "in\n" << header;
+    }
+    EXPECT_EQ(std::distance(std::filesystem::directory_iterator(dir.path()),
+                            std::filesystem::directory_iterator()),
+              1);  // no temporary left beside it
+  }
+}
+
+TEST(SegmentationWriting, BadSegmentsAndVoxelsAreRefusedNamingTheFile) {
+  test::TemporaryFolder dir;
+  Volume<uint8_t> labels(oblique_grid(), 0);
+  labels(1, 2, 3) = 2;
+  const std::string path = dir.file("classes.seg.nrrd");
+  expect_error_containing(
+      [&] { write_segmentation(dir.file("classes.nrrd"), labels, class_specs()); },
+      {"classes.nrrd", "ending in .seg.nrrd"});
+  std::vector<SegmentSpec> specs = class_specs();
+  specs[3].label_value = 2;
+  expect_error_containing([&] { write_segmentation(path, labels, specs); },
+                          {path, "segment 3 'unknown'", "label value 2", "as segment 1"});
+  specs = class_specs();
+  specs[1].id = "safe";
+  expect_error_containing([&] { write_segmentation(path, labels, specs); },
+                          {path, "segment 1 'medium'", "ID 'safe'"});
+  specs = class_specs();
+  specs[0].colour[1] = 200.0;  // 0..255 instead of 0..1
+  expect_error_containing([&] { write_segmentation(path, labels, specs); },
+                          {path, "segment 0 'safe'", "200", "[0, 1]"});
+  labels(0, 0, 0) = 9;
+  expect_error_containing([&] { write_segmentation(path, labels, class_specs()); },
+                          {path, "1 voxels hold the value 9", "no segment declares"});
+  EXPECT_FALSE(std::filesystem::exists(path));
+  // Voxel states on another grid than the values are refused.
+  ImageGeometry other = oblique_grid();
+  other.dims[2] = 4;
+  expect_error_containing(
+      [&] {
+        class_labels(Volume<float>(oblique_grid(), 1.0f), SafetyClasses{},
+                     Volume<uint8_t>(other, kRegionComputed));
+      },
+      {"another grid"});
 }
 
 }  // namespace

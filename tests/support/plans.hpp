@@ -2,6 +2,8 @@
 // request.
 #pragma once
 
+#include <array>
+#include <cstdint>
 #include <filesystem>
 #include <string>
 
@@ -43,5 +45,20 @@ void write_fat_and_vessel_table(const std::string& path);
 // only, fast mode, R = 100 mm, on the CPU, into `out_dir`.
 pipelines::PlanRequest phantom_plan_request(const std::filesystem::path& phantom_dir,
                                             const std::string& out_dir);
+
+// The class of a plan's voxel by the definition (docs/ARCHITECTURE.md §4): 4 unknown where
+// `state` (roi.nii.gz) is 2, else 0 (no class) where it is not 1, else 1 safe, 2 medium or 3
+// dangerous by `thresholds` (plan.json "classes" of the value: higher_is_safer, safe, dangerous).
+int expected_class_label(double value, uint8_t state, bool higher_is_safer, double safe,
+                         double dangerous);
+
+// Checks PLAN_DIR/path_safety_<value>_classes.seg.nrrd against the plan's path safety volume,
+// roi.nii.gz and the thresholds plan.json states for `value` (GoogleTest failures): named in
+// plan.json "outputs" as "<value>_classes", on the volume's grid, segments safe, medium,
+// dangerous, unknown with label values 1 to 4 in layer 0 and the default palette's colours
+// (unknown grey), each segment exactly the voxels expected_class_label gives it. Returns the
+// voxels of each segment (safe, medium, dangerous, unknown).
+std::array<int64_t, 4> expect_classes_segmentation_matches_plan(
+    const std::filesystem::path& plan_dir, const std::string& value);
 
 }  // namespace crepuscular::test
