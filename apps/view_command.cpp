@@ -16,10 +16,10 @@ void add_view_command(CLI::App& app) {
   for (const auto& k : pipelines::viewer_key_help()) keys += "  " + k + "\n";
   CLI::App* cmd = app.add_subcommand(
       "view",
-      "Look at a plan in a window: the 3D view (the path safety volume rendered directly, green\n"
-      "safe, yellow medium, red dangerous, grey unknown where the scan does not reach; skin,\n"
-      "bone, tumor and structures as translucent surfaces) and axial, coronal and sagittal\n"
-      "slices drawn as `crepuscular slices` draws them. Click on the skin to try an entry: the\n"
+      "Look at a plan in a window, in 3D and in slices, and try entry points on it: the 3D view\n"
+      "(the path safety volume rendered directly, green safe, yellow medium, red dangerous, grey\n"
+      "unknown where the scan does not reach; skin, bone, tumor and structures as translucent\n"
+      "surfaces) and axial, coronal and sagittal slices drawn as `crepuscular slices` draws them. Click on the skin to try an entry: the\n"
       "path to the tumor centre is drawn in every panel and evaluated as `crepuscular evaluate`\n"
       "does (line integral, structures crossed with depth, class, relative area safety); M\n"
       "saves it as a 3D Slicer line markup beside the plan (PLAN-trajectory-NN.mrk.json), P a\n"

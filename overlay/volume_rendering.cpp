@@ -88,10 +88,10 @@ void main() {
   }
   if (!(t_out > t_in)) return;
   int n = min(int(ceil((t_out - t_in) / step_mm)), max_steps);
-  // Empty-space leaping: a voxel `g` (Chebyshev, in voxels) away from any classified voxel and any
-  // anatomy surface lets the samples whose positions move less than g - 1 voxels per axis be
-  // passed over: they all fall in unclassified voxels of one kind (the CPU reference takes them
-  // and finds nothing there).
+  // Empty-space leaping: a voxel `g` (Chebyshev, in voxels) away from any voxel of a shown class
+  // and any anatomy surface lets the samples whose positions move less than g - 1 voxels per axis
+  // be passed over: they all fall in voxels of no shown class, of one kind (the CPU reference takes
+  // them and adds nothing there).
   float reach = max(abs(D.x), max(abs(D.y), abs(D.z))) * step_mm;
   vec3 C = vec3(0.0);
   float A = 0.0;
@@ -117,11 +117,11 @@ void main() {
       }
     }
     int c = int(cg.r);
-    if (c == 0) {
+    if (c == 0 || opacity[c] <= 0.0) {  // nothing shown here: leap as far as nothing is shown
       i += 1 + max(0, int(floor((float(cg.g) - 1.01) / reach)));
       continue;
     }
-    if (opacity[c] > 0.0) {
+    {
       vec4 s = i < n - 1 ? full_step[c] : vec4(colour[c], 1.0) * (1.0 - exp(-opacity[c] * dt));
       C += (1.0 - A) * s.rgb;
       A += (1.0 - A) * s.a;
@@ -174,25 +174,30 @@ void validate_options(const VolumeRenderingOptions& o) {
 // class: every voxel closer than that to it (in each index) has none. Separable: exact 1D distance
 // along i, then min over j' of max(|j - j'|, g(j')), then the same along k.
 constexpr int kMaxLeap = 32;
-// Voxels that stop a leap: those with a class, and those with a 6-neighbour of another anatomy
-// kind (a ray crossing into another kind passes one of them).
+// Voxels that stop a leap: those of a shown class (bit c of `shown`), and those with a
+// 6-neighbour of another anatomy kind (a ray crossing into another kind passes one of them).
 std::vector<uint8_t> empty_distance(const planning::Index3& dims, const std::vector<uint8_t>& classes,
-                                    const std::vector<uint8_t>& kinds) {
+                                    const std::vector<uint8_t>& kinds, unsigned shown) {
   const int64_t nx = dims[0], ny = dims[1], nz = dims[2];
   std::vector<uint8_t> g(classes.size());
-  for (size_t v = 0; v < classes.size(); ++v) g[v] = classes[v] ? 0 : kMaxLeap;
+#pragma omp parallel for schedule(static)
+  for (size_t v = 0; v < classes.size(); ++v) {
+    g[v] = classes[v] && ((shown >> classes[v]) & 1u) ? 0 : kMaxLeap;
+  }
   if (!kinds.empty()) {
     const int64_t strides[3] = {1, nx, nx * ny};
     const int64_t n[3] = {nx, ny, nz};
+    // Each voxel marks itself where a neighbour differs (both sides of a face mark themselves).
+#pragma omp parallel for schedule(static)
     for (int64_t k = 0; k < nz; ++k) {
       for (int64_t j = 0; j < ny; ++j) {
         for (int64_t i = 0; i < nx; ++i) {
           const int64_t v = i + nx * (j + ny * k);
           const int64_t at[3] = {i, j, k};
           for (int a = 0; a < 3 && g[size_t(v)]; ++a) {
-            if (at[a] + 1 < n[a] && kinds[size_t(v + strides[a])] != kinds[size_t(v)]) {
+            if ((at[a] + 1 < n[a] && kinds[size_t(v + strides[a])] != kinds[size_t(v)]) ||
+                (at[a] > 0 && kinds[size_t(v - strides[a])] != kinds[size_t(v)])) {
               g[size_t(v)] = 0;
-              g[size_t(v + strides[a])] = 0;
             }
           }
         }
@@ -201,8 +206,9 @@ std::vector<uint8_t> empty_distance(const planning::Index3& dims, const std::vec
   }
   // One pass along an axis: g(x) <- min over x' of max(|x - x'|, g(x')), within kMaxLeap.
   const auto pass = [&](int64_t n, int64_t stride, int64_t lines, auto&& line_start) {
-    std::vector<uint8_t> in(size_t(n), 0);
+#pragma omp parallel for schedule(static)
     for (int64_t l = 0; l < lines; ++l) {
+      std::vector<uint8_t> in(size_t(n), 0);
       const int64_t start = line_start(l);
       for (int64_t x = 0; x < n; ++x) in[size_t(x)] = g[size_t(start + x * stride)];
       for (int64_t x = 0; x < n; ++x) {
@@ -310,9 +316,12 @@ struct SafetyVolumeRendering::Gl {
   // in voxels to the nearest classified voxel) and the ray texture, in the current context.
   // Throws Error when the grid exceeds the 3D texture limit or a program does not link; the
   // caller checks glGetError.
-  static std::unique_ptr<Gl> create(const planning::Index3& dims,
-                                    const std::vector<uint8_t>& voxel_classes,
-                                    const std::vector<uint8_t>& voxel_kinds);
+  static std::unique_ptr<Gl> create(const planning::Index3& dims);
+  // (Re)fills the class texture: per voxel its class, its leap distance for the classes shown
+  // (bit c of `shown`; the march leaps over hidden classes), its anatomy kind.
+  void upload(const planning::Index3& dims, const std::vector<uint8_t>& voxel_classes,
+              const std::vector<uint8_t>& voxel_kinds, unsigned shown);
+  unsigned uploaded_shown = ~0u;  // the `shown` of the texture's leap distances (~0: none yet)
   // Re-makes the per-pixel rays of the width x height grid the rays are cast on (the image, or
   // its reduced version whose pixel centres map to image positions by the size ratio) when the
   // camera or that size changed.
@@ -332,8 +341,7 @@ struct SafetyVolumeRendering::Gl {
 };
 
 std::unique_ptr<SafetyVolumeRendering::Gl> SafetyVolumeRendering::Gl::create(
-    const planning::Index3& dims, const std::vector<uint8_t>& voxel_classes,
-    const std::vector<uint8_t>& voxel_kinds) {
+    const planning::Index3& dims) {
   auto gl = std::make_unique<Gl>();
   GLint max_size = 0;
   glGetIntegerv(GL_MAX_3D_TEXTURE_SIZE, &max_size);
@@ -351,22 +359,30 @@ std::unique_ptr<SafetyVolumeRendering::Gl> SafetyVolumeRendering::Gl::create(
   glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
   glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
   glTexParameteri(GL_TEXTURE_3D, GL_TEXTURE_MAX_LEVEL, 0);
-  glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
-  const std::vector<uint8_t> distance = empty_distance(dims, voxel_classes, voxel_kinds);
-  std::vector<uint8_t> texels(voxel_classes.size() * 4, 0);
-  for (size_t v = 0; v < voxel_classes.size(); ++v) {
-    texels[4 * v] = voxel_classes[v];
-    texels[4 * v + 1] = distance[v];
-    texels[4 * v + 2] = voxel_kinds.empty() ? 0 : voxel_kinds[v];
-  }
-  glTexImage3D(GL_TEXTURE_3D, 0, GL_RGBA8UI, GLsizei(dims[0]), GLsizei(dims[1]),
-               GLsizei(dims[2]), 0, GL_RGBA_INTEGER, GL_UNSIGNED_BYTE, texels.data());
   glGenTextures(1, &gl->ray_texture);
   glBindTexture(GL_TEXTURE_2D, gl->ray_texture);
   glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MIN_FILTER, GL_NEAREST);
   glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAG_FILTER, GL_NEAREST);
   glTexParameteri(GL_TEXTURE_2D, GL_TEXTURE_MAX_LEVEL, 0);
   return gl;
+}
+
+void SafetyVolumeRendering::Gl::upload(const planning::Index3& dims,
+                                       const std::vector<uint8_t>& voxel_classes,
+                                       const std::vector<uint8_t>& voxel_kinds, unsigned shown) {
+  const std::vector<uint8_t> distance = empty_distance(dims, voxel_classes, voxel_kinds, shown);
+  std::vector<uint8_t> texels(voxel_classes.size() * 4, 0);
+#pragma omp parallel for schedule(static)
+  for (size_t v = 0; v < voxel_classes.size(); ++v) {
+    texels[4 * v] = voxel_classes[v];
+    texels[4 * v + 1] = distance[v];
+    texels[4 * v + 2] = voxel_kinds.empty() ? 0 : voxel_kinds[v];
+  }
+  glBindTexture(GL_TEXTURE_3D, class_texture);
+  glPixelStorei(GL_UNPACK_ALIGNMENT, 1);
+  glTexImage3D(GL_TEXTURE_3D, 0, GL_RGBA8UI, GLsizei(dims[0]), GLsizei(dims[1]),
+               GLsizei(dims[2]), 0, GL_RGBA_INTEGER, GL_UNSIGNED_BYTE, texels.data());
+  uploaded_shown = shown;
 }
 
 void SafetyVolumeRendering::Gl::update_rays(const DrawContext& context, int width, int height) {
@@ -501,11 +517,15 @@ SafetyVolumeRendering::SafetyVolumeRendering(const planning::Volume<float>& path
     surfaces_ = context->surfaces;
   }
   voxel_classes_.resize(size_t(path_safety.voxel_count()));
-  Eigen::Vector3i lo(std::numeric_limits<int>::max(), std::numeric_limits<int>::max(),
-                     std::numeric_limits<int>::max());
-  Eigen::Vector3i hi(-1, -1, -1);
   const auto& dims = geometry_.dims;
+  // Per slice k: the box of its voxels with a class or a kind (combined below).
+  std::vector<Eigen::Vector3i> slice_lo(size_t(dims[2]), Eigen::Vector3i::Constant(
+                                                             std::numeric_limits<int>::max())),
+      slice_hi(size_t(dims[2]), Eigen::Vector3i::Constant(-1));
+#pragma omp parallel for schedule(dynamic, 4)
   for (int64_t k = 0; k < dims[2]; ++k) {
+    Eigen::Vector3i& lo = slice_lo[size_t(k)];
+    Eigen::Vector3i& hi = slice_hi[size_t(k)];
     for (int64_t j = 0; j < dims[1]; ++j) {
       for (int64_t i = 0; i < dims[0]; ++i) {
         const int64_t offset = geometry_.offset(i, j, k);
@@ -525,6 +545,12 @@ SafetyVolumeRendering::SafetyVolumeRendering(const planning::Volume<float>& path
         voxel_classes_[size_t(offset)] = c;
       }
     }
+  }
+  Eigen::Vector3i lo = Eigen::Vector3i::Constant(std::numeric_limits<int>::max());
+  Eigen::Vector3i hi = Eigen::Vector3i::Constant(-1);
+  for (int64_t k = 0; k < dims[2]; ++k) {
+    lo = lo.cwiseMin(slice_lo[size_t(k)]);
+    hi = hi.cwiseMax(slice_hi[size_t(k)]);
   }
   // Voxel centres are at integer indices: voxel (i,j,k) covers [i-0.5, i+0.5] etc.
   box_lo_ = lo.cast<float>() - Eigen::Vector3f::Constant(0.5f);
@@ -668,8 +694,15 @@ void SafetyVolumeRendering::draw(const DrawContext& context) {
   // The objects are lost with their context (e.g. a renderer made anew): make them again.
   if (gl_ && (!glIsProgram(gl_->march_program) || !glIsTexture(gl_->class_texture))) gl_.reset();
   if (!gl_) {
-    gl_ = Gl::create(geometry_.dims, voxel_classes_, voxel_kinds_);
-    throw_on_gl_error("while creating the class texture");
+    gl_ = Gl::create(geometry_.dims);
+  }
+  // The leap distances follow the classes shown.
+  unsigned shown = 0;
+  const auto looks = class_looks(options_);
+  for (int c = 1; c < kClassCount; ++c) shown |= looks[size_t(c)].opacity > 0 ? 1u << c : 0u;
+  if (gl_->uploaded_shown != shown) {
+    gl_->upload(geometry_.dims, voxel_classes_, voxel_kinds_, shown);
+    throw_on_gl_error("while filling the class texture");
   }
   if (box_lo_.x() > box_hi_.x()) return;  // nothing classified: nothing to draw
 

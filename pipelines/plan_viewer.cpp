@@ -52,13 +52,12 @@ cv::Scalar class_bgr(const std::string& safety_class, planning::Palette palette)
 
 // Text lines on a translucent dark panel (BGRA).
 cv::Mat text_panel(const std::vector<std::string>& lines, int width, double scale = 0.45,
-                   const std::vector<cv::Scalar>& colours = {}) {
+                   int alpha = 190) {
   const int line = int(std::lround(40 * scale));
-  cv::Mat panel(int(lines.size()) * line + line / 2, width, CV_8UC4, cv::Scalar(20, 20, 20, 190));
+  cv::Mat panel(int(lines.size()) * line + line / 2, width, CV_8UC4, cv::Scalar(20, 20, 20, alpha));
   for (size_t i = 0; i < lines.size(); ++i) {
-    const cv::Scalar c = i < colours.size() ? colours[i] : cv::Scalar(235, 235, 235, 255);
     cv::putText(panel, lines[i], {8, int(i + 1) * line - line / 4}, cv::FONT_HERSHEY_SIMPLEX,
-                scale, cv::Scalar(c[0], c[1], c[2], 255), 1, cv::LINE_AA);
+                scale, cv::Scalar(235, 235, 235, 255), 1, cv::LINE_AA);
   }
   return panel;
 }
@@ -93,7 +92,7 @@ const std::vector<std::string>& viewer_key_help() {
       "Shift+click          target of the trial path",
       "Backspace            clear the trial path",
       "M                    save the trial path as a Slicer line markup",
-      "P                    save a picture of the window",
+      "P                    save a picture of the window;  E: hide/show the evaluation",
       "drag in 3D / arrows  rotate;  wheel in 3D: zoom",
       "wheel on a slice     move its plane;  drag on a slice: move the other planes there",
       "Tab                  next path safety value",
@@ -500,6 +499,7 @@ void PlanViewer::handle(const overlay::InputEvent& e) {
     case 'M': save_markup(); break;
     case 'P': save_picture(); break;
     case 'H': help_ = !help_; dirty_ = true; break;
+    case 'E': show_evaluation_ = !show_evaluation_; dirty_ = true; break;
     default: break;
   }
   if (options_changed) {
@@ -598,11 +598,11 @@ void PlanViewer::update_layers() {
       y += help.rows;
     }
   }
-  if (evaluation_) {
+  if (evaluation_ && show_evaluation_) {
     std::vector<std::string> lines = split_lines(evaluation_text());
     const int max_lines = std::max(1, (host.y + host.height - y) / 16 - 1);
     if (int(lines.size()) > max_lines) lines.resize(size_t(max_lines));
-    const cv::Mat eval = text_panel(lines, width, 0.4);
+    const cv::Mat eval = text_panel(lines, width, 0.38, 140);
     const int at = std::max(y, host.y + host.height - eval.rows);
     if (at + eval.rows <= options_.height) r.add_layer_image("text", eval, {host.x, at}, 0);
   }

@@ -132,7 +132,7 @@ class PlanViewer {
   Eigen::Vector3d target_ = Eigen::Vector3d::Zero();
   std::optional<planning::TrajectoryEvaluation> evaluation_;
   std::string saved_markup_, saved_picture_;
-  bool help_ = false;
+  bool help_ = false, show_evaluation_ = true;
   bool dirty_ = true;
   bool moving_ = false, drawn_once_ = false;
   Eigen::Isometry3d drawn_pose_ = Eigen::Isometry3d::Identity();

@@ -11,9 +11,9 @@
 namespace crepuscular {
 namespace {
 
-const std::set<std::string> kCommands = {"phantom", "plan",  "area",      "slices",
-                                         "evaluate", "synth", "record",    "track",
-                                         "calibrate", "register", "guide", "demo"};
+const std::set<std::string> kCommands = {"phantom",  "plan",      "area",     "slices", "view",
+                                         "render",   "evaluate",  "synth",    "record", "track",
+                                         "calibrate", "register", "guide",    "demo"};
 
 TEST(Help, TopLevelListsEachCommandInOneLine) {
   std::string out;
