@@ -65,7 +65,8 @@ int main(int argc, char** argv) {
     nlohmann::json j;
     const auto t0 = std::chrono::steady_clock::now();
     auto t = t0;
-    const pipelines::ViewInputs inputs = pipelines::load_view_inputs(plan, ct, "", {}, "", false);
+    pipelines::ViewStart start = pipelines::start_view_inputs(plan, ct, "", {}, "", false);
+    const pipelines::ViewInputs& inputs = start.inputs;
     j["read_s"] = since(t);
     t = std::chrono::steady_clock::now();
     // As `view` does: every value and the blocking volume read meanwhile.
@@ -75,13 +76,20 @@ int main(int argc, char** argv) {
                                    auto p = pipelines::load_full_plan(plan, "", {});
                                    full_s = since(t_full);
                                    return p;
-                                 }));
+                                 }),
+                                 std::move(start.ct));
     j["window_and_slices_s"] = since(t);
     t = std::chrono::steady_clock::now();
     viewer.frame(true);
     viewer.renderer().finish();
     j["first_frame_s"] = since(t);
     j["first_picture_s"] = since(t0);
+    // The CT's arrival: bone in the 3D view and the slices (the frames until then show the plan).
+    while (viewer.slice(pipelines::ViewPanel::kAxial).view_width == 0 && since(t0) < 120) {
+      viewer.frame(true);
+    }
+    viewer.renderer().finish();
+    j["with_ct_s"] = since(t0);
     j["gl"] = viewer.renderer().gl_description();
     j["grid"] = {inputs.plan.grid.dims[0], inputs.plan.grid.dims[1], inputs.plan.grid.dims[2]};
     j["size"] = size;

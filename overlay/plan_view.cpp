@@ -247,6 +247,13 @@ void PlanView3D::add_values(const planning::PlanData& plan) {
   }
 }
 
+void PlanView3D::set_ct(const planning::Volume<float>* ct) {
+  ct_ = ct;
+  context_ = make_anatomy_context(plan_, ct_);
+  for (auto& [value, r] : renderings_) retired_.push_back(std::move(r));
+  renderings_.clear();
+}
+
 void PlanView3D::next_value() {
   std::vector<std::string> shown;
   for (const auto& v : plan_.values)
@@ -302,6 +309,8 @@ SafetyVolumeRendering& PlanView3D::rendering() {
 void PlanView3D::draw(const DrawContext& frame, const cv::Rect& panel,
                       const calibration::CameraModel& camera, const Eigen::Isometry3d& T_cam_ct,
                       bool software, bool moving) {
+  for (auto& old : retired_) old->release_gl();
+  retired_.clear();
   SafetyVolumeRendering& r = rendering();
   r.set_options(rendering_options(software, moving));
   r.set_pose(T_cam_ct);
@@ -351,6 +360,8 @@ std::optional<Eigen::Vector3d> PlanView3D::pick_skin(const calibration::CameraMo
 }
 
 void PlanView3D::release_gl() {
+  for (auto& old : retired_) old->release_gl();
+  retired_.clear();
   for (auto& [value, r] : renderings_) r->release_gl();
 }
 

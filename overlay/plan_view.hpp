@@ -100,6 +100,9 @@ class PlanView3D {
   // Values of another load of the same plan (on the same grid; e.g. every value, read after the
   // first picture) join those at hand. `plan` must outlive the view.
   void add_values(const planning::PlanData& plan);
+  // The CT arrived (or changed): the anatomy context is made again (bone from it) and the
+  // renderings with it, at the next draw. `ct` must outlive the view.
+  void set_ct(const planning::Volume<float>* ct);
   // The present value's volume and classes.
   const planning::Volume<float>& volume() const { return *values_.at(value_).first; }
   const planning::SafetyClasses& classes() const { return values_.at(value_).second; }
@@ -139,6 +142,8 @@ class PlanView3D {
   std::map<std::string, std::pair<const planning::Volume<float>*, planning::SafetyClasses>>
       values_;
   std::map<std::string, std::unique_ptr<SafetyVolumeRendering>> renderings_;
+  // Renderings of an earlier context, their OpenGL objects freed at the next draw.
+  std::vector<std::unique_ptr<SafetyVolumeRendering>> retired_;
 };
 
 }  // namespace crepuscular::overlay

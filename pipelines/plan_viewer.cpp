@@ -16,6 +16,7 @@
 #include "foundation/error.hpp"
 #include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
+#include "planning/imaging/scan_coverage.hpp"
 #include "planning/trajectories/markups.hpp"
 
 namespace fs = std::filesystem;
@@ -108,15 +109,16 @@ const std::vector<std::string>& viewer_key_help() {
 }
 
 PlanViewer::PlanViewer(const ViewInputs& inputs, ViewerOptions options,
-                       std::future<planning::PlanData> full)
+                       std::future<planning::PlanData> full,
+                       std::future<planning::Volume<float>> ct)
     : inputs_(inputs), options_(std::move(options)), full_future_(std::move(full)),
-      layout_(options_.layout) {
+      ct_future_(std::move(ct)), layout_(options_.layout) {
+  if (!inputs_.ct.empty()) ct_ = &inputs_.ct;
   if (options_.width < 320 || options_.height < 240) {
     throw Error(fmt::format("view: window {}x{} (expected at least 320x240)", options_.width,
                             options_.height));
   }
-  view_ = std::make_unique<overlay::PlanView3D>(inputs_.plan, inputs_.ct.empty() ? nullptr : &inputs_.ct,
-                                                options_.view);
+  view_ = std::make_unique<overlay::PlanView3D>(inputs_.plan, ct_, options_.view);
   calibration::CameraModel window_camera;
   window_camera.width = options_.width;
   window_camera.height = options_.height;
@@ -169,8 +171,8 @@ void PlanViewer::place_panels() {
       break;
   }
   // One pixel size for the three slices, the finest at which each fits its panel.
-  if (!inputs_.ct.empty() && layout_ != ViewLayout::k3d) {
-    const auto& g = inputs_.ct.geometry();
+  if (ct_ && layout_ != ViewLayout::k3d) {
+    const auto& g = ct_->geometry();
     double pixel_mm = 0;
     for (int p = 1; p < kViewPanels; ++p) {
       const planning::SlicePlane plane =
@@ -210,9 +212,9 @@ cv::Point PlanViewer::slice_origin(ViewPanel panel) const {
 }
 
 void PlanViewer::update_slices(bool all) {
-  if (inputs_.ct.empty()) return;
+  if (!ct_) return;
   planning::SliceScene scene;
-  scene.ct = &inputs_.ct;
+  scene.ct = ct_;
   const auto& plan = inputs_.plan;
   scene.path_safety = &view_->volume();
   scene.region_state = plan.region.empty() ? nullptr : &plan.region;
@@ -298,6 +300,26 @@ void PlanViewer::take_full_plan(bool wait) {
   } catch (const Error& e) {
     spdlog::error("view: {}", e.what());
   }
+}
+
+void PlanViewer::take_ct() {
+  if (!ct_future_.valid() ||
+      ct_future_.wait_for(std::chrono::seconds(0)) != std::future_status::ready) {
+    return;
+  }
+  try {
+    late_ct_ = std::make_unique<planning::Volume<float>>(ct_future_.get());
+    planning::require_overlap_with_plan(late_ct_->geometry(), inputs_.plan.grid, inputs_.ct_path,
+                                        "the CT");
+    ct_ = late_ct_.get();
+    view_->set_ct(ct_);
+    place_panels();
+  } catch (const Error& e) {
+    late_ct_.reset();
+    ct_problem_ = e.what();
+    spdlog::error("view: {}", ct_problem_);
+  }
+  dirty_ = true;
 }
 
 void PlanViewer::set_entry(const Eigen::Vector3d& entry) {
@@ -583,6 +605,8 @@ void PlanViewer::update_layers() {
   std::vector<std::string> status = {fmt::format(
       "{}  |  hidden: {}  |  {}  |  H: keys", view_->value(), hidden.empty() ? "none" : hidden,
       o.palette == planning::Palette::kColorblind ? "colour-blind palette" : "default palette")};
+  if (ct_future_.valid()) status.push_back("reading the CT " + inputs_.ct_path + " ...");
+  if (!ct_problem_.empty()) status.push_back("no CT: " + ct_problem_);
   if (!saved_markup_.empty()) status.push_back("saved " + saved_markup_);
   if (!saved_picture_.empty()) status.push_back("saved " + saved_picture_);
   if (full_) {
@@ -610,6 +634,7 @@ void PlanViewer::update_layers() {
 
 bool PlanViewer::frame(bool force) {
   take_full_plan(false);
+  take_ct();
   for (const auto& e : renderer_->poll_events()) handle(e);
   if (!open_ || !renderer_->window_open()) return false;
   if (!dirty_ && !force) {
@@ -635,11 +660,12 @@ cv::Mat PlanViewer::picture() {
 
 void run_view(const ViewRequest& req) {
   const auto t0 = std::chrono::steady_clock::now();
-  const ViewInputs inputs = load_view_inputs(req.plan_dir, req.ct, req.labels, req.series,
-                                            req.options.view.value, false);
-  PlanViewer viewer(inputs, req.options,
+  ViewStart start = start_view_inputs(req.plan_dir, req.ct, req.labels, req.series,
+                                     req.options.view.value, false);
+  PlanViewer viewer(start.inputs, req.options,
                     std::async(std::launch::async, load_full_plan, req.plan_dir, req.labels,
-                               req.series));
+                               req.series),
+                    std::move(start.ct));
   viewer.frame(true);
   spdlog::info("view: first picture after {:.2f} s; H lists the keys, Esc quits",
                std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());

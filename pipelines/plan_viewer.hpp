@@ -51,8 +51,10 @@ class PlanViewer {
   // when no OpenGL context can be made or the plan cannot be shown. `full`: the plan with every
   // value and its blocking volume, for the other values and for evaluating paths (read meanwhile;
   // the first path waits for it).
+  // `ct`: the CT still being read, when inputs.ct is empty (the slices and the bone follow it).
   PlanViewer(const ViewInputs& inputs, ViewerOptions options,
-             std::future<planning::PlanData> full);
+             std::future<planning::PlanData> full,
+             std::future<planning::Volume<float>> ct = {});
   ~PlanViewer();
   PlanViewer(const PlanViewer&) = delete;
   PlanViewer& operator=(const PlanViewer&) = delete;
@@ -107,6 +109,8 @@ class PlanViewer {
   void evaluate();
   // Takes up the full plan once it has been read (`wait`: until then).
   void take_full_plan(bool wait);
+  // Takes up the CT once it has been read.
+  void take_ct();
   std::optional<ViewPanel> panel_at(double x, double y) const;
   // The LPS point under window pixel (x, y) of a panel: on the slice's plane, or, in the 3D panel,
   // where the ray first meets the body.
@@ -116,6 +120,10 @@ class PlanViewer {
   ViewerOptions options_;
   std::unique_ptr<overlay::PlanView3D> view_;
   std::future<planning::PlanData> full_future_;
+  std::future<planning::Volume<float>> ct_future_;
+  std::unique_ptr<planning::Volume<float>> late_ct_;
+  const planning::Volume<float>* ct_ = nullptr;  // the CT when read (inputs' or late_ct_)
+  std::string ct_problem_;
   std::unique_ptr<planning::PlanData> full_;
   std::unique_ptr<planning::TrajectoryEvaluator> evaluator_;
   std::unique_ptr<overlay::OverlayRenderer> renderer_;

@@ -23,19 +23,17 @@ namespace fs = std::filesystem;
 
 namespace crepuscular::pipelines {
 
-ViewInputs load_view_inputs(const std::string& plan_dir, const std::string& ct,
+ViewStart start_view_inputs(const std::string& plan_dir, const std::string& ct,
                             const std::string& labels, const std::vector<std::string>& series,
                             const std::string& value, bool check_inputs) {
-  ViewInputs in;
+  ViewStart start;
   planning::PlanLoadOptions load;
   load.blocking = false;
   load.only_value = value.empty() ? planning::plan_default_value(plan_dir) : value;
   load.labels_override = labels;
   load.series = series;
   load.check_inputs = check_inputs;
-  // The CT beside the plan: the path it is read from needs plan.json only.
-  spdlog::info("reading plan {}", plan_dir);
-  auto plan = std::async(std::launch::async, [&] { return planning::load_plan(plan_dir, load); });
+  // The CT's path needs plan.json only.
   std::string ct_path = ct;
   if (ct_path.empty()) {
     planning::PlanData json_only;
@@ -54,16 +52,30 @@ ViewInputs load_view_inputs(const std::string& plan_dir, const std::string& ct,
       ct_path.clear();
     }
   }
-  std::future<planning::Volume<float>> ct_volume;
   if (!ct_path.empty()) {
     spdlog::info("reading CT {}", ct_path);
-    ct_volume = std::async(std::launch::async,
-                           [&] { return planning::read_volume<float>(ct_path, {series}); });
+    start.ct = std::async(std::launch::async, [ct_path, series] {
+      return planning::read_volume<float>(ct_path, {series});
+    });
+    start.inputs.ct_path = ct_path;
   }
-  in.plan = plan.get();
-  if (ct_volume.valid()) {
-    in.ct = ct_volume.get();
-    in.ct_path = ct_path;
+  spdlog::info("reading plan {}", plan_dir);
+  try {
+    start.inputs.plan = planning::load_plan(plan_dir, load);
+  } catch (...) {
+    if (start.ct.valid()) start.ct.wait();  // the CT's reader stops before the error goes up
+    throw;
+  }
+  return start;
+}
+
+ViewInputs load_view_inputs(const std::string& plan_dir, const std::string& ct,
+                            const std::string& labels, const std::vector<std::string>& series,
+                            const std::string& value, bool check_inputs) {
+  ViewStart start = start_view_inputs(plan_dir, ct, labels, series, value, check_inputs);
+  ViewInputs in = std::move(start.inputs);
+  if (start.ct.valid()) {
+    in.ct = start.ct.get();
     planning::require_overlap_with_plan(in.ct.geometry(), in.plan.grid, in.ct_path, "the CT");
   }
   return in;

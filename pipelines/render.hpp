@@ -2,6 +2,7 @@
 // window (EGL on a GPU or Mesa), for reports; and the plan inputs that `render` and `view` share.
 #pragma once
 
+#include <future>
 #include <opencv2/core.hpp>
 #include <string>
 #include <vector>
@@ -21,6 +22,16 @@ struct ViewInputs {
   std::string ct_path;
 };
 ViewInputs load_view_inputs(const std::string& plan_dir, const std::string& ct,
+                            const std::string& labels, const std::vector<std::string>& series,
+                            const std::string& value, bool check_inputs = true);
+
+// The same, with the CT still being read (the plan's first picture need not wait for it): `ct` is
+// invalid without one. load_view_inputs is this with the CT taken.
+struct ViewStart {
+  ViewInputs inputs;  // inputs.ct empty
+  std::future<planning::Volume<float>> ct;
+};
+ViewStart start_view_inputs(const std::string& plan_dir, const std::string& ct,
                             const std::string& labels, const std::vector<std::string>& series,
                             const std::string& value, bool check_inputs = true);
 

@@ -193,6 +193,26 @@ TEST_F(PlanViewerTest, SlicesEqualTheSlicesCommandPixelForPixel) {
   }
 }
 
+TEST_F(PlanViewerTest, ACtReadAfterTheFirstPictureBringsTheSlices) {
+  viewer_.reset();
+  ViewStart start = start_view_inputs(*plan_dir_, *ct_, "", {}, "");
+  ViewerOptions o;
+  o.width = 1200;
+  o.height = 800;
+  o.view.resolution_scale = 1.0;
+  viewer_ = std::make_unique<PlanViewer>(start.inputs, o, std::future<planning::PlanData>(),
+                                         std::move(start.ct));
+  ASSERT_TRUE(frames_until([&] { return viewer_->slice(ViewPanel::kAxial).view_width > 0; }));
+  // The same slice as a viewer given the CT at once.
+  const planning::SliceView late = viewer_->slice(ViewPanel::kCoronal);
+  viewer_.reset();  // before `start`, whose inputs it shows
+  const PlanViewer given_at_once(*inputs_, o, std::future<planning::PlanData>());
+  const planning::SliceView& at_once = given_at_once.slice(ViewPanel::kCoronal);
+  ASSERT_EQ(late.image.width, at_once.image.width);
+  ASSERT_EQ(late.image.height, at_once.image.height);
+  EXPECT_TRUE(late.image.rgb == at_once.image.rgb);
+}
+
 TEST_F(PlanViewerTest, ClickOnTheSkinInThe3dViewSetsTheEntryThere) {
   // The ray of a pixel left of and above the panel's centre, met with the skin plane y = 17.
   const cv::Rect r = viewer_->panel_rect(ViewPanel::k3d);
