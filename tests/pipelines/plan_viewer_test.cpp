@@ -52,8 +52,16 @@ class PlanViewerTest : public ::testing::Test {
     run_plan(r);
     plan_dir_ = new std::string((folder_->path() / "plan").string());
     ct_ = new std::string(in.ct);
+    // One connection for the whole suite: an X server resets when its last client leaves, and
+    // refuses connections meanwhile.
+    for (int attempt = 0; attempt < 50 && !display_; ++attempt) {
+      display_ = XOpenDisplay(nullptr);
+      if (!display_) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
   }
   static void TearDownTestSuite() {
+    if (display_) XCloseDisplay(display_);
+    display_ = nullptr;
     delete folder_;
     delete plan_dir_;
     delete ct_;
@@ -77,7 +85,6 @@ class PlanViewerTest : public ::testing::Test {
   }
 
   void SetUp() override {
-    display_ = XOpenDisplay(nullptr);
     ASSERT_NE(display_, nullptr) << "no X display (Xvfb)";
     inputs_ = std::make_unique<ViewInputs>(load_view_inputs(*plan_dir_, *ct_, "", {}, ""));
     ViewerOptions o;
@@ -92,10 +99,7 @@ class PlanViewerTest : public ::testing::Test {
     window_ = find_window(display_, DefaultRootWindow(display_));
     ASSERT_NE(window_, 0u);
   }
-  void TearDown() override {
-    viewer_.reset();
-    if (display_) XCloseDisplay(display_);
-  }
+  void TearDown() override { viewer_.reset(); }
 
   // Runs frames until `done` or 3 s.
   template <typename Done>
@@ -147,7 +151,7 @@ class PlanViewerTest : public ::testing::Test {
   static test::TemporaryFolder* folder_;
   static std::string* plan_dir_;
   static std::string* ct_;
-  Display* display_ = nullptr;
+  static Display* display_;
   Window window_ = 0;
   std::unique_ptr<ViewInputs> inputs_;
   std::unique_ptr<PlanViewer> viewer_;
@@ -155,6 +159,7 @@ class PlanViewerTest : public ::testing::Test {
 test::TemporaryFolder* PlanViewerTest::folder_ = nullptr;
 std::string* PlanViewerTest::plan_dir_ = nullptr;
 std::string* PlanViewerTest::ct_ = nullptr;
+Display* PlanViewerTest::display_ = nullptr;
 
 TEST_F(PlanViewerTest, SlicesEqualTheSlicesCommandPixelForPixel) {
   SlicesRequest sr;
