@@ -19,11 +19,11 @@ void add_view_command(CLI::App& app) {
       "Look at a plan in a window, in 3D and in slices, and try entry points on it: the 3D view\n"
       "(the path safety volume rendered directly, green safe, yellow medium, red dangerous, grey\n"
       "unknown where the scan does not reach; skin, bone, tumor and structures as translucent\n"
-      "surfaces) and axial, coronal and sagittal slices drawn as `crepuscular slices` draws them. Click on the skin to try an entry: the\n"
-      "path to the tumor centre is drawn in every panel and evaluated as `crepuscular evaluate`\n"
-      "does (line integral, structures crossed with depth, class, relative area safety); M\n"
-      "saves it as a 3D Slicer line markup beside the plan (PLAN-trajectory-NN.mrk.json), P a\n"
-      "picture of the window (PLAN-view-NN.png).\n"
+      "surfaces) and axial, coronal and sagittal slices drawn as `crepuscular slices` draws\n"
+      "them. Click on the skin to try an entry: the path to the tumor centre is drawn in every\n"
+      "panel and evaluated as `crepuscular evaluate` does (line integral, structures crossed with\n"
+      "depth, class, relative area safety); M saves it as a 3D Slicer line markup beside the plan\n"
+      "(PLAN-trajectory-NN.mrk.json), P a picture of the window (PLAN-view-NN.png).\n"
       "Keys (also shown in the window):\n" +
           keys +
           "Example:\n"
