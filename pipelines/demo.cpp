@@ -50,6 +50,9 @@ void make_plan(const DemoRequest& a, const std::string& dir) {
   } else {
     req.labels = {dir + "/phantom/labels.nii.gz"};
     req.tumor = dir + "/phantom/tumor.nii.gz";
+    // Recorded in plan.json (the CT lies on the label map's grid: the plan is the same), so that
+    // `view` and `render` find it.
+    req.ct = dir + "/phantom/ct.nii.gz";
     req.vulnerability = dir + "/phantom/vulnerability.json";
   }
   req.path_safety.device = a.device;

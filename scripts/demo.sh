@@ -5,7 +5,8 @@
 #   demo/overlay.mp4    the guidance overlay on the synthetic recording (headless rendering)
 #   demo/snapshots      the overlay when the needle is on the safe path and on the vessel
 #   demo/slices         axial, coronal, sagittal and oblique views through the largest safe region
-#   demo/plan           path safety volumes and the area safety model (open in 3D Slicer)
+#   demo/plan           path safety volumes, their classes and the area safety model (open in 3D Slicer)
+#   demo/3d             the 3D planning view from four sides
 #   demo/phantom        the phantom abdomen (CT, labels, tumor, vulnerability table)
 #   demo/recording      the synthetic camera recording, with ground truth
 #   demo/setup          camera, registration and needle calibration files of the recording
@@ -16,5 +17,6 @@ bash scripts/install-deps.sh
 # The demo needs the command only, not the tests and benchmarks.
 CREPUSCULAR_BUILD_TARGET=crepuscular bash scripts/build.sh
 ./build/apps/crepuscular demo --out demo "$@"
-echo "demo: outputs in demo/ (start with demo/report.md and demo/overlay.mp4; open"
-echo "      demo/phantom/ct.nii.gz with demo/plan/path_safety_svv.nii.gz in 3D Slicer)"
+echo "demo: outputs in demo/ (start with demo/report.md, demo/3d/ and demo/overlay.mp4; look at"
+echo "      the plan with ./build/apps/crepuscular view --plan demo/plan, or open"
+echo "      demo/phantom/ct.nii.gz with demo/plan/path_safety_svv_classes.seg.nrrd in 3D Slicer)"
