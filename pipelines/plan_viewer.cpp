@@ -114,6 +114,20 @@ PlanViewer::PlanViewer(const ViewInputs& inputs, ViewerOptions options,
     : inputs_(inputs), options_(std::move(options)), full_future_(std::move(full)),
       ct_future_(std::move(ct)), layout_(options_.layout) {
   if (!inputs_.ct.empty()) ct_ = &inputs_.ct;
+  // A CT read by now is taken before the 3D view's anatomy is made, not after.
+  if (ct_future_.valid() &&
+      ct_future_.wait_for(std::chrono::seconds(0)) == std::future_status::ready) {
+    try {
+      late_ct_ = std::make_unique<planning::Volume<float>>(ct_future_.get());
+      planning::require_overlap_with_plan(late_ct_->geometry(), inputs_.plan.grid,
+                                          inputs_.ct_path, "the CT");
+      ct_ = late_ct_.get();
+    } catch (const Error& e) {
+      late_ct_.reset();
+      ct_problem_ = e.what();
+      spdlog::error("view: {}", ct_problem_);
+    }
+  }
   if (options_.width < 320 || options_.height < 240) {
     throw Error(fmt::format("view: window {}x{} (expected at least 320x240)", options_.width,
                             options_.height));
