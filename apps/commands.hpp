@@ -55,6 +55,9 @@ inline std::string source_path(const std::string& uri) {
   return "";
 }
 
+// "WxH" (e.g. "1280x960") of --size into width and height; throws Error naming the text.
+void parse_size(const std::string& text, int& width, int& height);
+
 // A flag that SIGINT and SIGTERM (Ctrl-C) set from now on, cleared here: for jobs that end
 // cleanly when asked to (guidance, recording).
 const std::atomic<bool>* stop_on_signals();

@@ -17,6 +17,17 @@ namespace crepuscular::apps {
 
 const std::atomic<bool>* stop_on_signals() { return stop_flag_on_interruption(); }
 
+void parse_size(const std::string& text, int& width, int& height) {
+  const auto x = text.find('x');
+  try {
+    if (x == std::string::npos) throw std::invalid_argument("no x");
+    width = std::stoi(text.substr(0, x));
+    height = std::stoi(text.substr(x + 1));
+  } catch (const std::exception&) {
+    throw Error("--size '" + text + "': expected WxH, e.g. 1280x960");
+  }
+}
+
 }  // namespace crepuscular::apps
 
 namespace {

@@ -64,14 +64,7 @@ void add_render_command(CLI::App& app) {
                      {{"--plan", req->plan_dir}, {"--ct", req->ct}, {"--labels", req->labels}},
                      {{"--out", req->out}},
                      *overwrite});
-    const auto x = size->find('x');
-    try {
-      if (x == std::string::npos) throw std::invalid_argument("no x");
-      req->width = std::stoi(size->substr(0, x));
-      req->height = std::stoi(size->substr(x + 1));
-    } catch (const std::exception&) {
-      throw Error("--size '" + *size + "': expected WxH, e.g. 1280x960");
-    }
+    parse_size(*size, req->width, req->height);
     pipelines::apply_hidden(*hide, req->options);
     pipelines::run_render(*req);
   });

@@ -62,14 +62,7 @@ void add_view_command(CLI::App& app) {
       ->capture_default_str()
       ->check(finite_number());
   cmd->callback([req, hide, size, layout, angles] {
-    const auto x = size->find('x');
-    try {
-      if (x == std::string::npos) throw std::invalid_argument("no x");
-      req->options.width = std::stoi(size->substr(0, x));
-      req->options.height = std::stoi(size->substr(x + 1));
-    } catch (const std::exception&) {
-      throw Error("--size '" + *size + "': expected WxH, e.g. 1600x900");
-    }
+    parse_size(*size, req->options.width, req->options.height);
     req->options.layout = *layout == "3d"       ? pipelines::ViewLayout::k3d
                           : *layout == "slices" ? pipelines::ViewLayout::kSlices
                                                 : pipelines::ViewLayout::kQuad;

@@ -8,7 +8,6 @@
 #include <cmath>
 #include <optional>
 #include <set>
-#include <thread>
 
 #include "foundation/error.hpp"
 #include "planning/views/palette.hpp"
@@ -45,19 +44,6 @@ double grid_diagonal(const planning::ImageGeometry& g) {
   return Eigen::Vector3d(g.spacing.x() * double(g.dims[0]), g.spacing.y() * double(g.dims[1]),
                          g.spacing.z() * double(g.dims[2]))
       .norm();
-}
-
-// Runs body(k) for k in [0, n) on the machine's cores.
-template <typename Body>
-void for_slices(int64_t n, Body body) {
-  const int threads = int(std::max(1u, std::min(16u, std::thread::hardware_concurrency())));
-  std::vector<std::thread> pool;
-  for (int t = 0; t < threads; ++t) {
-    pool.emplace_back([&, t] {
-      for (int64_t k = t; k < n; k += threads) body(k);
-    });
-  }
-  for (auto& th : pool) th.join();
 }
 
 }  // namespace
@@ -170,7 +156,8 @@ AnatomyContext make_anatomy_context(const planning::PlanData& plan,
   const bool have_labels = !plan.labels.empty();
   const bool have_tumor = !plan.tumor.empty();
   const bool have_ct = ct && !ct->empty();
-  for_slices(grid.dims[2], [&](int64_t k) {
+#pragma omp parallel for schedule(dynamic, 4)
+  for (int64_t k = 0; k < grid.dims[2]; ++k) {
     for (int64_t j = 0; j < grid.dims[1]; ++j) {
       for (int64_t i = 0; i < grid.dims[0]; ++i) {
         const Eigen::Vector3d p = grid.index_to_physical(i, j, k);
@@ -205,7 +192,7 @@ AnatomyContext make_anatomy_context(const planning::PlanData& plan,
         context.kinds(i, j, k) = kind;
       }
     }
-  });
+  }
   return context;
 }
 

@@ -115,19 +115,7 @@ PlanViewer::PlanViewer(const ViewInputs& inputs, ViewerOptions options,
       ct_future_(std::move(ct)), layout_(options_.layout) {
   if (!inputs_.ct.empty()) ct_ = &inputs_.ct;
   // A CT read by now is taken before the 3D view's anatomy is made, not after.
-  if (ct_future_.valid() &&
-      ct_future_.wait_for(std::chrono::seconds(0)) == std::future_status::ready) {
-    try {
-      late_ct_ = std::make_unique<planning::Volume<float>>(ct_future_.get());
-      planning::require_overlap_with_plan(late_ct_->geometry(), inputs_.plan.grid,
-                                          inputs_.ct_path, "the CT");
-      ct_ = late_ct_.get();
-    } catch (const Error& e) {
-      late_ct_.reset();
-      ct_problem_ = e.what();
-      spdlog::error("view: {}", ct_problem_);
-    }
-  }
+  receive_ct();
   if (options_.width < 320 || options_.height < 240) {
     throw Error(fmt::format("view: window {}x{} (expected at least 320x240)", options_.width,
                             options_.height));
@@ -277,6 +265,13 @@ void PlanViewer::render_slices(const planning::SliceScene& scene, bool all) {
     }
     slices_[size_t(p)] = planning::render_slice(scene, plane, o);
     slice_revisions_[size_t(p)] = overlay::OverlayRenderer::new_image_revision();
+    // The window's picture of it, made once: the view part, within its panel, BGRA.
+    const auto& v = slices_[size_t(p)];
+    const cv::Rect& panel = panels_[size_t(p)];
+    cv::Mat rgb(v.image.height, v.image.width, CV_8UC3, const_cast<uint8_t*>(v.image.rgb.data()));
+    cv::cvtColor(rgb(cv::Rect(0, 0, std::min(v.view_width, panel.width),
+                              std::min(v.view_height, panel.height))),
+                 slice_pictures_[size_t(p)], cv::COLOR_RGB2BGRA);
   }
 }
 
@@ -316,22 +311,33 @@ void PlanViewer::take_full_plan(bool wait) {
   }
 }
 
-void PlanViewer::take_ct() {
+bool PlanViewer::receive_ct() {
   if (!ct_future_.valid() ||
       ct_future_.wait_for(std::chrono::seconds(0)) != std::future_status::ready) {
-    return;
+    return false;
   }
   try {
     late_ct_ = std::make_unique<planning::Volume<float>>(ct_future_.get());
     planning::require_overlap_with_plan(late_ct_->geometry(), inputs_.plan.grid, inputs_.ct_path,
                                         "the CT");
     ct_ = late_ct_.get();
-    view_->set_ct(ct_);
-    place_panels();
+    return true;
   } catch (const Error& e) {
     late_ct_.reset();
     ct_problem_ = e.what();
     spdlog::error("view: {}", ct_problem_);
+    return false;
+  }
+}
+
+void PlanViewer::take_ct() {
+  if (!ct_future_.valid() ||
+      ct_future_.wait_for(std::chrono::seconds(0)) != std::future_status::ready) {
+    return;
+  }
+  if (receive_ct()) {
+    view_->set_ct(ct_);
+    place_panels();
   }
   dirty_ = true;
 }
@@ -553,13 +559,8 @@ void PlanViewer::update_layers() {
   for (int p = 1; p < kViewPanels; ++p) {
     const auto& s = slices_[size_t(p)];
     if (panels_[size_t(p)].empty() || s.view_width == 0) continue;
-    cv::Mat rgb(s.image.height, s.image.width, CV_8UC3, const_cast<uint8_t*>(s.image.rgb.data()));
-    cv::Mat bgra;
-    const cv::Rect& panel = panels_[size_t(p)];
-    cv::cvtColor(rgb(cv::Rect(0, 0, std::min(s.view_width, panel.width),
-                              std::min(s.view_height, panel.height))),
-                 bgra, cv::COLOR_RGB2BGRA);
-    r.add_layer_image("slices", bgra, slice_origin(ViewPanel(p)), slice_revisions_[size_t(p)]);
+    r.add_layer_image("slices", slice_pictures_[size_t(p)], slice_origin(ViewPanel(p)),
+                      slice_revisions_[size_t(p)]);
   }
   // The trial path: its line in every panel, coloured by the class of its entry.
   r.clear_layer("marks");
@@ -630,7 +631,8 @@ void PlanViewer::update_layers() {
   r.add_layer_image("text", status_panel, {host.x, y}, 0);
   y += status_panel.rows;
   if (help_) {
-    const cv::Mat help = text_panel(viewer_key_help(), width, 0.4);
+    if (help_picture_.cols != width) help_picture_ = text_panel(viewer_key_help(), width, 0.4);
+    const cv::Mat& help = help_picture_;
     if (y + help.rows <= host.y + host.height) {
       r.add_layer_image("text", help, {host.x, y}, text_revision_);
       y += help.rows;

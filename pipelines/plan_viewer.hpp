@@ -109,8 +109,10 @@ class PlanViewer {
   void evaluate();
   // Takes up the full plan once it has been read (`wait`: until then).
   void take_full_plan(bool wait);
-  // Takes up the CT once it has been read.
+  // Takes up the CT once it has been read: the anatomy and the slices follow it.
   void take_ct();
+  // The CT into ct_ when it has been read (false when not yet, or unusable: ct_problem_).
+  bool receive_ct();
   std::optional<ViewPanel> panel_at(double x, double y) const;
   // The LPS point under window pixel (x, y) of a panel: on the slice's plane, or, in the 3D panel,
   // where the ray first meets the body.
@@ -136,6 +138,8 @@ class PlanViewer {
   planning::SliceOptions slice_options_;
   std::array<planning::SliceView, kViewPanels> slices_{};
   std::array<uint64_t, kViewPanels> slice_revisions_{};
+  std::array<cv::Mat, kViewPanels> slice_pictures_{};  // what the window shows of each slice
+  cv::Mat help_picture_;
   std::optional<Eigen::Vector3d> entry_;
   Eigen::Vector3d target_ = Eigen::Vector3d::Zero();
   std::optional<planning::TrajectoryEvaluation> evaluation_;

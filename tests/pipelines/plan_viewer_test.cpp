@@ -47,9 +47,7 @@ class PlanViewerTest : public ::testing::Test {
       for (int64_t j = 0; j < 4; ++j)
         for (int64_t i = 0; i < labels.dims()[0]; ++i) labels(i, j, k) = 0;
     planning::write_volume(labels, in.labels);
-    PlanRequest r = in.request((folder_->path() / "plan").string());
-    r.ct = in.ct;
-    run_plan(r);
+    run_plan(in.request((folder_->path() / "plan").string()));
     plan_dir_ = new std::string((folder_->path() / "plan").string());
     ct_ = new std::string(in.ct);
     // One connection for the whole suite: an X server resets when its last client leaves, and

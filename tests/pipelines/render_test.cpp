@@ -26,9 +26,7 @@ class RenderTest : public ::testing::Test {
     test::MiniPlanOptions mo;
     mo.ct = true;
     const test::MiniPlanInputs in = test::write_mini_plan_inputs(folder_->path(), mo);
-    PlanRequest r = in.request((folder_->path() / "plan").string());
-    r.ct = in.ct;
-    run_plan(r);
+    run_plan(in.request((folder_->path() / "plan").string()));
   }
   static void TearDownTestSuite() { delete folder_; }
   static std::string path(const std::string& name) { return (folder_->path() / name).string(); }

@@ -21,6 +21,7 @@ pipelines::PlanRequest MiniPlanInputs::request(const std::string& out_dir) const
   r.labels = {labels};
   r.tumor = tumor;
   r.vulnerability = vulnerability;
+  r.ct = ct;  // recorded in plan.json when written (on the labels' grid: the plan is the same)
   r.path_safety.radius_mm = 16.0;
   r.path_safety.device = planning::Device::kCpu;
   r.out_dir = out_dir;

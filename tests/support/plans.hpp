@@ -27,7 +27,8 @@ struct MiniPlanInputs {
   std::string labels, tumor, vulnerability;  // labels.nii.gz, tumor.nii.gz, table.json
   std::string ct;                            // ct.nii.gz, or empty
 
-  // These inputs planned into `out_dir`: R = 16 mm on the CPU, every other option its default.
+  // These inputs planned into `out_dir`: R = 16 mm on the CPU, the CT (when written) recorded,
+  // every other option its default.
   pipelines::PlanRequest request(const std::string& out_dir) const;
 };
 
