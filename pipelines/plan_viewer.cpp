@@ -538,8 +538,19 @@ void PlanViewer::handle(const overlay::InputEvent& e) {
       target_ = inputs_.plan.tumor_centre;
       evaluate();
       break;
-    case 'M': save_markup(); break;
-    case 'P': save_picture(); break;
+    case 'M':
+    case 'P':
+      // A file that cannot be written (a read-only folder, a full disk) is said in the window and
+      // the log; the view goes on.
+      try {
+        save_problem_.clear();
+        key == 'M' ? save_markup() : save_picture();
+      } catch (const Error& e) {
+        save_problem_ = e.what();
+        spdlog::error("view: {}", save_problem_);
+        dirty_ = true;
+      }
+      break;
     case 'H': help_ = !help_; dirty_ = true; break;
     case 'E': show_evaluation_ = !show_evaluation_; dirty_ = true; break;
     default: break;
@@ -622,6 +633,7 @@ void PlanViewer::update_layers() {
       o.palette == planning::Palette::kColorblind ? "colour-blind palette" : "default palette")};
   if (ct_future_.valid()) status.push_back("reading the CT " + inputs_.ct_path + " ...");
   if (!ct_problem_.empty()) status.push_back("no CT: " + ct_problem_);
+  if (!save_problem_.empty()) status.push_back("NOT SAVED: " + save_problem_);
   if (!saved_markup_.empty()) status.push_back("saved " + saved_markup_);
   if (!saved_picture_.empty()) status.push_back("saved " + saved_picture_);
   if (full_) {

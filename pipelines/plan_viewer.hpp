@@ -144,6 +144,7 @@ class PlanViewer {
   Eigen::Vector3d target_ = Eigen::Vector3d::Zero();
   std::optional<planning::TrajectoryEvaluation> evaluation_;
   std::string saved_markup_, saved_picture_;
+  std::string save_problem_;  // why the last save failed ("" when it did not)
   bool help_ = false, show_evaluation_ = true;
   bool dirty_ = true;
   bool moving_ = false, drawn_once_ = false;
