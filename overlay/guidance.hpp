@@ -6,7 +6,9 @@
 // cover; those of the anatomy are kept while the patient board moves them by less than a quarter
 // pixel, and the targeting view's while the needle stays where it was.
 //
-// Layers (names, keys in the window):
+// Layers (names, keys in the window), each drawn by a file of its own (overlay/guidance_rays.cpp,
+// _volume, _entry, _tumor, _needle, _status, _target); guidance_pictures.cpp keeps the anatomy
+// layers' CPU pictures, guidance_drawing.hpp holds what the layers share:
 //   1 "rays"    safe directions: one translucent cone per safe area-safety region, from its entry
 //               patch on the skin to the tumor centre (plans without area safety: the safe ray
 //               bundles, rays from the tumor out to the skin whose entry point is safe or medium in
@@ -56,6 +58,7 @@
 namespace crepuscular::overlay {
 
 class OverlayRenderer;
+class LayerCalls;
 class SafetyVolumeRendering;
 
 enum class GuidanceLayer { kRays = 0, kVolume, kEntry, kTumor, kNeedle, kStatus, kTarget };
@@ -223,11 +226,13 @@ class GuidanceOverlay {
   void build_tumor_surface();
   void build_entry_patches();
   void draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
-  // Renderer: OverlayRenderer or a LayerCalls (guidance.cpp) that records what is added, so that
-  // the needle's part can be drawn beside the anatomy's and added afterwards.
-  template <typename Renderer>
-  void draw_needle(Renderer& renderer, const Eigen::Isometry3d& T_cam_ct,
+  void draw_volume(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
+  // Into a LayerCalls (guidance_drawing.hpp) that records what is added, so that the needle's
+  // part can be drawn beside the anatomy's and added afterwards.
+  void draw_needle(LayerCalls& renderer, const Eigen::Isometry3d& T_cam_ct,
                    const Eigen::Isometry3d& T_cam_needle, const NeedleReading& reading);
+  void draw_targeting(LayerCalls& renderer, const Eigen::Isometry3d& T_cam_ct,
+                      const planning::NeedleState& s);
   void draw_status(OverlayRenderer& renderer, const GuidanceFrameInfo& info,
                    const GuidanceTiming& timing);
   // Last point inside the body going out from `from` along `dir` (labels > 0), within the plan's
