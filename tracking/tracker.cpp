@@ -70,9 +70,11 @@ Eigen::Isometry3d PoseFilter::update(const Eigen::Isometry3d& measured, const Ma
     if (initialised_ && dt > 0 && timestamp_ns - timestamp_ns_ <= max_gap_ns) {
       velocity_ = (measured.translation() - pose_.translation()) / dt;
       angular_velocity_ = log_so3(measured.linear() * pose_.linear().transpose()) / dt;
+      unit_ << 1.0, 1.0 / dt, 1.0 / dt, (1.0 + unit_(0, 0)) / (dt * dt);
     } else {
       velocity_.setZero();
       angular_velocity_.setZero();
+      unit_ << 1.0, 0.0, 0.0, 0.0;
     }
     pose_ = measured;
   } else {
@@ -81,11 +83,28 @@ Eigen::Isometry3d PoseFilter::update(const Eigen::Isometry3d& measured, const Ma
     pose_.translation() = pred.translation() + a * innovation.tail<3>();
     angular_velocity_ += b * innovation.head<3>() / dt;
     velocity_ += b * innovation.tail<3>() / dt;
+    // The same recursion for the variance: predict, then take in the measurement with the gains.
+    Eigen::Matrix2d F;
+    F << 1.0, dt, 0.0, 1.0;
+    const Eigen::Vector2d K(a, b / dt);
+    Eigen::Matrix2d A = Eigen::Matrix2d::Identity();
+    A.col(0) -= K;
+    unit_ = A * (F * unit_ * F.transpose()) * A.transpose() + K * K.transpose();
   }
   initialised_ = true;
   timestamp_ns_ = timestamp_ns;
   if (restarted) *restarted = restart;
   return pose_;
+}
+
+Matrix6d PoseFilter::pose_covariance(const Matrix6d& measurement, bool smoothing) const {
+  Matrix6d c = (smoothing ? variance_factor() : 1.0) * measurement;
+  const double fr = options_.floor_deg * kDegToRad, ft = options_.floor_mm;
+  for (int k = 0; k < 3; ++k) {
+    c(k, k) += fr * fr;
+    c(3 + k, 3 + k) += ft * ft;
+  }
+  return c;
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -352,6 +371,7 @@ bool Tracker::measure(size_t b, const std::vector<Detection>& detections, int64_
   st->age_ms = 0;
   st->covariance = pose.covariance;
   st->covariance_valid = pose.covariance_valid;
+  st->pose_covariance = tr.filter.pose_covariance(cov, options_.smoothing);
   st->ambiguous = pose.ambiguous;
   st->filter_restarted = restarted;
   st->problem.clear();
@@ -502,6 +522,7 @@ TrackResult Tracker::process(const Frame& frame) {
       st.rms_px = tr.last.rms_px;
       st.covariance = tr.last.covariance;
       st.covariance_valid = tr.last.covariance_valid;
+      st.pose_covariance = tr.last.pose_covariance;
     } else {
       st.tracked = false;
     }

@@ -55,6 +55,13 @@ class PoseFilter {
 
   const Eigen::Isometry3d& pose() const { return pose_; }
   int64_t timestamp_ns() const { return timestamp_ns_; }
+  // The filtered pose's variance as a share of one measurement's, for measurements of equal,
+  // independent noise: 1 at a restart, falling toward the filter's steady state (0.43 for alpha
+  // 0.5, beta 0.2) as measurements are taken in.
+  double variance_factor() const { return unit_(0, 0); }
+  // The filtered pose's covariance ([w rad, t mm]) when the last measurement's was `measurement`:
+  // scaled by variance_factor() (1 when not smoothing), plus the floor.
+  Matrix6d pose_covariance(const Matrix6d& measurement, bool smoothing = true) const;
 
  private:
   PoseFilterOptions options_;
@@ -63,6 +70,8 @@ class PoseFilter {
   Eigen::Vector3d velocity_ = Eigen::Vector3d::Zero();          // mm/s
   Eigen::Vector3d angular_velocity_ = Eigen::Vector3d::Zero();  // rad/s, camera frame
   int64_t timestamp_ns_ = 0;
+  // Covariance of [pose, velocity] per unit measurement variance (velocity per second).
+  Eigen::Matrix2d unit_ = Eigen::Matrix2d::Identity();
 };
 
 // Where the full-frame tag search runs. kInFrame: in the frame that needs it, which waits for it.
@@ -101,6 +110,9 @@ struct BoardStatus {
   int corners = 0;
   Matrix6d covariance = Matrix6d::Zero();  // of the measurement behind T_cam_board
   bool covariance_valid = false;
+  // Of T_cam_board itself ([w rad, t mm] as covariance): the measurement's scaled by the filter's
+  // variance factor (1 without smoothing), plus the filter's floor; valid as covariance is.
+  Matrix6d pose_covariance = Matrix6d::Zero();
   bool ambiguous = false;
   bool filter_restarted = false;
   std::string problem;      // why the board was not measured in this frame
