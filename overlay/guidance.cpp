@@ -206,7 +206,7 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
     struct NeedlePart {
       NeedleReading reading;
       LayerCalls calls;
-      double ms = 0.0, evaluate_ms = 0.0;
+      double ms = 0.0, evaluate_ms = 0.0, uncertainty_ms = 0.0;
     };
     std::future<NeedlePart> needle_part;
     if (info.needle_tracked) {
@@ -214,7 +214,7 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
       const Eigen::Isometry3d T_ct_needle =
           setup_.T_ct_patient * patient->T_cam_board.inverse() * T_cam_needle;
       needle_part = std::async(std::launch::async, [this, &renderer, T_cam_ct, T_cam_needle,
-                                                    T_ct_needle] {
+                                                    T_ct_needle, patient, needle] {
         const auto t0 = Clock::now();
         NeedlePart part{NeedleReading{}, LayerCalls(renderer.camera())};
         part.reading.T_ct_needle = T_ct_needle;
@@ -222,6 +222,9 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
             guide_->evaluate(T_ct_needle, setup_.tip_in_needle, setup_.axis_in_needle);
         part.evaluate_ms =
             std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+        const auto t1 = Clock::now();
+        read_uncertainty(part.reading, *patient, *needle);
+        part.uncertainty_ms = std::chrono::duration<double, std::milli>(Clock::now() - t1).count();
         if (visible(GuidanceLayer::kNeedle) || visible(GuidanceLayer::kTarget)) {
           draw_needle(part.calls, T_cam_ct, T_cam_needle, part.reading);
         }
@@ -238,6 +241,7 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
       info.needle = std::move(part.reading);
       info.needle_ms = part.ms;
       info.needle_evaluate_ms = part.evaluate_ms;
+      info.uncertainty_ms = part.uncertainty_ms;
       info.targeting_ms = targeting_ms_;
       info.needle_panel_ms = needle_panel_ms_;
     }

@@ -51,6 +51,7 @@
 #include "planning/plan_folder/plan_folder.hpp"
 #include "planning/trajectories/markups.hpp"
 #include "planning/trajectories/needle_guidance.hpp"
+#include "planning/trajectories/needle_uncertainty.hpp"
 #include "planning/trajectories/targeting.hpp"
 #include "planning/views/palette.hpp"
 #include "tracking/tracker.hpp"
@@ -77,6 +78,10 @@ struct GuidanceSetup {
   // Unit direction of the needle from the hub toward the tip, needle frame. When the needle
   // calibration has no spin axis, the direction from the board origin to the tip.
   Eigen::Vector3d axis_in_needle = Eigen::Vector3d::UnitZ();
+  // What the calibrations say of their own errors: the tip's covariance, the axis's (or that it
+  // follows the tip) and the registration's expected error at the tumor. The boards' pose
+  // covariances come with each frame's tracking.
+  planning::NeedleUncertaintySources uncertainty;
 };
 
 struct GuidanceOptions {
@@ -112,6 +117,13 @@ struct GuidanceOptions {
 struct NeedleReading {
   Eigen::Isometry3d T_ct_needle = Eigen::Isometry3d::Identity();
   planning::NeedleState state;
+  // How well the line is known (planning/trajectories/needle_uncertainty.hpp), and the worst class
+  // of the lines of its 95 % region (none evaluated when the needle points away).
+  planning::LineUncertainty uncertainty;
+  planning::RegionSafety region;
+  // Both boards' pose covariances came with the tracking (poses received over OpenIGTLink carry
+  // none: the uncertainty then holds the calibrations' and the registration's errors only).
+  bool pose_covariance_known = false;
 };
 
 // What one frame showed, for logs and reports.
@@ -132,6 +144,7 @@ struct GuidanceFrameInfo {
   // The needle part's pieces (ms): its evaluation, the targeting view (polar map and picture),
   // the text panel (drawn beside the targeting view).
   double needle_evaluate_ms = 0, targeting_ms = 0, needle_panel_ms = 0;
+  double uncertainty_ms = 0;  // the line's uncertainty and the safety of its 95 % region
 };
 
 // Frame rate and latency shown in the status layer.
@@ -227,12 +240,15 @@ class GuidanceOverlay {
   void build_entry_patches();
   void draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
   void draw_volume(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
+  // The reading's uncertainty and region safety from both boards' tracking and the setup.
+  void read_uncertainty(NeedleReading& reading, const tracking::BoardStatus& patient,
+                        const tracking::BoardStatus& needle) const;
   // Into a LayerCalls (guidance_drawing.hpp) that records what is added, so that the needle's
   // part can be drawn beside the anatomy's and added afterwards.
   void draw_needle(LayerCalls& renderer, const Eigen::Isometry3d& T_cam_ct,
                    const Eigen::Isometry3d& T_cam_needle, const NeedleReading& reading);
   void draw_targeting(LayerCalls& renderer, const Eigen::Isometry3d& T_cam_ct,
-                      const planning::NeedleState& s);
+                      const NeedleReading& reading);
   void draw_status(OverlayRenderer& renderer, const GuidanceFrameInfo& info,
                    const GuidanceTiming& timing);
   // Last point inside the body going out from `from` along `dir` (labels > 0), within the plan's
@@ -289,6 +305,7 @@ class GuidanceOverlay {
   int64_t anatomy_pictures_warped_ = 0, anatomy_pictures_waited_ = 0;
   planning::TargetingGeometry targeting_;
   LayerPicture targeting_picture_;  // the view of targeting_
+  std::vector<Eigen::Vector3d> targeting_ellipse_;  // the uncertainty drawn into it
   planning::Palette targeting_palette_ = planning::Palette::kDefault;
   Eigen::Vector3d targeting_tip_ = Eigen::Vector3d::Zero(), targeting_right_ = Eigen::Vector3d::Zero();
   cv::Point targeting_origin_;

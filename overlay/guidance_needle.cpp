@@ -31,6 +31,21 @@ std::optional<Eigen::Vector3d> GuidanceOverlay::needle_skin_entry(
   return planning::body_entry_along(plan_.labels, s.tip, s.axis, s.along_axis_mm);
 }
 
+void GuidanceOverlay::read_uncertainty(NeedleReading& reading, const tracking::BoardStatus& patient,
+                                       const tracking::BoardStatus& needle) const {
+  planning::NeedleUncertaintySources sources = setup_.uncertainty;
+  reading.pose_covariance_known = patient.covariance_valid && needle.covariance_valid;
+  if (patient.covariance_valid) sources.patient_pose = patient.pose_covariance;
+  if (needle.covariance_valid) sources.needle_pose = needle.pose_covariance;
+  reading.uncertainty = planning::needle_line_uncertainty(
+      setup_.T_ct_patient, patient.T_cam_board, needle.T_cam_board, setup_.tip_in_needle,
+      setup_.axis_in_needle, plan_.tumor_centre, sources);
+  reading.region.nominal = reading.region.worst = reading.state.safety;
+  if (!reading.state.points_away && reading.uncertainty.valid) {
+    reading.region = planning::region_safety(*guide_, reading.uncertainty, reading.state.safety);
+  }
+}
+
 void GuidanceOverlay::draw_needle(LayerCalls& renderer, const Eigen::Isometry3d& T_cam_ct,
                                   const Eigen::Isometry3d& T_cam_needle,
                                   const NeedleReading& reading) {
@@ -90,6 +105,19 @@ void GuidanceOverlay::draw_needle(LayerCalls& renderer, const Eigen::Isometry3d&
   std::string headline = std::string("NEEDLE PATH: ") + planning::needle_safety_name(s.safety);
   std::transform(headline.begin(), headline.end(), headline.begin(), ::toupper);
   lines.push_back({headline, colour, 0.8});
+  const planning::LineUncertainty& u = reading.uncertainty;
+  if (reading.region.uncertain()) {
+    // A line of the 95 % region is worse than the needle's own: say which, and how far it reaches.
+    std::string worst = planning::needle_safety_name(reading.region.worst);
+    std::transform(worst.begin(), worst.end(), worst.begin(), ::toupper);
+    lines.push_back({fmt::format("UNCERTAIN: {} within {:.1f} mm (95 %)", worst, u.major95_mm),
+                     safety_bgr(palette, reading.region.worst), 0.7});
+  }
+  if (!s.points_away && u.valid) {
+    lines.push_back({fmt::format("uncertainty at the tumor {:.1f} x {:.1f} mm (95 %)", u.major95_mm,
+                                 u.minor95_mm)});
+    if (!reading.pose_covariance_known) lines.push_back({"(the tracker gave no pose errors)"});
+  }
   if (s.points_away) {
     lines.push_back({"needle points away from the tumor"});
   } else {
@@ -129,7 +157,7 @@ void GuidanceOverlay::draw_needle(LayerCalls& renderer, const Eigen::Isometry3d&
                                std::chrono::steady_clock::now() - t0).count();
         return p;
       });
-  draw_targeting(renderer, T_cam_ct, s);
+  draw_targeting(renderer, T_cam_ct, reading);
   const Picture p = panel.get();
   renderer.add_layer_image("needle", p.bgra, p.origin);
 }

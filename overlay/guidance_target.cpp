@@ -9,7 +9,8 @@
 namespace crepuscular::overlay {
 
 void GuidanceOverlay::draw_targeting(LayerCalls& renderer, const Eigen::Isometry3d& T_cam_ct,
-                                     const planning::NeedleState& s) {
+                                     const NeedleReading& reading) {
+  const planning::NeedleState& s = reading.state;
   const auto palette = options_.palette;
   const cv::Size frame(renderer.camera().width, renderer.camera().height);
   const auto targeting_start = std::chrono::steady_clock::now();
@@ -35,8 +36,15 @@ void GuidanceOverlay::draw_targeting(LayerCalls& renderer, const Eigen::Isometry
         targeting_right_ = to.right_hint;
       }
       targeting_origin_ = cv::Point(frame.width - to.size_px - 10, 10);
-      if (!same || !targeting_picture_.drawn || targeting_palette_ != palette) {
-        targeting_picture_.bgra = render_targeting_view(targeting_, palette);
+      // The 95 % ellipse of the line's crossing: drawn anew when it moves by half a pixel.
+      const std::vector<Eigen::Vector3d> ellipse = reading.uncertainty.ellipse_at_tumor(48);
+      bool ellipse_moved = ellipse.size() != targeting_ellipse_.size();
+      for (size_t i = 0; i < ellipse.size() && !ellipse_moved; ++i) {
+        ellipse_moved = (ellipse[i] - targeting_ellipse_[i]).norm() > 0.5 * targeting_.mm_per_px;
+      }
+      if (!same || ellipse_moved || !targeting_picture_.drawn || targeting_palette_ != palette) {
+        targeting_ellipse_ = ellipse;
+        targeting_picture_.bgra = render_targeting_view(targeting_, palette, ellipse);
         targeting_picture_.revision = OverlayRenderer::new_image_revision();
         targeting_picture_.drawn = true;
         targeting_palette_ = palette;

@@ -92,7 +92,8 @@ std::vector<std::vector<cv::Point2f>> point_cloud_outlines(
   return out;
 }
 
-cv::Mat render_targeting_view(const planning::TargetingGeometry& g, planning::Palette palette) {
+cv::Mat render_targeting_view(const planning::TargetingGeometry& g, planning::Palette palette,
+                              const std::vector<Eigen::Vector3d>& uncertainty) {
   const int n = g.size_px;
   cv::Mat image(n, n, CV_8UC3, cv::Scalar(28, 28, 28));
   if (!g.valid) {
@@ -168,6 +169,13 @@ cv::Mat render_targeting_view(const planning::TargetingGeometry& g, planning::Pa
       const Eigen::Vector2d tip = g.centre_px + dir * (0.5 * n - 12);
       cv::arrowedLine(image, fixed(tip - 30 * dir), fixed(tip), kTargetingCrossColour, 2,
                       cv::LINE_8, kShift, 0.35);
+    }
+    // Where the needle's line may cross the plane (95 %): a thin white ellipse around the cross.
+    if (uncertainty.size() >= 3) {
+      std::vector<cv::Point> ellipse;
+      for (const auto& p : uncertainty) ellipse.push_back(fixed(g.to_px(p)));
+      cv::polylines(image, std::vector<std::vector<cv::Point>>{ellipse}, true,
+                    kTargetingCrossColour, 1, cv::LINE_AA, kShift);
     }
     // Beyond the map: an arrow toward the nearest safe direction, with its tilt.
     if (std::isfinite(g.nearest_safe_deg) && g.nearest_safe_deg > g.max_tilt_deg) {

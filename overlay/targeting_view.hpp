@@ -19,9 +19,12 @@ namespace crepuscular::overlay {
 const cv::Scalar kTargetingCrossColour(255, 255, 255);
 
 // The view as an opaque BGRA image of geometry.size_px square. An invalid geometry (needle
-// pointing away) gives the frame with its reason.
+// pointing away) gives the frame with its reason. `uncertainty`: points (CT) of the 95 % ellipse
+// where the needle's line crosses the plane (LineUncertainty::ellipse_at_tumor), drawn around
+// the cross; none: not drawn.
 cv::Mat render_targeting_view(const planning::TargetingGeometry& geometry,
-                              planning::Palette palette);
+                              planning::Palette palette,
+                              const std::vector<Eigen::Vector3d>& uncertainty = {});
 
 // Outlines of a point cloud drawn as discs of radius_px (pixels, OpenCV convention), e.g. the
 // tumor's surface voxels: the outer contours of their union, in the same pixel coordinates.

@@ -337,6 +337,18 @@ GuidanceSetup read_guidance_setup(const std::string& camera_yaml,
   axis.normalize();
   if (axis.dot(needle.tip_needle) < 0) axis = -axis;  // from the hub toward the tip
   setup.axis_in_needle = axis;
+  // The calibrations' own errors: the tip's per-axis standard deviations (else its 3D one spread
+  // alike over the axes), the spin axis's residual angle (else the axis follows the tip), and the
+  // registration's expected error at the tumor (else its fiducial error).
+  planning::NeedleUncertaintySources& u = setup.uncertainty;
+  if (needle.tip_stddev_mm.squaredNorm() > 0) {
+    u.tip_mm2 = needle.tip_stddev_mm.cwiseAbs2().asDiagonal();
+  } else {
+    u.tip_mm2 = Eigen::Matrix3d::Identity() * (needle.tip_stddev_3d_mm * needle.tip_stddev_3d_mm / 3.0);
+  }
+  u.axis_from_tip = !needle.axis_needle;
+  u.axis_stddev_rad = needle.axis_needle ? needle.axis_rms_deg * M_PI / 180.0 : 0.0;
+  u.registration_tre_mm = reg.expected_tre_mm > 0 ? reg.expected_tre_mm : reg.fre_rms_mm;
   if (setup.patient_board == setup.needle_board) {
     throw Error(needle_yaml + ": the needle board '" + setup.needle_board +
                 "' is also the patient board of " + registration_yaml);
@@ -359,7 +371,8 @@ std::pair<int64_t, std::string> parse_snapshot(const std::string& spec) {
 std::string guide_log_header() {
   return "frame,timestamp_ns,image,problem,patient_tracked,patient_age_ms,needle_tracked,"
          "needle_age_ms,anatomy_drawn,needle_safety,line_integral,clear,tip_class,"
-         "tip_to_target_mm,miss_mm,hits_tumor,angle_to_safe_deg,structures,latency_ms,render_ms,"
+         "tip_to_target_mm,miss_mm,hits_tumor,angle_to_safe_deg,structures,uncertainty_95_mm,"
+         "uncertainty_95_minor_mm,worst_in_95,uncertain,pose_covariance_known,latency_ms,render_ms,"
          "warnings";
 }
 
@@ -379,9 +392,14 @@ std::string guide_log_row(const GuidanceFrameInfo& i, double latency_ms, double 
     o << planning::needle_safety_name(s.safety) << ',' << s.evaluation.line_integral << ','
       << (s.clear ? 1 : 0) << ',' << s.tip_class << ',' << s.tip_to_centroid_mm << ','
       << s.miss_distance_mm << ',' << (s.hits_tumor ? 1 : 0) << ',' << s.angle_to_safe_deg << ','
-      << csv_field(structures);
+      << csv_field(structures) << ',';
+    const auto& n = *i.needle;
+    if (n.uncertainty.valid) o << n.uncertainty.major95_mm << ',' << n.uncertainty.minor95_mm;
+    else o << ',';
+    o << ',' << planning::needle_safety_name(n.region.worst) << ',' << (n.region.uncertain() ? 1 : 0)
+      << ',' << (n.pose_covariance_known ? 1 : 0);
   } else {
-    o << ",,,,,,,,";
+    o << ",,,,,,,,,,,,,";
   }
   std::string warnings;
   for (const auto& w : i.warnings) warnings += (warnings.empty() ? "" : "; ") + w;

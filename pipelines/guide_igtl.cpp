@@ -79,6 +79,15 @@ void GuidanceBroadcast::safety(const overlay::GuidanceFrameInfo& info) {
     const planning::NeedleState& s = info.needle->state;
     text = fmt::format("{}; line integral {:.3g}", planning::needle_safety_name(s.safety),
                        s.evaluation.line_integral);
+    const auto& n = *info.needle;
+    if (n.uncertainty.valid) {
+      text += fmt::format("; uncertainty at the tumor {:.1f} x {:.1f} mm (95 %)",
+                          n.uncertainty.major95_mm, n.uncertainty.minor95_mm);
+    }
+    if (n.region.uncertain()) {
+      text += std::string("; UNCERTAIN: ") + planning::needle_safety_name(n.region.worst) +
+              " within the 95 % region";
+    }
     for (const std::string& line : overlay::needle_text(s)) text += "; " + line;
   }
   server_.publish({igtlink::string_message("NeedleSafety", text, info.timestamp_ns)});

@@ -407,6 +407,52 @@ TEST_F(GuidanceTest, NeedleColourSwitchesFromSafeToDangerousOnTheVessel) {
   for (int l = 0; l < kGuidanceLayerCount; ++l) o.set_visible(GuidanceLayer(l), true);
 }
 
+// A needle aimed at the tumor just clear of the vessel (3 deg beyond the last azimuth whose line
+// is dangerous): safe, and safe in the overlay without uncertainty; with a registration known to
+// 2 mm per axis, a line of its 95 % region crosses the vessel: UNCERTAIN, dangerous, in the frame's
+// reading. A lost needle marker still shows as lost, with no reading to be uncertain about.
+TEST_F(GuidanceTest, NeedleBesideTheVesselIsUncertainWithTheRegistrationsError) {
+  auto renderer = make_renderer(test_camera());
+  if (!renderer) GTEST_SKIP() << "no OpenGL 3.3 core context on this machine";
+  const planning::NeedleGuide& guide = overlay_->needle_guide();
+  const auto tip_at = [](double az) {
+    const double a = az * M_PI / 180;
+    return Eigen::Vector3d(60.0 * std::cos(a), 60.0 * std::sin(a), 0.0);
+  };
+  double last_dangerous = -1;
+  for (double az = 0; az <= 40; az += 0.25) {
+    if (guide.line_safety(tip_at(az), -tip_at(az)) == planning::NeedleSafety::kDangerous) {
+      last_dangerous = az;
+    }
+  }
+  ASSERT_GT(last_dangerous, 5.0);
+  ASSERT_LT(last_dangerous, 30.0);
+  const Eigen::Vector3d tip = tip_at(last_dangerous + 3.0);
+  const Eigen::Isometry3d T_ct_needle = T_ct_needle_for(tip, -tip.normalized());
+  const GuidanceFrameInfo exact = overlay_->update(*renderer, grey_frame(), track(T_ct_needle), {});
+  ASSERT_TRUE(exact.needle.has_value());
+  EXPECT_EQ(exact.needle->state.safety, planning::NeedleSafety::kSafe);
+  EXPECT_FALSE(exact.needle->region.uncertain());
+  EXPECT_NEAR(exact.needle->uncertainty.major95_mm, 0.0, 1e-6);
+
+  GuidanceSetup setup = overlay_->setup();
+  setup.uncertainty.registration_tre_mm = 2.0 * std::sqrt(3.0);
+  GuidanceOverlay noisy(*plan_, setup);
+  const GuidanceFrameInfo info = noisy.update(*renderer, grey_frame(), track(T_ct_needle), {});
+  ASSERT_TRUE(info.needle.has_value());
+  EXPECT_EQ(info.needle->state.safety, planning::NeedleSafety::kSafe);
+  EXPECT_TRUE(info.needle->region.uncertain());
+  EXPECT_EQ(info.needle->region.worst, planning::NeedleSafety::kDangerous);
+  EXPECT_NEAR(info.needle->uncertainty.major95_mm, 2.0 * std::sqrt(planning::kChi2_95_2dof), 1e-3);
+  EXPECT_FALSE(info.needle->pose_covariance_known);
+
+  const GuidanceFrameInfo lost = noisy.update(*renderer, grey_frame(), track(std::nullopt), {});
+  EXPECT_FALSE(lost.needle.has_value());
+  bool warned = false;
+  for (const auto& w : lost.warnings) warned |= w == "NEEDLE MARKER LOST";
+  EXPECT_TRUE(warned);
+}
+
 // A needle whose tip has passed the vessel: the line is evaluated from where it entered the body,
 // so the vessel it pierced still makes it dangerous.
 TEST_F(GuidanceTest, NeedlePastTheVesselStaysDangerous) {
