@@ -308,6 +308,20 @@ std::vector<tracking::Board> placeholder_boards(const overlay::GuidanceSetup& se
 
 }  // namespace
 
+planning::NeedleUncertaintySources calibration_uncertainty(
+    const calibration::NeedleCalibration& needle, const calibration::RegistrationRecord& reg) {
+  planning::NeedleUncertaintySources u;
+  if (needle.tip_stddev_mm.squaredNorm() > 0) {
+    u.tip_mm2 = needle.tip_stddev_mm.cwiseAbs2().asDiagonal();
+  } else {
+    u.tip_mm2 = Eigen::Matrix3d::Identity() * (needle.tip_stddev_3d_mm * needle.tip_stddev_3d_mm / 3.0);
+  }
+  u.axis_from_tip = !needle.axis_needle;
+  u.axis_stddev_rad = needle.axis_needle ? needle.axis_rms_deg * M_PI / 180.0 : 0.0;
+  u.registration_tre_mm = reg.expected_tre_mm > 0 ? reg.expected_tre_mm : reg.fre_rms_mm;
+  return u;
+}
+
 GuidanceSetup read_guidance_setup(const std::string& camera_yaml,
                                   const std::string& registration_yaml,
                                   const std::string& needle_yaml) {
@@ -337,18 +351,7 @@ GuidanceSetup read_guidance_setup(const std::string& camera_yaml,
   axis.normalize();
   if (axis.dot(needle.tip_needle) < 0) axis = -axis;  // from the hub toward the tip
   setup.axis_in_needle = axis;
-  // The calibrations' own errors: the tip's per-axis standard deviations (else its 3D one spread
-  // alike over the axes), the spin axis's residual angle (else the axis follows the tip), and the
-  // registration's expected error at the tumor (else its fiducial error).
-  planning::NeedleUncertaintySources& u = setup.uncertainty;
-  if (needle.tip_stddev_mm.squaredNorm() > 0) {
-    u.tip_mm2 = needle.tip_stddev_mm.cwiseAbs2().asDiagonal();
-  } else {
-    u.tip_mm2 = Eigen::Matrix3d::Identity() * (needle.tip_stddev_3d_mm * needle.tip_stddev_3d_mm / 3.0);
-  }
-  u.axis_from_tip = !needle.axis_needle;
-  u.axis_stddev_rad = needle.axis_needle ? needle.axis_rms_deg * M_PI / 180.0 : 0.0;
-  u.registration_tre_mm = reg.expected_tre_mm > 0 ? reg.expected_tre_mm : reg.fre_rms_mm;
+  setup.uncertainty = calibration_uncertainty(needle, reg);
   if (setup.patient_board == setup.needle_board) {
     throw Error(needle_yaml + ": the needle board '" + setup.needle_board +
                 "' is also the patient board of " + registration_yaml);

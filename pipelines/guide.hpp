@@ -15,6 +15,7 @@
 #include <utility>
 #include <vector>
 
+#include "calibration/calibration_files.hpp"
 #include "overlay/guidance.hpp"
 #include "overlay/renderer.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
@@ -101,6 +102,12 @@ GuideSummary run_guide(const std::string& plan_dir, const GuideRequest& request)
 // A snapshot request "FRAME" or "FRAME:NAME.png" (FRAME alone: frame_FRAME.png); throws Error
 // naming the text otherwise.
 std::pair<int64_t, std::string> parse_snapshot(const std::string& spec);
+
+// What the needle calibration and the registration say of their own errors: the tip's per-axis
+// standard deviations (else its 3D one spread alike over the axes), the spin axis's residual angle
+// (else the axis follows the tip), the registration's expected TRE at the tumor (else its FRE).
+planning::NeedleUncertaintySources calibration_uncertainty(
+    const calibration::NeedleCalibration& needle, const calibration::RegistrationRecord& reg);
 
 // The calibration files of a session: camera.yaml (intrinsics), registration.yaml (T_ct_patient and
 // the patient board's name) and needle.yaml (tip, and the axis when spin calibration was done).
