@@ -211,6 +211,20 @@ constexpr double kBreathingFadeSigmaMm = 70.0;    // Gaussian fade with distance
 
 Vec3 breathing_direction() { return Vec3(0.0, -kBreathingAnteriorRatio, -1.0); }
 
+// The anterior abdominal wall rises with inhalation: skin, fat and muscle in front of the
+// mid-coronal plane move anteriorly by up to kWallRiseRatio times the diaphragm's motion at the
+// anterior skin (8.4 mm for the default 12 mm), fading toward the mid-coronal plane (smoothstep)
+// and with the height from the abdomen's middle (Gaussian); the air in front moves with the skin.
+constexpr double kWallRiseRatio = 0.7;
+constexpr double kWallCentreZ = -30.0, kWallSigmaZ = 60.0;
+
+Vec3 wall_displacement(const Vec3& p, double inhale, double amplitude_mm) {
+  const double a = std::clamp(-p.y() / kBodyB, 0.0, 1.0);
+  const double dz = p.z() - kWallCentreZ;
+  const double fade = a * a * (3.0 - 2.0 * a) * std::exp(-0.5 * dz * dz / (kWallSigmaZ * kWallSigmaZ));
+  return Vec3(0.0, -inhale * amplitude_mm * kWallRiseRatio * fade, 0.0);
+}
+
 // Where a voxel's content comes from: in a phase, the moving anatomy at p is the anatomy at rest
 // (end-exhale) at p - u(p). Identity when the phase does not move.
 struct Warp {
@@ -220,6 +234,12 @@ struct Warp {
   double max_mm() const { return std::abs(inhale * amplitude_mm) * breathing_direction().norm(); }
   Vec3 source(const Vec3& p) const {
     return moves() ? Vec3(p - breathing_displacement(p, inhale, amplitude_mm)) : p;
+  }
+  // Where the body wall's content at p comes from: the q with q + wall_displacement(q) = p.
+  Vec3 wall_source(const Vec3& p) const {
+    Vec3 q = p;
+    for (int it = 0; it < 4 && moves(); ++it) q = p - wall_displacement(q, inhale, amplitude_mm);
+    return q;
   }
 };
 
@@ -468,6 +488,19 @@ struct ColumnMaps {
   std::vector<double> dome;      // dome_z
 };
 
+// What the body holds at (x, y) at rest (the same at every height).
+Column column_kind(double x, double y) {
+  const double body = superellipse_q(x, y, kBodyA, kBodyB);
+  const double wall = superellipse_q(x, y, kBodyA - kFatMm, kBodyB - kFatMm);
+  const double bx = (std::abs(x) - kBackMuscleX) / kBackMuscleRx;
+  const double by = (y - kBackMuscleY) / kBackMuscleRy;
+  if (body > 1.0) return kColAir;
+  if (bx * bx + by * by <= 1.0) return kColMuscle;
+  if (wall > 1.0) return kColFat;
+  if (cavity_sdf(x, y) > 0.0) return kColMuscle;
+  return kColCavity;
+}
+
 ColumnMaps make_column_maps(const ImageGeometry& g) {
   ColumnMaps m;
   const size_t n = size_t(g.dims[0] * g.dims[1]);
@@ -477,25 +510,10 @@ ColumnMaps make_column_maps(const ImageGeometry& g) {
   for (int64_t j = 0; j < g.dims[1]; ++j) {
     for (int64_t i = 0; i < g.dims[0]; ++i) {
       const Vec3 p = g.index_to_physical(i, j, 0);
-      const double x = p.x(), y = p.y();
       const size_t c = size_t(i + g.dims[0] * j);
-      m.cavity_d[c] = cavity_sdf(x, y);
-      m.dome[c] = dome_z(x, y);
-      const double body = superellipse_q(x, y, kBodyA, kBodyB);
-      const double wall = superellipse_q(x, y, kBodyA - kFatMm, kBodyB - kFatMm);
-      const double bx = (std::abs(x) - kBackMuscleX) / kBackMuscleRx;
-      const double by = (y - kBackMuscleY) / kBackMuscleRy;
-      if (body > 1.0) {
-        m.kind[c] = kColAir;
-      } else if (bx * bx + by * by <= 1.0) {
-        m.kind[c] = kColMuscle;
-      } else if (wall > 1.0) {
-        m.kind[c] = kColFat;
-      } else if (m.cavity_d[c] > 0.0) {
-        m.kind[c] = kColMuscle;
-      } else {
-        m.kind[c] = kColCavity;
-      }
+      m.cavity_d[c] = cavity_sdf(p.x(), p.y());
+      m.dome[c] = dome_z(p.x(), p.y());
+      m.kind[c] = column_kind(p.x(), p.y());
     }
   }
   return m;
@@ -721,7 +739,13 @@ void paint_body_and_organs(const ImageGeometry& g, const ColumnMaps& cols, const
     for (int64_t i = 0; i < nx; ++i) {
       const size_t c = size_t(i + nx * j);
       const Vec3 p = voxel_centre(g, i, j, sl.z);
-      switch (cols.kind[c]) {
+      // The wall of a breathing phase: its rest shape at the wall's source.
+      Column kind = Column(cols.kind[c]);
+      if (warp.moves()) {
+        const Vec3 w = warp.wall_source(p);
+        kind = column_kind(w.x(), w.y());
+      }
+      switch (kind) {
         case kColAir:
           sl.labels[c] = kAir;
           break;
@@ -732,7 +756,7 @@ void paint_body_and_organs(const ImageGeometry& g, const ColumnMaps& cols, const
           sl.labels[c] = kMuscle;
           break;
         default:
-          if (warp.moves()) {  // the cavity's content moves; its wall stays
+          if (warp.moves()) {  // the cavity's content moves with the organs' field
             const Vec3 q = warp.source(p);
             cavity_voxel(q, cavity_sdf(q.x(), q.y()), dome_z(q.x(), q.y()), sl.labels[c],
                          sl.hu[c]);
@@ -884,6 +908,11 @@ Eigen::Vector3d breathing_displacement(const Eigen::Vector3d& p, double inhale,
   return inhale * amplitude_mm * w * breathing_direction();
 }
 
+Eigen::Vector3d breathing_wall_displacement(const Eigen::Vector3d& p, double inhale,
+                                            double amplitude_mm) {
+  return wall_displacement(p, inhale, amplitude_mm);
+}
+
 Eigen::Vector3d breathing_position(const Eigen::Vector3d& p_rest, double inhale,
                                    double amplitude_mm) {
   // q = p_rest + u(q): a contraction (|grad u| < 0.5 for amplitudes up to the maximum).
@@ -966,7 +995,8 @@ nlohmann::json write_breathing_phantom(const PhantomOptions& base, int phases,
         {"fade_sigma_mm", kBreathingFadeSigmaMm},
         {"inhale", "sin^2(pi k / phases)"},
         {"moves", "diaphragm, liver and its vessels, tumor, kidneys, spleen, bowel, heart, lungs"},
-        {"stays", "skin, fat and muscle wall, ribs, spine, aorta, vena cava"}}},
+        {"wall", "the anterior abdominal wall rises (-y), by up to 0.7 amplitude at the skin"},
+        {"stays", "posterior wall, ribs, spine, aorta, vena cava"}}},
       {"seed", base.seed},
       {"spacing_mm", base.spacing_mm},
       {"phases", list}};

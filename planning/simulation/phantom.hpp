@@ -17,8 +17,9 @@ namespace crepuscular::planning {
 // Breathing (docs/ARCHITECTURE.md §10): the diaphragm, the organs below it (liver, its vessels, the
 // tumor, kidneys, spleen, bowel) and the heart and lungs' bases move by the displacement field
 // u = inhale * amplitude * w * (0, -0.35, -1) (caudal and anterior), with w = 1 at the
-// diaphragm's dome and a Gaussian fade (sigma 70 mm) with the vertical distance from it; bones,
-// skin, body wall, spine, aorta and vena cava stay.
+// diaphragm's dome and a Gaussian fade (sigma 70 mm) with the vertical distance from it. The
+// anterior abdominal wall (skin, fat, muscle) rises: breathing_wall_displacement. Bones, the
+// posterior wall, spine, aorta and vena cava stay.
 constexpr double kMaxBreathingAmplitudeMm = 30.0;
 
 struct PhantomOptions {
@@ -47,6 +48,11 @@ void write_phantom(const Phantom& phantom, const std::string& dir);
 // the content of the phase at p is the phantom at rest at p - u(p).
 Eigen::Vector3d breathing_displacement(const Eigen::Vector3d& p, double inhale,
                                        double amplitude_mm);
+// The body wall's displacement at a point of a phase: anterior (-y), inhale * amplitude * 0.7 at
+// the anterior skin of the abdomen's middle (z = -30 mm), fading (smoothstep) to none at the
+// mid-coronal plane and with the height (Gaussian, sigma 60 mm); in front of the skin as at it.
+Eigen::Vector3d breathing_wall_displacement(const Eigen::Vector3d& p, double inhale,
+                                            double amplitude_mm);
 // Where the material at `p_rest` (end-exhale) lies in a phase: the q with q - u(q) = p_rest.
 Eigen::Vector3d breathing_position(const Eigen::Vector3d& p_rest, double inhale,
                                    double amplitude_mm);

@@ -423,19 +423,51 @@ TEST(PhantomBreathing, TumorCentroidFollowsTheMotionCurveAndBonesStay) {
     EXPECT_LT(moved.y(), 0.0) << "phase " << phase;
     EXPECT_GT(std::abs(moved.z()), 2.0 * std::abs(moved.y())) << "phase " << phase;
     largest = std::max(largest, moved.norm());
-    // Bones and the skin stay: every bone and air voxel is where it was.
-    int64_t changed = 0;
+    // Bones stay, voxel for voxel; air turns to body only in front of the mid-coronal plane,
+    // where the anterior wall rises, and never the other way.
+    int64_t bone_changed = 0, air_behind = 0, air_to_body = 0, body_to_air = 0;
     for (int64_t n = 0; n < ph.labels.voxel_count(); ++n) {
-      const bool was = rest.labels[n] == kBone || rest.labels[n] == kAir;
-      const bool is = ph.labels[n] == kBone || ph.labels[n] == kAir;
-      if (was != is && (rest.labels[n] != kLung && ph.labels[n] != kLung)) ++changed;
+      if ((rest.labels[n] == kBone) != (ph.labels[n] == kBone)) ++bone_changed;
+      const bool was_air = rest.labels[n] == kAir, is_air = ph.labels[n] == kAir;
+      if (was_air == is_air || rest.labels[n] == kLung || ph.labels[n] == kLung) continue;
+      const auto ijk = ph.labels.geometry().index_of_offset(n);
+      if (ph.labels.index_to_physical(ijk[0], ijk[1], ijk[2]).y() >= 0) ++air_behind;
+      (was_air ? air_to_body : body_to_air)++;
     }
-    EXPECT_EQ(changed, 0) << "phase " << phase;
+    EXPECT_EQ(bone_changed, 0) << "phase " << phase;
+    EXPECT_EQ(air_behind, 0) << "phase " << phase;
+    EXPECT_EQ(body_to_air, 0) << "phase " << phase;
+    EXPECT_GT(air_to_body, 0) << "phase " << phase;
     EXPECT_EQ(label_stats(ph, kBone).count, bone0.count) << "phase " << phase;
   }
   // The liver 70 mm below the dome moves about 12 x exp(-1/2) ~ 7.3 mm x 1.06 at end-inhale.
   EXPECT_GT(largest, 6.0);
   EXPECT_LT(largest, 9.0);
+}
+
+// The anterior skin at the abdomen's middle (x = 0, z = -30 mm) rises by 0.7 x 12 mm x inhale
+// (within a voxel of 3 mm); the posterior skin there stays.
+TEST(PhantomBreathing, AnteriorWallRisesWithInhalation) {
+  const auto skin = [](const Phantom& ph, bool anterior) {
+    const auto& g = ph.labels.geometry();
+    const Eigen::Vector3d ijk = g.physical_to_index(Eigen::Vector3d(0, 0, -30));
+    const int64_t i = std::llround(ijk.x()), k = std::llround(ijk.z());
+    const int64_t n = g.dims[1];
+    for (int64_t s = 0; s < n; ++s) {
+      const int64_t j = anterior ? s : n - 1 - s;
+      if (ph.labels(i, j, k) != kAir) return g.index_to_physical(i, j, k).y();
+    }
+    return 0.0;
+  };
+  const Phantom rest = breathing_phase(0);
+  for (const int phase : {2, 5}) {
+    const Phantom ph = breathing_phase(phase);
+    const double rise = skin(rest, true) - skin(ph, true);
+    EXPECT_NEAR(rise, 0.7 * 12.0 * breathing_inhale(phase, 10), 3.0) << "phase " << phase;
+    EXPECT_NEAR(breathing_wall_displacement(Eigen::Vector3d(0, -105, -30), breathing_inhale(phase, 10), 12.0).y(),
+                -0.7 * 12.0 * breathing_inhale(phase, 10), 1e-9);
+    EXPECT_EQ(skin(ph, false), skin(rest, false)) << "phase " << phase;
+  }
 }
 
 TEST(PhantomBreathing, DiaphragmDescendsByTheAmplitude) {
