@@ -48,6 +48,7 @@ GuidanceOverlay::GuidanceOverlay(const planning::PlanData& plan, GuidanceSetup s
     throw Error("guidance: ray directions must be 1 to 200000");
   }
   guide_ = std::make_unique<planning::NeedleGuide>(plan_);
+  tumor_centre_shown_ = plan_.tumor_centre;
   build_tumor_surface();
   build_rays();
   build_entry_contours();
@@ -198,7 +199,14 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
 
   info.upload_ms = ms_since(t);
   if (info.image && info.patient_tracked) {
-    const Eigen::Isometry3d T_cam_ct = patient->T_cam_board * setup_.T_ct_patient.inverse();
+    // Breathing plans: the phase, the registration moved with the skin, the phase's guide.
+    Eigen::Isometry3d T_ct_patient = setup_.T_ct_patient;
+    const planning::NeedleGuide* guide = guide_.get();
+    if (breathing_) {
+      info.breathing.emplace();
+      guide = read_breathing(frame, *patient, T_ct_patient, *info.breathing);
+    }
+    const Eigen::Isometry3d T_cam_ct = patient->T_cam_board * T_ct_patient.inverse();
     info.anatomy_drawn = true;
     // The needle's reading and drawing run beside the anatomy's: they share only what neither
     // changes (plan, setup, options; each keeps its own pictures). Their renderer calls are
@@ -207,26 +215,44 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
       NeedleReading reading;
       LayerCalls calls;
       double ms = 0.0, evaluate_ms = 0.0, uncertainty_ms = 0.0;
+      std::vector<planning::NeedleSafety> phase_safety;
     };
     std::future<NeedlePart> needle_part;
     if (info.needle_tracked) {
       const Eigen::Isometry3d T_cam_needle = needle->T_cam_board;
       const Eigen::Isometry3d T_ct_needle =
-          setup_.T_ct_patient * patient->T_cam_board.inverse() * T_cam_needle;
+          T_ct_patient * patient->T_cam_board.inverse() * T_cam_needle;
+      const BreathingReading* breathing = info.breathing ? &*info.breathing : nullptr;
       needle_part = std::async(std::launch::async, [this, &renderer, T_cam_ct, T_cam_needle,
-                                                    T_ct_needle, patient, needle] {
+                                                    T_ct_needle, T_ct_patient, patient, needle,
+                                                    guide, breathing] {
         const auto t0 = Clock::now();
         NeedlePart part{NeedleReading{}, LayerCalls(renderer.camera())};
         part.reading.T_ct_needle = T_ct_needle;
         part.reading.state =
-            guide_->evaluate(T_ct_needle, setup_.tip_in_needle, setup_.axis_in_needle);
+            guide->evaluate(T_ct_needle, setup_.tip_in_needle, setup_.axis_in_needle);
         part.evaluate_ms =
             std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
         const auto t1 = Clock::now();
-        read_uncertainty(part.reading, *patient, *needle);
+        read_uncertainty(part.reading, *guide, T_ct_patient, *patient, *needle);
+        if (breathing) {
+          // The line in every phase (the gating bar), read beside the anatomy's drawing.
+          for (const auto& g : phase_guides_) {
+            part.phase_safety.push_back(
+                part.reading.state.points_away
+                    ? planning::NeedleSafety::kUnknown
+                    : g->line_safety(part.reading.state.tip, part.reading.state.axis));
+          }
+        }
         part.uncertainty_ms = std::chrono::duration<double, std::milli>(Clock::now() - t1).count();
         if (visible(GuidanceLayer::kNeedle) || visible(GuidanceLayer::kTarget)) {
-          draw_needle(part.calls, T_cam_ct, T_cam_needle, part.reading);
+          BreathingReading shown;
+          if (breathing) {
+            shown.estimate = breathing->estimate;
+            shown.phase_safety = part.phase_safety;
+          }
+          draw_needle(part.calls, T_cam_ct, T_cam_needle, part.reading,
+                      breathing ? &shown : nullptr);
         }
         part.ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
         return part;
@@ -242,6 +268,7 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
       info.needle_ms = part.ms;
       info.needle_evaluate_ms = part.evaluate_ms;
       info.uncertainty_ms = part.uncertainty_ms;
+      if (info.breathing) info.breathing->phase_safety = std::move(part.phase_safety);
       info.targeting_ms = targeting_ms_;
       info.needle_panel_ms = needle_panel_ms_;
     }

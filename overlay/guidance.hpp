@@ -50,6 +50,7 @@
 #include "calibration/camera_model.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
 #include "planning/trajectories/markups.hpp"
+#include "planning/breathing/respiratory_phase.hpp"
 #include "planning/trajectories/needle_guidance.hpp"
 #include "planning/trajectories/needle_uncertainty.hpp"
 #include "planning/trajectories/targeting.hpp"
@@ -126,6 +127,24 @@ struct NeedleReading {
   bool pose_covariance_known = false;
 };
 
+// A breathing plan's phases for guidance (pipelines/guide_breathing.hpp reads them): each phase's
+// plan on the plan's grid (its labels, tumor, blocking, path safety and tumor centre) and the
+// skin's motion at the patient board over the phases. The registration is taken as made at
+// phase 0 (end-exhale), as the plan's phase 0 is.
+struct BreathingPhases {
+  std::vector<std::string> names;
+  std::vector<std::unique_ptr<planning::PlanData>> plans;
+  planning::SkinMotion skin;
+};
+
+// The breathing part of one frame (breathing plans only).
+struct BreathingReading {
+  planning::PhaseEstimate estimate;
+  // The needle's line's class in each phase (empty without a needle reading); when the phase is
+  // known, the needle reading itself is the current phase's.
+  std::vector<planning::NeedleSafety> phase_safety;
+};
+
 // What one frame showed, for logs and reports.
 struct GuidanceFrameInfo {
   int64_t frame = 0;
@@ -137,6 +156,7 @@ struct GuidanceFrameInfo {
   double patient_age_ms = 0, needle_age_ms = 0;  // age of the pose in use (when tracked)
   bool anatomy_drawn = false;  // layers 1-4 were drawn from a current patient pose
   std::optional<NeedleReading> needle;
+  std::optional<BreathingReading> breathing;
   std::vector<std::string> warnings;  // shown on screen
   // Where update() spent its time (ms): the video frame's upload, layers 1-4, the needle's
   // evaluation and layer (computed beside layers 1-4, on another thread), the status layer.
@@ -172,6 +192,12 @@ class GuidanceOverlay {
   GuidanceFrameInfo update(OverlayRenderer& renderer, const tracking::Frame& frame,
                            const tracking::TrackResult& track, const GuidanceTiming& timing,
                            bool frame_uploaded = false);
+
+  // Guidance over the breathing cycle: each frame estimates the phase from the patient board's
+  // motion, moves the registration with the skin under the board, evaluates the needle against
+  // the current phase and every phase (the gating bar) and draws the current phase's tumor.
+  void set_breathing(std::unique_ptr<BreathingPhases> phases);
+  const BreathingPhases* breathing() const { return breathing_.get(); }
 
   void set_visible(GuidanceLayer layer, bool visible);
   bool visible(GuidanceLayer layer) const;
@@ -241,12 +267,21 @@ class GuidanceOverlay {
   void draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
   void draw_volume(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
   // The reading's uncertainty and region safety from both boards' tracking and the setup.
-  void read_uncertainty(NeedleReading& reading, const tracking::BoardStatus& patient,
+  void read_uncertainty(NeedleReading& reading, const planning::NeedleGuide& guide,
+                        const Eigen::Isometry3d& T_ct_patient, const tracking::BoardStatus& patient,
                         const tracking::BoardStatus& needle) const;
+  // The breathing phase of a frame whose patient board is tracked; moves T_ct_patient with the
+  // skin and returns the guide of the current phase (the plan's own when the phase is unknown).
+  const planning::NeedleGuide* read_breathing(const tracking::Frame& frame,
+                                              const tracking::BoardStatus& patient,
+                                              Eigen::Isometry3d& T_ct_patient,
+                                              BreathingReading& reading);
+  void draw_gating_bar(LayerCalls& renderer, const BreathingReading& reading) const;
   // Into a LayerCalls (guidance_drawing.hpp) that records what is added, so that the needle's
   // part can be drawn beside the anatomy's and added afterwards.
   void draw_needle(LayerCalls& renderer, const Eigen::Isometry3d& T_cam_ct,
-                   const Eigen::Isometry3d& T_cam_needle, const NeedleReading& reading);
+                   const Eigen::Isometry3d& T_cam_needle, const NeedleReading& reading,
+                   const BreathingReading* breathing);
   void draw_targeting(LayerCalls& renderer, const Eigen::Isometry3d& T_cam_ct,
                       const NeedleReading& reading);
   void draw_status(OverlayRenderer& renderer, const GuidanceFrameInfo& info,
@@ -259,6 +294,12 @@ class GuidanceOverlay {
 
   const planning::PlanData& plan_;
   GuidanceSetup setup_;
+  std::unique_ptr<BreathingPhases> breathing_;
+  std::vector<std::unique_ptr<planning::NeedleGuide>> phase_guides_;
+  std::unique_ptr<planning::RespiratoryPhaseEstimator> phase_estimator_;
+  // The current phase's tumor: its centre, and how far its surface lies from the plan's mask.
+  Eigen::Vector3d tumor_centre_shown_ = Eigen::Vector3d::Zero();
+  Eigen::Vector3d tumor_shift_ = Eigen::Vector3d::Zero();
   GuidanceOptions options_;
   std::string value_;
   std::unique_ptr<planning::NeedleGuide> guide_;
@@ -282,6 +323,7 @@ class GuidanceOverlay {
     Eigen::Isometry3d T_cam_ct = Eigen::Isometry3d::Identity();
     planning::Palette palette = planning::Palette::kDefault;
     calibration::CameraModel camera;
+    Eigen::Vector3d tumor_shift = Eigen::Vector3d::Zero();  // the tumor picture's (breathing)
     LayerPicture cones, entry, tumor;
     std::vector<Eigen::Vector2d> anchors_px;  // anatomy_anchors_ in the image (empty: unusable)
   };
@@ -289,12 +331,14 @@ class GuidanceOverlay {
   enum class AnatomyPicture { kCones, kEntry, kTumor };
   // One picture for one pose, drawn from the plan's geometry only (safe to run on another
   // thread), into `picture`, which it marks drawn.
+  // The tumor is drawn moved by tumor_shift.
   void draw_picture(AnatomyPicture which, LayerPicture& picture, const Eigen::Isometry3d& T_cam_ct,
-                    const calibration::CameraModel& camera, planning::Palette palette) const;
+                    const calibration::CameraModel& camera, planning::Palette palette,
+                    const Eigen::Vector3d& tumor_shift) const;
   // The pictures of the visible layers for one pose.
   AnatomyPictures draw_pictures(const Eigen::Isometry3d& T_cam_ct,
                                 const calibration::CameraModel& camera, planning::Palette palette,
-                                std::array<bool, 3> layers) const;
+                                std::array<bool, 3> layers, const Eigen::Vector3d& tumor_shift) const;
   AnatomyPictures anatomy_;
   std::future<AnatomyPictures> anatomy_ahead_;  // drawn for the last frame's pose
   // The corners of a box (CT) around everything the pictures show, for the reuse test, and

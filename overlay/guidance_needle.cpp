@@ -31,24 +31,27 @@ std::optional<Eigen::Vector3d> GuidanceOverlay::needle_skin_entry(
   return planning::body_entry_along(plan_.labels, s.tip, s.axis, s.along_axis_mm);
 }
 
-void GuidanceOverlay::read_uncertainty(NeedleReading& reading, const tracking::BoardStatus& patient,
+void GuidanceOverlay::read_uncertainty(NeedleReading& reading, const planning::NeedleGuide& guide,
+                                       const Eigen::Isometry3d& T_ct_patient,
+                                       const tracking::BoardStatus& patient,
                                        const tracking::BoardStatus& needle) const {
   planning::NeedleUncertaintySources sources = setup_.uncertainty;
   reading.pose_covariance_known = patient.covariance_valid && needle.covariance_valid;
   if (patient.covariance_valid) sources.patient_pose = patient.pose_covariance;
   if (needle.covariance_valid) sources.needle_pose = needle.pose_covariance;
   reading.uncertainty = planning::needle_line_uncertainty(
-      setup_.T_ct_patient, patient.T_cam_board, needle.T_cam_board, setup_.tip_in_needle,
-      setup_.axis_in_needle, plan_.tumor_centre, sources);
+      T_ct_patient, patient.T_cam_board, needle.T_cam_board, setup_.tip_in_needle,
+      setup_.axis_in_needle, guide.plan().tumor_centre, sources);
   reading.region.nominal = reading.region.worst = reading.state.safety;
   if (!reading.state.points_away && reading.uncertainty.valid) {
-    reading.region = planning::region_safety(*guide_, reading.uncertainty, reading.state.safety);
+    reading.region = planning::region_safety(guide, reading.uncertainty, reading.state.safety);
   }
 }
 
 void GuidanceOverlay::draw_needle(LayerCalls& renderer, const Eigen::Isometry3d& T_cam_ct,
                                   const Eigen::Isometry3d& T_cam_needle,
-                                  const NeedleReading& reading) {
+                                  const NeedleReading& reading,
+                                  const BreathingReading* breathing) {
   const auto& s = reading.state;
   const auto palette = options_.palette;
   const cv::Scalar colour = safety_bgr(palette, s.safety);
@@ -104,6 +107,12 @@ void GuidanceOverlay::draw_needle(LayerCalls& renderer, const Eigen::Isometry3d&
   std::vector<TextLine> lines;
   std::string headline = std::string("NEEDLE PATH: ") + planning::needle_safety_name(s.safety);
   std::transform(headline.begin(), headline.end(), headline.begin(), ::toupper);
+  if (breathing && breathing->estimate.known) {
+    headline += " IN " + breathing_->names[size_t(breathing->estimate.phase)];
+  } else if (breathing) {
+    headline += " (ALL PHASES)";
+  }
+  if (breathing) draw_gating_bar(renderer, *breathing);
   lines.push_back({headline, colour, 0.8});
   const planning::LineUncertainty& u = reading.uncertainty;
   if (reading.region.uncertain()) {

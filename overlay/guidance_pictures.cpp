@@ -86,25 +86,31 @@ std::optional<PlacedPictures> fit_placement(const std::vector<Eigen::Vector2d>& 
 
 GuidanceOverlay::AnatomyPictures GuidanceOverlay::draw_pictures(
     const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& cam,
-    planning::Palette palette, std::array<bool, 3> layers) const {
+    planning::Palette palette, std::array<bool, 3> layers, const Eigen::Vector3d& tumor_shift) const {
   AnatomyPictures pictures;
   pictures.valid = true;
+  pictures.tumor_shift = tumor_shift;
   pictures.T_cam_ct = T_cam_ct;
   pictures.palette = palette;
   pictures.camera = cam;
   pictures.anchors_px = project_anchors(anatomy_anchors_, T_cam_ct, cam);
   if (layers[0] && !patches_.empty()) {
-    draw_picture(AnatomyPicture::kCones, pictures.cones, T_cam_ct, cam, palette);
+    draw_picture(AnatomyPicture::kCones, pictures.cones, T_cam_ct, cam, palette, tumor_shift);
   }
-  if (layers[1]) draw_picture(AnatomyPicture::kEntry, pictures.entry, T_cam_ct, cam, palette);
-  if (layers[2]) draw_picture(AnatomyPicture::kTumor, pictures.tumor, T_cam_ct, cam, palette);
+  if (layers[1]) {
+    draw_picture(AnatomyPicture::kEntry, pictures.entry, T_cam_ct, cam, palette, tumor_shift);
+  }
+  if (layers[2]) {
+    draw_picture(AnatomyPicture::kTumor, pictures.tumor, T_cam_ct, cam, palette, tumor_shift);
+  }
   return pictures;
 }
 
 void GuidanceOverlay::draw_picture(AnatomyPicture which, LayerPicture& picture,
                                    const Eigen::Isometry3d& T_cam_ct,
                                    const calibration::CameraModel& cam,
-                                   planning::Palette palette) const {
+                                   planning::Palette palette,
+                                   const Eigen::Vector3d& tumor_shift) const {
   Picture p;
   switch (which) {
     case AnatomyPicture::kCones:
@@ -114,7 +120,8 @@ void GuidanceOverlay::draw_picture(AnatomyPicture which, LayerPicture& picture,
       p = patch_image(patches_, planned_, T_cam_ct, cam, palette);
       break;
     case AnatomyPicture::kTumor:
-      p = tumor_image(tumor_surface_, tumor_voxel_mm_, T_cam_ct, cam, kTumorColour);
+      p = tumor_image(tumor_surface_, tumor_voxel_mm_, T_cam_ct * Eigen::Translation3d(tumor_shift),
+                      cam, kTumorColour);
       break;
   }
   picture.bgra = p.bgra;
@@ -130,7 +137,8 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
   const std::array<bool, 3> layers = {visible(GuidanceLayer::kRays), visible(GuidanceLayer::kEntry),
                                       visible(GuidanceLayer::kTumor)};
   const auto usable = [&](const AnatomyPictures& p) {
-    return p.valid && p.palette == palette && same_camera(p.camera, cam);
+    return p.valid && p.palette == palette && same_camera(p.camera, cam) &&
+           p.tumor_shift == tumor_shift_;
   };
   // Pictures drawn ahead for the last frame's pose replace the kept ones.
   if (anatomy_ahead_.valid()) {
@@ -158,13 +166,13 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
     }
   }
   if (!keep && !placed) {
-    anatomy_ = draw_pictures(T_cam_ct, cam, palette, {false, false, false});
+    anatomy_ = draw_pictures(T_cam_ct, cam, palette, {false, false, false}, tumor_shift_);
   }
   bool drew = false;
   const Eigen::Isometry3d T_drawn = anatomy_.T_cam_ct;
   const auto show = [&](const char* layer, LayerPicture& picture, AnatomyPicture which) {
     if (!picture.drawn) {  // drawn for the pictures' own pose, also when placed
-      draw_picture(which, picture, T_drawn, cam, palette);
+      draw_picture(which, picture, T_drawn, cam, palette, anatomy_.tumor_shift);
       drew = true;
     }
     if (picture.bgra.empty()) return;
@@ -186,7 +194,7 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
   if (layers[1]) show("entry", anatomy_.entry, AnatomyPicture::kEntry);
   if (layers[2]) {
     show("tumor", anatomy_.tumor, AnatomyPicture::kTumor);
-    add_tumor_centre(renderer, plan_.tumor_centre, T_cam_ct, kTumorColour);
+    add_tumor_centre(renderer, tumor_centre_shown_, T_cam_ct, kTumorColour);
   }
   if (drew) {
     ++anatomy_pictures_drawn_;
@@ -196,8 +204,9 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
   // The pictures shown were drawn for another pose: those for this one are drawn beside the next
   // frame's tracking, from the plan's geometry alone (the values captured here).
   if (placed && options_.anatomy_ahead) {
-    anatomy_ahead_ = std::async(std::launch::async, [this, T_cam_ct, cam, palette, layers] {
-      return draw_pictures(T_cam_ct, cam, palette, layers);
+    anatomy_ahead_ = std::async(std::launch::async, [this, T_cam_ct, cam, palette, layers,
+                                                     shift = tumor_shift_] {
+      return draw_pictures(T_cam_ct, cam, palette, layers, shift);
     });
   }
 }

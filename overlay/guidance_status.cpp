@@ -24,6 +24,12 @@ void GuidanceOverlay::draw_status(OverlayRenderer& renderer, const GuidanceFrame
                                  timing.latency_from_capture ? "from capture"
                                                              : "from frame arrival")});
   }
+  if (info.breathing) {
+    const planning::PhaseEstimate& e = info.breathing->estimate;
+    lines.push_back({e.known ? fmt::format("breathing: {} ({:.1f} mm above end-exhale)",
+                                           breathing_->names[size_t(e.phase)], e.displacement_mm)
+                             : e.reason});
+  }
   if (visible(GuidanceLayer::kStatus)) {
     cv::Point origin;
     const cv::Mat panel = text_panel(lines, cv::Point(10, 10), false, frame, &origin);

@@ -99,15 +99,25 @@ void make_3d(const DemoRequest& a, const std::string& dir) {
 }
 
 // The guidance scenario, its calibration files in setup/ and its synthetic recording.
-GuidanceScenario record_scenario(const planning::PlanData& plan, const std::string& dir) {
+GuidanceScenario record_scenario(const DemoRequest& a, const planning::PlanData& plan,
+                                 const std::string& dir) {
   spdlog::info("demo [5/8]: choosing a safe and a vessel-crossing approach, scripting the scene");
   GuidanceScenario scenario;
+  GuidanceScenarioOptions options;
+  if (a.breathing_phases > 0) {
+    // The patient breathes 15 times a minute; 3 s before and after the approaches let the phase
+    // be found from the board's motion before the needle comes.
+    options.breaths_per_minute = 15;
+    options.breathing_amplitude_mm = a.breathing_amplitude_mm;
+    options.breathing_phases = a.breathing_phases;
+    options.hold_s = 3.0;
+  }
   try {
-    scenario = make_guidance_scenario(plan);
+    scenario = make_guidance_scenario(plan, options);
   } catch (const Error& e) {
     // A plan whose safe region is narrow (over a breathing cycle, say) may have no vessel-crossing
     // approach 15-35 deg from a safe one; a wider separation still shows both.
-    GuidanceScenarioOptions wide;
+    GuidanceScenarioOptions wide = options;
     wide.min_separation_deg = 10;
     wide.max_separation_deg = 60;
     spdlog::info("demo: {}; looking 10 to 60 deg from the safe approach", e.what());
@@ -238,7 +248,7 @@ void run_demo(const DemoRequest& a) {
                                         times["plan_s"].get<double>());
   if (a.guidance) {
     t = Clock::now();
-    const GuidanceScenario scenario = record_scenario(plan, dir);
+    const GuidanceScenario scenario = record_scenario(a, plan, dir);
     times["recording_s"] = seconds_since(t);
     t = Clock::now();
     const std::string registration = register_board(a, scenario, dir);
@@ -247,7 +257,7 @@ void run_demo(const DemoRequest& a) {
     const GuideSummary g = guide(plan, scenario, dir);
     times["guide_s"] = seconds_since(t);
     report += registration + demo_guidance_report(scenario, g);
-    if (a.breathing_phases > 0) report += demo_breathing_report(plan, scenario);
+    if (a.breathing_phases > 0) report += demo_breathing_report(plan, scenario, g);
   }
   times["total_s"] = seconds_since(t_start);
   report += demo_files_report(a.guidance, times["total_s"].get<double>());

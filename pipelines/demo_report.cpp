@@ -163,7 +163,7 @@ std::string demo_files_report(bool guidance, double total_s) {
 }
 
 std::string demo_breathing_report(const planning::PlanData& plan,
-                                  const GuidanceScenario& scenario) {
+                                  const GuidanceScenario& scenario, const GuideSummary& guide) {
   std::ostringstream o;
   o << "\n## Breathing\n\n";
   const nlohmann::json& b = plan.json.at("breathing");
@@ -221,6 +221,48 @@ std::string demo_breathing_report(const planning::PlanData& plan,
     }
     o << "\n\n";
   }
+  // The guidance run: the phase estimated from the patient board's motion against the truth.
+  const int n = int(plan.phases.size());
+  int known = 0, within_one = 0, exact = 0;
+  double first_known_s = -1;
+  for (const auto& info : guide.frame_infos) {
+    if (!info.breathing || !info.breathing->estimate.known) continue;
+    const double t = double(info.frame) / scenario.scene.fps;
+    const int truth = scenario.breathing_phase_at(t);
+    if (first_known_s < 0) first_known_s = t;
+    ++known;
+    within_one += planning::phase_distance(info.breathing->estimate.phase, truth, n) <= 1;
+    exact += info.breathing->estimate.phase == truth;
+  }
+  o << fmt::format(
+      "Guidance on the breathing recording ({:.0f} breaths a minute; the patient board rises with "
+      "the skin, the camera and the needle stay in the room): the phase is estimated from the "
+      "board's motion against the skin's motion under it over the plan's phases, and the needle "
+      "is evaluated in the current phase and in every phase.\n\n",
+      60.0 / scenario.breathing_period_s);
+  if (known > 0) {
+    o << fmt::format("- Phase known from {:.1f} s on, in {} frames: within one phase of the true "
+                     "phase in {:.1f} % of them, the true phase in {:.1f} %.\n",
+                     first_known_s, known, 100.0 * within_one / known, 100.0 * exact / known);
+  } else {
+    o << "- The phase was never known during the recording.\n";
+  }
+  for (const GuidanceApproach* a : approaches) {
+    const int64_t end = std::min<int64_t>(scenario.scene.frame_count - 1,
+                                          int64_t(std::floor(a->end_s * scenario.scene.fps)));
+    for (const auto& info : guide.frame_infos) {
+      if (info.frame != end || !info.breathing || !info.needle) continue;
+      std::string safe;
+      for (size_t k = 0; k < info.breathing->phase_safety.size(); ++k) {
+        if (info.breathing->phase_safety[k] == planning::NeedleSafety::kSafe) {
+          safe += (safe.empty() ? "" : ", ") + plan.phases[k];
+        }
+      }
+      o << fmt::format("- The {} approach at its end (frame {}): the line is safe in {}.\n",
+                       a->name, end, safe.empty() ? std::string("no phase") : safe);
+    }
+  }
+  o << "\n";
   o << "Files: phantom/phases.json and phantom/phaseKK/ (CT, labels, tumor per phase; the slices, "
        "registration and guidance use phase00, end-exhale), plan/path_safety_<value>_phaseKK.nii.gz "
        "(each phase), plan/path_safety_<value>.nii.gz (the combination, which the overlay "

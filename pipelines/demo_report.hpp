@@ -18,9 +18,11 @@ std::string demo_plan_report(const planning::PlanData& plan, double spacing_mm,
 std::string demo_guidance_report(const GuidanceScenario& scenario, const GuideSummary& guide);
 
 // Breathing plans: both approaches' path safety at the entry in every phase (the plan's
-// per-phase volumes), the combination and the share of the region whose class changes.
+// per-phase volumes), the combination and the share of the region whose class changes; from the
+// guidance run on the breathing recording, the phase estimated against the true one and the
+// phases in which each approach's line was safe at its end.
 std::string demo_breathing_report(const planning::PlanData& plan,
-                                  const GuidanceScenario& scenario);
+                                  const GuidanceScenario& scenario, const GuideSummary& guide);
 
 // The list of files and the demo's duration.
 std::string demo_files_report(bool guidance, double total_s);

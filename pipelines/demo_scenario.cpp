@@ -19,6 +19,7 @@
 #include "foundation/output_files.hpp"
 #include "planning/imaging/ray_march.hpp"
 #include "planning/imaging/volume_io.hpp"
+#include "planning/simulation/phantom.hpp"
 #include "pipelines/scene_meshes.hpp"
 
 namespace crepuscular::pipelines {
@@ -424,6 +425,16 @@ std::string place_camera(const std::vector<Eigen::Vector3d>& points,
 void add_keyframes(const GuidanceScenario& sc, const Script& script,
                    const GuidanceScenarioOptions& o, tracking::SceneBoard& patient,
                    tracking::SceneBoard& needle) {
+  if (sc.breathing_period_s > 0) {
+    // Breathing: the camera and the needle stay in the room; the board rises with the skin.
+    for (int64_t f = 0; f < sc.scene.frame_count; ++f) {
+      const double t = double(f) / sc.scene.fps;
+      patient.keyframes.push_back(
+          {t, sc.T_cam_ct_nominal * Eigen::Translation3d(sc.skin_displacement_at(t)) * sc.T_ct_patient});
+      needle.keyframes.push_back({t, sc.T_cam_ct_nominal * script.T_ct_needle(t)});
+    }
+    return;
+  }
   const double dr = o.camera_drift_mm;
   const std::vector<std::pair<double, Eigen::Isometry3d>> drift = {
       {0.0, small_motion({0.0, 0.0, 0.0}, {0.0, 0.0, -0.5 * dr})},
@@ -452,6 +463,11 @@ std::string build_scene(GuidanceScenario& sc, const planning::PlanData& plan, co
   if (!board_problem.empty()) return board_problem;
   const Script script = make_script(sc.target_ct, safe, danger, R_ct_cam, o);
   sc.duration_s = 2 * o.hold_s + 2 * o.approach_s + o.switch_s;
+  if (o.breaths_per_minute > 0 && o.breathing_phases > 0) {
+    sc.breathing_period_s = 60.0 / o.breaths_per_minute;
+    sc.breathing_amplitude_mm = o.breathing_amplitude_mm;
+    sc.breathing_phases = o.breathing_phases;
+  }
 
   const tracking::SyntheticScene builtin = tracking::builtin_scene();
   tracking::SyntheticScene& s = sc.scene;
@@ -751,8 +767,21 @@ Eigen::Isometry3d GuidanceScenario::T_ct_needle_at(double time_s) const {
     if (b.board.name == "needle") needle_board = &b;
   }
   if (!patient || !needle_board) throw Error("guidance scene: boards 'patient' and 'needle' needed");
-  return T_ct_patient * tracking::pose_at(*patient, time_s).inverse() *
-         tracking::pose_at(*needle_board, time_s);
+  return Eigen::Translation3d(skin_displacement_at(time_s)) * T_ct_patient *
+         tracking::pose_at(*patient, time_s).inverse() * tracking::pose_at(*needle_board, time_s);
+}
+
+Eigen::Vector3d GuidanceScenario::skin_displacement_at(double time_s) const {
+  if (!(breathing_period_s > 0)) return Eigen::Vector3d::Zero();
+  const double s = std::sin(M_PI * time_s / breathing_period_s);
+  return planning::breathing_wall_displacement(T_ct_patient.translation(), s * s,
+                                               breathing_amplitude_mm);
+}
+
+int GuidanceScenario::breathing_phase_at(double time_s) const {
+  if (!(breathing_period_s > 0) || breathing_phases < 1) return -1;
+  const double cycle = time_s / breathing_period_s - std::floor(time_s / breathing_period_s);
+  return int(std::lround(cycle * breathing_phases)) % breathing_phases;
 }
 
 GuidanceScenario make_guidance_scenario(const planning::PlanData& plan,

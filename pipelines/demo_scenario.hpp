@@ -58,6 +58,13 @@ struct GuidanceScenarioOptions {
   double robust_deg = 6;
   // The dangerous approach lies this far from the safe one.
   double min_separation_deg = 15, max_separation_deg = 35;
+  // A breathing recording (breaths_per_minute > 0, phases > 0): the anterior abdominal wall under
+  // the patient board rises as the built-in phantom's does (planning::breathing_wall_displacement
+  // of this amplitude, inhale sin^2 over each breath, end-exhale at 0 s), the board with it; the
+  // camera stays where it is (no drift) and so does the needle, held in the room.
+  double breaths_per_minute = 0;
+  double breathing_amplitude_mm = 12.0;
+  int breathing_phases = 0;
   // Preferred needle direction in CT: the safe approach nearest to it is tried first (default:
   // from anterior and the patient's right, 25 degrees off vertical; the tumor lies in the right
   // lobe). The camera then sits where an OR camera would: above the table and to one side, its
@@ -86,10 +93,20 @@ struct GuidanceScenario {
   // end; the camera stays 50-58 cm from the board.
   Eigen::Isometry3d T_cam_ct_nominal = Eigen::Isometry3d::Identity();
   double duration_s = 0;
+  // Breathing recordings: the breath's period (0: no breathing), the phantom's amplitude and the
+  // plan's number of phases.
+  double breathing_period_s = 0, breathing_amplitude_mm = 0;
+  int breathing_phases = 0;
+  // Where the skin under the patient board lies at time t against end-exhale (CT, mm; zero
+  // without breathing), and the true phase then (phase k nearest the breath's fraction k / n; -1
+  // without breathing).
+  Eigen::Vector3d skin_displacement_at(double time_s) const;
+  int breathing_phase_at(double time_s) const;
 
   // Scripted needle tip and unit axis in CT at time t (s): what the scene's needle keyframes show.
   Eigen::Vector3d tip_ct_at(double time_s) const;
-  // T_ct_needle of the scene at time t: T_ct_patient * T_cam_patient(t)^-1 * T_cam_needle(t).
+  // T_ct_needle of the scene at time t: T_ct_patient(t) * T_cam_patient(t)^-1 * T_cam_needle(t),
+  // T_ct_patient(t) the registration moved with the skin under the board.
   Eigen::Isometry3d T_ct_needle_at(double time_s) const;
 };
 

@@ -375,8 +375,8 @@ std::string guide_log_header() {
   return "frame,timestamp_ns,image,problem,patient_tracked,patient_age_ms,needle_tracked,"
          "needle_age_ms,anatomy_drawn,needle_safety,line_integral,clear,tip_class,"
          "tip_to_target_mm,miss_mm,hits_tumor,angle_to_safe_deg,structures,uncertainty_95_mm,"
-         "uncertainty_95_minor_mm,worst_in_95,uncertain,pose_covariance_known,latency_ms,render_ms,"
-         "warnings";
+         "uncertainty_95_minor_mm,worst_in_95,uncertain,pose_covariance_known,breathing_phase,"
+         "breathing_displacement_mm,safe_phases,latency_ms,render_ms,warnings";
 }
 
 std::string guide_log_row(const GuidanceFrameInfo& i, double latency_ms, double render_ms) {
@@ -404,6 +404,21 @@ std::string guide_log_row(const GuidanceFrameInfo& i, double latency_ms, double 
   } else {
     o << ",,,,,,,,,,,,,";
   }
+  // Breathing plans: the phase (empty until known), the board's rise from end-exhale, and the
+  // phases in which the needle's line is safe.
+  o << ',';
+  if (i.breathing && i.breathing->estimate.known) o << i.breathing->estimate.phase;
+  o << ',';
+  if (i.breathing && i.breathing->estimate.known) o << i.breathing->estimate.displacement_mm;
+  std::string safe;
+  if (i.breathing) {
+    for (size_t k = 0; k < i.breathing->phase_safety.size(); ++k) {
+      if (i.breathing->phase_safety[k] == planning::NeedleSafety::kSafe) {
+        safe += (safe.empty() ? "" : " ") + std::to_string(k);
+      }
+    }
+  }
+  o << ',' << csv_field(safe);
   std::string warnings;
   for (const auto& w : i.warnings) warnings += (warnings.empty() ? "" : "; ") + w;
   o << ',' << latency_ms << ',' << render_ms << ',' << csv_field(warnings);

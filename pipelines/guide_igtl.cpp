@@ -90,7 +90,19 @@ void GuidanceBroadcast::safety(const overlay::GuidanceFrameInfo& info) {
     }
     for (const std::string& line : overlay::needle_text(s)) text += "; " + line;
   }
-  server_.publish({igtlink::string_message("NeedleSafety", text, info.timestamp_ns)});
+  std::vector<igtlink::Message> messages = {
+      igtlink::string_message("NeedleSafety", text, info.timestamp_ns)};
+  if (info.breathing) {
+    // Breathing plans: the phase (its index in the plan's cycle), or why it is not known yet.
+    const planning::PhaseEstimate& e = info.breathing->estimate;
+    messages.push_back(igtlink::string_message(
+        "BreathingPhase",
+        e.known ? fmt::format("phase {}; {:.1f} mm above end-exhale; {}", e.phase, e.displacement_mm,
+                              e.motion > 0 ? "inhaling" : e.motion < 0 ? "exhaling" : "at rest")
+                : "unknown: " + e.reason,
+        info.timestamp_ns));
+  }
+  server_.publish(std::move(messages));
 }
 
 namespace {

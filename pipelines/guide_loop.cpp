@@ -1,5 +1,7 @@
 #include "pipelines/guide_loop.hpp"
 
+#include "pipelines/guide_breathing.hpp"
+
 #include <time.h>
 
 #include <algorithm>
@@ -52,7 +54,9 @@ GuideLoop::GuideLoop(const planning::PlanData& plan, const GuidanceSetup& setup,
                      const tracking::TrackerOptions& tracker, const RendererOptions& renderer)
     : tracker_(setup.camera, checked(boards, setup), tracker),
       overlay_(plan, setup, options),
-      renderer_(setup.camera, renderer) {}
+      renderer_(setup.camera, renderer) {
+  overlay_.set_breathing(load_breathing_phases(plan, setup.T_ct_patient));
+}
 
 GuideFrameResult GuideLoop::process(const tracking::Frame& frame, Clock::time_point arrival,
                                     bool want_image) {

@@ -126,6 +126,16 @@ PhaseEstimate RespiratoryPhaseEstimator::update(int64_t timestamp_ns, double pos
   const double span_s = t - history_.front().t;
   e.displacement_mm = now - low;
   e.motion = speed > 0.15 * amplitude ? 1 : speed < -0.15 * amplitude ? -1 : 0;
+  if (high - low > 1.5 * amplitude + 2.0) {
+    // More than breathing moves the skin: the patient or the camera moved. Start again.
+    e.reason = fmt::format("breathing phase: the patient board moved {:.0f} mm, more than breathing "
+                           "moves the skin ({:.1f} mm): waiting for a still board",
+                           high - low, amplitude);
+    const Sample last = history_.back();
+    history_.clear();
+    history_.push_back(last);
+    return e;
+  }
   if (span_s < 3.0 || high - low < 0.5 * amplitude) {
     e.reason = fmt::format("breathing phase: waiting for a breath ({:.1f} of {:.1f} mm seen)",
                            high - low, amplitude);

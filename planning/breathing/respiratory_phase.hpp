@@ -45,7 +45,8 @@ struct PhaseEstimate {
 // outward; any origin). The end-exhale level is the lowest position of the last `window_s`
 // seconds; the phase is known once that window has held a breath (half the skin's amplitude seen
 // over at least 3 s). Inhaling: phases 0 .. end-inhale; exhaling: end-inhale .. the last; at
-// rest: the phase of the nearest displacement.
+// rest: the phase of the nearest displacement. A board that moves more than 1.5 times the skin's
+// amplitude plus 2 mm (the patient or the camera moved) gives no phase until it has breathed again.
 class RespiratoryPhaseEstimator {
  public:
   explicit RespiratoryPhaseEstimator(SkinMotion motion, double window_s = 12.0);

@@ -526,4 +526,20 @@ std::string plan_input_path(const PlanData& plan, const char* key) {
                     JsonPath((fs::path(plan.dir) / "plan.json").string()));
 }
 
+std::string plan_phase_input_path(const PlanData& plan, size_t phase, const char* key) {
+  const JsonPath root((fs::path(plan.dir) / "plan.json").string());
+  const JsonPath at = root.key("breathing").key("phases").index(phase);
+  const nlohmann::json& phases = plan.json.at("breathing").at("phases");
+  if (phase >= phases.size() || !phases[phase].contains("inputs")) {
+    at.fail("records no inputs for this phase");
+  }
+  const nlohmann::json& in = phases[phase]["inputs"];
+  if (std::string(key) != "labels") return input_path(phases[phase], key, plan.dir, at);
+  if (!in.contains("label_maps") || !in["label_maps"].is_array() || in["label_maps"].size() != 1) {
+    at.key("inputs").key("label_maps").fail("is not one label map: breathing guidance reads one per phase");
+  }
+  const nlohmann::json one = {{"inputs", {{"labels", in["label_maps"][0]}}}};
+  return input_path(one, "labels", plan.dir, at);
+}
+
 }  // namespace crepuscular::planning

@@ -110,6 +110,11 @@ std::string plan_default_value(const std::string& plan_dir);
 // plan.json records none.
 std::string plan_input_path(const PlanData& plan, const char* key);
 
+// The same for phase `phase` of a breathing plan (plan.json "breathing" "phases"): "labels" (its one
+// label map), "tumor" or "ct". Throws Error naming plan.json's field when the phase records none
+// or several label maps.
+std::string plan_phase_input_path(const PlanData& plan, size_t phase, const char* key);
+
 // Classes of a value as plan.json states them ("classes"); throws Error when absent.
 SafetyClasses classes_from_json(const nlohmann::json& plan, const std::string& value,
                                 const std::string& source);

@@ -98,8 +98,8 @@ TEST(RespiratoryPhase, EstimatedPhaseIsWithinOnePhaseOfTheTruth) {
   }
 }
 
-// A board on skin that does not move with breathing never gives a phase; a gap in tracking starts
-// the wait for a breath again.
+// A board on skin that does not move with breathing never gives a phase; a gap in tracking, or a
+// board carried farther than breathing moves it, starts the wait for a breath again.
 TEST(RespiratoryPhase, StillSkinOrATrackingGapGivesNoPhase) {
   RespiratoryPhaseEstimator still(sine_motion(0.2));
   const PhaseEstimate e = still.update(0, 10.0);
@@ -114,6 +114,16 @@ TEST(RespiratoryPhase, StillSkinOrATrackingGapGivesNoPhase) {
   EXPECT_TRUE(last.known);
   const PhaseEstimate after_gap = estimator.update(int64_t(12e9), 0.0);
   EXPECT_FALSE(after_gap.known);
+  // A board carried 30 mm (the patient moved): no phase, and the wait starts again.
+  RespiratoryPhaseEstimator moved(sine_motion(8.4));
+  for (int i = 0; i < 30 * 10; ++i) {
+    last = moved.update(int64_t(i) * 33'333'333, 8.4 * std::pow(std::sin(M_PI * i / 120.0), 2));
+  }
+  EXPECT_TRUE(last.known);
+  const PhaseEstimate carried = moved.update(int64_t(300) * 33'333'333, 40.0);
+  EXPECT_FALSE(carried.known);
+  EXPECT_NE(carried.reason.find("moved"), std::string::npos) << carried.reason;
+  EXPECT_FALSE(moved.update(int64_t(301) * 33'333'333, 40.0).known);
   EXPECT_EQ(phase_distance(5, 0, 6), 1);
   EXPECT_EQ(phase_distance(1, 4, 6), 3);
 }
