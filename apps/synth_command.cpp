@@ -48,6 +48,15 @@ void add_synth_command(CLI::App& app) {
   cmd->add_option("--frames", args->frames,
                   "Render at most this many frames (default: all frames of the scene)")
       ->check(in_range(1, 1e7, true));
+  cmd->add_option("--breathing", args->breaths_per_minute,
+                  "A breathing patient: the patient board rises and falls this many times a "
+                  "minute (12-20 at rest), off the skin toward the camera; writes breathing.csv "
+                  "(frame, timestamp_ns, cycle_fraction, rise_mm) beside the ground truth")
+      ->check(in_range(1, 60, true));
+  cmd->add_option("--rise", args->rise_mm,
+                  "How far the board rises at end-inhale, mm (the anterior abdominal wall: 5-15)")
+      ->capture_default_str()
+      ->check(in_range(0.1, 50, true));
   cmd->callback([args] {
     claim_run_paths({"synth", {{"--scene", args->scene}}, {{"--out", args->out, OutputKind::kFolder}}});
     pipelines::run_synth(*args);

@@ -98,6 +98,28 @@ void make_3d(const DemoRequest& a, const std::string& dir) {
   out.commit();
 }
 
+// The breathing recording's ground truth per frame: the true phase, the breath's fraction, the
+// skin's rise under the patient board and the needle's true tip and axis in the CT.
+void write_breathing_truth(const GuidanceScenario& scenario, const std::string& path) {
+  std::string text;
+  for (int64_t f = 0; f < scenario.scene.frame_count; ++f) {
+    const double t = double(f) / scenario.scene.fps;
+    const Eigen::Isometry3d T = scenario.T_ct_needle_at(t);
+    const Eigen::Vector3d tip = T * tracking::kNeedleTipInNeedle;
+    const Eigen::Vector3d axis = T.linear().col(2);
+    const double cycle = t / scenario.breathing_period_s - std::floor(t / scenario.breathing_period_s);
+    text += fmt::format("{},{},{},{:.4f},{:.3f},{:.3f},{:.3f},{:.3f},{:.6f},{:.6f},{:.6f}\n", f,
+                        int64_t(std::llround(t * 1e9)), scenario.breathing_phase_at(t), cycle,
+                        scenario.skin_displacement_at(t).norm(), tip.x(), tip.y(), tip.z(),
+                        axis.x(), axis.y(), axis.z());
+  }
+  PendingTextFile file(path, "breathing ground truth",
+                       "frame,timestamp_ns,phase,cycle_fraction,skin_rise_mm,tip_x_mm,tip_y_mm,"
+                       "tip_z_mm,axis_x,axis_y,axis_z");
+  file.write(text);
+  file.commit();
+}
+
 // The guidance scenario, its calibration files in setup/ and its synthetic recording.
 GuidanceScenario record_scenario(const DemoRequest& a, const planning::PlanData& plan,
                                  const std::string& dir) {
@@ -133,6 +155,7 @@ GuidanceScenario record_scenario(const DemoRequest& a, const planning::PlanData&
   ro.plan = dir + "/plan";
   auto source = tracking::make_synthetic_source(scenario.scene, "synthetic: demo scenario");
   tracking::record_to_folder(*source, dir + "/recording", ro);
+  if (scenario.breathing_period_s > 0) write_breathing_truth(scenario, dir + "/recording/breathing_truth.csv");
   return scenario;
 }
 

@@ -32,6 +32,11 @@ struct SynthRequest {
   std::string format = "jpg";
   int quality = 95;
   int64_t frames = -1;  // at most this many frames (-1: all frames of the scene)
+  // A breathing patient: the patient board rises and falls this many times a minute by rise_mm
+  // (tracking::add_breathing); breathing.csv holds the truth per frame. 0: no breathing.
+  double breaths_per_minute = 0;
+  double rise_mm = 8.0;
+  std::string breathing_board = "patient";
 };
 
 // Renders the scene into a recording with boards.json and ground_truth.csv; logs the summary.

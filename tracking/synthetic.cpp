@@ -920,4 +920,35 @@ SyntheticScene builtin_scene() {
   return s;
 }
 
+double breathing_cycle_fraction(double time_s, double breaths_per_minute) {
+  const double cycles = time_s * breaths_per_minute / 60.0;
+  return cycles - std::floor(cycles);
+}
+
+double breathing_rise_mm(double time_s, double breaths_per_minute, double rise_mm) {
+  const double s = std::sin(M_PI * breathing_cycle_fraction(time_s, breaths_per_minute));
+  return rise_mm * s * s;
+}
+
+void add_breathing(SyntheticScene& scene, const std::string& board, double breaths_per_minute,
+                   double rise_mm) {
+  if (!(breaths_per_minute >= 1.0 && breaths_per_minute <= 60.0)) {
+    throw Error("synth: " + std::to_string(breaths_per_minute) +
+                " breaths a minute is not a breathing rate (1 to 60)");
+  }
+  for (SceneBoard& b : scene.boards) {
+    if (b.board.name != board) continue;
+    const SceneBoard still = b;
+    b.keyframes.clear();
+    for (int64_t f = 0; f < scene.frame_count; ++f) {
+      const double t = double(f) / scene.fps;
+      b.keyframes.push_back({t, pose_at(still, t) *
+                                    Eigen::Translation3d(0.0, 0.0,
+                                                         -breathing_rise_mm(t, breaths_per_minute, rise_mm))});
+    }
+    return;
+  }
+  throw Error("synth: the scene has no board '" + board + "' to breathe with");
+}
+
 }  // namespace crepuscular::tracking

@@ -109,6 +109,17 @@ inline const Eigen::Vector3d kTumorTargetInPatient(110.0, 20.0, 90.0);
 // board, away from the camera) and ends 150 mm beyond it.
 inline const Eigen::Vector3d kNeedleTipInNeedle(0.0, 0.0, 150.0);
 
+// A breathing patient (`synth --breathing`): the board's keyframes become one per frame, its pose
+// raised along its own -z (toward a camera it faces: off the skin) by rise_mm * sin^2(pi t / T),
+// T = 60 / breaths_per_minute (end-exhale at 0 s); meshes on the board rise with it. Throws Error
+// naming the board when the scene has none of that name or the rate is not 1 to 60 a minute.
+void add_breathing(SyntheticScene& scene, const std::string& board, double breaths_per_minute,
+                   double rise_mm);
+// The rise of that motion at time t (mm) and the breath's fraction then (0 end-exhale, 0.5
+// end-inhale).
+double breathing_rise_mm(double time_s, double breaths_per_minute, double rise_mm);
+double breathing_cycle_fraction(double time_s, double breaths_per_minute);
+
 // Renders the frames of a scene.
 class SyntheticRenderer {
  public:

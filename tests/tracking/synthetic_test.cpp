@@ -508,5 +508,26 @@ TEST(Synthetic, ChArUcoAndKalibrBoardsAreDrawnAsPrinted) {
   EXPECT_GT(level(20.0, -gap - 5.0), 180);
 }
 
+// A breathing patient board: at every frame its pose is the still pose raised along its own -z by
+// 8 mm x sin^2(pi t / 4 s) at 15 breaths a minute (none at 0 s, 8 mm at 2 s); the needle board
+// does not move with it; an unknown board or rate is refused.
+TEST(SyntheticBreathing, PatientBoardRisesOffTheSkinWithEachBreath) {
+  const SyntheticScene still = builtin_scene();
+  SyntheticScene breathing = still;
+  add_breathing(breathing, "patient", 15.0, 8.0);
+  for (const double t : {0.0, 0.5, 1.0, 2.0, 2.9}) {
+    const Eigen::Isometry3d a = pose_at(still.boards[0], t), b = pose_at(breathing.boards[0], t);
+    const double rise = 8.0 * std::pow(std::sin(M_PI * t / 4.0), 2);
+    EXPECT_LT((b.translation() - (a.translation() - rise * a.linear().col(2))).norm(), 1e-6) << t;
+    EXPECT_LT((b.linear() - a.linear()).norm(), 1e-9) << t;
+    EXPECT_NEAR(breathing_rise_mm(t, 15.0, 8.0), rise, 1e-9);
+    EXPECT_LT((pose_at(breathing.boards[1], t).translation() -
+               pose_at(still.boards[1], t).translation()).norm(), 1e-9);
+  }
+  EXPECT_NEAR(breathing_cycle_fraction(5.0, 15.0), 0.25, 1e-12);
+  EXPECT_THROW(add_breathing(breathing, "chest", 15.0, 8.0), Error);
+  EXPECT_THROW(add_breathing(breathing, "patient", 0.0, 8.0), Error);
+}
+
 }  // namespace
 }  // namespace crepuscular::tracking
