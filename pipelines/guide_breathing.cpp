@@ -12,14 +12,15 @@ namespace crepuscular::pipelines {
 
 namespace {
 
-// The board's normal that points out of the body of `labels` (phase 0): 30 mm along it lies air.
+// The board's normal that points out of the body of `labels` (phase 0): 10 mm along it lies air
+// in the scan (beyond the scan's edge nothing is known), 10 mm against it the body.
 Eigen::Vector3d outward_normal(const planning::Volume<int32_t>& labels,
                                const Eigen::Isometry3d& T_ct_patient, const std::string& where) {
   const Eigen::Vector3d origin = T_ct_patient.translation();
   const Eigen::Vector3d normal = T_ct_patient.linear().col(2);
   for (const Eigen::Vector3d& d : {Eigen::Vector3d(-normal), normal}) {
-    if (planning::nearest_voxel_or<int32_t>(labels, origin + 30.0 * d, 0) == 0 &&
-        planning::nearest_voxel_or<int32_t>(labels, origin - 30.0 * d, 0) > 0) {
+    if (planning::nearest_voxel(labels, origin + 10.0 * d) == std::optional<int32_t>(0) &&
+        planning::nearest_voxel_or<int32_t>(labels, origin - 10.0 * d, 0) > 0) {
       return d;
     }
   }

@@ -39,7 +39,14 @@ SkinMotion skin_motion(const std::vector<const Volume<int32_t>*>& phase_labels,
     double previous = body(-reach);
     for (double s = -reach + step; s <= reach + 1e-9; s += step) {
       const double b = body(s);
-      if (previous >= 0.5 && b < 0.5) found = s - step + step * (previous - 0.5) / (previous - b);
+      // Only where the scan goes on beyond: its edge is no skin.
+      const Eigen::Vector3d beyond =
+          labels.geometry().physical_to_index(through + (s + 2.0) * m.direction);
+      const bool scanned = labels.geometry().contains(std::lround(beyond.x()), std::lround(beyond.y()),
+                                                      std::lround(beyond.z()));
+      if (previous >= 0.5 && b < 0.5 && scanned) {
+        found = s - step + step * (previous - 0.5) / (previous - b);
+      }
       previous = b;
     }
     return found;

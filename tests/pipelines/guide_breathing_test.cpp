@@ -21,12 +21,12 @@ namespace fs = std::filesystem;
 namespace crepuscular::pipelines {
 namespace {
 
-// The mini plan's grid, fat (label 1) from row j = 3 - rise on (posterior), air in front: the
+// The mini plan's grid, fat (label 1) from row j = 8 - rise on (posterior), air in front: the
 // anterior skin; the tumor of the mini plan.
 std::string write_phase_labels(const fs::path& dir, int k, int rise_voxels) {
   planning::Volume<int32_t> labels(test::mini_plan_grid(), 0);
   for (int64_t k3 = 0; k3 < 24; ++k3)
-    for (int64_t j = 3 - rise_voxels; j < 24; ++j)
+    for (int64_t j = 8 - rise_voxels; j < 24; ++j)
       for (int64_t i = 0; i < 24; ++i) labels(i, j, k3) = 1;
   const std::string path = (dir / ("labels_" + std::to_string(k) + ".nii.gz")).string();
   planning::write_volume(labels, path);
@@ -58,14 +58,14 @@ class GuideBreathingTest : public ::testing::Test {
   }
   static void TearDownTestSuite() { delete dir_; }
 
-  // A board lying on phase 0's skin (between rows 2 and 3) above the tumor, its z axis into the
+  // A board lying on phase 0's skin (between rows 7 and 8) above the tumor, its z axis into the
   // body (+y), `off_mm` in front of the skin.
   static Eigen::Isometry3d board_on_skin(double off_mm = 0) {
     Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
     T.linear().col(0) = Eigen::Vector3d(1, 0, 0);
     T.linear().col(1) = Eigen::Vector3d(0, 0, -1);
     T.linear().col(2) = Eigen::Vector3d(0, 1, 0);
-    T.translation() = test::mini_plan_grid().index_to_physical(Eigen::Vector3d(11, 2.5, 11)) -
+    T.translation() = test::mini_plan_grid().index_to_physical(Eigen::Vector3d(11, 7.5, 11)) -
                       Eigen::Vector3d(0, off_mm, 0);
     return T;
   }
@@ -86,7 +86,7 @@ TEST_F(GuideBreathingTest, PhasesOfAPerPhasePlanWithTheSkinsMotionAtTheBoard) {
     EXPECT_NEAR(phases->skin.displacement_mm[size_t(k)], expected[k], 0.05) << "phase " << k;
     const planning::PlanData& p = *phases->plans[size_t(k)];
     // Its own labels, the plan's per-phase path safety, a blocking volume of its labels.
-    EXPECT_EQ(p.labels(11, 2, 11), k == 0 ? 0 : 1) << "phase " << k;
+    EXPECT_EQ(p.labels(11, 7, 11), k == 0 ? 0 : 1) << "phase " << k;
     const auto& mine = p.path_safety.at("svv");
     const auto& planned = plan.phase_path_safety.at("svv")[size_t(k)];
     ASSERT_EQ(mine.voxel_count(), planned.voxel_count());
