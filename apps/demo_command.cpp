@@ -33,10 +33,12 @@ void add_demo_command(CLI::App& app) {
       ->capture_default_str();
   auto* mode_option = cmd->get_option("--mode");
   cmd->add_option("--breathing", a->breathing_phases,
-                  "Breathing: make the phantom a cycle of N phases (10: a 4D CT), plan svv over all "
-                  "of them (a path is safe only if safe in every phase; fast mode unless --mode is "
-                  "given), guide with the combined plan and report both approaches' safety per "
-                  "phase")
+                  "Breathing: make the phantom a cycle of N phases (10: a 4D CT; the anterior wall "
+                  "rises with inhalation), plan svv over all of them with per-phase volumes (a "
+                  "path is safe only if safe in every phase; fast mode unless --mode is given), "
+                  "record a patient breathing 15 times a minute, guide phase by phase (the phase "
+                  "from the patient board's motion) and report the phase estimate against the "
+                  "truth and both approaches' safety per phase")
       ->check(in_range(2, 50, true));
   cmd->add_option("--amplitude", a->breathing_amplitude_mm,
                   "Breathing: cranio-caudal motion of the diaphragm's dome, mm")

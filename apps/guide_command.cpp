@@ -75,6 +75,12 @@ void add_guide_command(CLI::App& app) {
       "the paths the needle takes when tilted by up to 12.5 deg about its skin entry (green:\n"
       "safe, yellow: medium, red: dangerous, grey: unknown): tilt toward green. Nothing is drawn from\n"
       "a pose older than --max-age-ms: a lost marker or a corrupt frame is said on screen.\n"
+      "The needle's line comes with its 95 % uncertainty (the boards' pose errors, the needle\n"
+      "calibration's and the registration's expected TRE): its size at the tumor in the panel,\n"
+      "its ellipse in the targeting view, and UNCERTAIN when a line within it is less safe.\n"
+      "A plan made over a breathing cycle with --per-phase is guided phase by phase: the phase\n"
+      "from the patient board's rise and fall on the skin, a gating bar of the needle line's\n"
+      "class in every phase, the tumor where it is in the current phase.\n"
       "Window keys: 1-7 toggle layers, C colour-blind palette, S snapshot, Q or Esc quit.\n"
       "Example: crepuscular guide --plan demo/plan --camera demo/setup/camera.yaml\n"
       "  --registration demo/setup/registration.yaml --needle demo/setup/needle.yaml\n"
@@ -127,8 +133,8 @@ void add_guide_command(CLI::App& app) {
   cmd->add_option("--igtl-server", r.igtl_port,
                   "Serve OpenIGTLink on this TCP port (Slicer's default: 18944) to 3D Slicer's "
                   "OpenIGTLinkIF and other clients: NeedleToCT, PatientToCT, NeedleTipToNeedle "
-                  "(TRANSFORM), NeedleSafety (STRING), Target (POINT), PlannedTrajectory (TRAJ), "
-                  "STATUS for a lost marker; 0: any free port")
+                  "(TRANSFORM), NeedleSafety and, for breathing plans, BreathingPhase (STRING), Target "
+                  "(POINT), PlannedTrajectory (TRAJ), STATUS for a lost marker; 0: any free port")
       ->check(in_range(0, 65535, true));
   cmd->add_option("--record", r.record,
                   "Also record the incoming frames to this recording folder (replay it later "
