@@ -1,5 +1,6 @@
 #include "pipelines/guide_breathing.hpp"
 
+#include <chrono>
 #include <cmath>
 
 #include "foundation/error.hpp"
@@ -46,6 +47,7 @@ std::unique_ptr<overlay::BreathingPhases> load_breathing_phases(const planning::
     throw Error(plan.dir + "/plan.json: the breathing plan records no vulnerability table to "
                 "compute each phase's blocking with");
   }
+  const auto start = std::chrono::steady_clock::now();
   planning::MarginOptions margin;
   margin.fwhm_mm = plan.json.at("preprocessing").value("margin_fwhm_mm", margin.fwhm_mm);
   const nlohmann::json& listed = plan.json.at("breathing").at("phases");
@@ -78,9 +80,12 @@ std::unique_ptr<overlay::BreathingPhases> load_breathing_phases(const planning::
   phases->skin = planning::skin_motion(labels, T_ct_patient.translation(), outward, phases->names);
   std::string curve;
   for (double d : phases->skin.displacement_mm) curve += fmt::format(" {:.1f}", d);
-  spdlog::info("guide: breathing over {} phases; the skin under the patient board moves{} mm "
-               "(from phase 0, outward); the phase is estimated from the board's motion",
-               phases->names.size(), curve);
+  spdlog::info("guide: breathing over {} phases (read in {:.1f} s); the skin under the patient "
+               "board moves{} mm (from phase 0, outward); the phase is estimated from the board's "
+               "motion",
+               phases->names.size(),
+               std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(),
+               curve);
   return phases;
 }
 
