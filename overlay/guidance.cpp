@@ -49,10 +49,11 @@ GuidanceOverlay::GuidanceOverlay(const planning::PlanData& plan, GuidanceSetup s
   }
   guide_ = std::make_unique<planning::NeedleGuide>(plan_);
   tumor_centre_shown_ = plan_.tumor_centre;
+  current_guide_ = guide_.get();
   build_tumor_surface();
   build_rays();
   build_entry_contours();
-  build_entry_patches();
+  patches_ = entry_patches_of(plan_);
   if (plan_.area) {
     const auto planned = planning::region_trajectories(*plan_.area, plan_.tumor_centre,
                                                        plan_.labels, plan_.path_safety.at(value_),
@@ -126,13 +127,19 @@ bool GuidanceOverlay::inside_body(const Eigen::Vector3d& p) const {
 
 std::optional<Eigen::Vector3d> GuidanceOverlay::skin_exit(const Eigen::Vector3d& from,
                                                           const Eigen::Vector3d& dir) const {
-  const double step = 0.5 * plan_.grid.spacing.minCoeff();
-  const double reach = plan_.radius_mm > 0 ? plan_.radius_mm : 200.0;
-  if (plan_.labels.empty()) return from + dir * reach;  // no body outline: the region's edge
-  const Eigen::Vector3d& centre = plan_.tumor_centre;
+  return skin_exit_in(plan_, from, dir);
+}
+
+std::optional<Eigen::Vector3d> GuidanceOverlay::skin_exit_in(const planning::PlanData& plan,
+                                                             const Eigen::Vector3d& from,
+                                                             const Eigen::Vector3d& dir) {
+  const double step = 0.5 * plan.grid.spacing.minCoeff();
+  const double reach = plan.radius_mm > 0 ? plan.radius_mm : 200.0;
+  if (plan.labels.empty()) return from + dir * reach;  // no body outline: the region's edge
+  const Eigen::Vector3d& centre = plan.tumor_centre;
   // None when still inside the body at the region's edge.
   const auto exit = planning::first_body_exit(
-      plan_.labels, from, dir, step, 2 * reach,
+      plan.labels, from, dir, step, 2 * reach,
       [&](const Eigen::Vector3d& p) { return (p - centre).norm() <= reach; });
   if (!exit) return std::nullopt;
   return exit->last_inside;
@@ -206,6 +213,7 @@ GuidanceFrameInfo GuidanceOverlay::update(OverlayRenderer& renderer, const track
       info.breathing.emplace();
       guide = read_breathing(frame, *patient, T_ct_patient, *info.breathing);
     }
+    current_guide_ = guide;
     const Eigen::Isometry3d T_cam_ct = patient->T_cam_board * T_ct_patient.inverse();
     info.anatomy_drawn = true;
     // The needle's reading and drawing run beside the anatomy's: they share only what neither

@@ -263,7 +263,8 @@ class GuidanceOverlay {
   bool crosses_unknown(const Eigen::Vector3d& from, const Eigen::Vector3d& to, double step) const;
   void build_entry_contours();
   void build_tumor_surface();
-  void build_entry_patches();
+  // The entry patches of a plan's area safety on its own skin (its labels).
+  static std::vector<Patch> entry_patches_of(const planning::PlanData& plan);
   void draw_anatomy(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
   void draw_volume(OverlayRenderer& renderer, const Eigen::Isometry3d& T_cam_ct);
   // The reading's uncertainty and region safety from both boards' tracking and the setup.
@@ -290,8 +291,17 @@ class GuidanceOverlay {
   // region of interest; nullopt when the walk never leaves the body there.
   std::optional<Eigen::Vector3d> skin_exit(const Eigen::Vector3d& from,
                                            const Eigen::Vector3d& dir) const;
+  static std::optional<Eigen::Vector3d> skin_exit_in(const planning::PlanData& plan,
+                                                     const Eigen::Vector3d& from,
+                                                     const Eigen::Vector3d& dir);
   bool inside_body(const Eigen::Vector3d& p) const;
 
+  // What the anatomy pictures show of a breathing phase (phase -1: the plan's own).
+  struct PhaseShown {
+    int phase = -1;
+    Eigen::Vector3d tumor_shift = Eigen::Vector3d::Zero();
+    bool operator==(const PhaseShown& o) const { return phase == o.phase && tumor_shift == o.tumor_shift; }
+  };
   const planning::PlanData& plan_;
   GuidanceSetup setup_;
   std::unique_ptr<BreathingPhases> breathing_;
@@ -299,7 +309,12 @@ class GuidanceOverlay {
   std::unique_ptr<planning::RespiratoryPhaseEstimator> phase_estimator_;
   // The current phase's tumor: its centre, and how far its surface lies from the plan's mask.
   Eigen::Vector3d tumor_centre_shown_ = Eigen::Vector3d::Zero();
-  Eigen::Vector3d tumor_shift_ = Eigen::Vector3d::Zero();
+  PhaseShown phase_shown_;
+  // The guide of this frame (the current phase's, else guide_), and the one the targeting view
+  // was computed with.
+  const planning::NeedleGuide* current_guide_ = nullptr;
+  const planning::NeedleGuide* targeting_guide_ = nullptr;
+  std::vector<std::vector<Patch>> phase_patches_;  // per phase, from its own area safety
   GuidanceOptions options_;
   std::string value_;
   std::unique_ptr<planning::NeedleGuide> guide_;
@@ -323,7 +338,10 @@ class GuidanceOverlay {
     Eigen::Isometry3d T_cam_ct = Eigen::Isometry3d::Identity();
     planning::Palette palette = planning::Palette::kDefault;
     calibration::CameraModel camera;
-    Eigen::Vector3d tumor_shift = Eigen::Vector3d::Zero();  // the tumor picture's (breathing)
+    // Breathing: the phase whose cones and entry patches these are (-1: the plan's own) and how
+    // far its tumor lies from the plan's mask.
+    int phase = -1;
+    Eigen::Vector3d tumor_shift = Eigen::Vector3d::Zero();
     LayerPicture cones, entry, tumor;
     std::vector<Eigen::Vector2d> anchors_px;  // anatomy_anchors_ in the image (empty: unusable)
   };
@@ -331,14 +349,16 @@ class GuidanceOverlay {
   enum class AnatomyPicture { kCones, kEntry, kTumor };
   // One picture for one pose, drawn from the plan's geometry only (safe to run on another
   // thread), into `picture`, which it marks drawn.
-  // The tumor is drawn moved by tumor_shift.
   void draw_picture(AnatomyPicture which, LayerPicture& picture, const Eigen::Isometry3d& T_cam_ct,
                     const calibration::CameraModel& camera, planning::Palette palette,
-                    const Eigen::Vector3d& tumor_shift) const;
+                    const PhaseShown& shown) const;
   // The pictures of the visible layers for one pose.
   AnatomyPictures draw_pictures(const Eigen::Isometry3d& T_cam_ct,
                                 const calibration::CameraModel& camera, planning::Palette palette,
-                                std::array<bool, 3> layers, const Eigen::Vector3d& tumor_shift) const;
+                                std::array<bool, 3> layers, const PhaseShown& shown) const;
+  // The entry patches of what is shown, and the cones' apex.
+  const std::vector<Patch>& patches_shown(const PhaseShown& shown) const;
+  Eigen::Vector3d cone_apex(const PhaseShown& shown) const;
   AnatomyPictures anatomy_;
   std::future<AnatomyPictures> anatomy_ahead_;  // drawn for the last frame's pose
   // The corners of a box (CT) around everything the pictures show, for the reuse test, and

@@ -13,7 +13,8 @@ void GuidanceOverlay::set_breathing(std::unique_ptr<BreathingPhases> phases) {
   breathing_.reset();
   phase_guides_.clear();
   phase_estimator_.reset();
-  tumor_shift_.setZero();
+  phase_patches_.clear();
+  phase_shown_ = PhaseShown{};
   tumor_centre_shown_ = plan_.tumor_centre;
   if (!phases) return;
   if (phases->plans.size() < 2 || phases->names.size() != phases->plans.size() ||
@@ -23,6 +24,7 @@ void GuidanceOverlay::set_breathing(std::unique_ptr<BreathingPhases> phases) {
   }
   for (const auto& plan : phases->plans) {
     phase_guides_.push_back(std::make_unique<planning::NeedleGuide>(*plan));
+    phase_patches_.push_back(entry_patches_of(*plan));
   }
   phase_estimator_ = std::make_unique<planning::RespiratoryPhaseEstimator>(phases->skin);
   breathing_ = std::move(phases);
@@ -39,7 +41,7 @@ const planning::NeedleGuide* GuidanceOverlay::read_breathing(const tracking::Fra
       patient.T_cam_board.linear() * setup_.T_ct_patient.linear().transpose() * skin.direction;
   reading.estimate = phase_estimator_->update(frame.timestamp_ns,
                                               patient.T_cam_board.translation().dot(outward_cam));
-  tumor_shift_.setZero();
+  phase_shown_ = PhaseShown{};
   tumor_centre_shown_ = plan_.tumor_centre;
   if (!reading.estimate.known) return guide_.get();
   const size_t k = size_t(reading.estimate.phase);
@@ -48,7 +50,9 @@ const planning::NeedleGuide* GuidanceOverlay::read_breathing(const tracking::Fra
   T_ct_patient.pretranslate(reading.estimate.displacement_mm * skin.direction);
   const planning::PlanData& phase = *breathing_->plans[k];
   tumor_centre_shown_ = phase.tumor_centre;
-  tumor_shift_ = phase.tumor_centre - breathing_->plans.front()->tumor_centre;
+  phase_shown_.tumor_shift = phase.tumor_centre - breathing_->plans.front()->tumor_centre;
+  // The phase's own cones and entry patches where its plan has area safety, else the plan's.
+  phase_shown_.phase = phase.area ? int(k) : -1;
   return phase_guides_[k].get();
 }
 

@@ -165,9 +165,10 @@ void GuidanceOverlay::build_entry_contours() {
   }
 }
 
-void GuidanceOverlay::build_entry_patches() {
-  if (!plan_.area) return;
-  const planning::AreaSafetyGeometry& g = *plan_.area;
+std::vector<GuidanceOverlay::Patch> GuidanceOverlay::entry_patches_of(const planning::PlanData& plan) {
+  std::vector<Patch> patches;
+  if (!plan.area) return patches;
+  const planning::AreaSafetyGeometry& g = *plan.area;
   for (const auto& region : g.regions) {
     Patch patch;
     patch.region = region.id;
@@ -178,7 +179,7 @@ void GuidanceOverlay::build_entry_patches() {
       if (it != index.end()) return it->second;
       int i = -1;
       if (g.region[size_t(vertex)] == region.id) {
-        if (auto p = skin_exit(g.base[size_t(vertex)], g.normals[size_t(vertex)])) {
+        if (auto p = skin_exit_in(plan, g.base[size_t(vertex)], g.normals[size_t(vertex)])) {
           i = int(patch.points.size());
           patch.points.push_back(*p);
         }
@@ -199,8 +200,9 @@ void GuidanceOverlay::build_entry_patches() {
     for (const auto& [edge, count] : edges) {
       if (count == 1) patch.border.push_back({edge.first, edge.second});
     }
-    if (!patch.triangles.empty()) patches_.push_back(std::move(patch));
+    if (!patch.triangles.empty()) patches.push_back(std::move(patch));
   }
+  return patches;
 }
 
 cv::Mat GuidanceOverlay::entry_patch_mask(const Eigen::Isometry3d& T_cam_ct,

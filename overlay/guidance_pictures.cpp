@@ -84,25 +84,34 @@ std::optional<PlacedPictures> fit_placement(const std::vector<Eigen::Vector2d>& 
 
 }  // namespace
 
+const std::vector<GuidanceOverlay::Patch>& GuidanceOverlay::patches_shown(
+    const PhaseShown& shown) const {
+  return shown.phase >= 0 && size_t(shown.phase) < phase_patches_.size()
+             ? phase_patches_[size_t(shown.phase)]
+             : patches_;
+}
+
+Eigen::Vector3d GuidanceOverlay::cone_apex(const PhaseShown& shown) const {
+  return shown.phase >= 0 && breathing_ ? breathing_->plans[size_t(shown.phase)]->tumor_centre
+                                        : plan_.tumor_centre;
+}
+
 GuidanceOverlay::AnatomyPictures GuidanceOverlay::draw_pictures(
     const Eigen::Isometry3d& T_cam_ct, const calibration::CameraModel& cam,
-    planning::Palette palette, std::array<bool, 3> layers, const Eigen::Vector3d& tumor_shift) const {
+    planning::Palette palette, std::array<bool, 3> layers, const PhaseShown& shown) const {
   AnatomyPictures pictures;
   pictures.valid = true;
-  pictures.tumor_shift = tumor_shift;
+  pictures.phase = shown.phase;
+  pictures.tumor_shift = shown.tumor_shift;
   pictures.T_cam_ct = T_cam_ct;
   pictures.palette = palette;
   pictures.camera = cam;
   pictures.anchors_px = project_anchors(anatomy_anchors_, T_cam_ct, cam);
-  if (layers[0] && !patches_.empty()) {
-    draw_picture(AnatomyPicture::kCones, pictures.cones, T_cam_ct, cam, palette, tumor_shift);
+  if (layers[0] && !patches_shown(shown).empty()) {
+    draw_picture(AnatomyPicture::kCones, pictures.cones, T_cam_ct, cam, palette, shown);
   }
-  if (layers[1]) {
-    draw_picture(AnatomyPicture::kEntry, pictures.entry, T_cam_ct, cam, palette, tumor_shift);
-  }
-  if (layers[2]) {
-    draw_picture(AnatomyPicture::kTumor, pictures.tumor, T_cam_ct, cam, palette, tumor_shift);
-  }
+  if (layers[1]) draw_picture(AnatomyPicture::kEntry, pictures.entry, T_cam_ct, cam, palette, shown);
+  if (layers[2]) draw_picture(AnatomyPicture::kTumor, pictures.tumor, T_cam_ct, cam, palette, shown);
   return pictures;
 }
 
@@ -110,18 +119,18 @@ void GuidanceOverlay::draw_picture(AnatomyPicture which, LayerPicture& picture,
                                    const Eigen::Isometry3d& T_cam_ct,
                                    const calibration::CameraModel& cam,
                                    planning::Palette palette,
-                                   const Eigen::Vector3d& tumor_shift) const {
+                                   const PhaseShown& shown) const {
   Picture p;
   switch (which) {
     case AnatomyPicture::kCones:
-      p = cone_image(patches_, plan_.tumor_centre, T_cam_ct, cam, palette);
+      p = cone_image(patches_shown(shown), cone_apex(shown), T_cam_ct, cam, palette);
       break;
     case AnatomyPicture::kEntry:
-      p = patch_image(patches_, planned_, T_cam_ct, cam, palette);
+      p = patch_image(patches_shown(shown), planned_, T_cam_ct, cam, palette);
       break;
     case AnatomyPicture::kTumor:
-      p = tumor_image(tumor_surface_, tumor_voxel_mm_, T_cam_ct * Eigen::Translation3d(tumor_shift),
-                      cam, kTumorColour);
+      p = tumor_image(tumor_surface_, tumor_voxel_mm_,
+                      T_cam_ct * Eigen::Translation3d(shown.tumor_shift), cam, kTumorColour);
       break;
   }
   picture.bgra = p.bgra;
@@ -138,7 +147,7 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
                                       visible(GuidanceLayer::kTumor)};
   const auto usable = [&](const AnatomyPictures& p) {
     return p.valid && p.palette == palette && same_camera(p.camera, cam) &&
-           p.tumor_shift == tumor_shift_;
+           PhaseShown{p.phase, p.tumor_shift} == phase_shown_;
   };
   // Pictures drawn ahead for the last frame's pose replace the kept ones.
   if (anatomy_ahead_.valid()) {
@@ -166,13 +175,13 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
     }
   }
   if (!keep && !placed) {
-    anatomy_ = draw_pictures(T_cam_ct, cam, palette, {false, false, false}, tumor_shift_);
+    anatomy_ = draw_pictures(T_cam_ct, cam, palette, {false, false, false}, phase_shown_);
   }
   bool drew = false;
   const Eigen::Isometry3d T_drawn = anatomy_.T_cam_ct;
   const auto show = [&](const char* layer, LayerPicture& picture, AnatomyPicture which) {
     if (!picture.drawn) {  // drawn for the pictures' own pose, also when placed
-      draw_picture(which, picture, T_drawn, cam, palette, anatomy_.tumor_shift);
+      draw_picture(which, picture, T_drawn, cam, palette, PhaseShown{anatomy_.phase, anatomy_.tumor_shift});
       drew = true;
     }
     if (picture.bgra.empty()) return;
@@ -185,7 +194,7 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
   };
   if (layers[0]) {
     // One cone per safe region; the ray bundles where the plan has no area safety.
-    if (patches_.empty()) {
+    if (patches_.empty()) {  // a plan without area safety (its phases have none either)
       add_rays(renderer, rays_, T_cam_ct, palette);
     } else {
       show("rays", anatomy_.cones, AnatomyPicture::kCones);
@@ -205,8 +214,8 @@ void GuidanceOverlay::draw_anatomy(OverlayRenderer& renderer, const Eigen::Isome
   // frame's tracking, from the plan's geometry alone (the values captured here).
   if (placed && options_.anatomy_ahead) {
     anatomy_ahead_ = std::async(std::launch::async, [this, T_cam_ct, cam, palette, layers,
-                                                     shift = tumor_shift_] {
-      return draw_pictures(T_cam_ct, cam, palette, layers, shift);
+                                                     shown = phase_shown_] {
+      return draw_pictures(T_cam_ct, cam, palette, layers, shown);
     });
   }
 }

@@ -25,14 +25,18 @@ void GuidanceOverlay::draw_targeting(LayerCalls& renderer, const Eigen::Isometry
       // The polar map costs a few dozen line evaluations: kept while the needle and the view
       // stay within 0.1 mm and 0.05 deg of the last frame's (a needle held still, a still camera).
       const double kSame = std::cos(0.05 * M_PI / 180.0);
-      const bool same = targeting_.valid && !s.points_away &&
+      const bool same = targeting_.valid && !s.points_away && targeting_guide_ == current_guide_ &&
                         (s.tip - targeting_tip_).norm() < 0.1 && s.axis.dot(targeting_.axis) > kSame &&
                         to.right_hint.dot(targeting_right_) > kSame &&
                         to.size_px == targeting_.size_px;
       if (!same) {
         ++targeting_maps_computed_;
-        targeting_ = planning::targeting_geometry(*guide_, s, tumor_surface_, tumor_voxel_mm_, to);
+        // The current breathing phase's guide and tumor (the plan's own otherwise).
+        std::vector<Eigen::Vector3d> tumor = tumor_surface_;
+        for (auto& p : tumor) p += phase_shown_.tumor_shift;
+        targeting_ = planning::targeting_geometry(*current_guide_, s, tumor, tumor_voxel_mm_, to);
         targeting_tip_ = s.tip;
+        targeting_guide_ = current_guide_;
         targeting_right_ = to.right_hint;
       }
       targeting_origin_ = cv::Point(frame.width - to.size_px - 10, 10);

@@ -8,6 +8,7 @@
 #include "planning/imaging/sampling.hpp"
 #include "planning/imaging/volume_io.hpp"
 #include "planning/preprocessing/blocking.hpp"
+#include "planning/safety/area_safety.hpp"
 
 namespace crepuscular::pipelines {
 
@@ -72,6 +73,22 @@ std::unique_ptr<overlay::BreathingPhases> load_breathing_phases(const planning::
     const std::string tumor = planning::plan_phase_input_path(plan, k, "tumor");
     if (!tumor.empty()) p->tumor = planning::read_mask(tumor);
     p->blocking = planning::blocking_from_labels(p->labels, *plan.table, margin, p->labels_path);
+    if (plan.area && !p->tumor.empty()) {
+      // The phase's own safe regions, by the plan's criterion (its value and threshold).
+      const std::string value = plan.json.at("area_safety").value("value", plan.values.front());
+      planning::AreaSafetyOptions o;
+      o.spacing_mm = plan.grid.spacing[0];
+      o.max_distance_mm = plan.area->max_distance_mm > 0 ? plan.area->max_distance_mm : plan.radius_mm;
+      planning::AreaSafetyGeometry g = planning::compute_area_safety(
+          planning::fit_tumor_ellipsoid(p->tumor, tumor),
+          planning::path_safety_test(p->path_safety.at(value),
+                                     plan.classes.at(value).higher_is_safer, plan.area->threshold,
+                                     plan.radius_mm, plan.region.empty() ? nullptr : &plan.region),
+          o);
+      g.criterion = plan.area->criterion;
+      g.threshold = plan.area->threshold;
+      p->area = std::move(g);
+    }
     phases->names.push_back(plan.phases[k]);
     phases->plans.push_back(std::move(p));
   }

@@ -1,6 +1,7 @@
 // A breathing plan's phases for guidance (overlay::BreathingPhases): each phase's label map, tumor
 // and blocking read again from the phase's inputs as plan.json records them, its path safety from
-// the plan folder, and the skin's motion at the patient board.
+// the plan folder, its area safety (the plan's criterion) when the plan has one, and the skin's
+// motion at the patient board.
 #pragma once
 
 #include <Eigen/Geometry>
