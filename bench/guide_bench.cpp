@@ -104,9 +104,10 @@ int main(int argc, char** argv) {
     for (const auto& b : scenario.scene.boards) boards.push_back(b.board);
 
     for (const std::string& size : sizes) {
-      int w = 0, h = 0;
-      if (std::sscanf(size.c_str(), "%dx%d", &w, &h) != 2 || w <= 0 || h <= 0) {
-        throw Error("--size " + size + ": expected WIDTHxHEIGHT");
+      int w = 0, h = 0, used = 0;
+      if (std::sscanf(size.c_str(), "%dx%d%n", &w, &h, &used) != 2 || w <= 0 || h <= 0 ||
+          used != int(size.size())) {
+        throw Error("--size " + size + ": expected WIDTHxHEIGHT (several sizes: separated by spaces)");
       }
       // The same view at another resolution: the camera's intrinsics scaled.
       tracking::SyntheticScene scene = scenario.scene;
