@@ -162,8 +162,8 @@ std::string demo_guidance_report(const GuidanceScenario& scenario, const GuideSu
         "\nThe needle line's 95 % uncertainty (the boards' pose covariances, the needle "
         "calibration's and the registration's expected errors) held the true line in {:.1f} % "
         "of the {} frames with a line; the crossing at the tumor was off by {:.2f} mm RMS where "
-        "{:.2f} mm was predicted; {} frames were UNCERTAIN (a line of the region less safe than "
-        "the needle's own).\n",
+        "{:.2f} mm was predicted; UNCERTAIN (a line of the region less safe than the needle's own) "
+        "in {} of them.\n",
         100.0 * inside / with_line, with_line, std::sqrt(measured2 / with_line),
         std::sqrt(predicted2 / with_line), uncertain);
   }
