@@ -148,7 +148,7 @@ LineUncertainty needle_line_uncertainty(const Eigen::Isometry3d& T_ct_patient,
     const auto [p, d] = chain.line(x);
     Eigen::Matrix<double, 6, 1> y;
     y.head<4>() = u.offsets(p, d);
-    y.tail<2>() = plane_offsets(p, d, u.tumor_crossing, axis, u.e1, u.e2);
+    y.tail<2>() = plane_offsets(p, d, u.tumor_crossing, u.axis, u.e1, u.e2);
     return y;
   };
   Eigen::Matrix<double, kParameters, kParameters> sigma =
