@@ -9,6 +9,12 @@ dicom_series need neither numpy nor nibabel).
 The igtl_stream seeds were packed by the OpenIGTLink library itself (TransformMessage,
 TrackingDataMessage, StringMessage; a version-2 header built by hand around a TRANSFORM body;
 one with a flipped body bit, the CRC no longer matching).
+
+The plus_sequence seeds valid-video.igs.mha and valid-nrrd.igs.nrrd are copies of the PLUS
+toolkit's test files in tests/data/plus-sequence-files (BSD-3-Clause, its licence there);
+valid-tracker.igs.mha holds the first six frames of TransformInterpolationTest.igs.mha,
+uncompressed, one status made INVALID; the refused-* ones break it (a status neither OK nor
+INVALID, data cut short, a frame beyond the time axis).
 """
 import gzip
 import json

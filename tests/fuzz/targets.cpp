@@ -26,6 +26,7 @@
 #include "planning/safety/area_safety.hpp"
 #include "planning/trajectories/evaluate.hpp"
 #include "planning/trajectories/markups.hpp"
+#include "recordings/plus_sequence.hpp"
 #include "recordings/recording.hpp"
 #include "tracking/board.hpp"
 #include "tracking/poses_csv.hpp"
@@ -174,6 +175,8 @@ const std::vector<FuzzTarget>& fuzz_targets() {
       {"area_mesh", "area_safety.vtk",
        [](const std::string& path) { planning::read_area_safety_vtk(path); }},
       {"igtl_stream", "stream.igtl", read_igtl_stream},
+      {"plus_sequence", "sequence.igs.mha",
+       [](const std::string& path) { recordings::read_plus_sequence(path); }},
   };
   return targets;
 }
