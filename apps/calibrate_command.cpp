@@ -69,7 +69,12 @@ void add_calibrate_command(CLI::App& app) {
       "cone of 20-40 degrees for 10-20 s while the camera records. Optionally the needle axis:\n"
       "turn the needle about its own axis in a second capture (--spin-poses/--spin-recording).");
   pivot->add_option("--poses", p->poses,
-                    "Poses CSV of the pivoting (from `crepuscular track --out`)");
+                    "Poses of the pivoting: a poses CSV (from `crepuscular track --out`) or a PLUS "
+                    "sequence file (.igs.mha, .seq.mha, .igs.nrrd; the tracker's frame plays the "
+                    "camera's, INVALID transforms are left out)");
+  pivot->add_option("--tool", p->tool,
+                    "The needle's transform in a PLUS sequence file, e.g. StylusToTracker "
+                    "(default: the file's only transform)");
   pivot->add_option("--recording", p->recording, "Recording of the pivoting");
   pivot->add_option("--boards", p->boards,
                     "Marker boards (boards.json); default: the recording's boards.json");
@@ -78,7 +83,8 @@ void add_calibrate_command(CLI::App& app) {
   pivot->add_option("--board-name", p->board_name, "The needle board's name")
       ->capture_default_str();
   pivot->add_option("--spin-poses", p->spin_poses,
-                    "Poses CSV of the needle turning about its own axis (spin calibration)");
+                    "Poses of the needle turning about its own axis (spin calibration): a poses "
+                    "CSV or a PLUS sequence file (--tool names its transform)");
   pivot->add_option("--spin-recording", p->spin_recording,
                     "Recording of the needle turning about its own axis (spin calibration)");
   pivot

@@ -21,6 +21,7 @@
 #include "tracking/detector.hpp"
 #include "tracking/frame_source.hpp"
 #include "tracking/pose.hpp"
+#include "recordings/plus_sequence.hpp"
 #include "tracking/poses_csv.hpp"
 #include "tracking/tracker.hpp"
 
@@ -260,9 +261,54 @@ NeedlePoses poses_from_recording(const std::string& dir, const PivotCalibrationR
   return out;
 }
 
-NeedlePoses needle_poses(const std::string& csv, const std::string& recording,
+// The tool's valid poses in a PLUS sequence file (INVALID ones: the tool was lost), by frame.
+NeedlePoses poses_from_plus(const std::string& path, std::string tool) {
+  const recordings::PlusSequence s = recordings::read_plus_sequence(path);
+  const std::vector<std::string> names = s.transform_names();
+  std::string listed;
+  for (const auto& n : names) listed += (listed.empty() ? "" : ", ") + n;
+  if (tool.empty()) {
+    if (names.size() != 1) {
+      throw Error(path + ": holds the transforms " + (listed.empty() ? "(none)" : listed) +
+                  ": name the needle's with --tool");
+    }
+    tool = names.front();
+  }
+  NeedlePoses out;
+  int64_t invalid = 0;
+  for (size_t f = 0; f < s.frames.size(); ++f) {
+    const auto it = s.frames[f].transforms.find(tool);
+    if (it == s.frames[f].transforms.end()) continue;
+    if (!it->second.valid) {
+      ++invalid;
+      continue;
+    }
+    Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+    T.matrix() = it->second.matrix;
+    out.T_cam_needle.push_back(T);
+    out.frames.push_back(int64_t(f));
+  }
+  if (out.T_cam_needle.empty()) {
+    throw Error(path + ": no valid " + tool + "Transform (the sequence holds " +
+                (listed.empty() ? std::string("none") : listed) + ")");
+  }
+  spdlog::info("{}: {} poses of {} ({} frames where it was lost)", path, out.T_cam_needle.size(),
+               tool, invalid);
+  return out;
+}
+
+bool is_plus_sequence(const std::string& path) {
+  for (const char* ext : {".mha", ".nrrd"}) {
+    const std::string e = ext;
+    if (path.size() > e.size() && path.compare(path.size() - e.size(), e.size(), e) == 0) return true;
+  }
+  return false;
+}
+
+NeedlePoses needle_poses(const std::string& poses, const std::string& recording,
                          const PivotCalibrationRequest& a) {
-  return !csv.empty() ? poses_from_csv(csv, a.board_name) : poses_from_recording(recording, a);
+  if (!poses.empty() && is_plus_sequence(poses)) return poses_from_plus(poses, a.tool);
+  return !poses.empty() ? poses_from_csv(poses, a.board_name) : poses_from_recording(recording, a);
 }
 
 }  // namespace

@@ -31,11 +31,15 @@ struct CameraCalibrationRequest {
 calibration::IntrinsicsResult run_camera_calibration(const CameraCalibrationRequest& request);
 
 struct PivotCalibrationRequest {
-  std::string poses;      // poses CSV of the pivoting (from `crepuscular track`)
+  // Poses of the pivoting: a poses CSV (from `crepuscular track`), or a PLUS sequence file
+  // (.igs.mha, .seq.mha, .igs.nrrd) whose transform `tool` (e.g. StylusToTracker) is the needle's
+  // pose in the tracker's frame.
+  std::string poses;
   std::string recording;  // or a recording of it (exactly one of the two)
   std::string boards;     // boards.json ("": the recording's own)
   std::string camera;     // camera.yaml ("": the recording's own)
   std::string board_name = "needle";
+  std::string tool;  // the PLUS sequence's transform ("": its only one)
   std::string spin_poses;      // optional spin capture: poses CSV ...
   std::string spin_recording;  // ... or recording (at most one of the two)
   std::string out = "needle.yaml";

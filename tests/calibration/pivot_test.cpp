@@ -22,6 +22,7 @@
 
 #include "calibration/calibration_files.hpp"
 #include "foundation/error.hpp"
+#include "recordings/plus_sequence.hpp"
 #include "tests/support/cli.hpp"
 #include "tests/support/errors.hpp"
 #include "tests/support/temporary_folder.hpp"
@@ -467,6 +468,49 @@ TEST(Pivot, CalibratePivotCommandGatesOnTheTipsUncertainty) {
   ASSERT_EQ(test::run_cli("calibrate pivot --help", &log), 0);
   EXPECT_NE(log.find("--max-tip-stddev-mm"), std::string::npos) << log;
   EXPECT_NE(log.find("--warn-rms-mm"), std::string::npos) << log;
+}
+
+// `crepuscular calibrate pivot --poses FILE.igs.mha --tool StylusToTracker`: the pivoting as a PLUS
+// sequence file (a reference and a stylus transform, every tenth stylus pose INVALID and made wild,
+// which must be left out); the tip within 0.5 mm, the 90 valid poses used; without --tool the
+// file's two transforms are named in the refusal.
+TEST(Pivot, CalibratePivotCommandReadsAPlusSequence) {
+  const test::TemporaryFolder dir;
+  const std::vector<Eigen::Isometry3d> poses = pivot_poses(100, 30.0, true, true, 0.2, 0.2, 31);
+  recordings::PlusSequence s;
+  s.header = {{"Kinds", "domain domain list"}};
+  const auto text = [](const Eigen::Matrix4d& m) {
+    std::ostringstream o;
+    o.precision(17);
+    for (int k = 0; k < 16; ++k) o << (k ? " " : "") << m(k / 4, k % 4);
+    return o.str();
+  };
+  for (size_t i = 0; i < poses.size(); ++i) {
+    recordings::PlusFrame f;
+    Eigen::Matrix4d m = poses[i].matrix();
+    const bool lost = i % 10 == 9;
+    if (lost) m(0, 3) += 500.0;  // what a lost tool's last matrix may hold
+    f.fields = {{"Timestamp", std::to_string(0.05 * double(i))},
+                {"ReferenceToTrackerTransform", text(Eigen::Matrix4d::Identity())},
+                {"StylusToTrackerTransform", text(m)},
+                {"StylusToTrackerTransformStatus", lost ? "INVALID" : "OK"}};
+    s.frames.push_back(f);
+  }
+  const std::string file = dir.file("pivot.igs.mha");
+  recordings::write_plus_sequence(file, s);
+  const std::string out = dir.file("needle.yaml");
+  std::string log;
+  ASSERT_EQ(test::run_cli("calibrate pivot --poses " + file + " --tool StylusToTracker --out " + out,
+                          &log),
+            0)
+      << log;
+  const NeedleCalibration n = read_needle_calibration(out);
+  EXPECT_LT((n.tip_needle - kTip).norm(), 0.5);
+  EXPECT_EQ(n.poses_total, 90);
+  EXPECT_NE(log.find("10 frames where it was lost"), std::string::npos) << log;
+  EXPECT_NE(test::run_cli("calibrate pivot --poses " + file + " --out " + dir.file("n2.yaml"), &log), 0);
+  EXPECT_NE(log.find("ReferenceToTracker, StylusToTracker"), std::string::npos) << log;
+  EXPECT_NE(log.find("--tool"), std::string::npos) << log;
 }
 
 // The whole chain on rendered frames: `crepuscular synth` renders a needle board (2 x 2 tags of
