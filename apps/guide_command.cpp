@@ -39,7 +39,8 @@ void run(GuideArgs& a) {
                    {{"--out", req.video},
                     {"--log", req.log},
                     {"--snapshots", req.snapshot_dir, OutputKind::kFilesInFolder},
-                    {"--record", req.record, OutputKind::kFolder}}});
+                    {"--record", req.record, OutputKind::kFolder},
+                    {"--record-poses", req.record_poses}}});
   req.setup = pipelines::read_guidance_setup(a.camera, a.registration, a.needle);
   if (!req.source.empty() || !a.boards.empty()) {
     req.boards = tracking::read_boards(pipelines::session_boards_file(a.boards, req.source, "guide"));
@@ -139,6 +140,11 @@ void add_guide_command(CLI::App& app) {
   cmd->add_option("--record", r.record,
                   "Also record the incoming frames to this recording folder (replay it later "
                   "with --source recording:DIR)");
+  cmd->add_option("--record-poses", r.record_poses,
+                  "Also write the session's poses as a PLUS sequence file (FILE.igs.mha) that 3D "
+                  "Slicer's Sequences module and PLUS replay: each board in the camera "
+                  "(PatientToCamera, NeedleToCamera; INVALID while lost), the needle in the CT "
+                  "(NeedleToCT), its class and the frame's timestamp");
   cmd->add_option("--hide", a->hide,
                   "Layers to start hidden: rays, volume, entry, tumor, needle, status, target (or 1-7)")
       ->transform(enum_names(guidance_layer_names()));

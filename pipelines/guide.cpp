@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cctype>
 #include <cerrno>
 #include <cstdio>
 #include <cstring>
@@ -22,6 +23,7 @@
 #include "foundation/output_files.hpp"
 #include "pipelines/guide_loop.hpp"
 #include "pipelines/guide_igtl.hpp"
+#include "recordings/plus_sequence.hpp"
 #include "tracking/board.hpp"
 #include "tracking/frame_source.hpp"
 
@@ -149,6 +151,35 @@ class GuideOutputs {
       snapshot(fmt::format("frame_{:06d}.png", frame.index), r.image);
     }
     if (log_) log_->write(guide_log_row(r.info, r.latency_ms, r.render_ms));
+    if (!request_.record_poses.empty()) poses_.frames.push_back(pose_frame(frame, r));
+  }
+
+  // One frame of the poses' sequence file.
+  static recordings::PlusFrame pose_frame(const tracking::Frame& frame, const GuideFrameResult& r) {
+    const auto matrix = [](const Eigen::Matrix4d& m) {
+      std::string t;
+      for (int k = 0; k < 16; ++k) t += fmt::format("{}{:.10g}", k ? " " : "", m(k / 4, k % 4));
+      return t;
+    };
+    recordings::PlusFrame f;
+    f.fields.emplace_back("FrameNumber", std::to_string(frame.index));
+    f.fields.emplace_back("Timestamp", fmt::format("{:.6f}", double(frame.timestamp_ns) * 1e-9));
+    f.fields.emplace_back("ImageStatus", "INVALID");  // poses only, no image frames
+    for (const tracking::BoardStatus& b : r.boards) {
+      std::string name = b.board;
+      if (!name.empty()) name[0] = char(std::toupper(static_cast<unsigned char>(name[0])));
+      f.fields.emplace_back(name + "ToCameraTransform",
+                            matrix(b.tracked ? b.T_cam_board.matrix() : Eigen::Matrix4d::Identity()));
+      f.fields.emplace_back(name + "ToCameraTransformStatus", b.tracked ? "OK" : "INVALID");
+    }
+    const bool needle = r.info.needle.has_value();
+    f.fields.emplace_back("NeedleToCTTransform", matrix(needle ? r.info.needle->T_ct_needle.matrix()
+                                                               : Eigen::Matrix4d::Identity()));
+    f.fields.emplace_back("NeedleToCTTransformStatus", needle ? "OK" : "INVALID");
+    if (needle) {
+      f.fields.emplace_back("NeedleSafety", planning::needle_safety_name(r.info.needle->state.safety));
+    }
+    return f;
   }
 
   void snapshot(const std::string& name, const cv::Mat& image) {
@@ -168,6 +199,17 @@ class GuideOutputs {
       spdlog::info("guide: {} frames recorded in {}", rs.frames, rs.path);
     }
     if (log_) log_->commit();
+    if (!request_.record_poses.empty()) {
+      poses_.header = {{"AnatomicalOrientation", "RAI"},
+                       {"Kinds", "domain domain list"},
+                       {"ElementSpacing", "1 1 1"},
+                       {"Offset", "0 0 0"},
+                       {"TransformMatrix", "1 0 0 0 1 0 0 0 1"},
+                       {"UltrasoundImageOrientation", "MF"}};
+      recordings::write_plus_sequence(request_.record_poses, poses_);
+      spdlog::info("guide: the poses of {} frames written to {}", poses_.frames.size(),
+                   request_.record_poses);
+    }
     summary.snapshots_written = snapshots_written_;
     // Snapshots asked for beyond the frames shown are said, not passed over.
     for (const auto& [frame, name] : pending_snapshots_) {
@@ -189,6 +231,7 @@ class GuideOutputs {
   std::unique_ptr<tracking::FrameRecorder> recorder_;
   tracking::RecordOptions record_options_;
   std::vector<std::string> snapshots_written_;
+  recordings::PlusSequence poses_;  // --record-poses
   int64_t last_frame_ = -1;
 };
 
@@ -427,7 +470,7 @@ std::string guide_log_row(const GuidanceFrameInfo& i, double latency_ms, double 
 
 GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& request) {
   if (!request.window && request.video.empty() && request.snapshots.empty() &&
-      request.snapshot_every <= 0 && request.log.empty()) {
+      request.snapshot_every <= 0 && request.log.empty() && request.record_poses.empty()) {
     throw Error("guide: nothing to show: open a window, or give a video, snapshots or a log");
   }
   std::unique_ptr<PoseInput> pose_input;

@@ -41,6 +41,11 @@ struct GuideRequest {
   // Also record the incoming frames, as received, to this recording folder ("" = none); written
   // as FOLDER.partial while guiding (replayable at any moment), renamed at the end.
   std::string record;
+  // Also write the session's poses as a PLUS sequence file (.igs.mha; "" = none), for 3D
+  // Slicer's Sequences module and PLUS: per frame each board's pose in the camera
+  // (<Board>ToCameraTransform, INVALID while lost), the needle in the CT (NeedleToCTTransform) and
+  // its class (NeedleSafety), with the frame's timestamp. Written at the end, complete or not at all.
+  std::string record_poses;
   int64_t max_frames = -1;
   // OpenIGTLink server port for the operating room's tools (guide_igtl.hpp); -1: none.
   int igtl_port = -1;

@@ -86,6 +86,7 @@ GuideFrameResult GuideLoop::process(const tracking::Frame& frame, Clock::time_po
   const tracking::TrackResult track = tracking.get();
   if (broadcast_) broadcast_->poses(frame, track);
   r.dropped = track.dropped;
+  r.boards = track.boards;
   const auto tracked = Clock::now();
   timing_.track_ms = ms_between(arrival, tracked);
   r.info = overlay_.update(renderer_, frame, track, timing_, uploaded);

@@ -31,6 +31,7 @@ struct GuideFrameResult {
   // track_ms: tracking, with the video frame's upload to the GPU done meanwhile on this thread.
   double track_ms = 0, overlay_ms = 0, render_ms = 0;
   int64_t dropped = 0;  // frames the source skipped before this one
+  std::vector<tracking::BoardStatus> boards;  // the frame's tracking, board by board
 };
 
 class GuideLoop {

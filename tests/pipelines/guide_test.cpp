@@ -33,6 +33,7 @@
 #include "tests/support/network.hpp"
 #include "tests/support/plans.hpp"
 #include "tests/support/temporary_folder.hpp"
+#include "recordings/plus_sequence.hpp"
 #include "tracking/board.hpp"
 #include "tracking/frame_source.hpp"
 
@@ -134,6 +135,7 @@ TEST_F(GuideTest, HeadlessRunShowsSafeThenDangerousAndWritesEveryOutput) {
   const int64_t dangerous_frame = int64_t(std::floor(scenario_->dangerous.end_s * 10));
   g.snapshots = {{safe_frame, "safe.png"}, {dangerous_frame, "dangerous.png"}};
   g.record = out + "/session";
+  g.record_poses = out + "/session.igs.mha";
   GuideSummary s;
   try {
     s = run_guide(*plan_, g);
@@ -206,6 +208,35 @@ TEST_F(GuideTest, HeadlessRunShowsSafeThenDangerousAndWritesEveryOutput) {
     while (auto f = replay->next()) n += f->image.empty() ? 0 : 1;
     EXPECT_EQ(n, frames_ - 1);
     EXPECT_EQ(tracking::read_boards(out + "/session/boards.json").size(), 2u);
+  }
+  // The poses as a PLUS sequence file, read back frame for frame against the log: a frame per row,
+  // its timestamp, the needle in the CT valid exactly where the log has a needle reading, and
+  // within 3 mm (tip) of the scenario's true needle.
+  {
+    const recordings::PlusSequence seq = recordings::read_plus_sequence(out + "/session.igs.mha");
+    ASSERT_EQ(int64_t(seq.frames.size()), frames_);
+    EXPECT_EQ(seq.transform_names(),
+              (std::vector<std::string>{"NeedleToCT", "NeedleToCamera", "PatientToCamera"}));
+    int compared = 0;
+    for (size_t i = 1; i < rows.size(); ++i) {
+      const recordings::PlusFrame& f = seq.frames[i - 1];
+      const int64_t frame = std::stoll(rows[i][col("frame")]);
+      EXPECT_EQ(f.field("FrameNumber"), rows[i][col("frame")]);
+      EXPECT_NEAR(f.timestamp_s, double(std::stoll(rows[i][col("timestamp_ns")])) * 1e-9, 1e-6);
+      const recordings::PlusTransform& n = f.transforms.at("NeedleToCT");
+      EXPECT_EQ(n.valid, !rows[i][col("needle_safety")].empty()) << "frame " << frame;
+      // The corrupt frame holds the pose before it (younger than the limit): valid there too.
+      EXPECT_TRUE(f.transforms.at("PatientToCamera").valid) << "frame " << frame;
+      if (!n.valid) continue;
+      EXPECT_EQ(f.field("NeedleSafety"), rows[i][col("needle_safety")]) << "frame " << frame;
+      Eigen::Isometry3d T = Eigen::Isometry3d::Identity();
+      T.matrix() = n.matrix;
+      const Eigen::Isometry3d truth = scenario_->T_ct_needle_at(double(frame) / 10.0);
+      EXPECT_LT((T * tracking::kNeedleTipInNeedle - truth * tracking::kNeedleTipInNeedle).norm(), 3.0)
+          << "frame " << frame;
+      ++compared;
+    }
+    EXPECT_GT(compared, 30);
   }
   // No temporary file is left beside the outputs.
   for (const auto& e : fs::directory_iterator(out)) {
