@@ -121,7 +121,10 @@ void add_guide_command(CLI::App& app) {
                   "OpenIGTLink instead of the camera: igtl://HOST:PORT connects to it, "
                   "igtl-server:PORT lets it connect; TRANSFORM or TDATA. Without --source: no "
                   "video, a virtual camera looks at the plan from the front. With --source: the "
-                  "camera tracks the patient board, the tracker the needle relative to it");
+                  "camera tracks the patient board, the tracker the needle relative to it. "
+                  "plus:FILE.igs.mha replays a PLUS sequence file instead (3D Slicer's and PLUS's "
+                  "recordings; ?realtime=1 at its recorded pace, else as fast as possible), one "
+                  "virtual camera frame per sequence frame, INVALID transforms lost");
   cmd->add_option("--poses-needle", r.poses_needle, "Device name of the needle's pose")
       ->capture_default_str();
   cmd->add_option("--poses-patient", r.poses_patient,

@@ -481,8 +481,15 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
                                              request.poses_patient, request.tracker.max_age_ms,
                                              request.setup, plan.tumor_centre);
   }
+  if (pose_input && pose_input->sequence() && !request.source.empty()) {
+    throw Error("guide: --poses " + request.poses + " replays a PLUS sequence file with the "
+                "virtual camera; give no --source with it");
+  }
   if (pose_input && request.source.empty()) {
-    source = virtual_camera_source(request.setup.camera, request.poses_fps);
+    source = pose_input->sequence()
+                 ? plus_frames_source(request.setup.camera, *pose_input->sequence(),
+                                      request.poses_fps, plus_poses_address(request.poses)->second)
+                 : virtual_camera_source(request.setup.camera, request.poses_fps);
     if (boards.empty()) boards = placeholder_boards(request.setup);
   } else {
     source = tracking::open_frame_source(request.source);
@@ -541,8 +548,8 @@ GuideSummary run_guide(const planning::PlanData& plan, const GuideRequest& reque
     }
   }
   summary.seconds = std::chrono::duration<double>(Clock::now() - t0).count();
-  if (pose_input) {
-    const igtlink::PoseReceiver::Stats st = pose_input->receiver().stats();
+  if (pose_input && pose_input->receiver()) {
+    const igtlink::PoseReceiver::Stats st = pose_input->receiver()->stats();
     spdlog::info("guide: OpenIGTLink poses: {} connection(s), {} messages, {} poses, {} skipped, "
                  "{} dropped{}",
                  st.connections, st.messages, st.poses, st.skipped, st.dropped,

@@ -3,6 +3,9 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
 #include <filesystem>
 #include <thread>
 
@@ -151,12 +154,57 @@ class VirtualCameraSource : public tracking::FrameSource {
 PoseInput::PoseInput(const std::string& uri, std::string needle, std::string patient,
                      double max_age_ms, const overlay::GuidanceSetup& setup,
                      const Eigen::Vector3d& tumor_centre)
-    : receiver_(uri), needle_(std::move(needle)), patient_(std::move(patient)),
-      max_age_ms_(max_age_ms), setup_(setup), T_cam_ct_(anterior_view(tumor_centre)) {}
+    : needle_(std::move(needle)), patient_(std::move(patient)), max_age_ms_(max_age_ms),
+      setup_(setup), T_cam_ct_(anterior_view(tumor_centre)) {
+  if (const auto plus = plus_poses_address(uri)) {
+    sequence_path_ = plus->first;
+    sequence_ = std::make_unique<recordings::PlusSequence>(recordings::read_plus_sequence(plus->first));
+    const std::vector<std::string> names = sequence_->transform_names();
+    std::string listed;
+    for (const auto& n : names) listed += (listed.empty() ? "" : ", ") + n;
+    for (const std::string* device : {&needle_, &patient_}) {
+      if (!device->empty() && std::find(names.begin(), names.end(), *device) == names.end()) {
+        throw Error(plus->first + ": no transform " + *device + " (it holds " +
+                    (listed.empty() ? std::string("none") : listed) +
+                    "): name them with --poses-needle and --poses-patient");
+      }
+    }
+  } else {
+    receiver_ = std::make_unique<igtlink::PoseReceiver>(uri);
+  }
+}
 
-bool PoseInput::current_pose(const std::string& device, Eigen::Isometry3d* T,
+std::string PoseInput::where() const { return sequence_ ? sequence_path_ : receiver_->uri(); }
+
+std::optional<std::pair<std::string, bool>> plus_poses_address(const std::string& uri) {
+  if (uri.rfind("plus:", 0) != 0) return std::nullopt;
+  std::string path = uri.substr(5);
+  bool realtime = false;
+  const size_t q = path.find('?');
+  if (q != std::string::npos) {
+    const std::string query = path.substr(q + 1);
+    if (query != "realtime=1" && query != "realtime=0") {
+      throw Error("--poses " + uri + ": the only option is ?realtime=1 (as recorded) or "
+                  "?realtime=0 (as fast as possible)");
+    }
+    realtime = query == "realtime=1";
+    path = path.substr(0, q);
+  }
+  return std::make_pair(path, realtime);
+}
+
+bool PoseInput::current_pose(const std::string& device, int64_t frame, Eigen::Isometry3d* T,
                              double* age_ms) const {
-  const std::optional<igtlink::PoseReceiver::Pose> p = receiver_.latest(device);
+  if (sequence_) {
+    *age_ms = 0;
+    if (frame < 0 || size_t(frame) >= sequence_->frames.size()) return false;
+    const auto& transforms = sequence_->frames[size_t(frame)].transforms;
+    const auto it = transforms.find(device);
+    if (it == transforms.end() || !it->second.valid) return false;
+    T->matrix() = it->second.matrix;
+    return true;
+  }
+  const std::optional<igtlink::PoseReceiver::Pose> p = receiver_->latest(device);
   if (!p) return false;
   *age_ms = std::chrono::duration<double, std::milli>(igtlink::PoseReceiver::Clock::now() -
                                                       p->received)
@@ -174,7 +222,8 @@ tracking::TrackResult PoseInput::track(const tracking::Frame& frame) const {
   needle.board = setup_.needle_board;
   Eigen::Isometry3d T_tracker_patient = Eigen::Isometry3d::Identity(), T_tracker_needle;
   double patient_age = 0, needle_age = 0;
-  patient.tracked = patient_.empty() || current_pose(patient_, &T_tracker_patient, &patient_age);
+  patient.tracked =
+      patient_.empty() || current_pose(patient_, frame.index, &T_tracker_patient, &patient_age);
   // The virtual camera sees the CT from a fixed place: the patient board is where the
   // registration puts it.
   const Eigen::Isometry3d T_cam_patient = T_cam_ct_ * setup_.T_ct_patient;
@@ -183,15 +232,15 @@ tracking::TrackResult PoseInput::track(const tracking::Frame& frame) const {
     patient.measured = true;
     patient.age_ms = patient_age;
   } else {
-    patient.problem = "no current " + patient_ + " pose from " + receiver_.uri();
+    patient.problem = "no current " + patient_ + " pose from " + where();
   }
-  needle.tracked = current_pose(needle_, &T_tracker_needle, &needle_age);
+  needle.tracked = current_pose(needle_, frame.index, &T_tracker_needle, &needle_age);
   if (needle.tracked) {
     needle.T_cam_board = T_cam_patient * T_tracker_patient.inverse() * T_tracker_needle;
     needle.measured = true;
     needle.age_ms = needle_age;
   } else {
-    needle.problem = "no current " + needle_ + " pose from " + receiver_.uri();
+    needle.problem = "no current " + needle_ + " pose from " + where();
   }
   r.boards = {patient, needle};
   return r;
@@ -206,15 +255,16 @@ void PoseInput::replace_needle(tracking::TrackResult& camera) const {
   needle.board = setup_.needle_board;
   Eigen::Isometry3d T_tracker_patient = Eigen::Isometry3d::Identity(), T_tracker_needle;
   double patient_age = 0, needle_age = 0;
-  const bool reference = patient_.empty() || current_pose(patient_, &T_tracker_patient, &patient_age);
+  const bool reference =
+      patient_.empty() || current_pose(patient_, camera.frame, &T_tracker_patient, &patient_age);
   needle.tracked = patient && patient->tracked && reference &&
-                   current_pose(needle_, &T_tracker_needle, &needle_age);
+                   current_pose(needle_, camera.frame, &T_tracker_needle, &needle_age);
   if (needle.tracked) {
     needle.T_cam_board = patient->T_cam_board * T_tracker_patient.inverse() * T_tracker_needle;
     needle.measured = true;
     needle.age_ms = std::max({needle_age, patient_age, patient->age_ms});
   } else {
-    needle.problem = "no current " + needle_ + " pose from " + receiver_.uri() +
+    needle.problem = "no current " + needle_ + " pose from " + where() +
                      " with the patient board in view";
   }
   bool replaced = false;
@@ -225,6 +275,54 @@ void PoseInput::replace_needle(tracking::TrackResult& camera) const {
     }
   }
   if (!replaced) camera.boards.push_back(needle);
+}
+
+namespace {
+
+class PlusFramesSource : public tracking::FrameSource {
+ public:
+  PlusFramesSource(const calibration::CameraModel& camera, const recordings::PlusSequence& sequence,
+                   double fps, bool realtime)
+      : camera_(camera), realtime_(realtime) {
+    double t0 = std::numeric_limits<double>::quiet_NaN();
+    for (size_t f = 0; f < sequence.frames.size(); ++f) {
+      const double t = sequence.frames[f].timestamp_s;
+      if (std::isfinite(t) && !std::isfinite(t0)) t0 = t;
+      // Nanoseconds from the first timestamped frame; the frame rate where a frame has none.
+      times_ns_.push_back(std::isfinite(t) ? int64_t(std::llround((t - t0) * 1e9))
+                                           : int64_t(std::llround(double(f) / fps * 1e9)));
+    }
+  }
+  std::optional<tracking::Frame> next() override {
+    if (index_ >= times_ns_.size()) return std::nullopt;
+    if (realtime_) {
+      if (index_ == 0) start_ = std::chrono::steady_clock::now();
+      std::this_thread::sleep_until(start_ + std::chrono::nanoseconds(times_ns_[index_] - times_ns_[0]));
+    }
+    tracking::Frame f;
+    f.index = int64_t(index_);
+    f.timestamp_ns = times_ns_[index_];
+    f.image = cv::Mat(camera_.height, camera_.width, CV_8UC3, cv::Scalar(32, 32, 32));
+    ++index_;
+    return f;
+  }
+  std::string describe() const override { return "virtual camera (poses of a PLUS sequence file)"; }
+  std::optional<calibration::CameraModel> camera() const override { return camera_; }
+
+ private:
+  calibration::CameraModel camera_;
+  bool realtime_;
+  std::vector<int64_t> times_ns_;
+  size_t index_ = 0;
+  std::chrono::steady_clock::time_point start_;
+};
+
+}  // namespace
+
+std::unique_ptr<tracking::FrameSource> plus_frames_source(const calibration::CameraModel& camera,
+                                                          const recordings::PlusSequence& sequence,
+                                                          double fps, bool realtime) {
+  return std::make_unique<PlusFramesSource>(camera, sequence, fps, realtime);
 }
 
 std::unique_ptr<tracking::FrameSource> virtual_camera_source(const calibration::CameraModel& camera,

@@ -13,6 +13,7 @@
 #include "igtl/pose_receiver.hpp"
 #include "igtl/server.hpp"
 #include "overlay/guidance.hpp"
+#include "recordings/plus_sequence.hpp"
 #include "planning/plan_folder/plan_folder.hpp"
 #include "tracking/frame_source.hpp"
 #include "tracking/tracker.hpp"
@@ -43,6 +44,9 @@ class GuidanceBroadcast {
 //   needle: the needle tool's device name (e.g. NeedleToTracker); patient: the patient
 //   reference's (e.g. ReferenceToTracker), "" when the tracker's frame is the patient board's.
 // A pose older than max_age_ms (by its arrival here) is lost, as for the camera.
+// `plus:FILE.igs.mha` instead of an OpenIGTLink address replays a PLUS sequence file: the
+// virtual camera shows one frame per sequence frame (plus_frames_source), whose transforms are
+// that frame's poses; an INVALID transform is a lost tool.
 class PoseInput {
  public:
   PoseInput(const std::string& uri, std::string needle, std::string patient, double max_age_ms,
@@ -51,21 +55,38 @@ class PoseInput {
   tracking::TrackResult track(const tracking::Frame& frame) const;
   // Over the video: the camera's result with its needle replaced by the tracker's.
   void replace_needle(tracking::TrackResult& camera) const;
-  igtlink::PoseReceiver& receiver() { return receiver_; }
+  // Over OpenIGTLink; null when replaying a sequence file.
+  igtlink::PoseReceiver* receiver() { return receiver_.get(); }
+  // The sequence file replayed; null over OpenIGTLink.
+  const recordings::PlusSequence* sequence() const { return sequence_.get(); }
   // The virtual camera's view of the CT (LPS mm to camera).
   const Eigen::Isometry3d& T_cam_ct() const { return T_cam_ct_; }
 
  private:
   // The latest pose of `device` and its age (by its arrival here); true when not older than
   // max_age_ms.
-  bool current_pose(const std::string& device, Eigen::Isometry3d* T, double* age_ms) const;
+  // From a sequence file: the pose in the frame of that index.
+  bool current_pose(const std::string& device, int64_t frame, Eigen::Isometry3d* T,
+                    double* age_ms) const;
+  std::string where() const;
 
-  igtlink::PoseReceiver receiver_;
+  std::unique_ptr<igtlink::PoseReceiver> receiver_;
+  std::unique_ptr<recordings::PlusSequence> sequence_;
+  std::string sequence_path_;
   std::string needle_, patient_;
   double max_age_ms_;
   overlay::GuidanceSetup setup_;
   Eigen::Isometry3d T_cam_ct_;
 };
+
+// The virtual camera's frames for a PLUS sequence file's poses: one per sequence frame, stamped
+// with the sequence's timestamps (the frame rate where a frame has none), paced as recorded when
+// `realtime`, else as fast as they are taken.
+std::unique_ptr<tracking::FrameSource> plus_frames_source(const calibration::CameraModel& camera,
+                                                          const recordings::PlusSequence& sequence,
+                                                          double fps, bool realtime);
+// "plus:FILE[?realtime=1]": the file and whether to pace it; nullopt for other addresses.
+std::optional<std::pair<std::string, bool>> plus_poses_address(const std::string& uri);
 
 // Frames of the virtual camera: a dark picture at `fps`, paced in real time.
 std::unique_ptr<tracking::FrameSource> virtual_camera_source(const calibration::CameraModel& camera,

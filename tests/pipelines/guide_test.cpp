@@ -237,6 +237,32 @@ TEST_F(GuideTest, HeadlessRunShowsSafeThenDangerousAndWritesEveryOutput) {
       ++compared;
     }
     EXPECT_GT(compared, 30);
+    // Replayed as the poses of `guide --poses plus:FILE` (the boards' camera poses as the tracker's
+    // tools): every frame's needle in the CT is the recorded one, and so is its class.
+    GuideRequest replay;
+    replay.setup = g.setup;
+    replay.options = g.options;
+    replay.poses = "plus:" + out + "/session.igs.mha";
+    replay.poses_needle = "NeedleToCamera";
+    replay.poses_patient = "PatientToCamera";
+    replay.log = out + "/replay.csv";
+    replay.record_poses = out + "/replay.igs.mha";
+    run_guide(*plan_, replay);
+    const recordings::PlusSequence again = recordings::read_plus_sequence(out + "/replay.igs.mha");
+    ASSERT_EQ(again.frames.size(), seq.frames.size());
+    int same = 0;
+    for (size_t f = 0; f < seq.frames.size(); ++f) {
+      const auto& a = seq.frames[f].transforms.at("NeedleToCT");
+      const auto& b = again.frames[f].transforms.at("NeedleToCT");
+      // The corrupt frame: its held poses replay as a frame with an image (a virtual one).
+      if (int64_t(f) == corrupt_ || !a.valid) continue;
+      EXPECT_TRUE(b.valid) << "frame " << f;
+      EXPECT_LT((a.matrix - b.matrix).cwiseAbs().maxCoeff(), 1e-5) << "frame " << f;
+      EXPECT_EQ(again.frames[f].field("NeedleSafety"), seq.frames[f].field("NeedleSafety"))
+          << "frame " << f;
+      ++same;
+    }
+    EXPECT_GT(same, 30);
   }
   // No temporary file is left beside the outputs.
   for (const auto& e : fs::directory_iterator(out)) {
