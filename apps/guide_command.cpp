@@ -99,7 +99,8 @@ void add_guide_command(CLI::App& app) {
                   "Marker boards (boards.json); default: the recording's boards.json");
   cmd->add_option("--source", r.source,
                   "Frames: v4l2:/dev/video0?width=1280&height=720&fps=60, "
-                  "recording:DIR[?realtime=1], synthetic:SCENE.json (or --poses instead)");
+                  "recording:DIR[?realtime=1], synthetic:SCENE.json, plus:FILE.igs.mha[?realtime=1] "
+                  "(a PLUS sequence file's image frames) (or --poses instead)");
   cmd->add_flag("--headless", a->headless,
                 "No window: write the overlay to --out and snapshots only (no display needed "
                 "where EGL is available; else run under xvfb-run -a)");

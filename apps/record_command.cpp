@@ -20,6 +20,8 @@ void add_record_command(CLI::App& app) {
       "  recording:DIR[?realtime=1&loop=1]   another recording (copy, cut with "
       "--frames/--seconds)\n"
       "  synthetic:SCENE.json | synthetic:builtin   rendered frames with ground truth\n"
+      "  plus:FILE.igs.mha[?realtime=1]   a PLUS sequence file's image frames (.igs.mha, .seq.mha,\n"
+      "      .igs.nrrd), its transforms kept as the frames' poses\n"
       "\n"
       "The recording is written frame by frame into DIR.partial and renamed to DIR when it ends\n"
       "(--frames or --seconds reached, the source ended, or Ctrl-C). If the recorder is killed,\n"

@@ -15,7 +15,8 @@ void add_track_command(CLI::App& app) {
       "Each board is searched in its own tag family (boards.json \"family\"); why a board is\n"
       "not found is logged, and with --details written per frame.");
   cmd->add_option("--source", a->source,
-                  "Frames: recording:DIR, synthetic:SCENE.json, synthetic:builtin or "
+                  "Frames: recording:DIR, synthetic:SCENE.json, synthetic:builtin, "
+                  "plus:FILE.igs.mha (a PLUS sequence file's image frames) or "
                   "v4l2:/dev/video0?width=1280&height=720&fps=60")
       ->required();
   cmd->add_option("--boards", a->boards,

@@ -4,14 +4,18 @@
 #include <algorithm>
 #include <cctype>
 #include <chrono>
+#include <cmath>
 #include <filesystem>
 #include <optional>
 #include <thread>
+
+#include <opencv2/imgproc.hpp>
 
 #include "foundation/error.hpp"
 #include "foundation/json_fields.hpp"
 #include "foundation/log.hpp"
 #include "foundation/output_files.hpp"
+#include "recordings/plus_sequence.hpp"
 #include "recordings/recording.hpp"
 #include "tracking/synthetic.hpp"
 #include "tracking/v4l2_source.hpp"
@@ -32,6 +36,79 @@ Eigen::Isometry3d pose_of(const recordings::PoseRow& r) {
   T.translation() = Eigen::Vector3d(r.t[0], r.t[1], r.t[2]);
   return T;
 }
+
+// A PLUS sequence file's image frames (8-bit as they are, 16-bit scaled to 8 bits; grey shown as
+// grey) with its timestamps; its valid transforms ride along as the frame's poses (`truth`, by
+// transform name). A frame without an image (no image data, ImageStatus INVALID) is delivered
+// without one and says why.
+class PlusSource : public FrameSource {
+ public:
+  PlusSource(const std::string& path, bool realtime)
+      : path_(path), sequence_(recordings::read_plus_sequence(path)), realtime_(realtime) {
+    const std::string& t = sequence_.element_type;
+    if (sequence_.width > 0 && t != "MET_UCHAR" && t != "MET_USHORT" && t != "MET_SHORT") {
+      throw Error(path + ": its images are " + t + ": only 8-bit and 16-bit images are shown");
+    }
+    if (sequence_.width > 0 && sequence_.channels != 1 && sequence_.channels != 3) {
+      throw Error(path + ": images of " + std::to_string(sequence_.channels) +
+                  " channels: grey or colour (3) images are shown");
+    }
+  }
+  std::optional<Frame> next() override {
+    if (index_ >= sequence_.frames.size()) return std::nullopt;
+    const recordings::PlusFrame& pf = sequence_.frames[index_];
+    Frame f;
+    f.index = int64_t(index_);
+    const double t = std::isfinite(pf.timestamp_s) ? pf.timestamp_s : double(index_) / 30.0;
+    f.timestamp_ns = int64_t(std::llround(t * 1e9));
+    if (realtime_) {
+      if (index_ == 0) {
+        start_ = std::chrono::steady_clock::now();
+        t0_ns_ = f.timestamp_ns;
+      }
+      std::this_thread::sleep_until(start_ + std::chrono::nanoseconds(f.timestamp_ns - t0_ns_));
+    }
+    if (sequence_.width == 0) {
+      f.problem = "the sequence holds no image frames";
+    } else if (pf.field("ImageStatus") == "INVALID") {
+      f.problem = "the sequence frame's image is INVALID";
+    } else {
+      const int w = sequence_.width, h = sequence_.height, c = sequence_.channels;
+      const size_t bytes = size_t(w) * size_t(h) * size_t(c) * size_t(sequence_.bytes_per_pixel());
+      const uint8_t* p = sequence_.pixels.data() + bytes * index_;
+      cv::Mat image;
+      if (sequence_.element_type == "MET_UCHAR") {
+        image = cv::Mat(h, w, CV_8UC(c), const_cast<uint8_t*>(p)).clone();
+      } else {
+        cv::Mat wide(h, w, sequence_.element_type == "MET_USHORT" ? CV_16UC(c) : CV_16SC(c),
+                     const_cast<uint8_t*>(p));
+        double lo = 0, hi = 0;
+        cv::minMaxLoc(wide.reshape(1), &lo, &hi);
+        wide.convertTo(image, CV_8U, hi > lo ? 255.0 / (hi - lo) : 1.0, hi > lo ? -lo * 255.0 / (hi - lo) : 0.0);
+      }
+      if (c == 1) cv::cvtColor(image, f.image, cv::COLOR_GRAY2BGR);
+      else cv::cvtColor(image, f.image, cv::COLOR_RGB2BGR);
+    }
+    for (const auto& [name, transform] : pf.transforms) {
+      if (!transform.valid) continue;
+      TruePose pose;
+      pose.board = name;
+      pose.T_cam_board.matrix() = transform.matrix;
+      f.truth.push_back(pose);
+    }
+    ++index_;
+    return f;
+  }
+  std::string describe() const override { return "PLUS sequence " + path_; }
+
+ private:
+  std::string path_;
+  recordings::PlusSequence sequence_;
+  bool realtime_;
+  size_t index_ = 0;
+  std::chrono::steady_clock::time_point start_;
+  int64_t t0_ns_ = 0;
+};
 
 class RecordingSource : public FrameSource {
  public:
@@ -177,8 +254,16 @@ std::unique_ptr<FrameSource> open_frame_source(const std::string& uri) {
   if (u.scheme == "v4l2") {
     return open_v4l2_source(u.path, parse_v4l2_options(uri, u.options));
   }
+  if (u.scheme == "plus") {
+    bool realtime = false;
+    for (const auto& [key, value] : u.options) {
+      if (key != "realtime") throw Error(uri + ": unknown option '" + key + "', expected realtime");
+      realtime = flag_option(uri, key, value);
+    }
+    return std::make_unique<PlusSource>(u.path, realtime);
+  }
   throw Error("source '" + uri + "': unknown kind '" + u.scheme +
-              "', expected v4l2:, recording: or synthetic:");
+              "', expected v4l2:, recording:, synthetic: or plus:");
 }
 
 struct FrameRecorder::Impl {

@@ -3,6 +3,8 @@
 // and recording a synthetic source into a folder that replays with the same truth.
 #include "tracking/frame_source.hpp"
 
+#include "recordings/plus_sequence.hpp"
+
 #include <gtest/gtest.h>
 
 #include <chrono>
@@ -289,6 +291,47 @@ TEST(FrameSource, SynthAndRecordCommandsWriteReplayableRecordings) {
     ++frames;
   }
   EXPECT_GE(frames, 4);
+}
+
+// A PLUS sequence file as a source (the PLUS toolkit's own files, tests/data): the 20 video frames
+// with their timestamps (0.5 s apart), each image the sequence's pixels shown grey, the tool's
+// transform beside it; the 16-bit NRRD frame scaled to 8 bits; a tracking-only sequence gives
+// frames without images that say why.
+TEST(FrameSource, PlusSequenceReplaysImagesTimestampsAndTransforms) {
+  const std::string dir = std::string(CREPUSCULAR_TEST_DATA) + "/plus-sequence-files/";
+  const recordings::PlusSequence seq = recordings::read_plus_sequence(dir + "SyntheticVideoBuffer20.igs.mha");
+  auto source = open_frame_source("plus:" + dir + "SyntheticVideoBuffer20.igs.mha");
+  int64_t n = 0;
+  while (auto f = source->next()) {
+    ASSERT_FALSE(f->image.empty()) << f->problem;
+    EXPECT_EQ(f->image.cols, seq.width);
+    EXPECT_EQ(f->image.rows, seq.height);
+    EXPECT_EQ(f->timestamp_ns, int64_t(std::llround(seq.frames[size_t(n)].timestamp_s * 1e9)));
+    const size_t bytes = size_t(seq.width) * size_t(seq.height);
+    for (const int at : {0, seq.width * seq.height / 2 + 17}) {
+      const cv::Vec3b px = f->image.at<cv::Vec3b>(at / seq.width, at % seq.width);
+      EXPECT_EQ(px[0], seq.pixels[bytes * size_t(n) + size_t(at)]);
+      EXPECT_EQ(px[2], px[0]);
+    }
+    ASSERT_EQ(f->truth.size(), 1u);
+    EXPECT_EQ(f->truth[0].board, "ToolToTracker");
+    ++n;
+  }
+  EXPECT_EQ(n, 20);
+  auto nrrd = open_frame_source("plus:" + dir + "NrrdSample.igs.nrrd");
+  const auto frame = nrrd->next();
+  ASSERT_TRUE(frame && !frame->image.empty());
+  double lo = 0, hi = 0;
+  cv::minMaxLoc(frame->image.reshape(1), &lo, &hi);
+  EXPECT_EQ(lo, 0.0);
+  EXPECT_EQ(hi, 255.0);
+  EXPECT_FALSE(nrrd->next());
+  auto tracking = open_frame_source("plus:" + dir + "TransformInterpolationTest.igs.mha?realtime=0");
+  const auto first = tracking->next();
+  ASSERT_TRUE(first);
+  EXPECT_FALSE(first->image.empty());  // 1 x 1 images, shown as they are
+  EXPECT_EQ(first->truth.size(), 2u);
+  EXPECT_THROW(open_frame_source("plus:" + dir + "TransformInterpolationTest.igs.mha?loop=1"), Error);
 }
 
 }  // namespace
