@@ -28,16 +28,22 @@ void add_record_command(CLI::App& app) {
       "DIR.partial stays and replays up to its last complete frame:\n"
       "  crepuscular track --source recording:DIR.partial ...");
   cmd->add_option("--source", args->source, "Frame source URI (see above)")->required();
-  cmd->add_option("--out", args->out, "Output recording folder (DIR); must not exist")->required();
+  cmd->add_option("--out", args->out,
+                  "Output recording folder (DIR); must not exist. With --format plus: the "
+                  "sequence file (FILE.igs.mha)")
+      ->required();
   cmd->add_option("--frames", args->frames, "Stop after this many frames (default: no limit)")
       ->check(in_range(1, 1e9, true));
   cmd->add_option("--seconds", args->seconds,
                   "Stop after this much capture time in seconds (default: no limit)")
       ->check(in_range(0.001, 86400));
   cmd->add_option("--format", args->format,
-                  "Frame image format: jpg (camera MJPEG stored as received) or png (lossless)")
+                  "Frame image format: jpg (camera MJPEG stored as received), png (lossless), or "
+                  "plus: one PLUS sequence file (.igs.mha) that 3D Slicer's Sequences module and "
+                  "PLUS replay: RGB frames, timestamps, the frames' poses as <Board>ToCamera "
+                  "transforms")
       ->capture_default_str()
-      ->check(CLI::IsMember({"jpg", "png"}));
+      ->check(CLI::IsMember({"jpg", "png", "plus"}));
   cmd->add_option("--quality", args->quality, "JPEG quality for frames that are encoded here")
       ->capture_default_str()
       ->check(in_range(1, 100, true));
@@ -56,7 +62,8 @@ void add_record_command(CLI::App& app) {
                       {"--boards", args->boards},
                       {"--camera", args->camera},
                       {"--plan", args->plan}},
-                     {{"--out", args->out, OutputKind::kFolder}}});
+                     {{"--out", args->out,
+                       args->format == "plus" ? OutputKind::kFile : OutputKind::kFolder}}});
     args->stop = stop_on_signals();
     pipelines::run_record(*args);
   });

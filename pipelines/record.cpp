@@ -33,6 +33,12 @@ tracking::RecordSummary run_record(const RecordRequest& r) {
   if (r.frames < 0 && r.seconds < 0 && r.source.rfind("v4l2:", 0) == 0) {
     spdlog::info("record: no frame or time limit: recording until Ctrl-C");
   }
+  if (r.format == "plus") {
+    const tracking::RecordSummary s = tracking::record_to_plus_sequence(*source, r.out, options);
+    spdlog::info("record: wrote {} frames to the sequence file {} in {:.1f} s ({} with a problem)",
+                 s.frames, s.path, s.seconds, s.problems);
+    return s;
+  }
   const tracking::RecordSummary s = tracking::record_to_folder(*source, r.out, options);
   spdlog::info(
       "record: wrote {} frames to {} in {:.1f} s ({} without image data skipped, {} "

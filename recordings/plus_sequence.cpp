@@ -421,18 +421,8 @@ PlusSequence read_plus_sequence(const std::string& path) {
   return read_metaimage(path, bytes);
 }
 
-void write_plus_sequence(const std::string& path, const PlusSequence& s) {
-  const int bytes_per = element_bytes(s.element_type);
-  if (bytes_per == 0) throw Error(path + ": element type '" + s.element_type + "' is not a pixel type");
+std::string plus_sequence_header(const PlusSequence& s) {
   const bool images = s.width > 0 && s.height > 0;
-  const size_t expected = images ? size_t(s.width) * size_t(s.height) * s.frames.size() *
-                                       size_t(s.channels) * size_t(bytes_per)
-                                 : 0;
-  if (s.pixels.size() != expected) {
-    throw Error(path + ": " + std::to_string(s.pixels.size()) + " bytes of pixels for " +
-                std::to_string(s.frames.size()) + " frames of " + std::to_string(s.width) + "x" +
-                std::to_string(s.height) + ", expected " + std::to_string(expected));
-  }
   std::ostringstream h;
   h << "ObjectType = Image\nNDims = 3\n";
   for (const auto& [key, value] : s.header) h << key << " = " << value << "\n";
@@ -447,7 +437,22 @@ void write_plus_sequence(const std::string& path, const PlusSequence& s) {
     for (const auto& [name, value] : s.frames[f].fields) h << prefix << name << " = " << value << "\n";
   }
   h << "ElementDataFile = LOCAL\n";
-  std::string out = h.str();
+  return h.str();
+}
+
+void write_plus_sequence(const std::string& path, const PlusSequence& s) {
+  const int bytes_per = element_bytes(s.element_type);
+  if (bytes_per == 0) throw Error(path + ": element type '" + s.element_type + "' is not a pixel type");
+  const bool images = s.width > 0 && s.height > 0;
+  const size_t expected = images ? size_t(s.width) * size_t(s.height) * s.frames.size() *
+                                       size_t(s.channels) * size_t(bytes_per)
+                                 : 0;
+  if (s.pixels.size() != expected) {
+    throw Error(path + ": " + std::to_string(s.pixels.size()) + " bytes of pixels for " +
+                std::to_string(s.frames.size()) + " frames of " + std::to_string(s.width) + "x" +
+                std::to_string(s.height) + ", expected " + std::to_string(expected));
+  }
+  std::string out = plus_sequence_header(s);
   out.append(reinterpret_cast<const char*>(s.pixels.data()), s.pixels.size());
   write_binary_file(path, out.data(), out.size());
 }

@@ -57,6 +57,10 @@ PlusSequence read_plus_sequence(const std::string& path);
 // or not at all. Throws Error naming the file when the pixels do not match the sizes.
 void write_plus_sequence(const std::string& path, const PlusSequence& sequence);
 
+// The MetaImage header write_plus_sequence writes (up to and with "ElementDataFile = LOCAL"), for
+// a writer that streams the pixels itself: `sequence`'s pixels are not looked at.
+std::string plus_sequence_header(const PlusSequence& sequence);
+
 // "StylusToTracker" from "StylusToTrackerTransform"; "" when `field` names no transform.
 std::string plus_transform_name(const std::string& field);
 

@@ -4,11 +4,16 @@
 #include <algorithm>
 #include <cctype>
 #include <chrono>
+#include <fstream>
+#include <cstring>
+#include <cstdio>
+#include <cerrno>
 #include <cmath>
 #include <filesystem>
 #include <optional>
 #include <thread>
 
+#include <fmt/format.h>
 #include <opencv2/imgproc.hpp>
 
 #include "foundation/error.hpp"
@@ -399,6 +404,102 @@ RecordSummary record_to_folder(FrameSource& source, const std::string& out_dir,
     }
   }
   return recorder.finish();
+}
+
+RecordSummary record_to_plus_sequence(FrameSource& source, const std::string& path,
+                                      const RecordOptions& options) {
+  const auto t0 = std::chrono::steady_clock::now();
+  RecordSummary summary;
+  summary.path = path;
+  // The pixels go to a scratch file while the frames' fields are gathered; the header (which
+  // lists every frame's fields) then goes before them.
+  PendingFile scratch(path + ".pixels");
+  std::FILE* pixels = std::fopen(scratch.temporary().c_str(), "wb");
+  if (!pixels) throw Error(path + ": cannot write the sequence's image frames (" + std::strerror(errno) + ")");
+  struct Closer {
+    std::FILE*& f;
+    ~Closer() { if (f) std::fclose(f); }
+  } closer{pixels};
+  recordings::PlusSequence seq;
+  seq.header = {{"AnatomicalOrientation", "RAI"}, {"Kinds", "domain domain list"},
+                {"ElementSpacing", "1 1 1"},      {"Offset", "0 0 0"},
+                {"TransformMatrix", "1 0 0 0 1 0 0 0 1"}, {"UltrasoundImageOrientation", "MF"}};
+  seq.channels = 3;
+  int64_t blank_before_size = 0;  // frames before the first image: black once its size is known
+  const auto write_black = [&](int64_t frames) {
+    const std::vector<uint8_t> black(size_t(seq.width) * size_t(seq.height) * 3, 0);
+    for (int64_t k = 0; k < frames; ++k) std::fwrite(black.data(), 1, black.size(), pixels);
+  };
+  int64_t first_ns = 0;
+  bool have_first = false;
+  for (std::optional<Frame> frame = source.next(); frame; frame = source.next()) {
+    if (options.stop && options.stop->load()) break;
+    if (!have_first) {
+      first_ns = frame->timestamp_ns;
+      have_first = true;
+    }
+    if (options.max_seconds >= 0 && double(frame->timestamp_ns - first_ns) * 1e-9 >= options.max_seconds) {
+      break;
+    }
+    if (!frame->problem.empty()) {
+      spdlog::warn("record: frame {}: {}", frame->index, frame->problem);
+      ++summary.problems;
+    }
+    recordings::PlusFrame f;
+    f.fields.emplace_back("FrameNumber", std::to_string(frame->index));
+    f.fields.emplace_back("Timestamp", fmt::format("{:.6f}", double(frame->timestamp_ns) * 1e-9));
+    const bool image = !frame->image.empty() && frame->image.type() == CV_8UC3 &&
+                       (seq.width == 0 || (frame->image.cols == seq.width && frame->image.rows == seq.height));
+    if (image && seq.width == 0) {
+      seq.width = frame->image.cols;
+      seq.height = frame->image.rows;
+      write_black(blank_before_size);
+    }
+    if (image) {
+      cv::Mat rgb;
+      cv::cvtColor(frame->image, rgb, cv::COLOR_BGR2RGB);
+      for (int r = 0; r < rgb.rows; ++r) std::fwrite(rgb.ptr(r), 1, size_t(rgb.cols) * 3, pixels);
+    } else if (seq.width > 0) {
+      write_black(1);
+    } else {
+      ++blank_before_size;
+    }
+    f.fields.emplace_back("ImageStatus", image ? "OK" : "INVALID");
+    for (const TruePose& pose : frame->truth) {
+      std::string name = pose.board;
+      if (!name.empty()) name[0] = char(std::toupper(static_cast<unsigned char>(name[0])));
+      if (name.size() < 2 || name.find("To") == std::string::npos) name += "ToCamera";
+      std::string m;
+      for (int k = 0; k < 16; ++k) m += fmt::format("{}{:.10g}", k ? " " : "", pose.T_cam_board.matrix()(k / 4, k % 4));
+      f.fields.emplace_back(name + "Transform", m);
+      f.fields.emplace_back(name + "TransformStatus", "OK");
+      ++summary.truth_rows;
+    }
+    seq.frames.push_back(std::move(f));
+    ++summary.frames;
+    if (options.max_frames >= 0 && summary.frames >= options.max_frames) break;
+  }
+  if (std::fflush(pixels) != 0 || std::ferror(pixels)) {
+    throw Error(path + ": cannot write the sequence's image frames");
+  }
+  std::fclose(pixels);
+  pixels = nullptr;
+  // The header, then the staged pixels, through the file's own temporary.
+  PendingFile out(path);
+  {
+    std::ofstream o(out.temporary(), std::ios::binary);
+    const std::string header = recordings::plus_sequence_header(seq);
+    o.write(header.data(), std::streamsize(header.size()));
+    if (seq.width > 0) {
+      std::ifstream in(scratch.temporary(), std::ios::binary);
+      o << in.rdbuf();
+    }
+    o.flush();
+    if (!o) throw Error(path + ": cannot write the sequence file");
+  }
+  out.commit();
+  summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return summary;
 }
 
 }  // namespace crepuscular::tracking

@@ -122,4 +122,12 @@ class FrameRecorder {
 RecordSummary record_to_folder(FrameSource& source, const std::string& out_dir,
                                const RecordOptions& options);
 
+// The same frames into a PLUS sequence file (.igs.mha, .seq.mha) for 3D Slicer's Sequences module
+// and PLUS: colour image frames (RGB, of the first frame's size; a frame without an image, or of
+// another size, is black with ImageStatus INVALID), the timestamps, and the frames' poses
+// (synthetic truth, a sequence's transforms) as <Board>ToCameraTransform. The pixels are staged
+// beside the file while recording; the file appears complete at the end or not at all.
+RecordSummary record_to_plus_sequence(FrameSource& source, const std::string& path,
+                                      const RecordOptions& options);
+
 }  // namespace crepuscular::tracking
