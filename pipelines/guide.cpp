@@ -156,25 +156,21 @@ class GuideOutputs {
 
   // One frame of the poses' sequence file.
   static recordings::PlusFrame pose_frame(const tracking::Frame& frame, const GuideFrameResult& r) {
-    const auto matrix = [](const Eigen::Matrix4d& m) {
-      std::string t;
-      for (int k = 0; k < 16; ++k) t += fmt::format("{}{:.10g}", k ? " " : "", m(k / 4, k % 4));
-      return t;
-    };
     recordings::PlusFrame f;
     f.fields.emplace_back("FrameNumber", std::to_string(frame.index));
     f.fields.emplace_back("Timestamp", fmt::format("{:.6f}", double(frame.timestamp_ns) * 1e-9));
     f.fields.emplace_back("ImageStatus", "INVALID");  // poses only, no image frames
     for (const tracking::BoardStatus& b : r.boards) {
-      std::string name = b.board;
-      if (!name.empty()) name[0] = char(std::toupper(static_cast<unsigned char>(name[0])));
+      const std::string name = recordings::plus_tool_name(b.board);
       f.fields.emplace_back(name + "ToCameraTransform",
-                            matrix(b.tracked ? b.T_cam_board.matrix() : Eigen::Matrix4d::Identity()));
+                            recordings::plus_matrix_text(b.tracked ? b.T_cam_board.matrix()
+                                                                   : Eigen::Matrix4d::Identity()));
       f.fields.emplace_back(name + "ToCameraTransformStatus", b.tracked ? "OK" : "INVALID");
     }
     const bool needle = r.info.needle.has_value();
-    f.fields.emplace_back("NeedleToCTTransform", matrix(needle ? r.info.needle->T_ct_needle.matrix()
-                                                               : Eigen::Matrix4d::Identity()));
+    f.fields.emplace_back("NeedleToCTTransform",
+                          recordings::plus_matrix_text(needle ? r.info.needle->T_ct_needle.matrix()
+                                                              : Eigen::Matrix4d::Identity()));
     f.fields.emplace_back("NeedleToCTTransformStatus", needle ? "OK" : "INVALID");
     if (needle) {
       f.fields.emplace_back("NeedleSafety", planning::needle_safety_name(r.info.needle->state.safety));

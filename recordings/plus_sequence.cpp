@@ -237,6 +237,39 @@ PlusSequence finish(const std::string& path, Parsed& p, std::vector<uint8_t> pix
   return s;
 }
 
+// The image data after the header: `encoding` "raw", "zlib" or "gzip", byte-swapped to little
+// endian when big_endian; then the frames' fields made into the sequence.
+PlusSequence with_image_data(const std::string& path, Parsed& p, const std::string& bytes,
+                             size_t pos, const std::vector<size_t>& sizes, int channels,
+                             const std::string& type, const std::string& encoding,
+                             bool big_endian) {
+  const int bytes_per = element_bytes(type);
+  const size_t frames = sizes.size() == 3 ? sizes[2] : 1;
+  const size_t count = sizes[0] * sizes[1] * frames;
+  if (count > (size_t(1) << 32)) throw Error(path + ": its sizes call for too many pixels");
+  const size_t expected = count * size_t(channels) * size_t(bytes_per);
+  const uint8_t* data = reinterpret_cast<const uint8_t*>(bytes.data()) + pos;
+  const size_t available = bytes.size() - pos;
+  std::vector<uint8_t> pixels;
+  if (encoding == "zlib" || encoding == "gzip") {
+    pixels = inflate_exactly(path, data, available, expected, encoding == "gzip");
+  } else {
+    if (available < expected) {
+      throw Error(path + ": the image data holds " + std::to_string(available) + " bytes, its " +
+                  "sizes call for " + std::to_string(expected));
+    }
+    pixels.assign(data, data + expected);
+  }
+  if (big_endian && bytes_per > 1) {
+    for (size_t i = 0; i + size_t(bytes_per) <= pixels.size(); i += size_t(bytes_per)) {
+      std::reverse(pixels.begin() + long(i), pixels.begin() + long(i) + bytes_per);
+    }
+  }
+  const bool images = sizes[0] > 0 && sizes[1] > 0;
+  return finish(path, p, images ? std::move(pixels) : std::vector<uint8_t>(),
+                images ? int(sizes[0]) : 0, images ? int(sizes[1]) : 0, channels, type, frames);
+}
+
 PlusSequence read_metaimage(const std::string& path, const std::string& bytes) {
   size_t pos = 0;
   const std::vector<std::string> lines = header_lines(path, bytes, false, &pos);
@@ -286,30 +319,8 @@ PlusSequence read_metaimage(const std::string& path, const std::string& bytes) {
                            : 1;
   if (channels < 1 || channels > 4) throw Error(path + ": " + std::to_string(channels) + " channels");
   const bool msb = known["BinaryDataByteOrderMSB"] == "True" || known["ElementByteOrderMSB"] == "True";
-  const size_t frames = ndims == 3 ? sizes[2] : 1;
-  const size_t count = sizes[0] * sizes[1] * frames;
-  if (count > (size_t(1) << 32)) throw Error(path + ": its sizes call for too many pixels");
-  const size_t expected = count * size_t(channels) * size_t(bytes_per);
-  const uint8_t* data = reinterpret_cast<const uint8_t*>(bytes.data()) + pos;
-  const size_t available = bytes.size() - pos;
-  std::vector<uint8_t> pixels;
-  if (known["CompressedData"] == "True") {
-    pixels = inflate_exactly(path, data, available, expected, false);
-  } else {
-    if (available < expected) {
-      throw Error(path + ": the image data holds " + std::to_string(available) + " bytes, its " +
-                  "sizes call for " + std::to_string(expected));
-    }
-    pixels.assign(data, data + expected);
-  }
-  if (msb && bytes_per > 1) {
-    for (size_t i = 0; i + size_t(bytes_per) <= pixels.size(); i += size_t(bytes_per)) {
-      std::reverse(pixels.begin() + long(i), pixels.begin() + long(i) + bytes_per);
-    }
-  }
-  const bool images = sizes[0] > 0 && sizes[1] > 0;
-  return finish(path, p, images ? std::move(pixels) : std::vector<uint8_t>(),
-                images ? int(sizes[0]) : 0, images ? int(sizes[1]) : 0, channels, type, frames);
+  return with_image_data(path, p, bytes, pos, sizes, channels, type,
+                         known["CompressedData"] == "True" ? "zlib" : "raw", msb);
 }
 
 PlusSequence read_nrrd(const std::string& path, const std::string& bytes) {
@@ -357,34 +368,12 @@ PlusSequence read_nrrd(const std::string& path, const std::string& bytes) {
   for (const auto& d : dims) sizes.push_back(checked_count(path, "sizes", d));
   const std::string type = nrrd_element_type(fields["type"]);
   if (type.empty()) throw Error(path + ": type '" + fields["type"] + "' is not a pixel type");
-  const size_t frames = dimension == 3 ? sizes[2] : 1;
-  const size_t count = sizes[0] * sizes[1] * frames;
-  if (count > (size_t(1) << 32)) throw Error(path + ": its sizes call for too many pixels");
-  const size_t expected = count * size_t(element_bytes(type));
-  const uint8_t* data = reinterpret_cast<const uint8_t*>(bytes.data()) + pos;
-  const size_t available = bytes.size() - pos;
-  const std::string encoding = fields["encoding"];
-  std::vector<uint8_t> pixels;
-  if (encoding == "gz" || encoding == "gzip") {
-    pixels = inflate_exactly(path, data, available, expected, true);
-  } else if (encoding == "raw") {
-    if (available < expected) {
-      throw Error(path + ": the data holds " + std::to_string(available) + " bytes, its sizes "
-                  "call for " + std::to_string(expected));
-    }
-    pixels.assign(data, data + expected);
-  } else {
-    throw Error(path + ": encoding '" + encoding + "': sequence files are read raw or gzip");
+  std::string encoding = fields["encoding"];
+  if (encoding == "gz") encoding = "gzip";
+  if (encoding != "gzip" && encoding != "raw") {
+    throw Error(path + ": encoding '" + fields["encoding"] + "': sequence files are read raw or gzip");
   }
-  if (fields["endian"] == "big" && element_bytes(type) > 1) {
-    const int b = element_bytes(type);
-    for (size_t i = 0; i + size_t(b) <= pixels.size(); i += size_t(b)) {
-      std::reverse(pixels.begin() + long(i), pixels.begin() + long(i) + b);
-    }
-  }
-  const bool images = sizes[0] > 0 && sizes[1] > 0;
-  return finish(path, p, images ? std::move(pixels) : std::vector<uint8_t>(),
-                images ? int(sizes[0]) : 0, images ? int(sizes[1]) : 0, 1, type, frames);
+  return with_image_data(path, p, bytes, pos, sizes, 1, type, encoding, fields["endian"] == "big");
 }
 
 }  // namespace
@@ -404,6 +393,22 @@ std::vector<std::string> PlusSequence::transform_names() const {
 }
 
 int PlusSequence::bytes_per_pixel() const { return element_bytes(element_type); }
+
+std::string plus_matrix_text(const Eigen::Matrix4d& m) {
+  std::string text;
+  char number[32];
+  for (int k = 0; k < 16; ++k) {
+    std::snprintf(number, sizeof(number), "%s%.10g", k ? " " : "", m(k / 4, k % 4));
+    text += number;
+  }
+  return text;
+}
+
+std::string plus_tool_name(const std::string& name) {
+  std::string out = name;
+  if (!out.empty()) out[0] = char(std::toupper(static_cast<unsigned char>(out[0])));
+  return out;
+}
 
 std::string plus_transform_name(const std::string& field) {
   const std::string suffix = "Transform";

@@ -61,6 +61,11 @@ void write_plus_sequence(const std::string& path, const PlusSequence& sequence);
 // a writer that streams the pixels itself: `sequence`'s pixels are not looked at.
 std::string plus_sequence_header(const PlusSequence& sequence);
 
+// A transform's 16 numbers as a sequence file holds them (row-major, 10 significant digits).
+std::string plus_matrix_text(const Eigen::Matrix4d& m);
+// A board's name as the first part of a PLUS transform name: "patient" -> "Patient".
+std::string plus_tool_name(const std::string& name);
+
 // "StylusToTracker" from "StylusToTrackerTransform"; "" when `field` names no transform.
 std::string plus_transform_name(const std::string& field);
 

@@ -466,12 +466,10 @@ RecordSummary record_to_plus_sequence(FrameSource& source, const std::string& pa
     }
     f.fields.emplace_back("ImageStatus", image ? "OK" : "INVALID");
     for (const TruePose& pose : frame->truth) {
-      std::string name = pose.board;
-      if (!name.empty()) name[0] = char(std::toupper(static_cast<unsigned char>(name[0])));
-      if (name.size() < 2 || name.find("To") == std::string::npos) name += "ToCamera";
-      std::string m;
-      for (int k = 0; k < 16; ++k) m += fmt::format("{}{:.10g}", k ? " " : "", pose.T_cam_board.matrix()(k / 4, k % 4));
-      f.fields.emplace_back(name + "Transform", m);
+      // A board's pose in the camera; a sequence's own transform keeps its name.
+      std::string name = recordings::plus_tool_name(pose.board);
+      if (name.find("To") == std::string::npos) name += "ToCamera";
+      f.fields.emplace_back(name + "Transform", recordings::plus_matrix_text(pose.T_cam_board.matrix()));
       f.fields.emplace_back(name + "TransformStatus", "OK");
       ++summary.truth_rows;
     }
